@@ -1,0 +1,28 @@
+# Set-up and the two everyday jobs. `make test` and `make suite` each do all the set-up on a fresh
+# machine: a virtual environment in .venv with torch's CPU build (never the multi-GB CUDA download).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: setup test suite lint clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	python3 -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "torch==2.13.0"
+	$(PY) -m pip install --quiet -e ".[all]"
+	touch $(STAMP)
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+test: lint
+	$(VENV)/bin/pytest -n 2 -q
+
+suite: setup
+	$(VENV)/bin/hil demo --out reports/demo
+
+clean:
+	rm -rf $(VENV) reports .pytest_cache .ruff_cache

@@ -1,0 +1,68 @@
+"""Physics backends behind one interface, selectable by name (`native`, `jsbsim`).
+
+A backend integrates one vehicle's rigid body under four motor throttle commands u in [0, 1] (see
+`emulator.profile` for the rotor layout and frames). Backends are looked up lazily so that an
+optional engine (jsbsim) fails only for those who ask for it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Protocol
+
+import numpy as np
+
+from emulator.physics.state import VehicleState
+from emulator.profile import VehicleProfile
+
+DEFAULT_DT_S = 0.001  # 1 kHz
+
+
+class PhysicsBackend(Protocol):
+    """One vehicle stepped at a fixed ``dt_s``."""
+
+    name: str
+    profile: VehicleProfile
+    dt_s: float
+
+    def reset(self, state: VehicleState) -> None:
+        """Put the vehicle in ``state`` (its time_s becomes the backend's clock)."""
+
+    def step(self, motor_cmd: np.ndarray, n_steps: int = 1) -> None:
+        """Hold throttle ``motor_cmd`` (4,) in [0, 1] for ``n_steps`` steps of ``dt_s``."""
+
+    def set_external_force(self, force_world_n: np.ndarray) -> None:
+        """A disturbance force (wind gust) in world ENU (N), held until changed."""
+
+    @property
+    def state(self) -> VehicleState:
+        """The current state."""
+
+    def close(self) -> None:
+        """Release the engine; idempotent."""
+
+
+_BACKENDS: dict[str, tuple[str, str]] = {
+    "native": ("emulator.physics.native", "NativeBackend"),
+    "jsbsim": ("emulator.physics.jsbsim_backend", "JSBSimBackend"),
+}
+
+
+def backend_names() -> list[str]:
+    """Names accepted by `make_backend`."""
+    return sorted(_BACKENDS)
+
+
+def make_backend(name: str, profile: VehicleProfile, dt_s: float = DEFAULT_DT_S) -> PhysicsBackend:
+    """Create a backend by name; a clear error for an unknown name or a missing optional engine."""
+    if name not in _BACKENDS:
+        raise ValueError(f"unknown physics backend '{name}' (choose from: {', '.join(backend_names())})")
+    module_name, class_name = _BACKENDS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise RuntimeError(
+            f"physics backend '{name}' needs an optional dependency: {exc}. "
+            "Install it with: pip install 'crossgap-hil[jsbsim]'"
+        ) from exc
+    return getattr(module, class_name)(profile, dt_s=dt_s)

@@ -1,0 +1,1 @@
+"""Bench groups for `hil bench`: one module per area, each with ``collect(quick) -> rows``."""

@@ -1,0 +1,114 @@
+"""The transport interface: a byte stream between two endpoints, whatever carries it.
+
+Template method after python-can: the public `recv(timeout_s)` owns waiting and statistics; each
+transport implements `_send_internal` and `_recv_internal`. Datagram transports (UDP) are presented
+as byte streams too: framing (MAVLink, LinkTrack) lives above, in the codecs.
+"""
+
+from __future__ import annotations
+
+import select
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+
+
+class LinkError(OSError):
+    """A transport cannot be opened or has failed (peer gone, device vanished)."""
+
+
+@dataclass
+class LinkStats:
+    """Counters kept by every transport (bytes)."""
+
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    bytes_dropped: int = 0  # refused or lost because a buffer was full
+    send_calls: int = 0
+    recv_calls: int = 0
+
+
+class Transport(ABC):
+    """A bidirectional byte stream. Context manager; `close()` is idempotent."""
+
+    #: where a peer reaches this end, e.g. "/dev/pts/5" or "udp:127.0.0.1:14550"
+    endpoint: str = ""
+
+    def __init__(self) -> None:
+        self.stats = LinkStats()
+        self._closed = False
+
+    # --- public API ----------------------------------------------------------------------
+    def send(self, data: bytes) -> int:
+        """Send ``data``; returns how many bytes were accepted (the rest counted as dropped)."""
+        if self._closed:
+            raise LinkError(f"{self.endpoint or type(self).__name__}: send on a closed link")
+        if not data:
+            return 0
+        n = self._send_internal(bytes(data))
+        self.stats.send_calls += 1
+        self.stats.bytes_sent += n
+        self.stats.bytes_dropped += len(data) - n
+        return n
+
+    def recv(self, timeout_s: float | None = 0.0, max_bytes: int = 65536) -> bytes:
+        """Bytes available now, waiting up to ``timeout_s`` (None: forever) for the first ones.
+
+        Returns b"" when nothing arrived in time. Raises LinkError when the link is closed.
+        """
+        if self._closed:
+            raise LinkError(f"{self.endpoint or type(self).__name__}: recv on a closed link")
+        deadline = None if timeout_s is None else time.monotonic() + max(0.0, timeout_s)
+        while True:
+            data = self._recv_internal(max_bytes)
+            if data:
+                self.stats.recv_calls += 1
+                self.stats.bytes_received += len(data)
+                return data
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                return b""
+            self._wait_readable(remaining)
+
+    def fileno(self) -> int:
+        """A file descriptor that becomes readable when data may be there (for select)."""
+        raise NotImplementedError(f"{type(self).__name__} has no file descriptor")
+
+    def close(self) -> None:
+        """Release the transport; calling it again does nothing."""
+        if not self._closed:
+            self._closed = True
+            self._close_internal()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.endpoint!r}{' closed' if self._closed else ''}>"
+
+    # --- for implementations -------------------------------------------------------------
+    @abstractmethod
+    def _send_internal(self, data: bytes) -> int:
+        """Write what fits; return the number of bytes accepted. Must not block for long."""
+
+    @abstractmethod
+    def _recv_internal(self, max_bytes: int) -> bytes:
+        """Return the bytes available now, or b"" without blocking."""
+
+    @abstractmethod
+    def _close_internal(self) -> None:
+        """Release resources (called once)."""
+
+    def _wait_readable(self, timeout_s: float | None) -> None:
+        """Block until data may be readable or ``timeout_s`` passes; default uses select on fileno()."""
+        select.select([self.fileno()], [], [], timeout_s)
