@@ -1,0 +1,127 @@
+"""In-process transport: two connected ends sharing bounded byte buffers, one per direction.
+
+Used by fast tests and by the in-process runner. Each direction holds at most ``capacity_bytes``;
+what does not fit is dropped and counted in the sender's `stats.bytes_dropped`, as a full UART
+FIFO would lose it. Each end has a real file descriptor (the read end of an os.pipe carrying one
+wake-up byte while data is waiting), so `select` works on it like on a socket or a pty.
+
+When one end is closed, the other keeps reading what was already in flight; after that its
+`recv` returns b"" on timeout, and its sends are dropped and counted (nobody is listening).
+`peer_closed` tells the two cases apart.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from hil.link.transport import Transport
+
+DEFAULT_CAPACITY_BYTES = 65536
+
+
+class _Channel:
+    """One direction: a bounded buffer plus a pipe that is readable exactly while data waits."""
+
+    def __init__(self, capacity_bytes: int) -> None:
+        self.capacity_bytes = capacity_bytes
+        self.buf = bytearray()
+        self.lock = threading.Lock()
+        self.wake_r, self.wake_w = os.pipe()
+        os.set_blocking(self.wake_r, False)
+        os.set_blocking(self.wake_w, False)
+        self._signalled = False
+        self.fds_open = True
+
+    def put(self, data: bytes) -> int:
+        with self.lock:
+            n = min(len(data), self.capacity_bytes - len(self.buf))
+            if n <= 0 or not self.fds_open:
+                return 0
+            self.buf += data[:n]
+            if not self._signalled:
+                os.write(self.wake_w, b"\x01")
+                self._signalled = True
+            return n
+
+    def take(self, max_bytes: int) -> bytes:
+        with self.lock:
+            if not self.buf:
+                return b""
+            out = bytes(self.buf[:max_bytes])
+            del self.buf[:max_bytes]
+            if not self.buf and self._signalled and self.fds_open:
+                os.read(self.wake_r, 1)
+                self._signalled = False
+            return out
+
+    def release(self) -> None:
+        with self.lock:
+            if self.fds_open:
+                self.fds_open = False
+                os.close(self.wake_r)
+                os.close(self.wake_w)
+
+
+class _PairState:
+    """What the two ends share: their channels and who is still open."""
+
+    def __init__(self, capacity_bytes: int) -> None:
+        self.channels = (_Channel(capacity_bytes), _Channel(capacity_bytes))
+        self.open_ends = [True, True]
+        self.lock = threading.Lock()
+
+
+class MemoryTransport(Transport):
+    """One end of an in-process byte link. Create with `MemoryTransport.pair()`."""
+
+    def __init__(self, state: _PairState, side: int, name: str = "memory") -> None:
+        super().__init__()
+        self._state = state
+        self._side = side
+        self._rx = state.channels[side]
+        self._tx = state.channels[1 - side]
+        self.endpoint = f"{name}:{'ab'[side]}"
+        self.peer: MemoryTransport | None = None
+
+    @classmethod
+    def pair(
+        cls, capacity_bytes: int = DEFAULT_CAPACITY_BYTES, name: str = "memory"
+    ) -> tuple[MemoryTransport, MemoryTransport]:
+        """Two connected ends; each direction buffers at most ``capacity_bytes`` (bytes)."""
+        if capacity_bytes <= 0:
+            raise ValueError(f"capacity_bytes must be positive, got {capacity_bytes}")
+        state = _PairState(int(capacity_bytes))
+        a, b = cls(state, 0, name), cls(state, 1, name)
+        a.peer, b.peer = b, a
+        return a, b
+
+    @property
+    def peer_closed(self) -> bool:
+        """True once the other end has been closed."""
+        return not self._state.open_ends[1 - self._side]
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes waiting to be read at this end."""
+        return len(self._rx.buf)
+
+    def fileno(self) -> int:
+        if self._closed:
+            raise ValueError(f"{self.endpoint}: fileno on a closed link")
+        return self._rx.wake_r
+
+    def _send_internal(self, data: bytes) -> int:
+        if self.peer_closed:
+            return 0
+        return self._tx.put(data)
+
+    def _recv_internal(self, max_bytes: int) -> bytes:
+        return self._rx.take(max_bytes)
+
+    def _close_internal(self) -> None:
+        with self._state.lock:
+            self._state.open_ends[self._side] = False
+            if not any(self._state.open_ends):
+                for ch in self._state.channels:
+                    ch.release()
