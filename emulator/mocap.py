@@ -1,0 +1,201 @@
+"""The motion-capture system: tracks rigid bodies (vehicle, gap) at a fixed rate with camera and
+processing latency, position and attitude noise and occlusion dropouts. Seeded; world ENU, SI units."""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+MIN_RATE_HZ = 100.0
+MAX_RATE_HZ = 360.0
+MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
+
+
+def optitrack_latency_s(rate_hz: float) -> float:
+    """Camera latency of an OptiTrack-class system at ``rate_hz`` (s): 5.56 ms up to 180 Hz,
+    4.17 ms up to 240 Hz, 2.78 ms up to 360 Hz (published figures, stepped between them)."""
+    if rate_hz <= 180.0:
+        return 5.56e-3
+    if rate_hz <= 240.0:
+        return 4.17e-3
+    return 2.78e-3
+
+
+@dataclass(frozen=True)
+class BodyPose:
+    """A rigid body's true pose: position (m, ENU) and attitude body->world (w, x, y, z)."""
+
+    pos_m: np.ndarray
+    quat_wxyz: np.ndarray
+
+
+def pose_of(obj: object) -> BodyPose:
+    """The pose of ``obj``: a position from ``pos_m`` (or ``centre_m``, as a gap has) and an attitude
+    from ``quat_wxyz`` (attribute or method). Raises TypeError naming what is missing."""
+    pos = getattr(obj, "pos_m", None)
+    if pos is None:
+        pos = getattr(obj, "centre_m", None)
+    quat = getattr(obj, "quat_wxyz", None)
+    if callable(quat):
+        quat = quat()
+    if pos is None or quat is None:
+        raise TypeError(f"{type(obj).__name__} has no pose: need pos_m (or centre_m) and quat_wxyz")
+    return BodyPose(pos_m=np.asarray(pos, dtype=float).reshape(3),
+                    quat_wxyz=np.asarray(quat, dtype=float).reshape(4))
+
+
+@dataclass(frozen=True)
+class MocapConfig:
+    """Tracker settings. ``latency_s`` None takes the OptiTrack camera figure for ``rate_hz``."""
+
+    rate_hz: float = 120.0
+    latency_s: float | None = None  # camera latency (s); None: optitrack_latency_s(rate_hz)
+    processing_s: float = 0.5e-3  # mean extra processing latency (s), exponentially distributed
+    pos_noise_m: float = 0.2e-3  # position noise, std per axis (m)
+    att_noise_rad: float = 1.0e-3  # attitude noise, std per axis of a small rotation (rad)
+    occlusion_prob: float = 0.0  # chance per frame and body that an occlusion starts
+    occlusion_mean_s: float = 0.05  # mean occlusion length (s), exponentially distributed
+
+    def __post_init__(self) -> None:
+        if not MIN_RATE_HZ <= self.rate_hz <= MAX_RATE_HZ:
+            raise ValueError(
+                f"mocap rate_hz must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], got {self.rate_hz}")
+        for name in ("processing_s", "pos_noise_m", "att_noise_rad", "occlusion_mean_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"mocap {name} must be finite and >= 0, got {v}")
+        if self.latency_s is not None and not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise ValueError(f"mocap latency_s must be finite and >= 0, got {self.latency_s}")
+        if not 0.0 <= self.occlusion_prob <= 1.0:
+            raise ValueError(f"mocap occlusion_prob must be in [0, 1], got {self.occlusion_prob}")
+
+    @property
+    def camera_latency_s(self) -> float:
+        """The fixed part of the latency (s)."""
+        return optitrack_latency_s(self.rate_hz) if self.latency_s is None else self.latency_s
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+@dataclass(frozen=True)
+class TrackedBody:
+    """One body in a mocap frame: measured pose, or ``valid`` False while it is occluded."""
+
+    body_id: int
+    pos_m: np.ndarray
+    quat_wxyz: np.ndarray
+    valid: bool
+
+
+@dataclass(frozen=True)
+class MocapFrame:
+    """A frame: exposure time ``stamp_s`` (mocap time), when it leaves the mocap PC ``ready_s``, bodies."""
+
+    frame_no: int
+    stamp_s: float
+    ready_s: float
+    bodies: tuple[TrackedBody, ...]
+
+
+@dataclass
+class MocapStats:
+    frames: int = 0
+    bodies_occluded: int = 0  # body-frames reported invalid
+    frames_skipped: int = 0  # exposures not taken because update() came too late
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of the rotation vector ``v`` (rad)."""
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.array([1.0, *(0.5 * np.asarray(v))])
+    s = math.sin(0.5 * angle) / angle
+    return np.array([math.cos(0.5 * angle), v[0] * s, v[1] * s, v[2] * s])
+
+
+class MocapSystem:
+    """Samples true poses on its frame grid (k / rate_hz) and releases frames after their latency.
+
+    Scheduler-friendly: call ``update(now_s, truth)`` at any times; each exposure due by ``now_s`` is
+    taken from the truth given in that call (sample and hold), and frames whose latency has passed are
+    returned. ``next_event_s()`` says when to call next.
+    """
+
+    def __init__(self, config: MocapConfig, rng: np.random.Generator) -> None:
+        self.config = config
+        self._rng = rng
+        self._next_exposure_k = 0
+        self._pending: list[tuple[float, int, MocapFrame]] = []
+        self._occluded_until: dict[int, float] = {}
+        self.stats = MocapStats()
+
+    def next_event_s(self) -> float:
+        """The next time something happens: an exposure or a frame leaving (s)."""
+        t = self._next_exposure_k * self.config.period_s
+        return min(t, self._pending[0][0]) if self._pending else t
+
+    def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
+        """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads);
+        return the frames ready by then, oldest first."""
+        period = self.config.period_s
+        if now_s - self._next_exposure_k * period > MAX_CATCH_UP_S:
+            # called after a long gap (or first at a late time): do not replay frames nobody could see
+            skip_to = math.floor(now_s / period)
+            self.stats.frames_skipped += skip_to - self._next_exposure_k
+            self._next_exposure_k = skip_to
+        while self._next_exposure_k * period <= now_s + 1e-12:
+            k = self._next_exposure_k
+            self._next_exposure_k += 1
+            frame = self._expose(k, k * period, truth)
+            heapq.heappush(self._pending, (frame.ready_s, k, frame))
+        out = []
+        while self._pending and self._pending[0][0] <= now_s + 1e-12:
+            out.append(heapq.heappop(self._pending)[2])
+        return out
+
+    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> MocapFrame:
+        cfg, rng = self.config, self._rng
+        bodies = []
+        for body_id in sorted(truth):
+            pose = pose_of(truth[body_id])
+            pos, quat = pose.pos_m, pose.quat_wxyz
+            finite = bool(np.all(np.isfinite(pos)) and np.all(np.isfinite(quat)))
+            valid = finite and float(np.linalg.norm(quat)) > 0.5
+            if cfg.occlusion_prob > 0 and t_s >= self._occluded_until.get(body_id, -1.0) \
+                    and rng.random() < cfg.occlusion_prob:
+                self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
+            if t_s < self._occluded_until.get(body_id, -1.0):
+                valid = False
+            if valid:
+                pos = pos + rng.normal(0.0, cfg.pos_noise_m, 3) if cfg.pos_noise_m > 0 else pos.copy()
+                quat = quat / np.linalg.norm(quat)
+                if cfg.att_noise_rad > 0:
+                    quat = quat_multiply(quat, quat_from_rotvec(rng.normal(0.0, cfg.att_noise_rad, 3)))
+                if quat[0] < 0:
+                    quat = -quat
+            else:
+                self.stats.bodies_occluded += 1
+                pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+            bodies.append(TrackedBody(body_id, pos, quat, valid))
+        extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
+        self.stats.frames += 1
+        return MocapFrame(frame_no=k, stamp_s=t_s, ready_s=t_s + cfg.camera_latency_s + extra,
+                          bodies=tuple(bodies))

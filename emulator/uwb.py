@@ -1,0 +1,200 @@
+"""The UWB radio between the mocap station and the vehicle, and the UART from the vehicle's UWB module
+into the onboard computer: latency with jitter, independent and bursty (Gilbert-Elliott) loss, air data
+rate, packet-size and queue limits, and wire time at a baud. Seeded; all times in seconds."""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.link.linktrack import MAX_NODE_DATA
+
+
+@dataclass(frozen=True)
+class UwbConfig:
+    """Radio and UART settings (s, bit/s, bytes, probabilities per packet)."""
+
+    latency_s: float = 0.020  # mean one-way latency after the air time (s); pings of ~40 ms are reported
+    jitter_s: float = 0.005  # std of normal jitter on the latency (s), truncated so latency stays >= 0
+    loss_prob: float = 0.0  # independent loss per packet
+    burst_enter_prob: float = 0.0  # Gilbert-Elliott: chance per packet to go from good to bad
+    burst_exit_prob: float = 0.3  # Gilbert-Elliott: chance per packet to go from bad back to good
+    burst_loss_prob: float = 1.0  # loss per packet while in the bad state
+    air_rate_bps: float = 6.8e6  # air data rate (bit/s)
+    air_overhead_bytes: int = 24  # preamble and radio header sent with every packet (bytes)
+    max_packet_bytes: int = MAX_NODE_DATA  # larger packets are refused (counted as oversize)
+    queue_packets: int = 8  # packets on the air or waiting for it; more are refused (overflow)
+    late_after_s: float = 0.050  # a packet delivered later than this after sending counts as late
+    uart_baud: int = 921600  # UART from the vehicle's module to the onboard computer (bit/s)
+    uart_bits_per_byte: int = 10  # 8N1: start + 8 data + stop
+
+    def __post_init__(self) -> None:
+        for name in ("latency_s", "jitter_s", "late_after_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"uwb {name} must be finite and >= 0, got {v}")
+        for name in ("loss_prob", "burst_enter_prob", "burst_exit_prob", "burst_loss_prob"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"uwb {name} must be a probability in [0, 1], got {v}")
+        if self.burst_enter_prob > 0 and self.burst_exit_prob <= 0:
+            raise ValueError("uwb burst_exit_prob must be > 0 when bursts can start (or loss never ends)")
+        for name in ("air_rate_bps", "uart_baud"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"uwb {name} must be > 0, got {v}")
+        for name in ("air_overhead_bytes", "max_packet_bytes", "queue_packets", "uart_bits_per_byte"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < (0 if name == "air_overhead_bytes" else 1):
+                raise ValueError(f"uwb {name} must be a positive integer, got {v!r}")
+
+    @property
+    def mean_loss(self) -> float:
+        """Long-run fraction of packets lost (independent and burst losses combined)."""
+        p_bad = 0.0
+        if self.burst_enter_prob > 0:
+            p_bad = self.burst_enter_prob / (self.burst_enter_prob + self.burst_exit_prob)
+        return 1.0 - (1.0 - self.loss_prob) * (1.0 - p_bad * self.burst_loss_prob)
+
+    def air_time_s(self, n_bytes: int) -> float:
+        """Time one packet of ``n_bytes`` occupies the air (s)."""
+        return (n_bytes + self.air_overhead_bytes) * 8.0 / self.air_rate_bps
+
+    def uart_time_s(self, n_bytes: int) -> float:
+        """Wire time of ``n_bytes`` on the UART (s)."""
+        return n_bytes * self.uart_bits_per_byte / self.uart_baud
+
+
+@dataclass
+class UwbStats:
+    """Packet counters. sent = delivered + lost + oversize + overflow + in flight."""
+
+    sent: int = 0
+    delivered: int = 0
+    lost: int = 0  # dropped by the channel (independent or burst)
+    late: int = 0  # delivered, but later than late_after_s
+    oversize: int = 0  # refused: larger than max_packet_bytes
+    overflow: int = 0  # refused: the transmit queue was full
+    burst_lost: int = 0  # of ``lost``, those lost in the bad state
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """A packet out of the radio: its bytes, when it was sent and when it arrived (s)."""
+
+    data: bytes
+    sent_s: float
+    arrival_s: float
+
+
+class UwbRadio:
+    """One-way radio: ``send(now_s, data)`` then ``update(now_s)`` returns what has arrived by then,
+    in sending order. ``next_event_s()`` is the next arrival (inf when nothing is in flight)."""
+
+    def __init__(self, config: UwbConfig, rng: np.random.Generator) -> None:
+        self.config = config
+        self._rng = rng
+        self._air_busy_until_s = -math.inf
+        self._air_ends: list[float] = []  # when the packets queued or on the air will have left
+        self._last_arrival_s = -math.inf
+        self._in_flight: list[tuple[float, int, Delivery]] = []
+        self._seq = 0
+        self._bad = False
+        self.stats = UwbStats()
+
+    def send(self, now_s: float, data: bytes) -> bool:
+        """Hand a packet to the radio at ``now_s``; False when it is refused (size, full queue).
+        A packet the channel will lose is accepted (True) and simply never arrives."""
+        cfg = self.config
+        self.stats.sent += 1
+        if len(data) > cfg.max_packet_bytes:
+            self.stats.oversize += 1
+            return False
+        self._air_ends = [t for t in self._air_ends if t > now_s]
+        if len(self._air_ends) >= cfg.queue_packets:
+            self.stats.overflow += 1
+            return False
+        start = max(now_s, self._air_busy_until_s)
+        self._air_busy_until_s = start + cfg.air_time_s(len(data))
+        self._air_ends.append(self._air_busy_until_s)
+        if self._lost():
+            return True
+        latency = cfg.latency_s
+        if cfg.jitter_s > 0:
+            latency = max(0.0, latency + self._rng.normal(0.0, cfg.jitter_s))
+        arrival = max(self._air_busy_until_s + latency, self._last_arrival_s)  # the radio keeps order
+        self._last_arrival_s = arrival
+        self._seq += 1
+        heapq.heappush(self._in_flight, (arrival, self._seq, Delivery(bytes(data), now_s, arrival)))
+        return True
+
+    def _lost(self) -> bool:
+        cfg, rng = self.config, self._rng
+        if cfg.burst_enter_prob > 0:
+            if self._bad:
+                self._bad = rng.random() >= cfg.burst_exit_prob
+            else:
+                self._bad = rng.random() < cfg.burst_enter_prob
+        if self._bad and rng.random() < cfg.burst_loss_prob:
+            self.stats.lost += 1
+            self.stats.burst_lost += 1
+            return True
+        if cfg.loss_prob > 0 and rng.random() < cfg.loss_prob:
+            self.stats.lost += 1
+            return True
+        return False
+
+    def next_event_s(self) -> float:
+        return self._in_flight[0][0] if self._in_flight else math.inf
+
+    def update(self, now_s: float) -> list[Delivery]:
+        """Packets that have arrived by ``now_s``."""
+        out = []
+        while self._in_flight and self._in_flight[0][0] <= now_s + 1e-12:
+            d = heapq.heappop(self._in_flight)[2]
+            self.stats.delivered += 1
+            if d.arrival_s - d.sent_s > self.config.late_after_s:
+                self.stats.late += 1
+            out.append(d)
+        return out
+
+
+class UartWire:
+    """A UART at ``baud``: bytes queued at a time come out whole when their last bit has been sent.
+
+    ``write(now_s, data)`` queues a chunk; ``update(now_s)`` returns the chunks finished by then.
+    """
+
+    def __init__(self, baud: int, bits_per_byte: int = 10) -> None:
+        if not baud > 0 or bits_per_byte < 1:
+            raise ValueError(f"UART needs baud > 0 and bits_per_byte >= 1, got {baud}, {bits_per_byte}")
+        self.baud = baud
+        self.bits_per_byte = bits_per_byte
+        self._busy_until_s = -math.inf
+        self._queue: list[tuple[float, bytes]] = []
+        self.bytes_written = 0
+
+    def wire_time_s(self, n_bytes: int) -> float:
+        return n_bytes * self.bits_per_byte / self.baud
+
+    def write(self, now_s: float, data: bytes) -> float:
+        """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
+        done = max(now_s, self._busy_until_s) + self.wire_time_s(len(data))
+        self._busy_until_s = done
+        self._queue.append((done, bytes(data)))
+        return done
+
+    def next_event_s(self) -> float:
+        return self._queue[0][0] if self._queue else math.inf
+
+    def update(self, now_s: float) -> list[tuple[float, bytes]]:
+        """(done_s, bytes) of the chunks whose wire time has passed by ``now_s``."""
+        n = 0
+        while n < len(self._queue) and self._queue[n][0] <= now_s + 1e-12:
+            n += 1
+        out, self._queue = self._queue[:n], self._queue[n:]
+        self.bytes_written += sum(len(d) for _, d in out)
+        return out

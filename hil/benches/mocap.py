@@ -1,0 +1,64 @@
+"""Bench group `mocap`: LinkTrack frame parsing speed, and pty latency from write to parsed pose beside
+the frame's wire time at 921600 baud."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Iterator
+
+from hil.bench import BenchRow, time_per_call
+from hil.link.linktrack import (
+    BodySample,
+    FrameDecoder,
+    MocapPacket,
+    decode_mocap_payload,
+    encode_mocap_frame,
+)
+from hil.link.pty import PtyTransport
+from policies.mocap_reader import MocapReader
+
+BAUD = 921600
+BATCH = 100
+
+
+def _frame(k: int) -> bytes:
+    t = k / 120
+    return encode_mocap_frame(MocapPacket(k, (
+        BodySample(1, t, (-2.0 + 0.01 * k, -1.0, 0.5), (1.0, 0.0, 0.0, 0.0)),
+        BodySample(2, t, (0.0, 0.5, 2.1), (0.8660254, -0.5, 0.0, 0.0)),
+    )))
+
+
+def collect(quick: bool) -> Iterator[BenchRow]:
+    stream = b"".join(_frame(k) for k in range(BATCH))
+
+    def parse_batch() -> None:
+        for frame in FrameDecoder().feed(stream):
+            decode_mocap_payload(frame.nodes[0].data)
+
+    per_batch_s = time_per_call(parse_batch, min_time_s=0.2 if quick else 1.0)
+    yield BenchRow("mocap_parse_frames_per_s", BATCH / per_batch_s, "frames/s",
+                   "decode + checksum + payload CRC, 2 bodies a frame")
+
+    n = 50 if quick else 500
+    delays_s = []
+    with PtyTransport.create(BAUD) as link:
+        reader = MocapReader.open(link.endpoint, BAUD)
+        try:
+            for k in range(n):
+                frame = _frame(k)
+                ok = reader.counters.frames_ok
+                start = time.perf_counter()
+                link.send(frame)
+                while reader.counters.frames_ok == ok:
+                    reader.poll(timeout_s=0.1)
+                    if time.perf_counter() - start > 1.0:
+                        break
+                delays_s.append(time.perf_counter() - start)
+        finally:
+            reader.close()
+    yield BenchRow("mocap_latency_us", statistics.median(delays_s) * 1e6, "us",
+                   f"pty write -> reader parsed, median of {n}, no modelled radio or wire time")
+    yield BenchRow("mocap_frame_wire_us", len(_frame(0)) * 10 / BAUD * 1e6, "us",
+                   f"{len(_frame(0))} B at {BAUD} baud, 8N1 (what a real UART adds)")

@@ -1,0 +1,328 @@
+"""LinkTrack-style UWB frames (NodeFrame0-like) and the mocap payload they carry: encoder, streaming
+decoder with resynchronisation. Link layer: imports neither `emulator` nor `policies`.
+
+Frame (all integers little-endian), see docs/mocap-link-format.md:
+
+    0x55 0x02 | frame_len u16 | role u8 | id u8 | reserved[4] | node_count u8 |
+    node_count x [role u8 | id u8 | data_len u16 | data] | checksum u8 (sum of all preceding bytes)
+
+Mocap payload (the data of one node):
+
+    0x4D 'M' | version u8 | frame_no u32 | body_count u8 |
+    body_count x [body_id u8 | flags u8 (bit 0 valid) | stamp_us u64 | pos f32[3] (m, ENU) |
+                  quat f32[4] (w, x, y, z; body FLU -> world ENU)] | crc16 u16 (CCITT-FALSE over the payload)
+
+The 8-bit sum of the frame lets about one corrupt frame in 256 through; the payload's CRC-16 is the
+second line of defence, so a corrupt frame is never accepted as a pose.
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import struct
+from dataclasses import dataclass, field
+
+HEADER = 0x55
+FUNCTION_NODE_FRAME0 = 0x02
+FIXED_LEN = 11  # header, function, length, role, id, reserved[4], node count
+NODE_HEADER_LEN = 4  # role, id, data length
+MAX_NODE_DATA = 224  # bytes of data one node may carry
+MAX_NODES = 16  # nodes one frame may hold (this emulator's limit; a frame stays under 4 kB)
+MAX_FRAME_LEN = FIXED_LEN + MAX_NODES * (NODE_HEADER_LEN + MAX_NODE_DATA) + 1
+
+ROLE_NODE = 0
+ROLE_ANCHOR = 1
+ROLE_TAG = 2
+ROLE_CONSOLE = 3
+
+PAYLOAD_TYPE_MOCAP = 0x4D  # 'M'
+PAYLOAD_VERSION = 1
+_PAYLOAD_HEAD = struct.Struct("<BBIB")  # type, version, frame_no, body_count
+_BODY = struct.Struct("<BBQ3f4f")  # body_id, flags, stamp_us, pos, quat
+BODY_LEN = _BODY.size  # 38 bytes
+MAX_BODIES = (MAX_NODE_DATA - _PAYLOAD_HEAD.size - 2) // BODY_LEN  # 5 bodies in one node
+FLAG_VALID = 0x01
+
+#: body ids both sides agree on; other ids are allowed and reported by number
+BODY_IDS: dict[str, int] = {"vehicle": 1, "gap": 2}
+BODY_NAMES: dict[int, str] = {v: k for k, v in BODY_IDS.items()}
+
+
+class FrameError(ValueError):
+    """A frame or payload cannot be encoded or decoded (out of range, malformed, bad CRC)."""
+
+
+# --- checksums -----------------------------------------------------------------------------------
+def sum8(data: bytes) -> int:
+    """The frame checksum: 8-bit sum of ``data``."""
+    return sum(data) & 0xFF
+
+
+def crc16_ccitt(data: bytes, crc: int = 0xFFFF) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection) of ``data``."""
+    return binascii.crc_hqx(data, crc)
+
+
+# --- frames --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Node:
+    """One node block of a frame: the sending radio's role and id, and its data (<= 224 bytes)."""
+
+    role: int
+    node_id: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class NodeFrame:
+    """A NodeFrame0-like frame: the receiving module's role and id, and the nodes it heard."""
+
+    role: int
+    module_id: int
+    nodes: tuple[Node, ...]
+
+
+def _u8(name: str, value: int) -> int:
+    if not isinstance(value, int) or not 0 <= value <= 0xFF:
+        raise FrameError(f"{name} must be an integer 0..255, got {value!r}")
+    return value
+
+
+def encode_frame(frame: NodeFrame) -> bytes:
+    """The bytes of ``frame``, checksum included. Raises FrameError when a field is out of range."""
+    if len(frame.nodes) > MAX_NODES:
+        raise FrameError(f"a frame holds at most {MAX_NODES} nodes, got {len(frame.nodes)}")
+    body = bytearray()
+    for node in frame.nodes:
+        if len(node.data) > MAX_NODE_DATA:
+            raise FrameError(f"node {node.node_id}: data is {len(node.data)} bytes, limit {MAX_NODE_DATA}")
+        body += struct.pack("<BBH", _u8("node role", node.role), _u8("node id", node.node_id), len(node.data))
+        body += node.data
+    length = FIXED_LEN + len(body) + 1
+    out = bytearray(struct.pack("<BBHBB", HEADER, FUNCTION_NODE_FRAME0, length,
+                                _u8("role", frame.role), _u8("module id", frame.module_id)))
+    out += bytes(4)
+    out.append(len(frame.nodes))
+    out += body
+    out.append(sum8(out))
+    return bytes(out)
+
+
+def _parse_frame(buf: bytes | bytearray | memoryview) -> NodeFrame:
+    """Split a complete, checksum-verified frame into nodes (structure already checked)."""
+    n_nodes = buf[10]
+    pos, nodes = FIXED_LEN, []
+    for _ in range(n_nodes):
+        role, node_id, dlen = struct.unpack_from("<BBH", buf, pos)
+        pos += NODE_HEADER_LEN
+        nodes.append(Node(role, node_id, bytes(buf[pos:pos + dlen])))
+        pos += dlen
+    return NodeFrame(role=buf[4], module_id=buf[5], nodes=tuple(nodes))
+
+
+def decode_frame(data: bytes) -> NodeFrame:
+    """Decode exactly one frame; raises FrameError naming what is wrong."""
+    dec = FrameDecoder()
+    frames = dec.feed(data)
+    if len(frames) != 1 or dec.buffered or dec.stats.bytes_skipped:
+        raise FrameError(
+            f"not exactly one valid frame ({len(frames)} decoded, {dec.stats.bad_checksum} bad checksum, "
+            f"{dec.stats.bytes_skipped} bytes skipped, {dec.buffered} left over)"
+        )
+    return frames[0]
+
+
+@dataclass
+class DecoderStats:
+    """Decoder counters: frames accepted, bad checksums, bad structure, resyncs, bytes thrown away."""
+
+    frames_ok: int = 0
+    bad_checksum: int = 0
+    bad_structure: int = 0  # a header was found but lengths or node count did not add up
+    resyncs: int = 0  # times the decoder had to hunt for the next header
+    bytes_skipped: int = 0
+    bytes_in: int = 0
+    bytes_ok: int = 0  # bytes in accepted frames; bytes_in = bytes_ok + bytes_skipped + buffered
+
+
+@dataclass
+class FrameDecoder:
+    """Streaming decoder: feed it any chunks of bytes, get complete valid frames back.
+
+    On a bad header, impossible lengths or a bad checksum it drops one byte and searches for the next
+    0x55 0x02, so a corrupt frame never hides the good frame behind it. Every byte it receives ends up
+    either in an accepted frame or in ``stats.bytes_skipped`` (or still buffered).
+    """
+
+    stats: DecoderStats = field(default_factory=DecoderStats)
+    _buf: bytearray = field(default_factory=bytearray, repr=False)
+    _hunting: bool = field(default=False, repr=False)
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[NodeFrame]:
+        """Add ``data``; return the frames completed by it, in order."""
+        self.stats.bytes_in += len(data)
+        self._buf += data
+        out: list[NodeFrame] = []
+        buf = self._buf
+        start = 0
+        while True:
+            start = self._find_header(buf, start)
+            avail = len(buf) - start
+            if avail < FIXED_LEN:
+                break
+            verdict = self._check(buf, start, avail)
+            if verdict == "wait":
+                break
+            if verdict == "ok":
+                length = buf[start + 2] | (buf[start + 3] << 8)
+                out.append(_parse_frame(memoryview(buf)[start:start + length]))
+                self.stats.frames_ok += 1
+                self.stats.bytes_ok += length
+                self._hunting = False
+                start += length
+                continue
+            if verdict == "checksum":
+                self.stats.bad_checksum += 1
+            else:
+                self.stats.bad_structure += 1
+            self._skip(1)
+            start += 1
+        del buf[:start]
+        return out
+
+    def _skip(self, n: int) -> None:
+        if not self._hunting:
+            self.stats.resyncs += 1
+            self._hunting = True
+        self.stats.bytes_skipped += n
+
+    def _find_header(self, buf: bytearray, start: int) -> int:
+        """Index of the next possible frame start at or after ``start`` (skipped bytes counted)."""
+        n = len(buf)
+        i = start
+        while i < n:
+            j = buf.find(HEADER, i)
+            if j < 0:
+                self._skip_range(n - i)
+                return n
+            if j + 1 < n and buf[j + 1] != FUNCTION_NODE_FRAME0:
+                self._skip_range(j + 1 - i)
+                i = j + 1
+                continue
+            self._skip_range(j - i)
+            return j
+        return n
+
+    def _skip_range(self, n: int) -> None:
+        if n > 0:
+            self._skip(n)
+
+    @staticmethod
+    def _check(buf: bytearray, start: int, avail: int) -> str:
+        """'ok', 'wait' (need more bytes), 'structure' or 'checksum' for the frame at ``start``."""
+        length = buf[start + 2] | (buf[start + 3] << 8)
+        n_nodes = buf[start + 10]
+        if length < FIXED_LEN + 1 or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
+            return "structure"
+        # walk the node headers as far as they are buffered: their lengths must add up to the frame's
+        pos, end = start + FIXED_LEN, start + length - 1
+        for _ in range(n_nodes):
+            if pos + NODE_HEADER_LEN > end:
+                return "structure"
+            if pos + NODE_HEADER_LEN > start + avail:
+                return "wait"
+            dlen = buf[pos + 2] | (buf[pos + 3] << 8)
+            if dlen > MAX_NODE_DATA:
+                return "structure"
+            pos += NODE_HEADER_LEN + dlen
+        if pos != end:
+            return "structure"
+        if avail < length:
+            return "wait"
+        if sum8(memoryview(buf)[start:end]) != buf[end]:
+            return "checksum"
+        return "ok"
+
+
+# --- mocap payload -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BodySample:
+    """One tracked rigid body in a mocap frame: position (m, ENU), attitude (w, x, y, z), mocap time (s)."""
+
+    body_id: int
+    stamp_s: float
+    pos_m: tuple[float, float, float]
+    quat_wxyz: tuple[float, float, float, float]
+    valid: bool = True
+
+    @property
+    def name(self) -> str:
+        """'vehicle', 'gap', or 'body<N>' for other ids."""
+        return BODY_NAMES.get(self.body_id, f"body{self.body_id}")
+
+
+@dataclass(frozen=True)
+class MocapPacket:
+    """A mocap frame as carried in one node's data: frame number and the bodies seen."""
+
+    frame_no: int
+    bodies: tuple[BodySample, ...]
+
+
+def encode_mocap_payload(packet: MocapPacket) -> bytes:
+    """The node data for ``packet`` (<= 224 bytes, <= 5 bodies). Timestamps are sent in whole us."""
+    if len(packet.bodies) > MAX_BODIES:
+        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {len(packet.bodies)}")
+    if not 0 <= packet.frame_no <= 0xFFFFFFFF:
+        raise FrameError(f"frame_no must fit in 32 bits, got {packet.frame_no}")
+    head = _PAYLOAD_HEAD.pack(PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, packet.frame_no, len(packet.bodies))
+    out = bytearray(head)
+    for b in packet.bodies:
+        values = (*b.pos_m, *b.quat_wxyz)
+        if len(values) != 7 or not all(math.isfinite(v) for v in values):
+            raise FrameError(f"body {b.body_id}: position and quaternion must be 3 + 4 finite numbers")
+        if not 0 <= b.stamp_s < 1.8e13:
+            raise FrameError(f"body {b.body_id}: stamp_s must be >= 0, got {b.stamp_s}")
+        stamp_us = round(b.stamp_s * 1e6)
+        out += _BODY.pack(_u8("body id", b.body_id), FLAG_VALID if b.valid else 0, stamp_us, *values)
+    out += struct.pack("<H", crc16_ccitt(bytes(out)))
+    return bytes(out)
+
+
+def decode_mocap_payload(data: bytes) -> MocapPacket:
+    """Parse node data written by ``encode_mocap_payload``; raises FrameError if it is not one."""
+    if len(data) < _PAYLOAD_HEAD.size + 2:
+        raise FrameError(f"mocap payload too short ({len(data)} bytes)")
+    kind, version, frame_no, count = _PAYLOAD_HEAD.unpack_from(data, 0)
+    if kind != PAYLOAD_TYPE_MOCAP:
+        raise FrameError(f"not a mocap payload (type 0x{kind:02X})")
+    if version != PAYLOAD_VERSION:
+        raise FrameError(f"mocap payload version {version} not supported (want {PAYLOAD_VERSION})")
+    if len(data) != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
+        raise FrameError(f"mocap payload of {len(data)} bytes does not hold {count} bodies")
+    (crc,) = struct.unpack_from("<H", data, len(data) - 2)
+    if crc16_ccitt(data[:-2]) != crc:
+        raise FrameError("mocap payload CRC mismatch")
+    bodies = []
+    for k in range(count):
+        body_id, flags, stamp_us, *vals = _BODY.unpack_from(data, _PAYLOAD_HEAD.size + k * BODY_LEN)
+        bodies.append(BodySample(body_id=body_id, stamp_s=stamp_us * 1e-6, pos_m=tuple(vals[:3]),
+                                 quat_wxyz=tuple(vals[3:]), valid=bool(flags & FLAG_VALID)))
+    return MocapPacket(frame_no=frame_no, bodies=tuple(bodies))
+
+
+def encode_mocap_frame(packet: MocapPacket, module_id: int = 0, node_id: int = 0) -> bytes:
+    """A whole frame carrying ``packet`` as the data of one anchor node (the mocap station's radio)."""
+    node = Node(role=ROLE_ANCHOR, node_id=node_id, data=encode_mocap_payload(packet))
+    return encode_frame(NodeFrame(role=ROLE_TAG, module_id=module_id, nodes=(node,)))
+
+
+def mocap_frame_len(n_bodies: int) -> int:
+    """Bytes on the wire of a mocap frame with ``n_bodies`` bodies."""
+    return FIXED_LEN + NODE_HEADER_LEN + _PAYLOAD_HEAD.size + n_bodies * BODY_LEN + 2 + 1

@@ -1,0 +1,261 @@
+"""The onboard mocap reader: LinkTrack-style frames from a serial device, pty or UDP socket -> the latest
+vehicle and gap poses, with their mocap timestamps, arrival times, ages and a stale flag.
+
+    reader = MocapReader.open("/dev/pts/6")
+    while True:
+        reader.poll(timeout_s=0.01)
+        pose = reader.latest("vehicle")     # PoseSample or None; reader.is_stale("vehicle")
+
+Run ``python -m policies.mocap_reader DEVICE`` to print the poses live.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.link.clock import Clock, WallClock
+from hil.link.endpoint import open_link
+from hil.link.linktrack import (
+    BODY_IDS,
+    FIXED_LEN,
+    NODE_HEADER_LEN,
+    FrameDecoder,
+    FrameError,
+    decode_mocap_payload,
+)
+from hil.link.transport import LinkError, Transport
+
+DEFAULT_BAUD = 921600
+DEFAULT_STALE_AFTER_S = 0.1
+
+
+@dataclass(frozen=True)
+class PoseSample:
+    """A body's pose as received: position (m, ENU), attitude body->world (w, x, y, z), the mocap
+    exposure time ``stamp_s`` (mocap clock) and the arrival time ``received_s`` (reader clock)."""
+
+    name: str
+    body_id: int
+    pos_m: np.ndarray
+    quat_wxyz: np.ndarray
+    stamp_s: float
+    received_s: float
+    frame_no: int
+
+    @property
+    def latency_s(self) -> float:
+        """Arrival minus exposure (s); meaningful when both sides share a clock (lockstep, or one host
+        with synchronised clocks)."""
+        return self.received_s - self.stamp_s
+
+    def age_s(self, now_s: float) -> float:
+        """Time since arrival (s) at ``now_s`` on the reader's clock."""
+        return now_s - self.received_s
+
+
+@dataclass
+class ReaderCounters:
+    """What the reader has seen (frames, bytes)."""
+
+    frames_ok: int = 0  # frames with a good checksum and a good mocap payload
+    bad_checksum: int = 0
+    bad_structure: int = 0  # header found but lengths did not add up
+    bad_payload: int = 0  # good checksum, but not a valid mocap payload (CRC, type, size)
+    bytes_bad_payload: int = 0  # bytes of the frames counted in bad_payload
+    resyncs: int = 0
+    bytes_skipped: int = 0
+    bytes_in: int = 0
+    bodies_invalid: int = 0  # body records flagged not valid (occluded)
+
+
+class MocapReader:
+    """Reads mocap frames from ``transport``; keeps the latest valid pose of each body.
+
+    ``stale_after_s``: a body whose latest valid pose arrived longer ago than this is stale.
+    ``on_sample``: called with every valid PoseSample as it is parsed (for logs, estimators).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        clock: Clock | None = None,
+        stale_after_s: float = DEFAULT_STALE_AFTER_S,
+        on_sample: Callable[[PoseSample], None] | None = None,
+    ) -> None:
+        if not (math.isfinite(stale_after_s) and stale_after_s > 0):
+            raise ValueError(f"stale_after_s must be > 0, got {stale_after_s}")
+        self.transport = transport
+        self.clock: Clock = clock if clock is not None else WallClock()
+        self.stale_after_s = stale_after_s
+        self.on_sample = on_sample
+        self._decoder = FrameDecoder()
+        self._bad_payload = 0
+        self._bytes_bad_payload = 0
+        self._bodies_invalid = 0
+        self._frames_ok = 0
+        self._latest: dict[int, PoseSample] = {}
+
+    @classmethod
+    def open(cls, spec: str, baud: int = DEFAULT_BAUD, **kwargs: object) -> MocapReader:
+        """Open ``spec``: a device or pty path ("/dev/pts/6", "/dev/ttyUSB0") at ``baud``, or a link
+        spec such as "udp:HOST:PORT" (listen), "udpout:HOST:PORT", "tcpout:HOST:PORT"."""
+        return cls(open_transport(spec, baud), **kwargs)  # type: ignore[arg-type]
+
+    # --- reading -----------------------------------------------------------------------------
+    def poll(self, timeout_s: float = 0.0) -> int:
+        """Read what has arrived (waiting up to ``timeout_s`` for the first bytes); returns the number
+        of mocap frames accepted. Never raises on bad data; raises LinkError if the link is gone."""
+        accepted = 0
+        data = self.transport.recv(timeout_s)
+        while data:
+            now = self.clock.now_s()
+            for frame in self._decoder.feed(data):
+                taken = sum(self._take(node.data, now) for node in frame.nodes)
+                if not taken:
+                    self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(n.data)
+                                                                   for n in frame.nodes)
+                accepted += taken
+            data = self.transport.recv(0.0)
+        return accepted
+
+    def _take(self, payload: bytes, now_s: float) -> int:
+        try:
+            packet = decode_mocap_payload(payload)
+        except FrameError:
+            self._bad_payload += 1
+            return 0
+        self._frames_ok += 1
+        for body in packet.bodies:
+            quat = np.array(body.quat_wxyz)
+            norm = float(np.linalg.norm(quat))
+            if not body.valid or not 0.5 < norm < 1.5:
+                self._bodies_invalid += 1
+                continue
+            sample = PoseSample(
+                name=body.name, body_id=body.body_id, pos_m=np.array(body.pos_m), quat_wxyz=quat / norm,
+                stamp_s=body.stamp_s, received_s=now_s, frame_no=packet.frame_no,
+            )
+            self._latest[body.body_id] = sample
+            if self.on_sample is not None:
+                self.on_sample(sample)
+        return 1
+
+    # --- what pilots ask -----------------------------------------------------------------------
+    def latest(self, body: str | int = "vehicle") -> PoseSample | None:
+        """The latest valid pose of ``body`` ("vehicle", "gap" or a body id), None if none yet."""
+        return self._latest.get(_body_id(body))
+
+    def age_s(self, body: str | int = "vehicle") -> float:
+        """Seconds since ``body``'s latest valid pose arrived (inf if none yet)."""
+        sample = self.latest(body)
+        return math.inf if sample is None else sample.age_s(self.clock.now_s())
+
+    def is_stale(self, body: str | int = "vehicle") -> bool:
+        """True when ``body`` has no valid pose younger than ``stale_after_s``."""
+        return self.age_s(body) > self.stale_after_s
+
+    @property
+    def counters(self) -> ReaderCounters:
+        s = self._decoder.stats
+        return ReaderCounters(
+            frames_ok=self._frames_ok, bad_checksum=s.bad_checksum, bad_structure=s.bad_structure,
+            bad_payload=self._bad_payload, bytes_bad_payload=self._bytes_bad_payload,
+            resyncs=s.resyncs, bytes_skipped=s.bytes_skipped,
+            bytes_in=s.bytes_in, bodies_invalid=self._bodies_invalid,
+        )
+
+    def close(self) -> None:
+        self.transport.close()
+
+    def __enter__(self) -> MocapReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _body_id(body: str | int) -> int:
+    if isinstance(body, int):
+        return body
+    if body in BODY_IDS:
+        return BODY_IDS[body]
+    if body.startswith("body") and body[4:].isdigit():
+        return int(body[4:])
+    raise KeyError(f"unknown body {body!r}; known: {', '.join(BODY_IDS)} or body<N>")
+
+
+def open_transport(spec: str, baud: int = DEFAULT_BAUD) -> Transport:
+    """A transport for ``spec``: a device path ("/dev/pts/6"), or any link spec of
+    `hil.link.endpoint` opened on the onboard side ("udp:HOST:PORT", "serial:DEVICE:BAUD", ...).
+    Raises ValueError for a bad spec, LinkError when it cannot be opened."""
+    if spec.startswith("/"):
+        spec = f"serial:{spec}:{int(baud)}"
+    return open_link(spec, "onboard")
+
+
+def _euler_deg(q: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (deg, Z-Y-X) of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
+
+
+def format_pose(name: str, sample: PoseSample | None, now_s: float) -> str:
+    """One line for ``name``: position (m), roll/pitch/yaw (deg), age (ms)."""
+    if sample is None:
+        return f"{name:<7} (none yet)"
+    r, p, y = _euler_deg(sample.quat_wxyz)
+    x, yy, z = sample.pos_m
+    return (f"{name:<7} pos=({x:+7.3f} {yy:+7.3f} {z:+7.3f}) m  rpy=({r:+6.1f} {p:+6.1f} {y:+6.1f}) deg  "
+            f"age={sample.age_s(now_s) * 1e3:6.1f} ms")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m policies.mocap_reader",
+                                     description="print mocap poses received over a LinkTrack-style link")
+    parser.add_argument("device", help="/dev/pts/N, /dev/ttyUSB0, udp:HOST:PORT or udpout:HOST:PORT")
+    parser.add_argument("--baud", type=int, default=DEFAULT_BAUD)
+    parser.add_argument("--rate", type=float, default=10.0, help="lines printed per second")
+    parser.add_argument("--count", type=int, default=0, help="stop after this many lines (0: run until ^C)")
+    args = parser.parse_args(argv)
+    try:
+        reader = MocapReader.open(args.device, args.baud)
+    except (LinkError, ValueError) as e:
+        print(f"mocap_reader: {e}", file=sys.stderr)
+        return 1
+    lines = 0
+    try:
+        with reader:
+            next_print = reader.clock.now_s()
+            while args.count <= 0 or lines < args.count:
+                reader.poll(timeout_s=0.005)
+                now = reader.clock.now_s()
+                if now < next_print:
+                    continue
+                next_print = now + 1.0 / args.rate
+                c = reader.counters
+                stale = [n for n in ("vehicle", "gap") if reader.is_stale(n)]
+                print(f"t={now:8.3f} s  frames ok={c.frames_ok} bad={c.bad_checksum + c.bad_payload} "
+                      f"skipped={c.bytes_skipped} B{'  STALE: ' + ','.join(stale) if stale else ''}")
+                for name in ("vehicle", "gap"):
+                    print("  " + format_pose(name, reader.latest(name), now))
+                sys.stdout.flush()
+                lines += 1
+    except KeyboardInterrupt:
+        pass
+    except LinkError as e:
+        print(f"mocap_reader: link lost: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

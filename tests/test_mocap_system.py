@@ -1,0 +1,106 @@
+"""Mocap tracker model: frame rate, latency, noise, occlusions, moving bodies, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from emulator.mocap import BodyPose, MocapConfig, MocapSystem, optitrack_latency_s
+from emulator.physics.state import VehicleState
+from emulator.world.geometry import Gap
+
+LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def _fly(config: MocapConfig, duration_s: float = 2.0, step_s: float = 1e-3, seed: int = 0, truth=None):
+    system = MocapSystem(config, np.random.default_rng(seed))
+    frames = []
+    for k in range(round(duration_s / step_s) + 1):
+        t = k * step_s
+        bodies = truth(t) if truth else {1: BodyPose(np.array([t, 0.0, 1.0]), LEVEL)}
+        frames += [(t, f) for f in system.update(t, bodies)]
+    return system, frames
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 120.0, 240.0, 360.0])
+def test_frames_come_at_the_configured_rate_with_the_optitrack_latency(rate_hz):
+    cfg = MocapConfig(rate_hz=rate_hz, processing_s=0.0, pos_noise_m=0.0, att_noise_rad=0.0)
+    _, frames = _fly(cfg, duration_s=1.0, step_s=1e-4)
+    stamps = np.array([f.stamp_s for _, f in frames])
+    assert np.allclose(np.diff(stamps), 1 / rate_hz)
+    assert len(frames) == pytest.approx(rate_hz - optitrack_latency_s(rate_hz) * rate_hz, abs=1.5)
+    # each frame is handed out at the first update after exposure + camera latency
+    for t, f in frames:
+        assert f.ready_s == pytest.approx(f.stamp_s + optitrack_latency_s(rate_hz))
+        assert f.ready_s <= t + 1e-9 < f.ready_s + 1e-4 + 1e-9
+    # the pose is the truth at exposure: x = t
+    assert np.allclose([f.bodies[0].pos_m[0] for _, f in frames], stamps, atol=1e-4 + 1e-9)
+
+
+def test_optitrack_figures_and_processing_latency():
+    assert optitrack_latency_s(120) == pytest.approx(5.56e-3)
+    assert optitrack_latency_s(240) == pytest.approx(4.17e-3)
+    assert optitrack_latency_s(360) == pytest.approx(2.78e-3)
+    cfg = MocapConfig(rate_hz=120, processing_s=2e-3, latency_s=1e-3)
+    _, frames = _fly(cfg, duration_s=5.0, step_s=1e-4)
+    extra = np.array([f.ready_s - f.stamp_s - 1e-3 for _, f in frames])
+    assert extra.min() >= 0 and extra.mean() == pytest.approx(2e-3, rel=0.15)
+
+
+def test_noise_has_the_configured_spread_and_attitude_stays_unit():
+    cfg = MocapConfig(rate_hz=360, pos_noise_m=1e-3, att_noise_rad=2e-3)
+    _, frames = _fly(cfg, duration_s=3.0, truth=lambda t: {1: BodyPose(np.array([0.0, 0.0, 1.0]), LEVEL)})
+    pos = np.array([f.bodies[0].pos_m for _, f in frames])
+    assert pos.std(axis=0) == pytest.approx([1e-3] * 3, rel=0.15)
+    quats = np.array([f.bodies[0].quat_wxyz for _, f in frames])
+    assert np.allclose(np.linalg.norm(quats, axis=1), 1.0)
+    # small-angle: the vector part is half the rotation vector
+    assert (2 * quats[:, 1:]).std(axis=0) == pytest.approx([2e-3] * 3, rel=0.15)
+
+
+def test_occlusions_mark_bodies_invalid_in_runs():
+    cfg = MocapConfig(rate_hz=120, occlusion_prob=0.01, occlusion_mean_s=0.1)
+    system, frames = _fly(cfg, duration_s=20.0, step_s=2e-3)
+    valid = np.array([f.bodies[0].valid for _, f in frames])
+    invalid_frac = 1 - valid.mean()
+    # about one start per 100 frames, each lasting ~12 frames: roughly 10 % invalid
+    assert 0.04 < invalid_frac < 0.2
+    assert system.stats.bodies_occluded == int((~valid).sum())
+    starts = int(np.sum(valid[:-1] & ~valid[1:]))
+    assert invalid_frac * len(valid) / starts > 5  # runs, not single frames
+
+
+def test_vehicle_state_and_a_moving_gap_are_both_tracked():
+    gap = Gap(centre_m=(0.0, 0.5, 2.1), roll_rad=-np.pi / 3)
+
+    def truth(t):
+        moved = Gap(centre_m=(0.0, 0.5 + 0.1 * t, 2.1), roll_rad=gap.roll_rad)
+        return {1: VehicleState(time_s=t, pos_m=[-2.0, -1.0, 0.5]), 2: moved}
+
+    cfg = MocapConfig(pos_noise_m=0.0, att_noise_rad=0.0)
+    _, frames = _fly(cfg, duration_s=1.0, truth=truth)
+    last = frames[-1][1]
+    assert [b.body_id for b in last.bodies] == [1, 2]
+    # sample and hold: the truth of the first update at or after exposure (1 ms steps here)
+    assert last.bodies[1].pos_m[1] == pytest.approx(0.5 + 0.1 * last.stamp_s, abs=0.1 * 1e-3 + 1e-12)
+    assert np.allclose(last.bodies[1].quat_wxyz, gap.quat_wxyz(), atol=1e-9)
+
+
+def test_bad_input_gives_errors_or_invalid_bodies_not_crashes():
+    with pytest.raises(ValueError, match="rate_hz"):
+        MocapConfig(rate_hz=50)
+    with pytest.raises(ValueError, match="occlusion_prob"):
+        MocapConfig(occlusion_prob=2.0)
+    system = MocapSystem(MocapConfig(latency_s=0.0, processing_s=0.0), np.random.default_rng(0))
+    frames = system.update(0.0, {1: BodyPose(np.array([np.nan, 0.0, 0.0]), LEVEL)})
+    assert not frames[0].bodies[0].valid
+    with pytest.raises(TypeError, match="no pose"):
+        system.update(1.0, {1: object()})
+
+
+def test_a_late_first_update_does_not_replay_the_past():
+    system = MocapSystem(MocapConfig(latency_s=0.0, processing_s=0.0), np.random.default_rng(0))
+    frames = system.update(100.0, {1: BodyPose(np.zeros(3), LEVEL)})
+    assert len(frames) == 1 and frames[0].stamp_s == pytest.approx(100.0)
+    assert system.stats.frames_skipped == 12000
+    assert system.next_event_s() == pytest.approx(100.0 + 1 / 120)

@@ -1,0 +1,117 @@
+"""UWB radio and UART model: loss (independent and bursty), latency and jitter, limits, wire time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from emulator.uwb import UartWire, UwbConfig, UwbRadio
+
+PERIOD_S = 1 / 120
+
+
+def _run(config: UwbConfig, n: int = 4000, seed: int = 0, size: int = 85):
+    radio = UwbRadio(config, np.random.default_rng(seed))
+    got, lost_pattern = [], []
+    for k in range(n):
+        t = k * PERIOD_S
+        before = radio.stats.lost
+        radio.send(t, k.to_bytes(4, "little") + bytes(size - 4))
+        lost_pattern.append(radio.stats.lost > before)
+        got += radio.update(t)
+    got += radio.update(math.inf)
+    return radio, got, lost_pattern
+
+
+def test_independent_loss_matches_the_configured_probability():
+    radio, got, _ = _run(UwbConfig(loss_prob=0.2, jitter_s=0.0))
+    assert radio.stats.sent == 4000
+    assert radio.stats.delivered + radio.stats.lost == 4000
+    # binomial std for n = 4000, p = 0.2 is 0.0063: allow 4 sigma
+    assert radio.stats.lost / 4000 == pytest.approx(0.2, abs=0.026)
+    assert [int.from_bytes(d.data[:4], "little") for d in got] == sorted(
+        int.from_bytes(d.data[:4], "little") for d in got)
+
+
+def test_burst_loss_follows_gilbert_elliott_rates_and_comes_in_runs():
+    cfg = UwbConfig(burst_enter_prob=0.02, burst_exit_prob=0.2, burst_loss_prob=1.0, jitter_s=0.0)
+    radio, _, lost = _run(cfg, n=20000)
+    assert cfg.mean_loss == pytest.approx(0.02 / 0.22)
+    assert radio.stats.lost / 20000 == pytest.approx(cfg.mean_loss, rel=0.2)
+    assert radio.stats.burst_lost == radio.stats.lost
+    runs, cur = [], 0
+    for x in lost:
+        if x:
+            cur += 1
+        elif cur:
+            runs.append(cur)
+            cur = 0
+    # mean burst length 1 / exit = 5 packets; independent loss at the same rate would give ~1.1
+    assert np.mean(runs) == pytest.approx(5.0, rel=0.25)
+
+
+def test_latency_has_the_configured_mean_and_jitter():
+    cfg = UwbConfig(latency_s=0.02, jitter_s=0.004, air_rate_bps=6.8e6)
+    _, got, _ = _run(cfg)
+    lat = np.array([d.arrival_s - d.sent_s for d in got])
+    air = cfg.air_time_s(85)
+    assert lat.mean() == pytest.approx(0.02 + air, abs=0.0005)
+    # order is kept, which lifts a few arrivals: the spread stays near the configured jitter
+    assert lat.std() == pytest.approx(0.004, rel=0.15)
+    assert np.all(np.diff([d.arrival_s for d in got]) >= 0)
+
+
+def test_late_packets_are_counted():
+    radio, got, _ = _run(UwbConfig(latency_s=0.02, jitter_s=0.01, late_after_s=0.03), n=2000)
+    late = sum(d.arrival_s - d.sent_s > 0.03 for d in got)
+    assert radio.stats.late == late
+    assert 0.05 < late / len(got) < 0.3  # P(N(0.02, 0.01) > 0.03) = 16 %
+
+
+def test_size_and_queue_limits_refuse_packets():
+    radio = UwbRadio(UwbConfig(max_packet_bytes=100, queue_packets=2, air_rate_bps=8000.0,
+                               air_overhead_bytes=0, jitter_s=0.0), np.random.default_rng(0))
+    assert not radio.send(0.0, bytes(101))
+    assert radio.stats.oversize == 1
+    # 100 bytes at 8 kbit/s take 0.1 s of air: a third packet at once finds the queue full
+    assert radio.send(0.0, bytes(100)) and radio.send(0.0, bytes(100))
+    assert not radio.send(0.0, bytes(100))
+    assert radio.stats.overflow == 1
+    assert radio.send(0.15, bytes(100))  # the first has left the air by now
+    arrivals = [d.arrival_s for d in radio.update(math.inf)]
+    assert arrivals == pytest.approx([0.1 + 0.02, 0.2 + 0.02, 0.3 + 0.02])
+
+
+def test_uart_wire_time_at_the_baud():
+    uart = UartWire(921600)
+    done = uart.write(0.0, bytes(101))
+    assert done == pytest.approx(101 * 10 / 921600)
+    second = uart.write(0.0, bytes(101))  # queued behind the first
+    assert second == pytest.approx(2 * 101 * 10 / 921600)
+    assert uart.update(done - 1e-6) == []
+    assert [len(b) for _, b in uart.update(second)] == [101, 101]
+    assert uart.next_event_s() == math.inf
+
+
+def test_same_seed_same_run_and_next_event():
+    a = _run(UwbConfig(loss_prob=0.1, burst_enter_prob=0.01), n=500, seed=3)[1]
+    b = _run(UwbConfig(loss_prob=0.1, burst_enter_prob=0.01), n=500, seed=3)[1]
+    assert [d.arrival_s for d in a] == [d.arrival_s for d in b]
+    radio = UwbRadio(UwbConfig(jitter_s=0.0), np.random.default_rng(0))
+    assert radio.next_event_s() == math.inf
+    radio.send(1.0, b"x")
+    assert radio.next_event_s() == pytest.approx(1.02 + UwbConfig().air_time_s(1))
+
+
+@pytest.mark.parametrize("field, value", [
+    ("loss_prob", 1.5), ("latency_s", -0.1), ("jitter_s", math.nan), ("uart_baud", 0),
+    ("queue_packets", 0), ("burst_exit_prob", 0.0),
+])
+def test_bad_config_is_a_clear_error(field, value):
+    kwargs = {field: value}
+    if field == "burst_exit_prob":
+        kwargs["burst_enter_prob"] = 0.1
+    with pytest.raises(ValueError, match=field):
+        UwbConfig(**kwargs)
