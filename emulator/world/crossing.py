@@ -1,0 +1,113 @@
+"""`CrossingTracker`: follows a trajectory sample by sample and reports gap crossings, minimum clearance
+and the first collision.
+
+A crossing is the vehicle's centre passing the gap plane (through the gap centre, normal to e1). Its
+time and point are interpolated linearly between the two samples on either side of the plane; it is
+"through the opening" when that point lies inside the opening's rectangle (|u| <= width/2 and
+|v| <= height/2). The minimum clearance is taken over the samples whose box overlaps the wall slab.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from emulator.world.collision import Obstacle, World
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """One passage of the centre through the gap plane."""
+
+    time_s: float
+    direction: int  # +1 along e1 (the crossing direction), -1 against it
+    point_m: tuple[float, float, float]  # world ENU, where the centre met the plane
+    offset_m: tuple[float, float]  # (u, v): the point's offsets from the gap centre along e0 and e2
+    through_opening: bool
+
+
+@dataclass(frozen=True)
+class CollisionEvent:
+    """The first sample at which the box hit something."""
+
+    time_s: float
+    obstacle: Obstacle
+
+
+class CrossingTracker:
+    """Feed it samples with `update`; read `crossings`, `min_clearance_m` and `first_collision`."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self._crossings: list[Crossing] = []
+        self._prev: tuple[float, np.ndarray, float] | None = None  # (time_s, pos_m, n)
+        self.min_clearance_m: float | None = None  # None until the box first overlaps the slab
+        self.min_clearance_time_s: float | None = None
+        self.first_collision: CollisionEvent | None = None
+        self.samples = 0
+
+    def update(self, time_s: float, pos_m: np.ndarray, attitude: np.ndarray) -> Crossing | None:
+        """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz); returns the
+        crossing completed by this sample, if any. Times must increase."""
+        t = float(time_s)
+        if not math.isfinite(t):
+            raise ValueError(f"time_s must be finite, got {time_s!r}")
+        if self._prev is not None and t <= self._prev[0]:
+            raise ValueError(f"time_s must increase: got {t} after {self._prev[0]}")
+        world = self.world
+        p = np.array(pos_m, dtype=np.float64)
+        hit, clr = world.check(p, attitude)  # validates the pose
+        if clr.in_slab and (self.min_clearance_m is None or clr.clearance_m < self.min_clearance_m):
+            self.min_clearance_m, self.min_clearance_time_s = clr.clearance_m, t
+        if hit is not None and self.first_collision is None:
+            self.first_collision = CollisionEvent(t, hit)
+        n = float(world.gap_coords(p)[1])
+        crossing = None
+        if self._prev is not None:
+            t0, p0, n0 = self._prev
+            if (n0 < 0) != (n < 0):
+                alpha = -n0 / (n - n0)
+                point = p0 + alpha * (p - p0)
+                u, _, v = world.gap_coords(point)
+                gap = world.gap
+                crossing = Crossing(
+                    time_s=t0 + alpha * (t - t0),
+                    direction=1 if n > n0 else -1,
+                    point_m=(float(point[0]), float(point[1]), float(point[2])),
+                    offset_m=(float(u), float(v)),
+                    through_opening=bool(abs(u) <= gap.width_m / 2 and abs(v) <= gap.height_m / 2),
+                )
+                self._crossings.append(crossing)
+        self._prev = (t, p, n)
+        self.samples += 1
+        return crossing
+
+    @property
+    def crossings(self) -> tuple[Crossing, ...]:
+        """All crossings so far, in time order."""
+        return tuple(self._crossings)
+
+    @property
+    def crossed_through_opening(self) -> bool:
+        """Whether the first crossing went forward (+e1) through the opening."""
+        first = self._crossings[0] if self._crossings else None
+        return first is not None and first.direction > 0 and first.through_opening
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready summary (for run reports)."""
+        first = self._crossings[0] if self._crossings else None
+        return {
+            "samples": self.samples,
+            "crossings": len(self._crossings),
+            "crossed_through_opening": self.crossed_through_opening,
+            "crossing_time_s": None if first is None else first.time_s,
+            "crossing_direction": None if first is None else first.direction,
+            "crossing_offset_m": None if first is None else list(first.offset_m),
+            "min_clearance_m": self.min_clearance_m,
+            "min_clearance_time_s": self.min_clearance_time_s,
+            "collision": None if self.first_collision is None else str(self.first_collision.obstacle),
+            "collision_time_s": None if self.first_collision is None else self.first_collision.time_s,
+        }
