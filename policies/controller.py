@@ -1,0 +1,110 @@
+"""The expert controller: geometric position tracking (Lee et al.; Mellinger and Kumar) to attitude + thrust.
+
+With the paper's release gains (REFERENCE.md), per axis:
+    e_p = clip(p_ref - p, +-0.3 m),  e_v = clip(v_ref - v, +-2 m/s)
+    F = m (Kv (e_v + Kp e_p) + g_up) + m Ka a_ref          (N, world ENU, g_up = (0, 0, 9.8))
+F is tilted at most ``tilt_max`` from vertical (its horizontal part is scaled down, keeping F_z;
+F_z is kept at least ``min_thrust_frac`` of the hover thrust). The thrust command is |F| and the
+desired body z axis is F / |F|; with the desired yaw psi the desired attitude is
+R_d = Rz(psi) Ry(theta) Rx(phi), whose roll phi and pitch theta are returned. These are the ZYX Euler
+angles relative to the ground (world) frame, z up: with psi = 0 (the paper's choice) R_d is the
+transpose of the paper's equation (1), body z = (cos phi sin theta, -sin phi, cos phi cos theta).
+The vehicle's measured acceleration and attitude are not used by this law (it commands an absolute
+attitude); they are inputs of the learned controllers that imitate it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from policies.frames import GRAVITY_M_S2
+
+
+@dataclass(frozen=True)
+class ExpertGains:
+    """Gains and limits of the expert law (the paper's release values by default)."""
+
+    kp: tuple[float, float, float] = (6.5, 6.5, 8.5)  # 1/s
+    kv: tuple[float, float, float] = (2.25, 2.25, 4.5)  # 1/s
+    ka: float = 0.9  # feed-forward fraction of the reference acceleration
+    max_pos_err_m: float = 0.3
+    max_vel_err_m_s: float = 2.0
+    tilt_max_rad: float = math.radians(75.0)
+    min_thrust_frac: float = 0.1  # floor on F_z as a fraction of m g
+
+
+@dataclass(frozen=True)
+class AttitudeThrustCommand:
+    """One command in the N3 attitude-thrust form: roll, pitch, yaw (rad, ground frame), thrust (N)."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    thrust_n: float
+
+
+def expert_command_batch(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref_m_s2: np.ndarray,
+                         yaw_ref_rad: np.ndarray | float, pos_m: np.ndarray, vel_m_s: np.ndarray,
+                         mass_kg: float = 0.9, gains: ExpertGains = ExpertGains(),
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The expert law over a batch: arrays (..., 3) and yaw (...); returns roll, pitch, yaw (rad) and
+    thrust (N), each of shape (...). Non-finite inputs give NaN outputs for that sample (callers
+    holding a vehicle must not send them; ``ExpertController.command`` raises instead)."""
+    if not (math.isfinite(mass_kg) and mass_kg > 0):
+        raise ValueError("mass_kg must be positive")
+    e_p = np.clip(np.asarray(pos_ref_m, float) - np.asarray(pos_m, float), -gains.max_pos_err_m,
+                  gains.max_pos_err_m)
+    e_v = np.clip(np.asarray(vel_ref_m_s, float) - np.asarray(vel_m_s, float), -gains.max_vel_err_m_s,
+                  gains.max_vel_err_m_s)
+    kp, kv = np.asarray(gains.kp), np.asarray(gains.kv)
+    acc_cmd = kv * (e_v + kp * e_p) + gains.ka * np.asarray(acc_ref_m_s2, float)
+    acc_cmd = acc_cmd + np.array([0.0, 0.0, GRAVITY_M_S2])
+    f_z = np.maximum(acc_cmd[..., 2], gains.min_thrust_frac * GRAVITY_M_S2)
+    horiz = acc_cmd[..., :2]
+    h_norm = np.linalg.norm(horiz, axis=-1)
+    h_max = f_z * math.tan(gains.tilt_max_rad)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(h_norm > h_max, h_max / h_norm, 1.0)
+    force = mass_kg * np.concatenate([horiz * scale[..., None], f_z[..., None]], axis=-1)
+    thrust = np.linalg.norm(force, axis=-1)
+    z_b = force / thrust[..., None]
+    yaw = np.broadcast_to(np.asarray(yaw_ref_rad, float), thrust.shape)
+    # R_d = Rz(yaw) Ry(pitch) Rx(roll): rotate z_b back by -yaw, then z' = (cr sp, -sr, cr cp)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    zx = cy * z_b[..., 0] + sy * z_b[..., 1]
+    zy = -sy * z_b[..., 0] + cy * z_b[..., 1]
+    roll = np.arcsin(np.clip(-zy, -1.0, 1.0))
+    pitch = np.arctan2(zx, z_b[..., 2])
+    return roll, pitch, np.array(yaw), thrust
+
+
+class ExpertController:
+    """The expert law for one vehicle: ``command(reference, state)`` -> AttitudeThrustCommand."""
+
+    def __init__(self, mass_kg: float = 0.9, gains: ExpertGains | None = None) -> None:
+        if not (math.isfinite(mass_kg) and mass_kg > 0):
+            raise ValueError("mass_kg must be positive")
+        self.mass_kg = mass_kg
+        self.gains = gains or ExpertGains()
+
+    def command(self, pos_ref_m: object, vel_ref_m_s: object, acc_ref_m_s2: object, yaw_ref_rad: float,
+                pos_m: object, vel_m_s: object) -> AttitudeThrustCommand:
+        """Attitude and thrust for one reference (m, m/s, m/s^2, rad) and measured state (m, m/s).
+
+        Raises ValueError for non-finite or wrongly shaped inputs.
+        """
+        arrays = []
+        for name, value in (("pos_ref_m", pos_ref_m), ("vel_ref_m_s", vel_ref_m_s),
+                            ("acc_ref_m_s2", acc_ref_m_s2), ("pos_m", pos_m), ("vel_m_s", vel_m_s)):
+            arr = np.asarray(value, dtype=float)
+            if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+            arrays.append(arr)
+        if not math.isfinite(yaw_ref_rad):
+            raise ValueError("yaw_ref_rad must be finite")
+        roll, pitch, yaw, thrust = expert_command_batch(arrays[0], arrays[1], arrays[2], yaw_ref_rad,
+                                                        arrays[3], arrays[4], self.mass_kg, self.gains)
+        return AttitudeThrustCommand(float(roll), float(pitch), float(yaw), float(thrust))

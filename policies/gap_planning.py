@@ -1,0 +1,419 @@
+"""Gap planning after the paper (traverse after Falanga et al.): traverse, approach, recovery, timeline.
+
+Gap frame (REFERENCE, the paper's release): R maps gap to world, ``R = Rz(yaw) Ry(pitch) Rx(roll)``;
+e0 = R [0,1,0] is the long side (width), e1 = R [1,0,0] the crossing direction (gap normal),
+e2 = e0 x e1. Flying with thrust along e2 keeps body z orthogonal to the long side; the only
+acceleration left is gravity's part in the e0-e1 plane, a_tr = g - (g . e2) e2 (g = (0, 0, -9.8)).
+
+The traverse used here is the ballistic arc (thrust fixed along e2) whose apex along the long side is
+at the gap centre: the vehicle passes the centre moving along the crossing direction u (= +-e1, towards
+the far side from the start) at the chosen crossing speed s, the "approach speed" (1-3 m/s typical).
+With tau = t - t_c (t_c: time from the traverse start to the centre):
+    p(tau) = p_g + s u tau + a_tr tau^2 / 2,   v(tau) = s u + a_tr tau,   a = a_tr.
+At tau = -t_c the start lies l = |g . e0| t_c^2 / 2 along the long side from the centre and about
+d = s t_c before the gap plane, i.e. the paper's p0 = p_g - l e0 - d e1 with t_c = sqrt(2 l / |g . e0|)
+(e0 taken pointing up). l is searched over (0, 0.5] for the lowest start speed |v(-t_c)| with
+d >= d_min (0.1 m) and every traverse speed within the vehicle's limit; at tilt 0 (g . e0 = 0) there is
+no drop and the traverse is straight: t_c = d_min / s. The traverse ends ``exit_m`` past the plane.
+
+Approach: a motion primitive from the current state to the traverse start state, 2.6 s by default.
+Recovery: the paper's search over 0.5-3.0 s in 0.3 s steps to the hover point (1 m above ground, 2.5 m
+past the centre along the crossing direction projected horizontally), taking the first duration whose
+trajectory stays in the lab, beyond the gap plane, and passes the input-feasibility test.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
+from policies.primitives import Feasibility, Trajectory, solve
+
+Vec3 = tuple[float, float, float]
+
+
+class PlanningError(ValueError):
+    """No plan satisfies the constraints; the message says which one failed."""
+
+
+def _vec3(name: str, value: object) -> Vec3:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+@dataclass(frozen=True)
+class GapPose:
+    """The gap as the onboard side knows it: centre (m, world ENU), rotation gap -> world, size (m).
+
+    ``width_m`` is the long side (along e0), ``height_m`` the short side (along e2).
+    """
+
+    centre_m: Vec3
+    rotation: tuple[Vec3, Vec3, Vec3]
+    width_m: float
+    height_m: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "centre_m", _vec3("centre_m", self.centre_m))
+        rot = np.asarray(self.rotation, dtype=float)
+        if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+            raise ValueError("rotation must be a finite 3x3 matrix")
+        if np.abs(rot @ rot.T - np.eye(3)).max() > 1e-6 or np.linalg.det(rot) < 0:
+            raise ValueError("rotation must be a proper rotation matrix (orthonormal, det +1)")
+        object.__setattr__(self, "rotation", tuple(tuple(float(x) for x in row) for row in rot))
+        if not (math.isfinite(self.width_m) and math.isfinite(self.height_m)
+                and self.width_m > 0 and self.height_m > 0):
+            raise ValueError("width_m and height_m must be positive")
+
+    @classmethod
+    def from_euler(cls, centre_m: object, roll_rad: float, pitch_rad: float = 0.0, yaw_rad: float = 0.0,
+                   *, width_m: float, height_m: float) -> GapPose:
+        """Gap with rotation Rz(yaw) Ry(pitch) Rx(roll) (rad); the paper's tilt is the roll."""
+        rot = euler_to_matrix(roll_rad, pitch_rad, yaw_rad)
+        return cls(_vec3("centre_m", centre_m), tuple(map(tuple, rot)), width_m, height_m)
+
+    @classmethod
+    def from_deg(cls, centre_m: object, roll_deg: float, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
+                 *, width_m: float, height_m: float) -> GapPose:
+        """As ``from_euler`` with angles in degrees."""
+        return cls.from_euler(centre_m, math.radians(roll_deg), math.radians(pitch_deg),
+                              math.radians(yaw_deg), width_m=width_m, height_m=height_m)
+
+    @classmethod
+    def from_quaternion(cls, centre_m: object, q_wxyz: object, *, width_m: float, height_m: float) -> GapPose:
+        """Gap from a mocap pose: centre (m) and quaternion (w, x, y, z) gap -> world."""
+        rot = quat_to_matrix(np.asarray(q_wxyz, dtype=float))
+        return cls(_vec3("centre_m", centre_m), tuple(map(tuple, rot)), width_m, height_m)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return np.array(self.centre_m)
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.array(self.rotation)
+
+    @property
+    def e0(self) -> np.ndarray:
+        """Long-side direction R [0, 1, 0]."""
+        return self.R[:, 1]
+
+    @property
+    def e1(self) -> np.ndarray:
+        """Crossing direction (gap normal) R [1, 0, 0]."""
+        return self.R[:, 0]
+
+    @property
+    def e2(self) -> np.ndarray:
+        """e0 x e1 (= -R [0, 0, 1]); the traverse thrust is along +-e2."""
+        return np.cross(self.e0, self.e1)
+
+
+@dataclass(frozen=True)
+class LabVolume:
+    """Axis-aligned lab box (m, world ENU) the planner must stay inside; mirrors the emulator's."""
+
+    min_m: Vec3
+    max_m: Vec3
+
+    def __post_init__(self) -> None:
+        lo, hi = _vec3("min_m", self.min_m), _vec3("max_m", self.max_m)
+        if not all(a < b for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(f"lab min_m {lo} must be below max_m {hi} on every axis")
+        object.__setattr__(self, "min_m", lo)
+        object.__setattr__(self, "max_m", hi)
+
+    def contains(self, pos_m: object, margin_m: float = 0.0) -> bool:
+        p = np.asarray(pos_m, dtype=float)
+        lo, hi = np.array(self.min_m) + margin_m, np.array(self.max_m) - margin_m
+        return bool(np.all(p >= lo) and np.all(p <= hi))
+
+    def half_spaces(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The six (point, inward normal) pairs bounding the box."""
+        lo, hi, eye = np.array(self.min_m), np.array(self.max_m), np.eye(3)
+        return [(lo, eye[i]) for i in range(3)] + [(hi, -eye[i]) for i in range(3)]
+
+
+@dataclass(frozen=True)
+class VehicleLimits:
+    """What the planner may ask of the vehicle: mass-normalised thrust (m/s^2), body rate, speed, tilt."""
+
+    f_min_m_s2: float = 2.0
+    f_max_m_s2: float = 25.0
+    max_body_rate_rad_s: float = 15.0
+    max_speed_m_s: float = 6.0
+    max_tilt_rad: float = math.radians(75.0)
+    min_dt_s: float = 0.02  # smallest interval of the input-feasibility recursion
+
+    def __post_init__(self) -> None:
+        if not (0 < self.f_min_m_s2 < self.f_max_m_s2 and self.max_body_rate_rad_s > 0
+                and self.max_speed_m_s > 0 and 0 < self.max_tilt_rad < math.pi / 2 and self.min_dt_s > 0):
+            raise ValueError(f"inconsistent vehicle limits: {self}")
+
+    @classmethod
+    def from_vehicle(cls, mass_kg: float, max_thrust_n: float, **kw: float) -> VehicleLimits:
+        """Limits with f_max = max_thrust_n / mass_kg (other fields as keywords)."""
+        return cls(f_max_m_s2=max_thrust_n / mass_kg, **kw)
+
+
+@dataclass(frozen=True)
+class Traverse:
+    """The ballistic traverse: t in [0, duration_s] from its start; the centre is passed at t_c_s."""
+
+    gap_centre_m: Vec3
+    direction: Vec3  # u: unit crossing direction (+-e1)
+    acc_m_s2: Vec3  # a_tr = g - (g . e2) e2
+    crossing_speed_m_s: float
+    t_c_s: float
+    duration_s: float
+    l_m: float  # distance of the start from the centre along the long side
+    d_m: float  # distance of the start before the gap plane
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position (m), velocity (m/s), acceleration (m/s^2) at ``t`` (s) from the traverse start."""
+        tau = t - self.t_c_s
+        a = np.array(self.acc_m_s2)
+        v_c = self.crossing_speed_m_s * np.array(self.direction)
+        return np.array(self.gap_centre_m) + v_c * tau + a * tau * tau / 2, v_c + a * tau, a
+
+    @property
+    def start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.state(0.0)
+
+    @property
+    def end_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.state(self.duration_s)
+
+
+def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
+                  direction_sign: float = 1.0, d_min_m: float = 0.1, exit_m: float = 0.3,
+                  l_max_m: float = 0.5) -> Traverse:
+    """The traverse through ``gap`` at ``crossing_speed_m_s`` along ``direction_sign * e1``.
+
+    Searches l in (0, l_max_m] (see the module docstring). Raises PlanningError when the tilt,
+    thrust or speed limits cannot be met.
+    """
+    limits = limits or VehicleLimits()
+    s = float(crossing_speed_m_s)
+    if not (math.isfinite(s) and 0 < s <= limits.max_speed_m_s):
+        raise PlanningError(f"crossing speed {s} m/s must be in (0, {limits.max_speed_m_s}]")
+    g = GRAVITY_VEC_M_S2
+    e2 = gap.e2
+    u = gap.e1 * (1.0 if direction_sign >= 0 else -1.0)
+    tilt = math.acos(min(1.0, abs(float(e2[2]))))
+    if tilt > limits.max_tilt_rad:
+        raise PlanningError(f"gap tilt {math.degrees(tilt):.1f} deg exceeds the tilt limit "
+                            f"{math.degrees(limits.max_tilt_rad):.1f} deg")
+    a_tr = g - float(g @ e2) * e2
+    thrust = abs(float(g @ e2))
+    if not limits.f_min_m_s2 <= thrust <= limits.f_max_m_s2:
+        raise PlanningError(f"traverse thrust {thrust:.2f} m/s^2 is outside the vehicle's limits")
+    g0 = abs(float(g @ gap.e0))
+    a_u = float(a_tr @ u)
+    if g0 < 1e-9:  # tilt 0: no drop along the long side, a straight traverse
+        t_c_all = np.array([d_min_m / s])
+    else:  # grid over l plus the value where d = d_min exactly (the usual optimum)
+        l_grid = np.linspace(l_max_m / 1000, l_max_m, 1000)
+        t_c_all = np.sqrt(2 * l_grid / g0)
+        disc = s * s - 2 * a_u * d_min_m
+        if disc >= 0:
+            t_exact = 2 * d_min_m / (s + math.sqrt(disc))
+            if g0 * t_exact**2 / 2 <= l_max_m:
+                t_c_all = np.append(t_c_all, t_exact)
+    d_all = s * t_c_all - a_u * t_c_all**2 / 2
+    v_start = np.linalg.norm(s * u[None, :] - a_tr[None, :] * t_c_all[:, None], axis=1)
+    ok = (d_all >= d_min_m - 1e-12) & (v_start <= limits.max_speed_m_s)
+    if not np.any(ok):
+        raise PlanningError(f"no traverse length l in (0, {l_max_m}] m keeps d >= {d_min_m} m and the "
+                            f"speed <= {limits.max_speed_m_s} m/s at crossing speed {s} m/s")
+    k = int(np.argmin(np.where(ok, v_start, np.inf)))
+    t_c = float(t_c_all[k])
+    # exit: s tau + a_u tau^2 / 2 = exit_m, smallest positive root
+    if abs(a_u) < 1e-12:
+        tau_end = exit_m / s
+    else:
+        disc = s * s + 2 * a_u * exit_m
+        if disc < 0:
+            raise PlanningError("the traverse turns back before clearing the gap plane")
+        tau_end = (-s + math.sqrt(disc)) / a_u
+    v_end = float(np.linalg.norm(s * u + a_tr * tau_end))
+    if v_end > limits.max_speed_m_s:
+        raise PlanningError(f"traverse exit speed {v_end:.2f} m/s exceeds {limits.max_speed_m_s} m/s")
+    return Traverse(gap.centre_m, _vec3("u", u), _vec3("a", a_tr), s, t_c, t_c + tau_end,
+                    g0 * t_c * t_c / 2, float(d_all[k]))
+
+
+@dataclass(frozen=True)
+class RecoveryResult:
+    """Outcome of the recovery search: the trajectory and what the search did."""
+
+    trajectory: Trajectory
+    duration_s: float
+    tried: int  # durations examined (the search is batched; this is the index of the first good + 1)
+    search_time_s: float
+
+
+RECOVERY_DURATIONS_S = np.round(np.arange(0.5, 3.0 + 1e-9, 0.3), 10)
+
+
+def hover_point(gap: GapPose, direction: np.ndarray, distance_m: float = 2.5,
+                height_m: float = 1.0) -> np.ndarray:
+    """Hover target: ``distance_m`` past the gap centre along the horizontal crossing direction, at
+    ``height_m`` above ground."""
+    horiz = np.array([direction[0], direction[1], 0.0])
+    norm = float(np.linalg.norm(horiz))
+    if norm < 1e-6:
+        raise PlanningError("the crossing direction is vertical: no horizontal hover direction")
+    target = gap.centre + distance_m * horiz / norm
+    target[2] = height_m
+    return target
+
+
+def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: object, lab: LabVolume,
+                    limits: VehicleLimits | None = None, wall: tuple[object, object] | None = None,
+                    durations_s: np.ndarray = RECOVERY_DURATIONS_S, margin_m: float = 0.0) -> RecoveryResult:
+    """The paper's recovery search from the current state to hover at ``hover_m`` (all durations are
+    solved as one batch; the first that passes wins).
+
+    A duration passes when its trajectory stays ``margin_m`` inside ``lab``, on the normal's side of
+    ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. Raises PlanningError if none.
+    """
+    limits = limits or VehicleLimits()
+    start = time.perf_counter()
+    hover = np.asarray(_vec3("hover_m", hover_m))
+    if not lab.contains(hover, margin_m):
+        raise PlanningError(f"hover point {hover.round(3).tolist()} is outside the lab")
+    traj = solve(_vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2),
+                 hover, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
+    ok = np.ones(traj.batch_shape, dtype=bool)
+    for point, normal in lab.half_spaces():
+        ok &= traj.position_feasible(point, normal, margin_m)
+    if wall is not None:
+        ok &= traj.position_feasible(wall[0], wall[1])
+    candidates = np.flatnonzero(ok)
+    if candidates.size:
+        sub = solve(traj.p0[candidates], traj.v0[candidates], traj.a0[candidates], hover, np.zeros(3),
+                    np.zeros(3), traj.T[candidates])
+        feas = sub.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
+                                  limits.min_dt_s)
+        good = candidates[feas == Feasibility.FEASIBLE]
+    else:
+        good = candidates
+    if not good.size:
+        raise PlanningError(f"no recovery duration in {np.asarray(durations_s).round(2).tolist()} s stays in "
+                            "the lab and within the thrust and body-rate limits")
+    i = int(good[0])
+    best = solve(traj.p0[i], traj.v0[i], traj.a0[i], hover, np.zeros(3), np.zeros(3), traj.T[i])
+    return RecoveryResult(best, float(traj.T[i]), i + 1, time.perf_counter() - start)
+
+
+class Segment(StrEnum):
+    """Mission phase names."""
+
+    APPROACH = "approach"
+    TRAVERSE = "traverse"
+    RECOVERY = "recovery"
+    HOVER = "hover"
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The reference at one time: position (m), velocity (m/s), acceleration (m/s^2), yaw (rad)."""
+
+    pos_m: np.ndarray
+    vel_m_s: np.ndarray
+    acc_m_s2: np.ndarray
+    yaw_rad: float
+    segment: Segment
+
+
+@dataclass(frozen=True)
+class MissionPlan:
+    """Approach -> traverse -> recovery -> hover, on one time axis (s, from the approach start)."""
+
+    gap: GapPose
+    approach: Trajectory
+    traverse: Traverse
+    recovery: RecoveryResult
+    hover_m: Vec3
+    yaw_rad: float
+    approach_feasibility: Feasibility
+    t_traverse_start_s: float = field(init=False)
+    t_recovery_start_s: float = field(init=False)
+    t_hover_start_s: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        t1 = float(self.approach.T)
+        t2 = t1 + self.traverse.duration_s
+        object.__setattr__(self, "t_traverse_start_s", t1)
+        object.__setattr__(self, "t_recovery_start_s", t2)
+        object.__setattr__(self, "t_hover_start_s", t2 + self.recovery.duration_s)
+
+    @property
+    def t_gap_s(self) -> float:
+        """When the reference passes the gap centre (s)."""
+        return self.t_traverse_start_s + self.traverse.t_c_s
+
+    def segment_at(self, t: float) -> Segment:
+        if t < self.t_traverse_start_s:
+            return Segment.APPROACH
+        if t < self.t_recovery_start_s:
+            return Segment.TRAVERSE
+        if t < self.t_hover_start_s:
+            return Segment.RECOVERY
+        return Segment.HOVER
+
+    def reference(self, t: float) -> Reference:
+        """The reference at mission time ``t`` (s); before 0 the start state, after the end hover."""
+        seg = self.segment_at(t)
+        if seg is Segment.APPROACH:
+            p, v, a = self.approach.state(max(t, 0.0))
+        elif seg is Segment.TRAVERSE:
+            p, v, a = self.traverse.state(t - self.t_traverse_start_s)
+        elif seg is Segment.RECOVERY:
+            p, v, a = self.recovery.trajectory.state(t - self.t_recovery_start_s)
+        else:
+            p, v, a = np.array(self.hover_m), np.zeros(3), np.zeros(3)
+        return Reference(np.asarray(p, dtype=float), np.asarray(v, dtype=float),
+                         np.asarray(a, dtype=float), self.yaw_rad, seg)
+
+
+def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel_m_s: object = (0, 0, 0),
+                 start_acc_m_s2: object = (0, 0, 0), approach_duration_s: float = 2.6,
+                 crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
+                 d_min_m: float = 0.1, exit_m: float = 0.3, hover_distance_m: float = 2.5,
+                 hover_height_m: float = 1.0, strict: bool = True) -> MissionPlan:
+    """Plan the whole crossing from the current state (the paper's pipeline).
+
+    The crossing direction is the gap normal pointing away from the start. With ``strict`` an
+    INFEASIBLE approach raises PlanningError (INDETERMINABLE is accepted and recorded).
+    """
+    limits = limits or VehicleLimits()
+    p_start = np.asarray(_vec3("start_pos_m", start_pos_m))
+    if not (math.isfinite(approach_duration_s) and approach_duration_s > 0):
+        raise ValueError("approach_duration_s must be positive")
+    side = float((p_start - gap.centre) @ gap.e1)
+    sign = -1.0 if side > 0 else 1.0
+    trav = plan_traverse(gap, crossing_speed_m_s, limits, sign, d_min_m, exit_m)
+    p0, v0, a0 = trav.start_state
+    approach = solve(p_start, _vec3("start_vel_m_s", start_vel_m_s), _vec3("start_acc_m_s2", start_acc_m_s2),
+                     p0, v0, a0, approach_duration_s)
+    feas = Feasibility(int(approach.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2,
+                                                   limits.max_body_rate_rad_s, limits.min_dt_s)))
+    if strict and feas is Feasibility.INFEASIBLE:
+        raise PlanningError(f"the approach in {approach_duration_s} s exceeds the thrust or body-rate limits")
+    if strict and not all(bool(approach.position_feasible(pt, n)) for pt, n in lab.half_spaces()):
+        raise PlanningError(f"the approach in {approach_duration_s} s leaves the lab")
+    u = np.array(trav.direction)
+    hover = hover_point(gap, u, hover_distance_m, hover_height_m)
+    pe, ve, ae = trav.end_state
+    recovery = search_recovery(pe, ve, ae, hover, lab, limits, wall=(gap.centre, u))
+    yaw = math.atan2(u[1], u[0])
+    return MissionPlan(gap, approach, trav, recovery, _vec3("hover", hover), yaw, feas)

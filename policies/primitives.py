@@ -1,0 +1,313 @@
+"""Minimum-jerk motion primitives after Mueller, Hehn and D'Andrea (2015), vectorised over a batch.
+
+Each axis is a quintic in time whose jerk is a quadratic, ``j(t) = alpha t^2/2 + beta t + gamma``,
+the minimiser of the cost ``J = (1/T) * integral_0^T |j(t)|^2 dt`` (summed over the three axes) from a
+fixed start state (p0, v0, a0) to an end state whose position, velocity and acceleration may each be
+fixed or free (``None``). Free end states use the optimal-control transversality conditions; the
+closed form is a constant 3 x k gain per fixed/free combination in normalised time (``GAINS``): a
+solve is a handful of array operations (millions of solves per second when batched).
+
+Feasibility tests after the same paper:
+- ``Trajectory.input_feasible``: the recursive interval-splitting test on the mass-normalised thrust
+  ``f = |a - g|`` (m/s^2) and the roll/pitch body rates ``|omega_xy| <= |j| / f`` (rad/s). Bounds over an
+  interval come from the extrema of each axis' acceleration (roots of the jerk) and jerk (root of the
+  snap); undecided intervals are halved down to ``min_dt``. Points sampled on the way (every interval's
+  ends and midpoints) are checked exactly, so a violation found there is definite.
+- ``Trajectory.position_feasible``: the half-space test, exact: the signed distance to the plane is a
+  quintic in t, its extrema on [0, T] are among the ends and the real roots of its quartic derivative
+  (found as companion-matrix eigenvalues, batched).
+
+Shapes: positions, velocities and accelerations are (..., 3), durations (...); they broadcast.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+import numpy as np
+
+from policies.frames import GRAVITY_VEC_M_S2
+
+
+class Feasibility(IntEnum):
+    """Outcome of the input-feasibility test, per trajectory."""
+
+    FEASIBLE = 0
+    INFEASIBLE = 1
+    INDETERMINABLE = 2
+
+
+# --- closed-form gains in normalised time ------------------------------------------------------
+# With tau = t / T and x = (A, B, C) = (alpha T^5/120, beta T^4/24, gamma T^3/6), the end constraints
+# read M x = (dp, dv T, da T^2) and the cost J T^5 = x' Q x with the jerk basis (60 tau^2, 24 tau, 6).
+_M = np.array([[1.0, 1.0, 1.0], [5.0, 4.0, 3.0], [20.0, 12.0, 6.0]])
+_Q = np.array([[720.0, 360.0, 120.0], [360.0, 192.0, 72.0], [120.0, 72.0, 36.0]])
+
+
+def _gain(fixed: tuple[bool, bool, bool]) -> np.ndarray:
+    """Map from the fixed end-state residuals (in order p, v, a) to x: the KKT solution of min x'Qx."""
+    rows = [i for i in range(3) if fixed[i]]
+    if not rows:
+        return np.zeros((3, 0))
+    m = _M[rows]
+    q_inv = np.linalg.inv(_Q)
+    return q_inv @ m.T @ np.linalg.inv(m @ q_inv @ m.T)
+
+
+GAINS: dict[tuple[bool, bool, bool], np.ndarray] = {
+    (p, v, a): _gain((p, v, a)) for p in (True, False) for v in (True, False) for a in (True, False)
+}
+
+
+def _vec3(name: str, value: object) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0 or arr.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite")
+    return arr
+
+
+class Trajectory:
+    """A batch of minimum-jerk trajectories (coefficients per axis); build with ``solve``.
+
+    Attributes (read-only by convention): ``p0, v0, a0, alpha, beta, gamma`` of shape (..., 3) and
+    ``T`` of shape (...) in seconds; ``batch_shape`` is the leading shape.
+    """
+
+    def __init__(self, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, alpha: np.ndarray,
+                 beta: np.ndarray, gamma: np.ndarray, T: np.ndarray) -> None:
+        self.p0, self.v0, self.a0 = p0, v0, a0
+        self.alpha, self.beta, self.gamma = alpha, beta, gamma
+        self.T = T
+        self.batch_shape: tuple[int, ...] = T.shape
+
+    def __len__(self) -> int:
+        return int(self.T.shape[0]) if self.T.ndim else 1
+
+    # --- evaluation ------------------------------------------------------------------------------
+    def _coeffs_for(self, t: object) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Broadcast ``t`` against the batch: returns t[..., None] and the coefficient arrays.
+
+        ``t`` of ndim <= len(batch_shape) broadcasts with the batch (output (..., 3)); ``t`` with one
+        more dimension than the batch carries a trailing sample axis (output (..., S, 3)).
+        """
+        tt = np.asarray(t, dtype=float)
+        coeffs = (self.p0, self.v0, self.a0, self.alpha, self.beta, self.gamma)
+        nb = len(self.batch_shape)
+        if tt.ndim == nb + 1:
+            coeffs = tuple(c[..., None, :] for c in coeffs)
+        elif tt.ndim > nb + 1:
+            raise ValueError(f"t has shape {tt.shape}; batch shape is {self.batch_shape} "
+                             "(allowed: broadcastable with the batch, or one extra trailing sample axis)")
+        return tt[..., None], coeffs
+
+    def state(self, t: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position (m), velocity (m/s), acceleration (m/s^2) at time ``t`` (s) from the start.
+
+        ``t`` is a scalar, an array broadcastable with the batch shape (one time per trajectory;
+        outputs (..., 3)), or an array of the batch shape plus a trailing sample axis of length S (S
+        times per trajectory; outputs (..., S, 3)). The polynomial is evaluated as is outside [0, T].
+        """
+        t1, (p0, v0, a0, al, be, ga) = self._coeffs_for(t)
+        t2, t3 = t1 * t1, t1 * t1 * t1
+        p = p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120
+        v = v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24
+        a = a0 + ga * t1 + be * t2 / 2 + al * t3 / 6
+        return p, v, a
+
+    def jerk(self, t: object) -> np.ndarray:
+        """Jerk (m/s^3) at ``t`` (s); same shape rules as ``state``."""
+        t1, (_, _, _, al, be, ga) = self._coeffs_for(t)
+        return ga + be * t1 + al * t1 * t1 / 2
+
+    @property
+    def cost(self) -> np.ndarray:
+        """Mueller et al.'s J: (1/T) * integral of |jerk|^2 over [0, T], summed over axes; shape (...)."""
+        al, be, ga, T = self.alpha, self.beta, self.gamma, self.T[..., None]
+        integral = (ga**2 * T + be * ga * T**2 + (be**2 + al * ga) * T**3 / 3
+                    + al * be * T**4 / 4 + al**2 * T**5 / 20)
+        return integral.sum(axis=-1) / self.T
+
+    # --- feasibility -----------------------------------------------------------------------------
+    def input_feasible(self, f_min_m_s2: float, f_max_m_s2: float, w_max_rad_s: float,
+                       min_dt: float = 0.02) -> np.ndarray:
+        """Mueller et al.'s recursive input-feasibility test; returns ``Feasibility`` codes, shape (...).
+
+        ``f_min_m_s2``/``f_max_m_s2``: mass-normalised thrust limits (m/s^2, f_min > 0);
+        ``w_max_rad_s``: roll/pitch body-rate limit; ``min_dt``: smallest interval (s) before the
+        test gives up on it (INDETERMINABLE).
+        """
+        if not (0 < f_min_m_s2 < f_max_m_s2 and w_max_rad_s > 0 and min_dt > 0):
+            raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
+        flat = _FlatCoeffs(self)
+        n = flat.T.shape[0]
+        result = np.full(n, Feasibility.FEASIBLE, dtype=np.int8)
+        idx = np.arange(n)
+        t_lo = np.zeros(n)
+        t_hi = flat.T.copy()
+        bad = ~flat.point_ok(idx, t_lo, f_min_m_s2, f_max_m_s2, w_max_rad_s)
+        bad |= ~flat.point_ok(idx, t_hi, f_min_m_s2, f_max_m_s2, w_max_rad_s)
+        result[idx[bad]] = Feasibility.INFEASIBLE
+        while idx.size:
+            keep = result[idx] != Feasibility.INFEASIBLE
+            idx, t_lo, t_hi = idx[keep], t_lo[keep], t_hi[keep]
+            if not idx.size:
+                break
+            fsq_lo, fsq_hi, jsq_hi = flat.interval_bounds(idx, t_lo, t_hi)
+            infeasible = (fsq_lo > f_max_m_s2**2) | (fsq_hi < f_min_m_s2**2)
+            result[idx[infeasible]] = Feasibility.INFEASIBLE
+            thrust_ok = (fsq_hi <= f_max_m_s2**2) & (fsq_lo >= f_min_m_s2**2)
+            done = thrust_ok & (jsq_hi <= w_max_rad_s**2 * fsq_lo)
+            undecided = ~infeasible & ~done
+            half = (t_hi - t_lo) / 2
+            too_small = undecided & (half < min_dt)
+            tag = idx[too_small]
+            result[tag] = np.where(result[tag] == Feasibility.INFEASIBLE, Feasibility.INFEASIBLE,
+                                   Feasibility.INDETERMINABLE)
+            split = undecided & ~too_small
+            idx, t_lo, t_hi = idx[split], t_lo[split], t_hi[split]
+            t_mid = (t_lo + t_hi) / 2
+            bad = ~flat.point_ok(idx, t_mid, f_min_m_s2, f_max_m_s2, w_max_rad_s)
+            result[idx[bad]] = Feasibility.INFEASIBLE
+            idx = np.concatenate([idx, idx])
+            t_lo, t_hi = np.concatenate([t_lo, t_mid]), np.concatenate([t_mid, t_hi])
+        return result.reshape(self.batch_shape)
+
+    def min_plane_distance(self, point: object, normal: object) -> np.ndarray:
+        """Smallest signed distance (m) over [0, T] to the plane through ``point`` with ``normal``.
+
+        Positive is the side the normal points to. Exact up to round-off: the extrema are among the
+        ends and the real roots of the derivative (a quartic). Shape (...).
+        """
+        pt = _vec3("point", point)
+        nrm = _vec3("normal", normal)
+        length = np.linalg.norm(nrm, axis=-1, keepdims=True)
+        if np.any(length < 1e-12):
+            raise ValueError("normal must be non-zero")
+        nrm = nrm / length
+        T = self.T
+        dot = lambda c: np.sum(np.broadcast_to(c, np.broadcast_shapes(c.shape, nrm.shape)) * nrm, -1)  # noqa: E731
+        # signed distance as a quintic in normalised time tau in [0, 1]: coefficients d0..d5
+        d = np.stack(np.broadcast_arrays(
+            dot(self.p0 - pt), dot(self.v0) * T, dot(self.a0) * T**2 / 2, dot(self.gamma) * T**3 / 6,
+            dot(self.beta) * T**4 / 24, dot(self.alpha) * T**5 / 120), -1)
+        shape = d.shape[:-1]
+        d = d.reshape(-1, 6)
+        best = np.minimum(d[:, 0], d.sum(axis=1))
+        deriv = d[:, 1:] * np.arange(1, 6)  # e0..e4 of the quartic derivative
+        scale = np.max(np.abs(deriv), axis=1)
+        regular = np.abs(deriv[:, 4]) > 1e-9 * scale
+        powers = np.arange(6)
+        if np.any(regular):
+            e = deriv[regular]
+            comp = np.zeros((e.shape[0], 4, 4))
+            comp[:, 1, 0] = comp[:, 2, 1] = comp[:, 3, 2] = 1.0
+            comp[:, :, 3] = -e[:, :4] / e[:, 4:5]
+            roots = np.linalg.eigvals(comp)
+            real = np.abs(roots.imag) <= 1e-7 * (1.0 + np.abs(roots.real))
+            tau = np.clip(np.where(real, roots.real, 0.0), 0.0, 1.0)
+            vals = np.sum(d[regular][:, None, :] * tau[..., None] ** powers, axis=-1)
+            best[regular] = np.minimum(best[regular], vals.min(axis=1))
+        for row in np.flatnonzero(~regular):
+            roots = np.roots(deriv[row, ::-1]) if scale[row] > 0 else np.array([])
+            roots = roots.real[(np.abs(roots.imag) <= 1e-7) & (roots.real > 0) & (roots.real < 1)]
+            if roots.size:
+                best[row] = min(best[row], float(np.min(np.polyval(d[row, ::-1], roots))))
+        return best.reshape(shape)
+
+    def position_feasible(self, point: object, normal: object, margin_m: float = 0.0) -> np.ndarray:
+        """True where the trajectory stays on the normal's side of the plane (by ``margin_m``) on [0, T]."""
+        return self.min_plane_distance(point, normal) >= margin_m - 1e-9
+
+
+class _FlatCoeffs:
+    """Coefficients flattened to (N, 3) for the feasibility recursion."""
+
+    def __init__(self, traj: Trajectory) -> None:
+        shape = (*traj.batch_shape, 3)
+        flat = lambda c: np.broadcast_to(c, shape).reshape(-1, 3)  # noqa: E731
+        self.a0 = flat(traj.a0) - GRAVITY_VEC_M_S2  # thrust acceleration offset: f = a - g
+        self.al, self.be, self.ga = flat(traj.alpha), flat(traj.beta), flat(traj.gamma)
+        self.T = traj.T.reshape(-1)
+
+    def thrust_acc(self, idx: np.ndarray, t: np.ndarray) -> np.ndarray:
+        t = t[..., None]
+        return self.a0[idx] + self.ga[idx] * t + self.be[idx] * t * t / 2 + self.al[idx] * t**3 / 6
+
+    def jerk(self, idx: np.ndarray, t: np.ndarray) -> np.ndarray:
+        t = t[..., None]
+        return self.ga[idx] + self.be[idx] * t + self.al[idx] * t * t / 2
+
+    def point_ok(self, idx: np.ndarray, t: np.ndarray, f_min: float, f_max: float,
+                 w_max: float) -> np.ndarray:
+        """Exact thrust and roll/pitch-rate check at single times."""
+        f_vec = self.thrust_acc(idx, t)
+        f = np.linalg.norm(f_vec, axis=-1)
+        j = self.jerk(idx, t)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = f_vec / f[:, None]
+            j_perp = j - np.sum(j * z, axis=-1, keepdims=True) * z
+            rate = np.linalg.norm(j_perp, axis=-1) / f
+        return (f >= f_min) & (f <= f_max) & (rate <= w_max)
+
+    def interval_bounds(self, idx: np.ndarray, t_lo: np.ndarray,
+                        t_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lower and upper bounds on f^2 and an upper bound on |j|^2 over each [t_lo, t_hi]."""
+        al, be, ga = self.al[idx], self.be[idx], self.ga[idx]
+        lo, hi = t_lo[:, None], t_hi[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # roots of the jerk (acceleration extrema): al/2 t^2 + be t + ga = 0
+            disc = np.sqrt(be * be - 2 * al * ga)
+            r1 = np.where(al != 0, (-be + disc) / al, -ga / be)
+            r2 = np.where(al != 0, (-be - disc) / al, -ga / be)
+            r_snap = -be / al  # jerk extremum
+        cand = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
+                         np.clip(np.nan_to_num(r1, nan=0.0, posinf=0.0, neginf=0.0), lo, hi),
+                         np.clip(np.nan_to_num(r2, nan=0.0, posinf=0.0, neginf=0.0), lo, hi)], 0)
+        acc = self.a0[idx] + ga * cand + be * cand**2 / 2 + al * cand**3 / 6
+        a_min, a_max = acc.min(axis=0), acc.max(axis=0)
+        sq_hi = np.maximum(a_min**2, a_max**2)
+        sq_lo = np.where((a_min <= 0) & (a_max >= 0), 0.0, np.minimum(a_min**2, a_max**2))
+        jc = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
+                       np.clip(np.nan_to_num(r_snap, nan=0.0, posinf=0.0, neginf=0.0), lo, hi)], 0)
+        jer = ga + be * jc + al * jc**2 / 2
+        return sq_lo.sum(-1), sq_hi.sum(-1), (np.abs(jer).max(axis=0) ** 2).sum(-1)
+
+
+def solve(p0: object, v0: object, a0: object, pf: object | None, vf: object | None, af: object | None,
+          T: object) -> Trajectory:
+    """Minimum-jerk trajectories from (p0, v0, a0) to the end state (pf, vf, af) in ``T`` seconds.
+
+    Arrays are (..., 3) (m, m/s, m/s^2) and ``T`` is (...) (s); they broadcast. ``None`` leaves that
+    end state free for all axes (the cost is then minimised over it too). Raises ValueError for
+    non-finite inputs or non-positive durations.
+    """
+    p0a, v0a, a0a = _vec3("p0", p0), _vec3("v0", v0), _vec3("a0", a0)
+    ends = [None if e is None else _vec3(name, e) for name, e in (("pf", pf), ("vf", vf), ("af", af))]
+    Ta = np.asarray(T, dtype=float)
+    if not np.all(np.isfinite(Ta)) or np.any(Ta <= 0):
+        raise ValueError("T must be finite and positive")
+    shapes = [p0a.shape[:-1], v0a.shape[:-1], a0a.shape[:-1], Ta.shape]
+    shapes += [e.shape[:-1] for e in ends if e is not None]
+    batch = np.broadcast_shapes(*shapes)
+    Ta = np.broadcast_to(Ta, batch)
+    Tc = Ta[..., None]
+    p0a, v0a, a0a = (np.broadcast_to(x, (*batch, 3)) for x in (p0a, v0a, a0a))
+    residuals = []
+    if ends[0] is not None:
+        residuals.append(ends[0] - p0a - v0a * Tc - a0a * Tc**2 / 2)
+    if ends[1] is not None:
+        residuals.append((ends[1] - v0a - a0a * Tc) * Tc)
+    if ends[2] is not None:
+        residuals.append((ends[2] - a0a) * Tc**2)
+    gain = GAINS[tuple(e is not None for e in ends)]
+    if residuals:
+        rhs = np.stack(np.broadcast_arrays(*residuals), -1)  # (..., 3 axes, k)
+        x = np.einsum("ik,...ak->...ai", gain, rhs)  # (..., 3 axes, 3 coefficients)
+    else:
+        x = np.zeros((*batch, 3, 3))
+    alpha = 120 * x[..., 0] / Tc**5
+    beta = 24 * x[..., 1] / Tc**4
+    gamma = 6 * x[..., 2] / Tc**3
+    return Trajectory(np.array(p0a), np.array(v0a), np.array(a0a), alpha, beta, gamma, np.array(Ta))

@@ -1,0 +1,169 @@
+"""Tests for policies.primitives: boundary conditions, cost, batching, feasibility checks."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from policies.primitives import Feasibility, solve
+
+COMBOS = list(itertools.product((True, False), repeat=3))
+
+
+def _random_case(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+    return {
+        "p0": rng.uniform(-5, 5, (n, 3)), "v0": rng.uniform(-3, 3, (n, 3)), "a0": rng.uniform(-3, 3, (n, 3)),
+        "pf": rng.uniform(-5, 5, (n, 3)), "vf": rng.uniform(-3, 3, (n, 3)), "af": rng.uniform(-3, 3, (n, 3)),
+        "T": rng.uniform(0.5, 4.0, n),
+    }
+
+
+def _rel_err(x: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.max(np.abs(x - ref) / np.maximum(1.0, np.abs(ref))))
+
+
+@pytest.mark.parametrize("fixed", COMBOS, ids=lambda f: "".join("F" if x else "-" for x in f))
+def test_boundary_conditions_every_fixed_free_combination(fixed: tuple[bool, bool, bool]) -> None:
+    c = _random_case(np.random.default_rng(1), 200)
+    ends = [c[k] if f else None for k, f in zip(("pf", "vf", "af"), fixed, strict=True)]
+    tr = solve(c["p0"], c["v0"], c["a0"], *ends, c["T"])
+    p, v, a = tr.state(0.0)
+    assert _rel_err(p, c["p0"]) < 1e-9 and _rel_err(v, c["v0"]) < 1e-9 and _rel_err(a, c["a0"]) < 1e-9
+    p, v, a = tr.state(c["T"])
+    for got, want in zip((p, v, a), ends, strict=True):
+        if want is not None:
+            assert _rel_err(got, want) < 1e-9
+    # transversality: a free end acceleration leaves zero jerk at the end (its costate vanishes at T)
+    if not fixed[2]:
+        assert np.abs(tr.jerk(c["T"])).max() < 1e-7
+
+
+@pytest.mark.parametrize("fixed", COMBOS[:-1], ids=lambda f: "".join("F" if x else "-" for x in f))
+def test_free_end_states_are_optimal(fixed: tuple[bool, bool, bool]) -> None:
+    """Fixing a free end state at any other value than the optimum's costs more."""
+    rng = np.random.default_rng(2)
+    c = _random_case(rng, 50)
+    ends = [c[k] if f else None for k, f in zip(("pf", "vf", "af"), fixed, strict=True)]
+    tr = solve(c["p0"], c["v0"], c["a0"], *ends, c["T"])
+    p, v, a = tr.state(c["T"])
+    opt = (p, v, a)
+    for _ in range(5):
+        pert = [o + rng.normal(0, 0.3, o.shape) if e is None else o for o, e in zip(opt, ends, strict=True)]
+        other = solve(c["p0"], c["v0"], c["a0"], *pert, c["T"])
+        assert np.all(other.cost >= tr.cost - 1e-9)
+    same = solve(c["p0"], c["v0"], c["a0"], *opt, c["T"])
+    np.testing.assert_allclose(same.cost, tr.cost, rtol=1e-8, atol=1e-9)
+
+
+def test_cost_equals_integrated_squared_jerk() -> None:
+    c = _random_case(np.random.default_rng(3), 20)
+    tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], c["vf"], c["af"], c["T"])
+    n = 4001
+    ts = np.linspace(0.0, 1.0, n)[None, :] * c["T"][:, None]  # trailing sample axis
+    j2 = np.sum(tr.jerk(ts) ** 2, axis=-1)
+    w = np.ones(n)
+    w[1:-1:2], w[2:-1:2] = 4, 2  # Simpson
+    integral = np.sum(j2 * w, axis=1) * (c["T"] / (n - 1)) / 3
+    np.testing.assert_allclose(tr.cost, integral / c["T"], rtol=1e-6)
+
+
+def test_batched_and_scalar_calls_agree() -> None:
+    c = _random_case(np.random.default_rng(4), 30)
+    batch = solve(c["p0"], c["v0"], c["a0"], c["pf"], None, c["af"], c["T"])
+    t_query = 0.37 * c["T"]
+    pb, vb, ab = batch.state(t_query)
+    for i in range(30):
+        one = solve(c["p0"][i], c["v0"][i], c["a0"][i], c["pf"][i], None, c["af"][i], c["T"][i])
+        assert one.batch_shape == ()
+        p, v, a = one.state(t_query[i])
+        np.testing.assert_allclose(p, pb[i], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(v, vb[i], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(a, ab[i], rtol=1e-12, atol=1e-12)
+        assert one.cost == pytest.approx(batch.cost[i], rel=1e-12)
+    # broadcasting: one start, many goals and durations
+    many = solve(c["p0"][0], c["v0"][0], c["a0"][0], c["pf"], c["vf"], c["af"], c["T"])
+    assert many.state(0.0)[0].shape == (30, 3)
+    np.testing.assert_allclose(many.state(c["T"])[0], c["pf"], atol=1e-9)
+
+
+def test_state_sample_axis_shapes() -> None:
+    tr = solve([0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 2, 3], [0, 0, 0], [0, 0, 0], 2.0)
+    p, _, _ = tr.state(np.linspace(0, 2, 7))
+    assert p.shape == (7, 3)
+    np.testing.assert_allclose(p[-1], [1, 2, 3], atol=1e-12)
+    trb = solve(np.zeros((4, 3)), 0 * np.ones(3), np.zeros(3), np.ones((4, 3)), None, None, np.ones(4))
+    assert trb.state(np.zeros((4, 5)))[0].shape == (4, 5, 3)
+    with pytest.raises(ValueError):
+        trb.state(np.zeros((4, 5, 6)))
+
+
+def test_bad_input_is_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="T"):
+        solve([0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 1, 1], None, None, 0.0)
+    with pytest.raises(ValueError, match="p0"):
+        solve([0, 0], [0, 0, 0], [0, 0, 0], [1, 1, 1], None, None, 1.0)
+    with pytest.raises(ValueError, match="finite"):
+        solve([0, np.nan, 0], [0, 0, 0], [0, 0, 0], [1, 1, 1], None, None, 1.0)
+
+
+def test_input_feasibility_classifies() -> None:
+    zero = np.zeros(3)
+    hover = solve([0, 0, 1], zero, zero, [0, 0, 1], zero, zero, 2.0)
+    assert hover.input_feasible(5.0, 30.0, 10.0) == Feasibility.FEASIBLE  # f = g throughout
+    gentle = solve([0, 0, 1], zero, zero, [1, 0.5, 1.2], zero, zero, 3.0)
+    assert gentle.input_feasible(5.0, 30.0, 10.0) == Feasibility.FEASIBLE
+    huge = solve([0, 0, 1], zero, zero, [20, 0, 1], zero, zero, 0.5)  # 20 m in half a second
+    assert huge.input_feasible(5.0, 30.0, 10.0) == Feasibility.INFEASIBLE
+    free_fall_too_long = solve([0, 0, 10], zero, [0, 0, -9.8], None, None, [0, 0, -9.8], 1.0)
+    assert free_fall_too_long.input_feasible(1.0, 30.0, 10.0) == Feasibility.INFEASIBLE  # f = 0 < f_min
+    # batched: the verdicts match the one-at-a-time verdicts, and sampled truth agrees with FEASIBLE
+    rng = np.random.default_rng(5)
+    c = _random_case(rng, 300)
+    tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], c["vf"], c["af"], c["T"])
+    verdict = tr.input_feasible(2.0, 25.0, 10.0, min_dt=0.01)
+    assert set(np.unique(verdict)) >= {Feasibility.FEASIBLE, Feasibility.INFEASIBLE}
+    ts = np.linspace(0, 1, 3001)[None, :] * c["T"][:, None]
+    _, _, a = tr.state(ts)
+    up = np.array([0.0, 0.0, 9.8])
+    f = np.linalg.norm(a + up, axis=-1)
+    j = tr.jerk(ts)
+    z = (a + up) / f[..., None]
+    rate = np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1) / f
+    sampled_ok = (f.min(1) >= 2.0) & (f.max(1) <= 25.0) & (rate.max(1) <= 10.0)
+    assert np.all(sampled_ok[verdict == Feasibility.FEASIBLE])
+    for i in range(0, 300, 37):
+        one = solve(c["p0"][i], c["v0"][i], c["a0"][i], c["pf"][i], c["vf"][i], c["af"][i], c["T"][i])
+        assert one.input_feasible(2.0, 25.0, 10.0, min_dt=0.01) == verdict[i]
+    with pytest.raises(ValueError):
+        hover.input_feasible(10.0, 5.0, 1.0)
+
+
+def test_position_feasibility_catches_floor_dip() -> None:
+    zero = np.zeros(3)
+    # start at 0.5 m moving down at 3 m/s, end at 0.5 m at rest: dips below the floor
+    dip = solve([0, 0, 0.5], [0, 0, -3], zero, [1, 0, 0.5], zero, zero, 1.5)
+    ts = np.linspace(0, 1.5, 20001)
+    z_min = dip.state(ts)[0][:, 2].min()
+    assert z_min < 0
+    assert not dip.position_feasible([0, 0, 0], [0, 0, 1])
+    assert dip.min_plane_distance([0, 0, 0], [0, 0, 1]) == pytest.approx(z_min, abs=1e-6)
+    level = solve([0, 0, 0.5], zero, zero, [1, 0, 0.5], zero, zero, 1.5)
+    assert level.position_feasible([0, 0, 0], [0, 0, 1])
+    assert not level.position_feasible([0, 0, 0], [0, 0, 1], margin_m=0.6)
+    # batch with random planes: the exact minimum matches dense sampling
+    rng = np.random.default_rng(6)
+    c = _random_case(rng, 200)
+    tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], c["vf"], c["af"], c["T"])
+    normal = rng.normal(size=(200, 3))
+    point = rng.uniform(-3, 3, (200, 3))
+    exact = tr.min_plane_distance(point, normal)
+    ts = np.linspace(0, 1, 20001)[None, :] * c["T"][:, None]
+    p = tr.state(ts)[0]
+    unit = normal / np.linalg.norm(normal, axis=1, keepdims=True)
+    sampled = np.sum((p - point[:, None, :]) * unit[:, None], axis=-1).min(axis=1)
+    assert np.all(exact <= sampled + 1e-9)
+    np.testing.assert_allclose(exact, sampled, atol=1e-5)
+    with pytest.raises(ValueError):
+        tr.position_feasible([0, 0, 0], [0, 0, 0])
