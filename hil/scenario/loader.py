@@ -1,0 +1,546 @@
+"""Loading `*.scenario.yaml` files into `Scenario` values, with errors that name file, line and field.
+
+The YAML is composed into nodes (``yaml.compose_all``) so every value keeps its line; the nodes are
+then checked against the dataclasses of `hil.scenario.schema` (types, ranges, choices, unknown fields
+with a "did you mean" hint) and a few rules across fields (the gap and the start inside the lab, ...).
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+import types
+from collections.abc import Callable, Iterable
+from dataclasses import MISSING, fields, is_dataclass
+from pathlib import Path
+from typing import Any, Union, get_args, get_origin, get_type_hints
+
+import yaml
+from yaml.constructor import SafeConstructor
+from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
+
+from hil.scenario import schema
+from hil.scenario.schema import (
+    FAULT_KINDS,
+    FAULT_PARAMS,
+    SCENARIO_LIMITS,
+    Expectations,
+    Fault,
+    NoParams,
+    RecoveryExpectation,
+    Scenario,
+    WindGustParams,
+)
+
+SUFFIX = ".scenario.yaml"
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+_MARKER_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class ScenarioError(ValueError):
+    """A scenario file is unreadable or invalid: ``source:line: field: message``."""
+
+    def __init__(self, source: str, line: int, field: str, message: str) -> None:
+        super().__init__(f"{source}:{line}: {field}: {message}")
+        self.source = source
+        self.line = line
+        self.field = field
+        self.message = message
+
+
+# --- public API ----------------------------------------------------------------------------------
+def load_scenarios(path: str | Path) -> list[Scenario]:
+    """All scenarios of one file (one per YAML document), validated; raises ScenarioError."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(str(p), 1, "<file>", f"cannot read: {exc}") from exc
+    return loads_scenarios(text, source=str(p))
+
+
+def loads_scenarios(text: str, source: str = "<string>") -> list[Scenario]:
+    """Scenarios from YAML text; ``source`` names it in errors and gives the id's stem."""
+    try:
+        documents = list(yaml.compose_all(text, Loader=yaml.SafeLoader))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        line = mark.line + 1 if mark is not None else 1
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ScenarioError(source, line, "<yaml>", f"not valid YAML: {problem}") from exc
+    documents = [d for d in documents if not _is_empty(d)]
+    if not documents:
+        raise ScenarioError(source, 1, "<file>", "no scenario in the file (expected at least one document)")
+    stem = _stem(source)
+    scenarios = []
+    seen: dict[str, int] = {}
+    for index, node in enumerate(documents):
+        default_id = stem if len(documents) == 1 else f"{stem}-{index}"
+        scenario = _Builder(source).scenario(node, index, default_id)
+        if scenario.id in seen:
+            raise ScenarioError(
+                source,
+                scenario.line,
+                "name",
+                f"id '{scenario.id}' already used by the document on line {seen[scenario.id]}",
+            )
+        seen[scenario.id] = scenario.line
+        scenarios.append(scenario)
+    return scenarios
+
+
+def find_scenario_files(root: str | Path) -> list[Path]:
+    """Every ``*.scenario.yaml`` under ``root`` (or ``root`` itself if it is a file), sorted."""
+    r = Path(root)
+    if r.is_file():
+        return [r]
+    return sorted(p for p in r.rglob(f"*{SUFFIX}") if p.is_file())
+
+
+def load_all(paths: Iterable[str | Path]) -> list[Scenario]:
+    """Scenarios of every file found under ``paths``; ids must be unique across them."""
+    out: list[Scenario] = []
+    ids: dict[str, Scenario] = {}
+    for root in paths:
+        for path in find_scenario_files(root):
+            for s in load_scenarios(path):
+                if s.id in ids:
+                    other = ids[s.id]
+                    raise ScenarioError(
+                        s.source, s.line, "name", f"id '{s.id}' also used at {other.source}:{other.line}"
+                    )
+                ids[s.id] = s
+                out.append(s)
+    return out
+
+
+# --- helpers -------------------------------------------------------------------------------------
+def _stem(source: str) -> str:
+    name = Path(source).name
+    for suffix in (SUFFIX, ".yaml", ".yml"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def _is_empty(node: Node | None) -> bool:
+    return node is None or (
+        isinstance(node, ScalarNode) and node.tag.endswith(":null") and node.value in ("", "~", "null")
+    )
+
+
+def _fmt(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else repr(float(x))
+
+
+def _describe(value: Any, node: Node) -> str:
+    if isinstance(node, MappingNode):
+        return "a mapping"
+    if isinstance(node, SequenceNode):
+        return f"a list of {len(node.value)}"
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return repr(value)
+        return f"{value!r} (text; YAML reads a number only unquoted, with a dot before any exponent: 1.0e3)"
+    return repr(value)
+
+
+def _range_text(meta: dict[str, Any], what: str) -> str:
+    lo, hi = meta.get("lo"), meta.get("hi")
+    lo_open, hi_open = meta.get("lo_open", False), meta.get("hi_open", False)
+    if lo is not None and hi is not None and not lo_open and not hi_open:
+        return f"{what} between {_fmt(lo)} and {_fmt(hi)}"
+    parts = []
+    if lo is not None:
+        parts.append(f"{'>' if lo_open else '>='} {_fmt(lo)}")
+    if hi is not None:
+        parts.append(f"{'<' if hi_open else '<='} {_fmt(hi)}")
+    return f"{what} {' and '.join(parts)}" if parts else what
+
+
+def _in_range(x: float, meta: dict[str, Any]) -> bool:
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and (x < lo or (meta.get("lo_open") and x == lo)):
+        return False
+    return not (hi is not None and (x > hi or (meta.get("hi_open") and x == hi)))
+
+
+class _Builder:
+    """Turns one document's nodes into a Scenario; remembers each field's line for later checks."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.lines: dict[str, int] = {}
+        self._constructor = SafeConstructor()
+
+    # errors and scalars
+    def error(self, node: Node | int, field: str, message: str) -> ScenarioError:
+        line = node if isinstance(node, int) else node.start_mark.line + 1
+        return ScenarioError(self.source, line, field, message)
+
+    def line_of(self, field: str, fallback: int) -> int:
+        return self.lines.get(field, fallback)
+
+    def value(self, node: Node) -> Any:
+        if isinstance(node, MappingNode | SequenceNode):
+            return None
+        try:
+            return self._constructor.construct_object(node, deep=True)
+        except yaml.YAMLError as exc:
+            raise self.error(node, "<yaml>", f"cannot read value: {exc}") from exc
+
+    # mappings
+    def mapping(self, node: Node, path: str, allowed: Iterable[str]) -> dict[str, Node]:
+        """Check ``node`` is a mapping with known, unique string keys; returns key -> value node."""
+        where = path or "<document>"
+        if not isinstance(node, MappingNode):
+            raise self.error(
+                node, where, f"expected a mapping of field: value, got {_describe(self.value(node), node)}"
+            )
+        allowed = list(allowed)
+        out: dict[str, Node] = {}
+        for key_node, value_node in node.value:
+            key = self.value(key_node)
+            if not isinstance(key, str):
+                raise self.error(key_node, where, f"field names must be text, got {key!r}")
+            full = f"{path}.{key}" if path else key
+            if key in out:
+                raise self.error(key_node, full, "field given twice")
+            if key not in allowed:
+                close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise self.error(key_node, full, f"unknown field{hint}; allowed here: {', '.join(allowed)}")
+            self.lines[full] = key_node.start_mark.line + 1
+            out[key] = value_node
+        return out
+
+    def dataclass(
+        self,
+        cls: type,
+        node: Node,
+        path: str,
+        *,
+        custom: dict[str, Callable[[Node, str], Any]] | None = None,
+        extra_keys: tuple[str, ...] = (),
+        limits: dict[str, dict[str, Any]] | None = None,
+        skip: tuple[str, ...] = (),
+    ) -> tuple[dict[str, Any], dict[str, Node]]:
+        """Validated keyword arguments for ``cls`` from a mapping node (plus the raw key nodes)."""
+        custom = custom or {}
+        hints = get_type_hints(cls, vars(schema))
+        cls_fields = [f for f in fields(cls) if f.init and f.name not in skip]
+        items = self.mapping(node, path, [f.name for f in cls_fields] + list(extra_keys))
+        kwargs: dict[str, Any] = {}
+        for f in cls_fields:
+            full = f"{path}.{f.name}" if path else f.name
+            if f.name not in items:
+                if f.default is MISSING and f.default_factory is MISSING:
+                    raise self.error(node, full, "required field missing")
+                continue
+            sub = items[f.name]
+            if f.name in custom:
+                kwargs[f.name] = custom[f.name](sub, full)
+            else:
+                meta = dict(f.metadata) or (limits or {}).get(f.name, {})
+                kwargs[f.name] = self.convert(hints[f.name], sub, full, meta)
+        return kwargs, items
+
+    # typed values
+    def convert(self, tp: Any, node: Node, path: str, meta: dict[str, Any]) -> Any:
+        origin = get_origin(tp)
+        if origin in (Union, types.UnionType):
+            options = get_args(tp)
+            if type(None) in options and self.value(node) is None and isinstance(node, ScalarNode):
+                return None
+            rest = [o for o in options if o is not type(None)]
+            if set(rest) == {bool, str}:
+                return self.flag_or_choice(node, path, meta)
+            return self.convert(rest[0], node, path, meta)
+        if origin is tuple:
+            args = get_args(tp)
+            if len(args) == 2 and args[1] is Ellipsis:
+                return tuple(
+                    self.convert(args[0], n, f"{path}[{i}]", meta)
+                    for i, n in enumerate(self.sequence(node, path))
+                )
+            items = self.sequence(node, path, len(args))
+            return tuple(
+                self.convert(a, n, f"{path}[{i}]", meta)
+                for i, (a, n) in enumerate(zip(args, items, strict=True))
+            )
+        if is_dataclass(tp):
+            kwargs, _ = self.dataclass(tp, node, path)
+            return tp(**kwargs)
+        value = self.value(node)
+        if tp is bool:
+            if not isinstance(value, bool):
+                raise self.error(node, path, f"expected true or false, got {_describe(value, node)}")
+            return value
+        if tp is int:
+            if isinstance(value, bool) or not isinstance(value, int) or not _in_range(value, meta):
+                raise self.error(
+                    node,
+                    path,
+                    f"expected {_range_text(meta, 'a whole number')}, got {_describe(value, node)}",
+                )
+            return value
+        if tp is float:
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok or not _in_range(float(value), meta):
+                raise self.error(
+                    node, path, f"expected {_range_text(meta, 'a number')}, got {_describe(value, node)}"
+                )
+            return float(value)
+        if tp is str:
+            choices = meta.get("choices") or ()
+            if choices:
+                if value not in choices:
+                    raise self.error(
+                        node, path, f"expected one of {', '.join(choices)}, got {_describe(value, node)}"
+                    )
+                return value
+            if not isinstance(value, str) or not value.strip():
+                raise self.error(node, path, f"expected non-empty text, got {_describe(value, node)}")
+            return value
+        raise TypeError(f"scenario schema: no converter for {tp!r} at {path}")  # a bug in schema.py
+
+    def sequence(self, node: Node, path: str, length: int | None = None) -> list[Node]:
+        if not isinstance(node, SequenceNode) or (length is not None and len(node.value) != length):
+            want = f"a list of {length} numbers" if length is not None else "a list"
+            raise self.error(node, path, f"expected {want}, got {_describe(self.value(node), node)}")
+        return list(node.value)
+
+    def flag_or_choice(self, node: Node, path: str, meta: dict[str, Any]) -> bool | str:
+        value = self.value(node)
+        if isinstance(value, bool) or value in meta.get("choices", ()):
+            return value
+        choices = ", ".join(("true", "false", *meta.get("choices", ())))
+        raise self.error(node, path, f"expected one of {choices}, got {_describe(value, node)}")
+
+    # the document
+    def scenario(self, node: Node, index: int, default_id: str) -> Scenario:
+        doc_line = node.start_mark.line + 1
+        custom = {
+            "name": self.name,
+            "vehicle": self.vehicle,
+            "physics": self.physics,
+            "pilot": lambda n, p: self.convert(str, n, p, {"choices": schema.PILOTS}),
+            "faults": self.faults,
+            "markers": self.markers,
+            "expect": self.expectations,
+            "skip": lambda n, p: None if self.value(n) is None else self.convert(str, n, p, {}),
+        }
+        kwargs, _ = self.dataclass(
+            Scenario, node, "", custom=custom, limits=SCENARIO_LIMITS, skip=Scenario.META_FIELDS
+        )
+        if "description" not in kwargs:
+            raise self.error(
+                node, "description", "required field missing (one line saying what the scenario tests)"
+            )
+        scenario = Scenario(
+            id=kwargs.get("name") or default_id, source=self.source, line=doc_line, index=index, **kwargs
+        )
+        self.check_across(scenario, doc_line)
+        return scenario
+
+    def name(self, node: Node, path: str) -> str | None:
+        value = self.value(node)
+        if value is None and isinstance(node, ScalarNode):
+            return None
+        if not isinstance(value, str) or not _NAME_RE.match(value):
+            raise self.error(
+                node,
+                path,
+                f"expected a name of letters, digits, '_', '-' or '.', got {_describe(value, node)}",
+            )
+        return value
+
+    def vehicle(self, node: Node, path: str) -> str:
+        from emulator.profile import builtin_profiles
+
+        value = self.convert(str, node, path, {})
+        if value.endswith((".yaml", ".yml")):
+            p = Path(value)
+            if not p.is_absolute():
+                p = Path(self.source).parent / p
+            if not p.is_file():
+                raise self.error(
+                    node, path, f"expected a built-in profile name or a profile file, no file {p}"
+                )
+            return str(p)
+        have = builtin_profiles()
+        if value not in have:
+            close = difflib.get_close_matches(value, have, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise self.error(
+                node, path, f"unknown vehicle profile {value!r}{hint}; built-in: {', '.join(have) or 'none'}"
+            )
+        return value
+
+    def physics(self, node: Node, path: str) -> str:
+        from emulator.physics import backend_names
+
+        return self.convert(str, node, path, {"choices": tuple(backend_names())})
+
+    def markers(self, node: Node, path: str) -> tuple[str, ...]:
+        out = []
+        for i, n in enumerate(self.sequence(node, path)):
+            value = self.value(n)
+            if not isinstance(value, str) or not _MARKER_RE.match(value):
+                raise self.error(
+                    n,
+                    f"{path}[{i}]",
+                    f"expected a pytest marker name (a Python identifier), got {_describe(value, n)}",
+                )
+            out.append(value)
+        return tuple(out)
+
+    def expectations(self, node: Node, path: str) -> Expectations:
+        custom = {"recovery": self.recovery}
+        kwargs, items = self.dataclass(Expectations, node, path, custom=custom, extra_keys=("no_collision",))
+        if "no_collision" in items:
+            sub = items["no_collision"]
+            inverse = not self.convert(bool, sub, f"{path}.no_collision", {})
+            if "collision_expected" in kwargs and kwargs["collision_expected"] != inverse:
+                raise self.error(
+                    sub, f"{path}.no_collision", "contradicts collision_expected; give only one of them"
+                )
+            kwargs["collision_expected"] = inverse
+        return Expectations(**kwargs)
+
+    def recovery(self, node: Node, path: str) -> RecoveryExpectation | None:
+        value = self.value(node)
+        if isinstance(node, ScalarNode) and (value is None or value is False):
+            return None
+        if value is True:
+            return RecoveryExpectation()
+        kwargs, _ = self.dataclass(RecoveryExpectation, node, path)
+        return RecoveryExpectation(**kwargs)
+
+    def faults(self, node: Node, path: str) -> tuple[Fault, ...]:
+        if isinstance(node, ScalarNode) and self.value(node) is None:
+            return ()
+        return tuple(self.fault(n, f"{path}[{i}]") for i, n in enumerate(self.sequence(node, path)))
+
+    def fault(self, node: Node, path: str) -> Fault:
+        items = self.mapping(node, path, ("kind", "start_s", "end_s", "at_s", "params"))
+        if "kind" not in items:
+            raise self.error(node, f"{path}.kind", f"required field missing; one of {', '.join(FAULT_KINDS)}")
+        kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": FAULT_KINDS})
+        time_meta = {"lo": 0.0, "hi": 3600.0}
+        if kind == "onboard_killed":
+            for key in ("start_s", "end_s"):
+                if key in items:
+                    raise self.error(
+                        items[key], f"{path}.{key}", "onboard_killed is an instant: give at_s only"
+                    )
+            if "at_s" not in items:
+                raise self.error(
+                    node, f"{path}.at_s", "required field missing (when the onboard program is killed)"
+                )
+            start = self.convert(float, items["at_s"], f"{path}.at_s", time_meta)
+            end = None
+        else:
+            if "at_s" in items:
+                raise self.error(
+                    items["at_s"], f"{path}.at_s", "only onboard_killed takes at_s; use start_s/end_s"
+                )
+            if "start_s" not in items:
+                raise self.error(
+                    node, f"{path}.start_s", "required field missing (when the fault begins, sim s)"
+                )
+            start = self.convert(float, items["start_s"], f"{path}.start_s", time_meta)
+            end = None
+            if "end_s" in items:
+                end = self.convert(
+                    float | None, items["end_s"], f"{path}.end_s", {**time_meta, "lo": start, "lo_open": True}
+                )
+        params_cls = FAULT_PARAMS[kind]
+        params: Any = NoParams()
+        if "params" in items:
+            sub = items["params"]
+            if params_cls is NoParams:
+                if isinstance(sub, ScalarNode) and self.value(sub) is None:
+                    pass
+                else:
+                    self.mapping(sub, f"{path}.params", ())
+            else:
+                kwargs, _ = self.dataclass(params_cls, sub, f"{path}.params")
+                params = params_cls(**kwargs)
+        elif params_cls is not NoParams:
+            raise self.error(node, f"{path}.params", f"required for {kind}")
+        if isinstance(params, WindGustParams):
+            params = self.wind(params, items["params"], f"{path}.params")
+        return Fault(kind=kind, start_s=start, end_s=end, params=params)
+
+    def wind(self, params: WindGustParams, node: Node, path: str) -> WindGustParams:
+        if (params.force_n is None) == (params.speed_m_s is None):
+            raise self.error(node, path, "give exactly one of force_n and speed_m_s")
+        norm = math.sqrt(sum(c * c for c in params.direction))
+        if norm < 1e-9:
+            raise self.error(
+                self.line_of(f"{path}.direction", node.start_mark.line + 1),
+                f"{path}.direction",
+                "expected a non-zero direction vector",
+            )
+        if abs(norm - 1.0) < 1e-12:  # already a unit vector: keep it bit for bit (round trips)
+            return params
+        unit = (params.direction[0] / norm, params.direction[1] / norm, params.direction[2] / norm)
+        return WindGustParams(direction=unit, force_n=params.force_n, speed_m_s=params.speed_m_s)
+
+    def check_across(self, s: Scenario, doc_line: int) -> None:
+        """Rules that involve several fields; errors point at the field most likely wrong."""
+        lab = s.lab
+        for axis in range(3):
+            if lab.max_m[axis] <= lab.min_m[axis]:
+                raise self.error(
+                    self.line_of("lab.max_m", doc_line),
+                    "lab.max_m",
+                    f"expected above lab.min_m on every axis, got {list(lab.max_m)} vs {list(lab.min_m)}",
+                )
+
+        box = f"{list(lab.min_m)}..{list(lab.max_m)}"
+
+        def inside(p: tuple[float, float, float]) -> bool:
+            return all(lab.min_m[i] <= p[i] <= lab.max_m[i] for i in range(3))
+
+        if not inside(s.gap.centre_m):
+            raise self.error(
+                self.line_of("gap.centre_m", self.line_of("lab", doc_line)),
+                "gap.centre_m",
+                f"expected a point inside the lab {box}, got {list(s.gap.centre_m)}",
+            )
+        start = s.initial.pos_m
+        if s.initial.on_ground:
+            start = (start[0], start[1], max(lab.min_m[2], 0.0))
+        if not inside(start):
+            raise self.error(
+                self.line_of("initial.pos_m", self.line_of("lab", doc_line)),
+                "initial.pos_m",
+                f"expected a point inside the lab {box}, got {list(start)}",
+            )
+        if s.initial.on_ground and any(v != 0.0 for v in s.initial.vel_m_s):
+            raise self.error(
+                self.line_of("initial.vel_m_s", doc_line),
+                "initial.vel_m_s",
+                f"expected zero when on_ground is true, got {list(s.initial.vel_m_s)}",
+            )
+        if s.gap.height_m > s.gap.width_m:
+            raise self.error(
+                self.line_of("gap.height_m", doc_line),
+                "gap.height_m",
+                f"expected at most width_m ({_fmt(s.gap.width_m)}, the long side) got {_fmt(s.gap.height_m)}",
+            )
+        for i, fault in enumerate(s.faults):
+            if fault.start_s >= s.duration_s:
+                key = "at_s" if fault.kind == "onboard_killed" else "start_s"
+                raise self.error(
+                    self.line_of(f"faults[{i}].{key}", doc_line),
+                    f"faults[{i}].{key}",
+                    f"expected a time before duration_s ({_fmt(s.duration_s)}), got {_fmt(fault.start_s)}",
+                )

@@ -1,0 +1,307 @@
+"""Scenario files' typed contents: frozen dataclasses with defaults, units and allowed ranges.
+
+Each field's range, choices and one-line meaning live in its metadata (see `spec`): the loader
+validates against them and the format document is checked against them, so a limit is written once.
+Angles are in degrees here because the file format says ``_deg``; use the ``*_rad`` properties inside.
+World frame ENU (z up), SI units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from typing import Any
+
+# `spec` wraps dataclasses.field (adding validation metadata), so calling it in defaults is intended.
+# ruff: noqa: RUF009
+
+Vec3 = tuple[float, float, float]
+
+TRANSPORTS = ("pty", "memory", "udp")
+PILOTS = ("traditional", "planner_net", "e2e")
+FAILSAFE_KINDS = ("hover", "land")  # the FC's failsafe action; `true` in a file means any of them
+FAULT_KINDS = (
+    "command_link_down",
+    "mocap_frozen",
+    "mocap_dropped",
+    "corrupt_bytes",
+    "onboard_killed",
+    "onboard_stalled",
+    "wind_gust",
+)
+LINK_NAMES = ("command", "mocap")
+DEFAULT_VEHICLE = "n3_tx2"
+DEFAULT_PHYSICS = "native"
+
+
+def spec(
+    default: Any = MISSING,
+    *,
+    factory: Any = MISSING,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    choices: tuple[str, ...] = (),
+    doc: str = "",
+) -> Any:
+    """A dataclass field carrying its validation limits (``lo``/``hi`` inclusive unless ``*_open``)."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices, "doc": doc}
+    if factory is not MISSING:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class GapSpec:
+    """The wall's rectangular opening; rotation R = Rz(yaw) Ry(pitch) Rx(roll) (see emulator.world)."""
+
+    centre_m: Vec3 = spec((0.0, 0.5, 2.1), lo=-100.0, hi=100.0, doc="centre of the opening, world ENU")
+    roll_deg: float = spec(0.0, lo=-90.0, hi=90.0, doc="tilt about the crossing axis (the paper's gap angle)")
+    pitch_deg: float = spec(0.0, lo=-90.0, hi=90.0, doc="rotation about world y, applied after roll")
+    yaw_deg: float = spec(0.0, lo=-180.0, hi=180.0, doc="heading of the crossing direction from world +x")
+    width_m: float = spec(0.8, lo=0.0, hi=5.0, lo_open=True, doc="long side of the opening (along e0)")
+    height_m: float = spec(0.35, lo=0.0, hi=5.0, lo_open=True, doc="short side of the opening (along e2)")
+    wall_thickness_m: float = spec(
+        0.05, lo=0.0, hi=1.0, lo_open=True, doc="wall depth along the crossing axis"
+    )
+
+    @property
+    def roll_rad(self) -> float:
+        return math.radians(self.roll_deg)
+
+    @property
+    def pitch_rad(self) -> float:
+        return math.radians(self.pitch_deg)
+
+    @property
+    def yaw_rad(self) -> float:
+        return math.radians(self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class LabSpec:
+    """The lab's flyable volume, an axis-aligned box in world ENU (m)."""
+
+    min_m: Vec3 = spec((-5.0, -5.0, 0.0), lo=-1000.0, hi=1000.0, doc="lower corner")
+    max_m: Vec3 = spec((5.0, 5.0, 4.0), lo=-1000.0, hi=1000.0, doc="upper corner (each axis above min_m)")
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """Where the vehicle starts (the release's test case start by default)."""
+
+    pos_m: Vec3 = spec((-2.0, -1.0, 0.5), lo=-1000.0, hi=1000.0, doc="start position; inside the lab")
+    vel_m_s: Vec3 = spec((0.0, 0.0, 0.0), lo=-20.0, hi=20.0, doc="start velocity; zero when on_ground")
+    yaw_deg: float = spec(0.0, lo=-180.0, hi=180.0, doc="start heading from world +x")
+    on_ground: bool = spec(False, doc="start landed and disarmed (z of pos_m is then the ground)")
+
+    @property
+    def yaw_rad(self) -> float:
+        return math.radians(self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class ApproachSpec:
+    """The approach manoeuvre to the traverse's start."""
+
+    speed_m_s: float | None = spec(
+        None, lo=1.0, hi=3.0, doc="desired speed through the gap; null: the pilot's own choice"
+    )
+    duration_s: float = spec(2.6, lo=0.0, hi=30.0, lo_open=True, doc="approach primitive duration")
+
+
+@dataclass(frozen=True)
+class BurstLoss:
+    """Gilbert-Elliott two-state loss: every message is lost while the channel is in the bad state."""
+
+    p_gb: float = spec(0.0, lo=0.0, hi=1.0, doc="probability per message of going good -> bad")
+    p_bg: float = spec(1.0, lo=0.0, hi=1.0, lo_open=True, doc="probability per message of going bad -> good")
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """One serial-style link between the emulator and the onboard computer."""
+
+    transport: str = spec("pty", choices=TRANSPORTS, doc="what carries the bytes")
+    baud: int = spec(921600, lo=1200, hi=20_000_000, doc="line rate (bit/s; 10 bits a byte)")
+    latency_ms: float = spec(0.0, lo=0.0, hi=10_000.0, doc="added one-way delay per message")
+    jitter_ms: float = spec(0.0, lo=0.0, hi=10_000.0, doc="standard deviation of the added delay")
+    loss: float = spec(0.0, lo=0.0, hi=1.0, doc="independent loss probability per message")
+    burst: BurstLoss | None = spec(None, doc="burst loss on top of `loss`; null: none")
+
+
+@dataclass(frozen=True)
+class MocapLinkSpec(LinkSpec):
+    """The motion-capture radio link, with the tracker's frame rate."""
+
+    rate_hz: float = spec(120.0, lo=1.0, hi=1000.0, doc="mocap frame rate")
+
+
+@dataclass(frozen=True)
+class LinksSpec:
+    """Both links of a run."""
+
+    command: LinkSpec = spec(factory=LinkSpec, doc="onboard computer <-> flight controller (MAVLink)")
+    mocap: MocapLinkSpec = spec(factory=MocapLinkSpec, doc="mocap -> onboard computer (UWB radio)")
+
+
+@dataclass(frozen=True)
+class NoParams:
+    """A fault without parameters."""
+
+
+@dataclass(frozen=True)
+class CorruptBytesParams:
+    """Flip bytes on one link."""
+
+    link: str = spec(MISSING, choices=LINK_NAMES, doc="which link's bytes are corrupted")
+    fraction: float = spec(MISSING, lo=0.0, hi=1.0, lo_open=True, doc="fraction of bytes corrupted")
+
+
+@dataclass(frozen=True)
+class WindGustParams:
+    """A force on the vehicle: give exactly one of force_n and speed_m_s."""
+
+    direction: Vec3 = spec(MISSING, lo=-1000.0, hi=1000.0, doc="world ENU direction (normalised on load)")
+    force_n: float | None = spec(None, lo=0.0, hi=100.0, lo_open=True, doc="gust force")
+    speed_m_s: float | None = spec(None, lo=0.0, hi=30.0, lo_open=True, doc="wind speed (drag model)")
+
+
+FaultParams = NoParams | CorruptBytesParams | WindGustParams
+FAULT_PARAMS: dict[str, type] = {
+    "command_link_down": NoParams,
+    "mocap_frozen": NoParams,
+    "mocap_dropped": NoParams,
+    "corrupt_bytes": CorruptBytesParams,
+    "onboard_killed": NoParams,
+    "onboard_stalled": NoParams,
+    "wind_gust": WindGustParams,
+}
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One scheduled fault, active on sim time [start_s, end_s); end_s None: until the run ends.
+
+    ``onboard_killed`` is written with ``at_s`` in files (an instant: start_s = at_s, end_s None).
+    """
+
+    kind: str
+    start_s: float
+    end_s: float | None = None
+    params: FaultParams = field(default_factory=NoParams)
+
+    def active(self, time_s: float) -> bool:
+        """Whether the fault acts at sim time ``time_s`` (s)."""
+        return time_s >= self.start_s and (self.end_s is None or time_s < self.end_s)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fault as written in a scenario file."""
+        out: dict[str, Any] = {"kind": self.kind}
+        if self.kind == "onboard_killed":
+            out["at_s"] = self.start_s
+        else:
+            out["start_s"] = self.start_s
+            out["end_s"] = self.end_s
+        params = _plain(self.params)
+        if params:
+            out["params"] = {k: v for k, v in params.items() if v is not None}
+        return out
+
+
+@dataclass(frozen=True)
+class RecoveryExpectation:
+    """After crossing, the vehicle hovers within radius_m of the recovery point within time_s."""
+
+    radius_m: float = spec(0.5, lo=0.0, hi=10.0, lo_open=True, doc="allowed distance from the hover point")
+    time_s: float = spec(4.0, lo=0.0, hi=600.0, lo_open=True, doc="deadline after the crossing")
+
+
+@dataclass(frozen=True)
+class LinkExpectations:
+    """Bounds on link statistics over the whole run; null: not checked."""
+
+    mocap_delivered_fraction_min: float | None = spec(None, lo=0.0, hi=1.0, doc="mocap frames delivered")
+    command_delivered_fraction_min: float | None = spec(None, lo=0.0, hi=1.0, doc="setpoints delivered")
+    mocap_rate_hz_min: float | None = spec(None, lo=0.0, hi=1000.0, lo_open=True, doc="mocap rate at onboard")
+    command_rate_hz_min: float | None = spec(None, lo=0.0, hi=1000.0, lo_open=True, doc="setpoint rate at FC")
+
+
+@dataclass(frozen=True)
+class Expectations:
+    """What must hold for the scenario to pass; defaults: crosses, no collision, recovers, stays in lab."""
+
+    crosses_gap: bool = spec(True, doc="the centre passes through the opening")
+    min_clearance_m: float | None = spec(None, lo=-1.0, hi=1.0, doc="smallest clearance while in the wall")
+    collision_expected: bool = spec(False, doc="a collision must happen (write no_collision: false alike)")
+    max_attitude_error_deg: float | None = spec(
+        None, lo=0.0, hi=180.0, lo_open=True, doc="attitude error to the gap's orientation at the crossing"
+    )
+    recovery: RecoveryExpectation | None = spec(
+        factory=RecoveryExpectation, doc="hover after crossing; null or false: not checked"
+    )
+    stays_in_lab: bool = spec(True, doc="never leaves the lab volume")
+    failsafe_expected: bool | str = spec(
+        False, choices=FAILSAFE_KINDS, doc="the FC must enter a failsafe (true: any; or the kind)"
+    )
+    onboard_abort_expected: bool = spec(False, doc="the onboard program must abort the crossing")
+    link: LinkExpectations = spec(factory=LinkExpectations, doc="link-statistics bounds")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One scenario document, validated. ``id`` is the ``name`` field or the file stem (+ ``-index``)."""
+
+    id: str
+    description: str
+    source: str = "<string>"  # the file it came from
+    line: int = 1  # line of the document's first field (1-based)
+    index: int = 0  # position of the document in its file
+    name: str | None = None
+    vehicle: str = DEFAULT_VEHICLE
+    physics: str = DEFAULT_PHYSICS
+    gap: GapSpec = field(default_factory=GapSpec)
+    lab: LabSpec = field(default_factory=LabSpec)
+    initial: InitialState = field(default_factory=InitialState)
+    pilot: str = "traditional"
+    approach: ApproachSpec = field(default_factory=ApproachSpec)
+    links: LinksSpec = field(default_factory=LinksSpec)
+    faults: tuple[Fault, ...] = ()
+    seed: int = 0
+    duration_s: float = 8.0
+    realtime: bool = False
+    skip: str | None = None
+    markers: tuple[str, ...] = ()
+    expect: Expectations = field(default_factory=Expectations)
+
+    META_FIELDS = ("id", "source", "line", "index")
+
+    def to_dict(self, include_meta: bool = True) -> dict[str, Any]:
+        """Plain JSON/YAML-ready dict; without meta it is a valid scenario document again."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            if f.name in self.META_FIELDS and not include_meta:
+                continue
+            value = getattr(self, f.name)
+            if f.name == "faults":
+                out["faults"] = [fault.to_dict() for fault in value]
+            else:
+                out[f.name] = _plain(value)
+        return out
+
+
+# Top-level fields of a document with their ranges (the rest are nested dataclasses).
+SCENARIO_LIMITS: dict[str, dict[str, Any]] = {
+    "seed": {"lo": 0, "hi": 2**63 - 1, "doc": "seed of every random draw in the run"},
+    "duration_s": {"lo": 0.0, "hi": 3600.0, "lo_open": True, "doc": "simulated time the run lasts"},
+}
+
+
+def _plain(value: Any) -> Any:
+    """Dataclasses -> dicts, tuples -> lists, recursively."""
+    if is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in fields(value)}
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    return value

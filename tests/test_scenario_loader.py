@@ -1,0 +1,327 @@
+"""Scenario files: defaults, line-numbered errors for bad files, round trips and the examples."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hil.scenario import Scenario, ScenarioError, load_all, load_scenarios, loads_scenarios, schema
+from hil.scenario.schema import CorruptBytesParams, NoParams, WindGustParams
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "scenarios" / "examples"
+
+
+def write(tmp_path: Path, text: str, name: str = "x.scenario.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def error_of(path: Path) -> ScenarioError:
+    with pytest.raises(ScenarioError) as info:
+        load_scenarios(path)
+    return info.value
+
+
+# --- a minimal file ------------------------------------------------------------------------------
+MINIMAL = """\
+description: cross a 60 deg gap at 2.5 m/s
+gap:
+  roll_deg: 60
+approach:
+  speed_m_s: 2.5
+"""
+
+
+def test_minimal_five_line_file_loads_with_the_documented_defaults(tmp_path: Path) -> None:
+    path = write(tmp_path, MINIMAL, "roll60.scenario.yaml")
+    assert len(path.read_text().splitlines()) <= 5
+    [s] = load_scenarios(path)
+    assert s.id == "roll60" and s.source == str(path) and s.line == 1
+    assert s.description == "cross a 60 deg gap at 2.5 m/s"
+    assert s.gap.roll_deg == 60.0 and s.gap.roll_rad == pytest.approx(1.0471975512)
+    assert s.approach.speed_m_s == 2.5 and s.approach.duration_s == 2.6
+    assert (s.vehicle, s.physics, s.pilot) == ("n3_tx2", "native", "traditional")
+    assert s.links.command.transport == "pty" and s.links.mocap.rate_hz > 0
+    assert s.faults == () and s.skip is None and s.markers == () and s.realtime is False
+    e = s.expect
+    assert e.crosses_gap and not e.collision_expected and e.stays_in_lab
+    assert e.recovery is not None and e.recovery.radius_m > 0 and e.recovery.time_s > 0
+    assert e.failsafe_expected is False and e.onboard_abort_expected is False
+
+
+# --- errors name the file, the line and the field ------------------------------------------------
+def test_wrong_type_gives_file_line_field_and_what_was_expected(tmp_path: Path) -> None:
+    path = write(tmp_path, "description: tilted\nseed: 3\ngap:\n  centre_m: [0, 0.5, 2]\n  roll_deg: sixty\n")
+    err = error_of(path)
+    assert str(err) == f"{path}:5: gap.roll_deg: expected a number between -90 and 90, got 'sixty'"
+    assert (err.source, err.line, err.field) == (str(path), 5, "gap.roll_deg")
+
+
+def test_value_out_of_range(tmp_path: Path) -> None:
+    path = write(tmp_path, "description: d\nlinks:\n  mocap:\n    loss: 1.5\n")
+    assert str(error_of(path)) == f"{path}:4: links.mocap.loss: expected a number between 0 and 1, got 1.5"
+    path = write(tmp_path, "description: d\napproach: {speed_m_s: 0.5}\n")
+    assert str(error_of(path)) == f"{path}:2: approach.speed_m_s: expected a number between 1 and 3, got 0.5"
+    path = write(tmp_path, "description: d\n\n\nduration_s: 0\n")
+    assert str(error_of(path)) == f"{path}:4: duration_s: expected a number > 0 and <= 3600, got 0"
+
+
+def test_unknown_field_with_did_you_mean(tmp_path: Path) -> None:
+    path = write(tmp_path, "description: d\ngap:\n  rol_deg: 60\n")
+    err = error_of(path)
+    assert str(err).startswith(f"{path}:3: gap.rol_deg: unknown field (did you mean 'roll_deg'?)")
+    path = write(tmp_path, "description: d\nexpectations:\n  crosses_gap: true\n")
+    err = error_of(path)
+    assert err.line == 2 and err.field == "expectations" and "did you mean 'expect'" in str(err)
+    path = write(tmp_path, "description: d\nzzz: 1\n")
+    assert "did you mean" not in str(error_of(path)) and "allowed here:" in str(error_of(path))
+
+
+def test_missing_description(tmp_path: Path) -> None:
+    path = write(tmp_path, "gap:\n  roll_deg: 30\n")
+    err = error_of(path)
+    assert (err.line, err.field) == (1, "description")
+    assert str(err).startswith(f"{path}:1: description: required field missing")
+    # in the second document of a file, the line is that document's
+    path = write(tmp_path, "description: ok\n---\ngap: {roll_deg: 30}\n")
+    assert error_of(path).line == 3
+
+
+def test_bad_yaml(tmp_path: Path) -> None:
+    path = write(tmp_path, "description: d\ngap:\n  roll_deg: [60\n  width_m: 1\n")
+    err = error_of(path)
+    assert err.field == "<yaml>" and err.line in (4, 5) and str(err).startswith(f"{path}:{err.line}: <yaml>:")
+    path = write(tmp_path, "description: d\n  bad indent: 1\n")
+    assert error_of(path).line == 2
+
+
+def test_other_errors_point_at_the_right_line(tmp_path: Path) -> None:
+    cases = {
+        "description: d\ngap: {roll_deg: 1}\ngap: {roll_deg: 2}\n": (3, "gap", "given twice"),
+        "description: d\nvehicle: n3tx2\n": (2, "vehicle", "did you mean 'n3_tx2'"),
+        "description: d\nphysics: bullet\n": (2, "physics", "expected one of"),
+        "description: d\npilot: magic\n": (2, "pilot", "traditional"),
+        "description: d\nseed: 1.5\n": (2, "seed", "whole number"),
+        "description: d\nrealtime: 1\n": (2, "realtime", "true or false"),
+        "description: d\ngap:\n  centre_m: [0, 1]\n": (3, "gap.centre_m", "a list of 3 numbers"),
+        "description: d\ngap:\n  centre_m: [0, 9, 2]\n": (3, "gap.centre_m", "inside the lab"),
+        "description: d\nlab:\n  min_m: [0, 0, 0]\n  max_m: [1, -1, 3]\n": (
+            4, "lab.max_m", "above lab.min_m"),
+        "description: d\ngap: {width_m: 0.3, height_m: 0.5}\n": (2, "gap.height_m", "at most width_m"),
+        "description: d\ninitial:\n  on_ground: true\n  vel_m_s: [1, 0, 0]\n": (4, "initial.vel_m_s", "zero"),
+        "description: d\nmarkers: [slow, 'not a name']\n": (2, "markers[1]", "marker name"),
+        "description: d\nexpect:\n  failsafe_expected: maybe\n": (3, "expect.failsafe_expected", "hover"),
+        "description: d\nexpect:\n  no_collision: false\n  collision_expected: false\n": (
+            3, "expect.no_collision", "contradicts"),
+        "description: d\nfaults:\n  - kind: wind_gust\n    start_s: 1\n": (3, "faults[0].params", "required"),
+        "description: d\nfaults:\n  - kind: hail\n    start_s: 1\n": (3, "faults[0].kind", "wind_gust"),
+        "description: d\nfaults:\n  - kind: mocap_frozen\n    start_s: 2\n    end_s: 1\n": (
+            5, "faults[0].end_s", "> 2"),
+        "description: d\nfaults:\n  - kind: onboard_killed\n    start_s: 2\n": (
+            4, "faults[0].start_s", "at_s"),
+        "description: d\nduration_s: 5\nfaults:\n  - {kind: onboard_killed, at_s: 6}\n": (
+            4, "faults[0].at_s", "before duration_s"),
+        "description: d\nfaults:\n- kind: wind_gust\n  start_s: 1\n  params:\n    force_n: 2\n"
+        "    speed_m_s: 3\n    direction: [0, 1, 0]\n": (
+            6, "faults[0].params", "exactly one of force_n and speed_m_s"),
+        "description: d\nfaults:\n- kind: corrupt_bytes\n  start_s: 1\n"
+        "  params: {link: radio, fraction: 0.1}\n": (
+            5, "faults[0].params.link", "command, mocap"),
+        "description: d\nfaults:\n- kind: mocap_dropped\n  start_s: 1\n  params: {fraction: 0.1}\n": (
+            5, "faults[0].params.fraction", "unknown field"),
+    }  # fmt: skip
+    for text, (line, field, words) in cases.items():
+        path = write(tmp_path, text)
+        err = error_of(path)
+        assert (err.line, err.field) == (line, field), (text, str(err))
+        assert str(err).startswith(f"{path}:{line}: {field}: ") and words in str(err), str(err)
+
+
+def test_empty_and_unreadable_files(tmp_path: Path) -> None:
+    assert error_of(write(tmp_path, "# nothing\n")).field == "<file>"
+    assert error_of(write(tmp_path, "- just\n- a list\n")).field == "<document>"
+    missing = tmp_path / "missing.scenario.yaml"
+    assert str(error_of(missing)).startswith(f"{missing}:1: <file>: cannot read")
+
+
+# --- values ------------------------------------------------------------------------------------
+def test_faults_are_typed_and_timed(tmp_path: Path) -> None:
+    text = """\
+description: faults
+faults:
+  - {kind: wind_gust, start_s: 1, end_s: 2, params: {force_n: 2, direction: [3, 4, 0]}}
+  - {kind: corrupt_bytes, start_s: 0.5, params: {link: command, fraction: 0.01}}
+  - {kind: onboard_killed, at_s: 4}
+  - {kind: mocap_frozen, start_s: 2, end_s: 3, params: {}}
+"""
+    wind, corrupt, killed, frozen = load_scenarios(write(tmp_path, text))[0].faults
+    assert isinstance(wind.params, WindGustParams) and wind.params.direction == pytest.approx((0.6, 0.8, 0.0))
+    assert wind.active(1.0) and wind.active(1.99) and not wind.active(2.0) and not wind.active(0.5)
+    assert corrupt.params == CorruptBytesParams(link="command", fraction=0.01) and corrupt.end_s is None
+    assert corrupt.active(1e6)
+    assert (killed.kind, killed.start_s, killed.end_s) == ("onboard_killed", 4.0, None)
+    assert frozen.params == NoParams()
+
+
+def test_aliases_and_switches(tmp_path: Path) -> None:
+    text = "description: d\nexpect:\n  no_collision: false\n  recovery: false\n  failsafe_expected: true\n"
+    e = load_scenarios(write(tmp_path, text))[0].expect
+    assert e.collision_expected is True and e.recovery is None and e.failsafe_expected is True
+    e = load_scenarios(write(tmp_path, "description: d\nexpect: {recovery: {radius_m: 1.0}}\n"))[0].expect
+    assert e.recovery is not None and (e.recovery.radius_m, e.recovery.time_s) == (1.0, 4.0)
+
+
+def test_ids_from_stem_index_and_name(tmp_path: Path) -> None:
+    path = write(
+        tmp_path,
+        "description: a\n---\nname: b_named\ndescription: b\n---\ndescription: c\n",
+        "set.scenario.yaml",
+    )
+    scenarios = load_scenarios(path)
+    assert [s.id for s in scenarios] == ["set-0", "b_named", "set-2"]
+    assert [s.line for s in scenarios] == [1, 3, 6] and [s.index for s in scenarios] == [0, 1, 2]
+    dup = write(tmp_path, "name: a\ndescription: a\n---\nname: a\ndescription: b\n")
+    assert error_of(dup).line == 4 and "already used" in str(error_of(dup))
+
+
+# --- round trip and the shipped examples ---------------------------------------------------------
+def _leaves(d: object, prefix: str = "") -> dict[str, object]:
+    if isinstance(d, dict):
+        out: dict[str, object] = {}
+        for k, v in d.items():
+            out.update(_leaves(v, f"{prefix}.{k}" if prefix else k))
+        return out
+    return {prefix: d}
+
+
+EVERY_FIELD = """\
+name: every_field_wind_jsbsim
+description: a 45 deg gap flown on the JSBSim backend through lossy links, with a gust and faults
+vehicle: n3_tx2
+physics: jsbsim
+gap:
+  centre_m: [0.5, 0.0, 1.8]
+  roll_deg: 45
+  pitch_deg: 5
+  yaw_deg: 10
+  width_m: 0.9
+  height_m: 0.4
+  wall_thickness_m: 0.08
+lab:
+  min_m: [-6, -4, 0]
+  max_m: [6, 4, 3.5]
+initial:
+  pos_m: [-2.5, 0.5, 1.0]
+  vel_m_s: [0.1, 0, 0]
+  yaw_deg: 5
+  on_ground: false
+pilot: planner_net
+approach:
+  speed_m_s: 2.0
+  duration_s: 3.0
+links:
+  command:
+    transport: udp
+    baud: 230400
+    latency_ms: 2.0
+    jitter_ms: 0.5
+    loss: 0.01
+    burst: {p_gb: 0.002, p_bg: 0.3}
+  mocap:
+    transport: memory
+    baud: 460800
+    latency_ms: 6.0
+    jitter_ms: 1.5
+    loss: 0.02
+    burst: {p_gb: 0.001, p_bg: 0.5}
+    rate_hz: 200
+faults:
+  - {kind: wind_gust, start_s: 2.0, end_s: 2.5, params: {force_n: 1.5, direction: [0, 1, 0]}}
+  - {kind: wind_gust, start_s: 6.0, params: {speed_m_s: 3.0, direction: [1, 1, 0]}}
+  - {kind: corrupt_bytes, start_s: 1.0, end_s: 1.5, params: {link: mocap, fraction: 0.001}}
+  - {kind: mocap_frozen, start_s: 6.5, end_s: 6.6}
+  - {kind: mocap_dropped, start_s: 6.7, end_s: 6.8}
+  - {kind: command_link_down, start_s: 7.0, end_s: 7.2}
+  - {kind: onboard_stalled, start_s: 7.5, end_s: 7.6}
+  - {kind: onboard_killed, at_s: 8.5}
+seed: 1234
+duration_s: 9.0
+realtime: true
+skip: shows every field; the lossy links and the kill at 8.5 s make its expectations illustrative
+markers: [slow, jsbsim]
+expect:
+  crosses_gap: true
+  min_clearance_m: 0.02
+  collision_expected: false
+  max_attitude_error_deg: 12
+  recovery: {radius_m: 0.6, time_s: 3.5}
+  stays_in_lab: true
+  failsafe_expected: hover
+  onboard_abort_expected: false
+  link:
+    mocap_delivered_fraction_min: 0.9
+    command_delivered_fraction_min: 0.95
+    mocap_rate_hz_min: 150
+    command_rate_hz_min: 40
+"""
+
+
+def test_a_file_with_every_field_round_trips(tmp_path: Path) -> None:
+    [s] = load_scenarios(write(tmp_path, EVERY_FIELD, "every.scenario.yaml"))
+    # the file really sets every field: no leaf keeps its default
+    defaults = _leaves(Scenario(id="x", description="").to_dict(include_meta=False))
+    given = _leaves(s.to_dict(include_meta=False))
+    same = sorted(k for k in defaults if k in given and given[k] == defaults[k])
+    assert same == ["expect.collision_expected", "expect.crosses_gap", "expect.onboard_abort_expected",
+                    "expect.stays_in_lab", "initial.on_ground", "vehicle"]  # fmt: skip
+    assert {f.kind for f in s.faults} == set(schema.FAULT_KINDS)
+    # to_dict -> YAML -> load gives the same scenario
+    text = yaml.safe_dump(s.to_dict(include_meta=False), sort_keys=False)
+    [again] = load_scenarios(write(tmp_path, text, "again.scenario.yaml"))
+    assert dataclasses.replace(again, source=s.source, line=s.line) == s
+    # and the dict is JSON-ready (plain types only)
+    import json
+
+    assert json.loads(json.dumps(s.to_dict()))["gap"]["roll_deg"] == 45.0
+
+
+def test_shipped_examples_load() -> None:
+    scenarios = load_all([EXAMPLES])
+    assert len(scenarios) >= 3
+    assert len({s.id for s in scenarios}) == len(scenarios)
+
+
+def test_strings_parse_like_files() -> None:
+    [s] = loads_scenarios(MINIMAL, source="inline.scenario.yaml")
+    assert s.id == "inline" and s.gap.roll_deg == 60
+
+
+def test_the_format_document_names_every_field() -> None:
+    doc = (ROOT / "docs" / "scenario-format.md").read_text()
+    names: set[str] = set()
+    for cls in (
+        schema.GapSpec,
+        schema.LabSpec,
+        schema.InitialState,
+        schema.ApproachSpec,
+        schema.BurstLoss,
+        schema.MocapLinkSpec,
+        schema.LinksSpec,
+        schema.CorruptBytesParams,
+        schema.WindGustParams,
+        schema.RecoveryExpectation,
+        schema.LinkExpectations,
+        schema.Expectations,
+        Scenario,
+    ):
+        names.update(f.name for f in dataclasses.fields(cls))  # fmt: skip
+    names -= set(Scenario.META_FIELDS)
+    names |= {"at_s", "no_collision", *schema.FAULT_KINDS}
+    missing = sorted(n for n in names if not re.search(rf"`{re.escape(n)}`", doc))
+    assert missing == []
