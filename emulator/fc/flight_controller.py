@@ -1,0 +1,253 @@
+"""The N3-style flight controller: setpoint intake, arming, offboard authority, failsafe, inner loop.
+
+`FlightController.update(state)` is called every physics step and returns the four motor throttles.
+Commands (`arm`, `disarm`, `request_offboard`, `request_hold`, `request_land`) and setpoints
+(`set_setpoint`) carry the simulated time at which they arrived; every state change is an `FcEvent`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from emulator.fc.inner_loop import InnerLoop, InnerLoopGains
+from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
+from emulator.fc.n3 import AttitudeThrustTarget, N3Setpoint, to_target, wrap_pi
+from emulator.physics.state import VehicleState
+from emulator.profile import GRAVITY_M_S2, VehicleProfile
+
+PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
+
+
+@dataclass(frozen=True)
+class FcConfig:
+    """Flight-controller settings (SI units)."""
+
+    failsafe_timeout_s: float = PX4_OFFBOARD_LOSS_TIMEOUT_S  # setpoint silence before the failsafe
+    failsafe_hover_s: float = 5.0  # hover this long after setpoint loss, then land
+    land_speed_m_s: float = 0.7  # descent rate when landing
+    hover_max_tilt_deg: float = 30.0  # tilt limit of the FC's own hover/land controller
+    min_offboard_rate_hz: float = 2.0  # PX4 rule: stream faster than this before OFFBOARD is accepted
+    ground_z_m: float = 0.0  # ground height (world ENU z)
+    landed_margin_m: float = 0.05  # body within this of its resting height counts as on the ground
+    auto_disarm_s: float = 1.0  # on the ground this long in a landing state: disarm
+    gains: InnerLoopGains = field(default_factory=InnerLoopGains)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float | int) and not (math.isfinite(v) and (v > 0 or f.name == "ground_z_m")):
+                raise ValueError(f"FcConfig.{f.name} must be a positive finite number, got {v!r}")
+
+
+class FlightController:
+    """One N3-style flight controller for ``profile`` (see the module docstring)."""
+
+    def __init__(self, profile: VehicleProfile, config: FcConfig | None = None) -> None:
+        self.profile = profile
+        self.config = config or FcConfig()
+        self.machine = StateMachine()
+        self.inner = InnerLoop(profile, self.config.gains)
+        self.offboard_selected = False  # OFFBOARD chosen while disarmed: arming goes straight to it
+        self.target: AttitudeThrustTarget | None = None
+        self.last_setpoint_s = -math.inf
+        self.setpoints_accepted = 0
+        self._arrivals: deque[float] = deque(maxlen=2)
+        self._yaw_sp_rad = 0.0
+        self._yaw_sp_fresh = True
+        self._hold_yaw_rad = 0.0
+        self._last_t: float | None = None
+        self._rest_height_m = self.config.ground_z_m + 0.5 * profile.body_box_m[2]
+        self._landed_since_s: float | None = 0.0
+        self.landed = True
+        self._off = np.zeros(4)
+        self._idle = np.full(4, self.config.gains.idle_throttle)
+        self.motor_cmd = self._off
+
+    # --- read-outs -------------------------------------------------------------------------
+    @property
+    def state(self) -> FcState:
+        return self.machine.state
+
+    @property
+    def events(self) -> list[FcEvent]:
+        return self.machine.events
+
+    @property
+    def landed_state(self) -> LandedState:
+        if self.landed:
+            return LandedState.ON_GROUND
+        if self.state in (FcState.LAND, FcState.FAILSAFE_LAND):
+            return LandedState.LANDING
+        return LandedState.IN_AIR
+
+    def stream_ok(self, time_s: float) -> bool:
+        """True when setpoints arrive faster than ``min_offboard_rate_hz`` (the last two, and now)."""
+        period = 1.0 / self.config.min_offboard_rate_hz
+        return (
+            len(self._arrivals) == 2
+            and self._arrivals[1] - self._arrivals[0] < period
+            and time_s - self._arrivals[1] < period
+        )
+
+    # --- inputs ----------------------------------------------------------------------------
+    def set_setpoint(self, sp: N3Setpoint, time_s: float) -> AttitudeThrustTarget:
+        """Take a setpoint that arrived at ``time_s``; raises SetpointRejected with the reason."""
+        target = to_target(sp, self.profile)
+        was_rate = self.target is not None and self.target.yaw_rate_rad_s is not None
+        if target.yaw_rate_rad_s is not None and not was_rate:
+            self._yaw_sp_fresh = True
+        self.target = target
+        self.last_setpoint_s = time_s
+        self._arrivals.append(time_s)
+        self.setpoints_accepted += 1
+        return target
+
+    def arm(self, time_s: float) -> CommandResult:
+        if self.state.armed:
+            return ACCEPTED
+        if self.offboard_selected and self.stream_ok(time_s):
+            self.machine.go(FcState.OFFBOARD, time_s, "armed in offboard")
+        else:
+            self.offboard_selected = False
+            self.machine.go(FcState.HOLD, time_s, "armed")
+        return ACCEPTED
+
+    def disarm(self, time_s: float, force: bool = False) -> CommandResult:
+        if not self.state.armed:
+            return ACCEPTED
+        if not self.landed and not force:
+            return CommandResult(False, "disarm refused: vehicle in the air")
+        self.offboard_selected = False
+        self.machine.go(FcState.DISARMED, time_s, "disarmed (forced)" if force else "disarmed")
+        return ACCEPTED
+
+    def request_offboard(self, time_s: float) -> CommandResult:
+        """Give control authority to the onboard computer (PX4 OFFBOARD)."""
+        if not self.stream_ok(time_s):
+            rate = self.config.min_offboard_rate_hz
+            return CommandResult(False, f"offboard refused: need setpoints above {rate:g} Hz first")
+        if not self.state.armed:
+            self.offboard_selected = True
+            return ACCEPTED
+        self.machine.go(FcState.OFFBOARD, time_s, "offboard control granted")
+        return ACCEPTED
+
+    def request_hold(self, time_s: float, reason: str = "hold requested") -> CommandResult:
+        """Take authority back and hover (PX4 HOLD)."""
+        if not self.state.armed:
+            self.offboard_selected = False
+            return ACCEPTED
+        if self.state is not FcState.HOLD:
+            self._hold_yaw_rad = self._current_yaw
+            self.machine.go(FcState.HOLD, time_s, reason)
+        return ACCEPTED
+
+    def request_land(self, time_s: float) -> CommandResult:
+        if not self.state.armed:
+            return CommandResult(False, "land refused: not armed")
+        if self.state not in (FcState.LAND, FcState.FAILSAFE_LAND):
+            self._hold_yaw_rad = self._current_yaw
+            self.machine.go(FcState.LAND, time_s, "land requested")
+        return ACCEPTED
+
+    # --- the step ----------------------------------------------------------------------------
+    def update(self, state: VehicleState) -> np.ndarray:
+        """Motor throttles (4,) in [0, 1] for the next physics step from ``state``."""
+        t = state.time_s
+        dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
+        self._last_t = t
+        self._quat = state.quat_wxyz
+        self._detect_landed(state, t)
+        self._check_transitions(t)
+        st = self.machine.state
+        if st is FcState.DISARMED:
+            cmd = self._off
+        elif st is FcState.OFFBOARD:
+            cmd = self._fly_target(state, dt)
+        elif st is FcState.HOLD and self.landed:
+            cmd = self._idle
+        elif st in (FcState.LAND, FcState.FAILSAFE_LAND):
+            cmd = self._idle if self.landed else self._velocity_hold(state, -self.config.land_speed_m_s)
+        else:  # HOLD in the air, FAILSAFE_HOVER
+            cmd = self._velocity_hold(state, 0.0)
+        self.motor_cmd = cmd
+        return cmd
+
+    def _check_transitions(self, t: float) -> None:
+        cfg, m = self.config, self.machine
+        if m.state is FcState.OFFBOARD and t - self.last_setpoint_s > cfg.failsafe_timeout_s:
+            self._hold_yaw_rad = self._current_yaw
+            m.go(FcState.FAILSAFE_HOVER, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: hover")
+        elif m.state is FcState.FAILSAFE_HOVER and t - m.since_s >= cfg.failsafe_hover_s:
+            m.go(FcState.FAILSAFE_LAND, t, f"no control for {cfg.failsafe_hover_s:g} s: land")
+        elif (
+            m.state in (FcState.LAND, FcState.FAILSAFE_LAND)
+            and self._landed_since_s is not None
+            and t - self._landed_since_s >= cfg.auto_disarm_s
+        ):
+            m.go(FcState.DISARMED, t, "landed: disarmed")
+        if m.state is FcState.DISARMED and self.offboard_selected and not self.stream_ok(t):
+            self.offboard_selected = False
+
+    def _detect_landed(self, state: VehicleState, t: float) -> None:
+        near = state.pos_m[2] - self._rest_height_m <= self.config.landed_margin_m
+        landed = bool(near and abs(state.vel_m_s[2]) < 0.3)
+        if landed and not self.landed:
+            self._landed_since_s = t
+        elif not landed:
+            self._landed_since_s = None
+        self.landed = landed
+
+    @property
+    def _current_yaw(self) -> float:
+        """Heading (NED yaw, rad) of the last attitude seen."""
+        q = getattr(self, "_quat", None)
+        if q is None:
+            return 0.0
+        # ENU/FLU quaternion -> NED heading: yaw_ned = pi/2 - yaw_enu
+        w, x, y, z = q
+        yaw_enu = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        return wrap_pi(math.pi / 2 - yaw_enu)
+
+    def _fly_target(self, state: VehicleState, dt: float) -> np.ndarray:
+        tg = self.target
+        if tg is None:  # cannot happen: OFFBOARD needs a stream
+            return self._velocity_hold(state, 0.0)
+        if tg.yaw_rate_rad_s is not None:
+            if self._yaw_sp_fresh:
+                self._yaw_sp_rad, self._yaw_sp_fresh = self._current_yaw, False
+            self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + tg.yaw_rate_rad_s * dt)
+            yaw = self._yaw_sp_rad
+        else:
+            yaw = tg.yaw_rad
+        return self.inner.update(
+            state.quat_wxyz, state.omega_rad_s, tg.roll_rad, tg.pitch_rad, yaw, tg.thrust_n
+        )
+
+    def _velocity_hold(self, state: VehicleState, climb_m_s: float) -> np.ndarray:
+        """The FC's own hover/land controller: hold horizontal velocity 0 and climb rate ``climb_m_s``."""
+        ve, vn, vu = state.vel_m_s
+        ax, ay = -1.5 * vn, -1.5 * ve  # NED north, east (m/s^2)
+        norm = math.hypot(ax, ay)
+        if norm > 3.0:
+            ax, ay = ax * 3.0 / norm, ay * 3.0 / norm
+        az = max(-4.0, min(4.0, -3.0 * (climb_m_s - vu)))  # NED down
+        m, g = self.profile.mass_kg, GRAVITY_M_S2
+        fx, fy, fz = m * ax, m * ay, m * (az - g)
+        max_h = abs(fz) * math.tan(math.radians(self.config.hover_max_tilt_deg))
+        fh = math.hypot(fx, fy)
+        if fh > max_h:
+            fx, fy = fx * max_h / fh, fy * max_h / fh
+        thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = -fx / thrust, -fy / thrust, -fz / thrust  # body z (down) in NED
+        yaw = self._hold_yaw_rad
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        hx, hy = cy * zx + sy * zy, -sy * zx + cy * zy  # rotate into the heading frame
+        roll = math.asin(max(-1.0, min(1.0, -hy)))
+        pitch = math.atan2(hx, zz)
+        thrust = min(thrust, self.profile.max_total_thrust_n)
+        return self.inner.update(state.quat_wxyz, state.omega_rad_s, roll, pitch, yaw, thrust)

@@ -1,0 +1,174 @@
+"""The FC's inner loop, run every physics step: attitude -> body rates -> torques -> motor mixing.
+
+Attitude error (quaternion, body frame) -> rate command (P, clipped to the profile's body-rate limit)
+-> angular acceleration (P on rate error) -> torque (J alpha + w x J w) -> rotor thrusts through the
+inverse of the X-quad allocation matrix, saturated so that roll/pitch come first, collective thrust
+second and yaw last (the collective is shifted, yaw is scaled down). Numba-compiled hot path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from emulator.profile import ROTOR_ANGLES_RAD, ROTOR_SPIN, VehicleProfile
+
+_S = math.sqrt(0.5)
+
+
+@dataclass(frozen=True)
+class InnerLoopGains:
+    """Gains of the attitude and rate loops (per body axis x, y, z)."""
+
+    attitude_p_per_s: tuple[float, float, float] = (11.0, 11.0, 4.0)  # rate cmd (rad/s) per rad of error
+    rate_p_per_s: tuple[float, float, float] = (50.0, 50.0, 12.0)  # angular accel (rad/s^2) per rad/s error
+    idle_throttle: float = 0.05  # minimum throttle of each motor while armed (0..1)
+
+
+def allocation_matrix(profile: VehicleProfile) -> np.ndarray:
+    """(4, 4) map from rotor thrusts (N) to [total thrust (N), torque x, y, z (N m)], body FLU."""
+    m = np.zeros((4, 4))
+    ratio = profile.drag_torque_coeff_nm_s2 / profile.thrust_coeff_n_s2
+    for i, (angle, spin) in enumerate(zip(ROTOR_ANGLES_RAD, ROTOR_SPIN, strict=True)):
+        x, y = profile.arm_length_m * math.cos(angle), profile.arm_length_m * math.sin(angle)
+        m[:, i] = (1.0, y, -x, -spin * ratio)
+    return m
+
+
+class InnerLoop:
+    """Attitude and rate control plus mixing for one profile; `update` returns motor throttles (4,)."""
+
+    def __init__(self, profile: VehicleProfile, gains: InnerLoopGains | None = None) -> None:
+        gains = gains or InnerLoopGains()
+        if not 0.0 <= gains.idle_throttle < 1.0:
+            raise ValueError(f"idle_throttle must be in [0, 1), got {gains.idle_throttle}")
+        self.profile = profile
+        self.gains = gains
+        self._mix_inv = np.ascontiguousarray(np.linalg.inv(allocation_matrix(profile)))
+        self._params = np.array(
+            [
+                *gains.attitude_p_per_s,
+                *gains.rate_p_per_s,
+                *profile.inertia_kgm2,
+                profile.max_body_rate_rad_s,
+                profile.max_thrust_per_rotor_n,
+                gains.idle_throttle,
+            ]
+        )
+        self._out = np.zeros(4)
+
+    def update(
+        self,
+        quat_wxyz: np.ndarray,
+        omega_rad_s: np.ndarray,
+        roll_rad: float,
+        pitch_rad: float,
+        yaw_rad: float,
+        thrust_n: float,
+    ) -> np.ndarray:
+        """Throttles (4,) in [0, 1] that steer the body (FLU->ENU ``quat_wxyz``, rates ``omega_rad_s``)
+        toward NED Euler angles (roll, pitch, yaw heading) with total thrust ``thrust_n``."""
+        _control(
+            quat_wxyz,
+            omega_rad_s,
+            roll_rad,
+            pitch_rad,
+            yaw_rad,
+            thrust_n,
+            self._params,
+            self._mix_inv,
+            self._out,
+        )
+        return self._out
+
+
+@njit(cache=True)
+def _qmul(aw, ax, ay, az, bw, bx, by, bz):
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+@njit(cache=True)
+def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Body(FLU)->world(ENU) quaternion of NED/FRD Euler angles (rad)."""
+    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    w = cr * cp * cy + sr * sp * sy
+    x = sr * cp * cy - cr * sp * sy
+    y = cr * sp * cy + sr * cp * sy
+    z = cr * cp * sy - sr * sp * cy
+    # q_enu = qT * q_ned * qD with qT = (0, s, s, 0) (NED<->ENU) and qD = (0, 1, 0, 0) (FRD<->FLU)
+    aw, ax, ay, az = _qmul(0.0, _S, _S, 0.0, w, x, y, z)
+    bw, bx, by, bz = _qmul(aw, ax, ay, az, 0.0, 1.0, 0.0, 0.0)
+    out = np.empty(4)
+    out[0], out[1], out[2], out[3] = bw, bx, by, bz
+    if out[0] < 0:
+        out *= -1.0
+    return out
+
+
+@njit(cache=True)
+def _control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):
+    qd = target_quat_enu_flu(roll, pitch, yaw)
+    # error quaternion qe = conj(q) * qd (rotation from the body to the target, body frame)
+    qw, qx, qy, qz = q[0], -q[1], -q[2], -q[3]
+    ew = qw * qd[0] - qx * qd[1] - qy * qd[2] - qz * qd[3]
+    ex = qw * qd[1] + qx * qd[0] + qy * qd[3] - qz * qd[2]
+    ey = qw * qd[2] - qx * qd[3] + qy * qd[0] + qz * qd[1]
+    ez = qw * qd[3] + qx * qd[2] - qy * qd[1] + qz * qd[0]
+    if ew < 0:
+        ex, ey, ez = -ex, -ey, -ez
+    max_rate = p[9]
+    rate_cmd = np.empty(3)
+    rate_cmd[0] = 2.0 * p[0] * ex
+    rate_cmd[1] = 2.0 * p[1] * ey
+    rate_cmd[2] = 2.0 * p[2] * ez
+    for i in range(3):
+        rate_cmd[i] = min(max_rate, max(-max_rate, rate_cmd[i]))
+    ixx, iyy, izz = p[6], p[7], p[8]
+    ax = p[3] * (rate_cmd[0] - w[0])
+    ay = p[4] * (rate_cmd[1] - w[1])
+    az = p[5] * (rate_cmd[2] - w[2])
+    tx = ixx * ax + (izz - iyy) * w[1] * w[2]
+    ty = iyy * ay + (ixx - izz) * w[2] * w[0]
+    tz = izz * az + (iyy - ixx) * w[0] * w[1]
+    f_max = p[10]
+    f_lo = p[11] * f_max
+    avail = f_max - f_lo
+    f = np.empty(4)
+    dmin, dmax = 1e300, -1e300
+    for i in range(4):
+        d = mix_inv[i, 1] * tx + mix_inv[i, 2] * ty
+        f[i] = d
+        dmin = min(dmin, d)
+        dmax = max(dmax, d)
+    spread = dmax - dmin
+    if spread > avail:  # roll/pitch alone saturate: scale them down to fit
+        k = avail / spread
+        dmin *= k
+        dmax *= k
+        for i in range(4):
+            f[i] *= k
+    collective = 0.25 * thrust_n
+    collective = min(max(collective, f_lo - dmin), f_max - dmax)  # shift the collective to fit
+    for i in range(4):
+        f[i] += collective
+    k = 1.0
+    for i in range(4):  # yaw last: the largest share of the yaw torque that still fits
+        y = mix_inv[i, 3] * tz
+        if y > 1e-12:
+            k = min(k, (f_max - f[i]) / y)
+        elif y < -1e-12:
+            k = min(k, (f_lo - f[i]) / y)
+    k = max(k, 0.0)
+    for i in range(4):
+        u = (f[i] + k * mix_inv[i, 3] * tz) / f_max
+        out[i] = min(1.0, max(0.0, u))

@@ -1,0 +1,359 @@
+"""The FC's MAVLink endpoint: PX4-style heartbeat and telemetry, commands, offboard attitude setpoints.
+
+`MavlinkServer.poll(now_s)` parses what arrived, acts on it, and sends what is due at ``now_s`` (clock
+seconds), so a real-time loop and a lockstep runner drive it the same way. SET_ATTITUDE_TARGET is mapped
+onto the N3 attitude-thrust interface: quaternion (NED -> FRD) -> ground-frame roll/pitch/yaw, thrust
+0..1 -> 0..100 %, type_mask bit 4 clear -> yaw rate from body_yaw_rate. Bad input is counted in `stats`
+and answered where MAVLink has a way (COMMAND_ACK, STATUSTEXT); it never raises out of `poll`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+
+from emulator.fc.modes import CommandResult, FcState
+from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, N3Setpoint, SetpointRejected
+from emulator.fc.telemetry import Home, TelemetryEncoder
+from emulator.fc.vehicle import EmulatedVehicle
+from hil.link.mavlink import (
+    PX4_AUTO_LAND,
+    PX4_AUTO_LOITER,
+    PX4_MAIN_AUTO,
+    PX4_MAIN_OFFBOARD,
+    MavlinkCodec,
+    MAVLinkMessage,
+    euler_from_quat,
+    mav,
+)
+
+FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
+MIN_INTERVAL_S = 0.002  # fastest stream rate granted by SET_MESSAGE_INTERVAL (500 Hz)
+#: default telemetry intervals (s), by message id
+DEFAULT_INTERVALS_S: dict[int, float] = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 1 / 50,
+    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 1 / 50,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1 / 30,
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1 / 10,
+    mav.MAVLINK_MSG_ID_HIGHRES_IMU: 1 / 50,
+    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
+}
+ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Identity and behaviour of the FC's MAVLink endpoint."""
+
+    system_id: int = 1
+    component_id: int = mav.MAV_COMP_ID_AUTOPILOT1
+    home: Home = field(default_factory=Home)
+    statustext_interval_s: float = 1.0  # repeats of one kind of STATUSTEXT at most this often
+    stream_intervals_s: dict[int, float] = field(default_factory=lambda: dict(DEFAULT_INTERVALS_S))
+
+
+@dataclass
+class ServerStats:
+    """What the server did with what it received (counts)."""
+
+    setpoints_applied: int = 0
+    setpoints_rejected: int = 0
+    commands_accepted: int = 0
+    commands_denied: int = 0
+    commands_unsupported: int = 0
+    foreign_target: int = 0  # addressed to another system or component: ignored
+    statustext_sent: int = 0
+    statustext_suppressed: int = 0
+    handler_errors: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class MavlinkServer:
+    """Serves one vehicle's FC over one MAVLink codec."""
+
+    def __init__(
+        self, vehicle: EmulatedVehicle, codec: MavlinkCodec, config: ServerConfig | None = None
+    ) -> None:
+        self.vehicle = vehicle
+        self.fc = vehicle.fc
+        self.codec = codec
+        self.config = config or ServerConfig()
+        self.stats = ServerStats()
+        self.telemetry = TelemetryEncoder(vehicle, codec.mav, self.config.home)
+        self._intervals = dict(self.config.stream_intervals_s)
+        self._next_due: dict[int, float] = {}
+        self._events_seen = 0
+        self._last_text_s: dict[str, float] = {}
+        #: called with (message, now_s) after a setpoint is applied (for latency measurements)
+        self.on_setpoint: Callable[[MAVLinkMessage, float], None] | None = None
+        self._senders: dict[int, Callable[[float], MAVLinkMessage]] = {
+            mav.MAVLINK_MSG_ID_HEARTBEAT: lambda t: self.telemetry.heartbeat(),
+            mav.MAVLINK_MSG_ID_ATTITUDE: self.telemetry.attitude,
+            mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self.telemetry.attitude_quaternion,
+            mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self.telemetry.local_position_ned,
+            mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.telemetry.global_position_int,
+            mav.MAVLINK_MSG_ID_HIGHRES_IMU: self.telemetry.highres_imu,
+            mav.MAVLINK_MSG_ID_SYS_STATUS: lambda t: self.telemetry.sys_status(self.codec.stats.errors),
+            mav.MAVLINK_MSG_ID_BATTERY_STATUS: lambda t: self.telemetry.battery_status(),
+            mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda t: self.telemetry.extended_sys_state(),
+            mav.MAVLINK_MSG_ID_HOME_POSITION: self.telemetry.home_position,
+            mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda t: self.telemetry.autopilot_version(
+                self.codec.system_id
+            ),
+        }
+        self._handlers: dict[str, Callable[[MAVLinkMessage, float], None]] = {
+            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
+            "COMMAND_LONG": self._on_command_long,
+            "COMMAND_INT": self._on_command_int,
+            "SET_MODE": self._on_set_mode,
+            "PING": self._on_ping,
+            "TIMESYNC": self._on_timesync,
+        }
+
+    # --- the loop ----------------------------------------------------------------------------
+    def poll(self, now_s: float) -> None:
+        """Parse and act on what arrived, then send what is due at ``now_s``."""
+        for msg in self.codec.receive():
+            self.handle(msg, now_s)
+        self._report_events(now_s)
+        self.telemetry.track_battery(now_s)
+        self._send_streams(now_s)
+        recorder = self.codec.recorder
+        if recorder is not None and hasattr(recorder, "tick"):
+            recorder.tick()
+
+    def handle(self, msg: MAVLinkMessage, now_s: float) -> None:
+        """Act on one received message (never raises)."""
+        handler = self._handlers.get(msg.get_type())
+        if handler is None:
+            return
+        try:
+            handler(msg, now_s)
+        except Exception as exc:  # a message the handlers did not foresee: count and tell, don't die
+            self.stats.handler_errors += 1
+            self.statustext(mav.MAV_SEVERITY_ERROR, f"{msg.get_type()} ignored: {type(exc).__name__}", now_s)
+
+    def send(self, msg: MAVLinkMessage) -> None:
+        self.codec.send(msg)
+
+    def statustext(self, severity: int, text: str, now_s: float, key: str | None = None) -> bool:
+        """Send a STATUSTEXT (at most 50 characters), rate-limited per ``key``; True if sent."""
+        key = key or text
+        last = self._last_text_s.get(key)
+        if last is not None and now_s - last < self.config.statustext_interval_s:
+            self.stats.statustext_suppressed += 1
+            return False
+        self._last_text_s[key] = now_s
+        self.send(self.codec.mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
+        self.stats.statustext_sent += 1
+        return True
+
+    def _send_streams(self, now_s: float) -> None:
+        for msg_id, interval in self._intervals.items():
+            due = self._next_due.get(msg_id, now_s)
+            if now_s >= due:
+                self.send(self._senders[msg_id](now_s))
+                nxt = due + interval
+                self._next_due[msg_id] = nxt if nxt > now_s else now_s + interval
+
+    def _report_events(self, now_s: float) -> None:
+        events = self.fc.events
+        if self._events_seen == len(events):
+            return
+        for ev in events[self._events_seen :]:
+            if ev.to_state.failsafe:
+                self.statustext(
+                    mav.MAV_SEVERITY_CRITICAL, f"Failsafe: {ev.reason}", now_s, key=f"ev:{ev.reason}"
+                )
+            else:
+                self.statustext(mav.MAV_SEVERITY_INFO, ev.reason, now_s, key=f"ev:{ev.reason}")
+        self._events_seen = len(events)
+        self.send(self.telemetry.heartbeat())  # let clients see the new mode now, not at the next 1 Hz beat
+
+    # --- setpoints -------------------------------------------------------------------------
+    def _for_me(self, target_system: int, target_component: int | None) -> bool:
+        mine = target_system in (0, self.codec.system_id) and (
+            target_component is None or target_component in (0, self.codec.component_id)
+        )
+        if not mine:
+            self.stats.foreign_target += 1
+        return mine
+
+    def _on_set_attitude_target(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        try:
+            sp = setpoint_from_attitude_target(msg)
+            self.fc.set_setpoint(sp, now_s)
+        except SetpointRejected as exc:
+            self.stats.setpoints_rejected += 1
+            self.statustext(
+                mav.MAV_SEVERITY_WARNING, f"Setpoint rejected: {exc.reason}", now_s, key="setpoint"
+            )
+            return
+        self.stats.setpoints_applied += 1
+        if self.on_setpoint is not None:
+            self.on_setpoint(msg, now_s)
+
+    # --- commands --------------------------------------------------------------------------
+    def _on_command_long(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+        self._command(msg, msg.command, params, now_s)
+
+    def _on_command_int(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
+        self._command(msg, msg.command, params, now_s)
+
+    def _on_set_mode(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, None):
+            return
+        main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
+        result = self._set_mode(msg.base_mode, main, sub, now_s)
+        if not result.accepted:
+            self.statustext(mav.MAV_SEVERITY_WARNING, result.reason, now_s, key="cmd:mode")
+
+    def _command(self, msg: MAVLinkMessage, command: int, p: tuple[float, ...], now_s: float) -> None:
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        result, mav_result, follow_up = self._run_command(command, p, now_s)
+        if mav_result == mav.MAV_RESULT_ACCEPTED:
+            self.stats.commands_accepted += 1
+        elif mav_result == mav.MAV_RESULT_UNSUPPORTED:
+            self.stats.commands_unsupported += 1
+        else:
+            self.stats.commands_denied += 1
+        if result.reason:
+            self.statustext(mav.MAV_SEVERITY_WARNING, result.reason, now_s, key=f"cmd:{command}")
+        self.send(self.codec.mav.command_ack_encode(command, mav_result, 0, 0, src_sys, src_comp))
+        if follow_up is not None:
+            self.send(follow_up)
+
+    def _run_command(
+        self, command: int, p: tuple[float, ...], now_s: float
+    ) -> tuple[CommandResult, int, MAVLinkMessage | None]:
+        """(result, MAV_RESULT, message to send after the ACK)."""
+        denied = mav.MAV_RESULT_DENIED
+        if command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
+            if p[0] not in (0.0, 1.0):
+                return CommandResult(False, f"arm/disarm: param1 must be 0 or 1, got {p[0]}"), denied, None
+            if p[0] == 1.0:
+                res = self.fc.arm(now_s)
+            else:
+                res = self.fc.disarm(now_s, force=p[1] == FORCE_DISARM_MAGIC)
+            return res, _mav_result(res), None
+        if command == mav.MAV_CMD_DO_SET_MODE:
+            if not all(math.isfinite(x) for x in p[:3]):
+                return CommandResult(False, "set mode: non-finite parameters"), denied, None
+            res = self._set_mode(int(p[0]), int(p[1]), int(p[2]), now_s)
+            return res, _mav_result(res), None
+        if command == mav.MAV_CMD_NAV_LAND:
+            res = self.fc.request_land(now_s)
+            return res, _mav_result(res), None
+        if command in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            msg_id = int(p[0]) if command == mav.MAV_CMD_REQUEST_MESSAGE and math.isfinite(p[0]) else -1
+            if command == mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+                msg_id = mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+            sender = self._senders.get(msg_id)
+            if sender is None:
+                return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
+            return CommandResult(True), mav.MAV_RESULT_ACCEPTED, sender(now_s)
+        if command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(p[0], p[1])
+        return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
+
+    def _set_interval(self, id_param: float, interval_us: float) -> tuple[CommandResult, int, None]:
+        if not (math.isfinite(id_param) and math.isfinite(interval_us)):
+            return (
+                CommandResult(False, "message interval: non-finite parameters"),
+                mav.MAV_RESULT_DENIED,
+                None,
+            )
+        msg_id = int(id_param)
+        if msg_id not in self._senders or msg_id in ON_REQUEST:
+            return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
+        if interval_us == -1:
+            self._intervals.pop(msg_id, None)
+        elif interval_us == 0:
+            default = DEFAULT_INTERVALS_S.get(msg_id)
+            if default is None:
+                self._intervals.pop(msg_id, None)
+            else:
+                self._intervals[msg_id] = default
+        elif interval_us > 0:
+            self._intervals[msg_id] = max(MIN_INTERVAL_S, interval_us * 1e-6)
+        else:
+            return (
+                CommandResult(False, f"message interval {interval_us:g} us invalid"),
+                mav.MAV_RESULT_DENIED,
+                None,
+            )
+        self._next_due.pop(msg_id, None)
+        return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
+
+    def _set_mode(self, base_mode: int, main: int, sub: int, now_s: float) -> CommandResult:
+        if not base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return CommandResult(False, "set mode: only PX4 custom modes supported")
+        if main == PX4_MAIN_OFFBOARD:
+            return self.fc.request_offboard(now_s)
+        if main == PX4_MAIN_AUTO and sub == PX4_AUTO_LOITER:
+            return self.fc.request_hold(now_s)
+        if main == PX4_MAIN_AUTO and sub == PX4_AUTO_LAND:
+            return self.fc.request_land(now_s)
+        return CommandResult(False, f"mode {main}.{sub} unsupported: use OFFBOARD/HOLD/LAND")
+
+    # --- small protocol services -------------------------------------------------------------
+    def _on_ping(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if msg.target_system == 0 and msg.target_component == 0:  # a request, not someone's reply
+            self.send(
+                self.codec.mav.ping_encode(
+                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
+                )
+            )
+
+    def _on_timesync(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if msg.tc1 == 0:
+            self.send(self.codec.mav.timesync_encode(int(now_s * 1e9), msg.ts1))
+
+    @property
+    def state(self) -> FcState:
+        return self.fc.state
+
+
+def _mav_result(res: CommandResult) -> int:
+    return mav.MAV_RESULT_ACCEPTED if res.accepted else mav.MAV_RESULT_DENIED
+
+
+def setpoint_from_attitude_target(msg: MAVLinkMessage) -> N3Setpoint:
+    """SET_ATTITUDE_TARGET -> N3Setpoint; raises SetpointRejected with the reason."""
+    mask = msg.type_mask
+    if mask & mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
+        raise SetpointRejected("attitude ignored: N3 flies roll/pitch angles")
+    if mask & mav.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE:
+        raise SetpointRejected("thrust ignored: N3 needs vertical thrust")
+    q = [float(x) for x in msg.q]
+    thrust = float(msg.thrust)
+    if not all(math.isfinite(x) for x in q):
+        raise SetpointRejected("non-finite attitude quaternion")
+    if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+        raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
+    norm = math.sqrt(sum(x * x for x in q))
+    if abs(norm - 1.0) > 0.1:
+        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+    roll, pitch, yaw = euler_from_quat([x / norm for x in q])
+    if mask & mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE:
+        flag, yaw_value = ATTITUDE_THRUST_YAW_ANGLE, math.degrees(yaw)
+    else:
+        rate = float(msg.body_yaw_rate)
+        if not math.isfinite(rate):
+            raise SetpointRejected("non-finite yaw rate")
+        flag, yaw_value = ATTITUDE_THRUST_YAW_RATE, math.degrees(rate)
+    return N3Setpoint(flag, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, yaw_value)

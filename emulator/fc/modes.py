@@ -1,0 +1,72 @@
+"""The FC's state machine: arming, control authority, failsafe states, and the record of transitions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+
+class FcState(Enum):
+    """What the flight controller is doing. Later fault scenarios read these from `FcEvent`s."""
+
+    DISARMED = "disarmed"  # motors off
+    HOLD = "hold"  # armed, no offboard authority: idle on the ground, hover in the air
+    OFFBOARD = "offboard"  # armed, flying the onboard computer's attitude-thrust setpoints
+    LAND = "land"  # commanded landing, disarms on touchdown
+    FAILSAFE_HOVER = "failsafe_hover"  # setpoints lost: hover in place for a while ...
+    FAILSAFE_LAND = "failsafe_land"  # ... then land and disarm
+
+    @property
+    def armed(self) -> bool:
+        return self is not FcState.DISARMED
+
+    @property
+    def failsafe(self) -> bool:
+        return self in (FcState.FAILSAFE_HOVER, FcState.FAILSAFE_LAND)
+
+
+@dataclass(frozen=True)
+class FcEvent:
+    """One state transition at simulated time ``time_s`` (s), with its reason."""
+
+    time_s: float
+    from_state: FcState
+    to_state: FcState
+    reason: str
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """The answer to a command (arm, mode change): accepted, or refused with a reason."""
+
+    accepted: bool
+    reason: str = ""
+
+
+ACCEPTED = CommandResult(True)
+
+
+class StateMachine:
+    """Holds the current FcState and records every transition as an FcEvent."""
+
+    def __init__(self, initial: FcState = FcState.DISARMED) -> None:
+        self.state = initial
+        self.since_s = 0.0
+        self.events: list[FcEvent] = []
+
+    def go(self, to_state: FcState, time_s: float, reason: str) -> bool:
+        """Move to ``to_state`` (no-op if already there); True if a transition happened."""
+        if to_state is self.state:
+            return False
+        self.events.append(FcEvent(time_s, self.state, to_state, reason))
+        self.state = to_state
+        self.since_s = time_s
+        return True
+
+
+class LandedState(Enum):
+    """MAVLink's landed state as the FC detects it (EXTENDED_SYS_STATE.landed_state)."""
+
+    ON_GROUND = 1
+    IN_AIR = 2
+    LANDING = 4

@@ -1,0 +1,139 @@
+"""The N3 attitude-thrust interface: OSDK control-flag semantics, the setpoint type and its validation.
+
+Angles follow the aerospace convention of the N3's ground frame (north-east-down Euler angles): roll
+positive = right side down, pitch positive = nose up, yaw = heading from north, clockwise. The vertical
+channel is the total thrust in percent of ``profile.n3_full_thrust_n``. Only the modes this emulator flies
+are accepted: HORIZONTAL_ANGLE + VERTICAL_THRUST + (YAW_ANGLE or YAW_RATE), GROUND frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from emulator.profile import VehicleProfile
+
+# control flag byte: horizontal (bits 7:6) | vertical (5:4) | yaw (3) | frame (2:1) | stable (0)
+HORIZONTAL_ANGLE = 0x00
+HORIZONTAL_VELOCITY = 0x40
+HORIZONTAL_POSITION = 0x80
+HORIZONTAL_ANGULAR_RATE = 0xC0
+VERTICAL_VELOCITY = 0x00
+VERTICAL_POSITION = 0x10
+VERTICAL_THRUST = 0x20
+YAW_ANGLE = 0x00
+YAW_RATE = 0x08
+FRAME_GROUND = 0x00
+FRAME_BODY = 0x02
+STABLE_DISABLE = 0x00
+STABLE_ENABLE = 0x01
+
+_HORIZONTAL_NAMES = {0x00: "ANGLE", 0x40: "VELOCITY", 0x80: "POSITION", 0xC0: "ANGULAR_RATE"}
+_VERTICAL_NAMES = {0x00: "VELOCITY", 0x10: "POSITION", 0x20: "THRUST", 0x30: "RESERVED"}
+
+#: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle, ground frame
+ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
+ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
+
+
+class SetpointRejected(ValueError):
+    """A setpoint the N3 will not fly; ``reason`` says why (short enough for a STATUSTEXT)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class N3Setpoint:
+    """One flight-control setpoint as the onboard computer sends it (degrees, percent)."""
+
+    flag: int
+    roll_deg: float  # x
+    pitch_deg: float  # y
+    thrust_percent: float  # z, 0..100 % of n3_full_thrust_n
+    yaw: float  # heading (deg) with YAW_ANGLE, or yaw rate (deg/s, clockwise) with YAW_RATE
+
+
+@dataclass(frozen=True)
+class AttitudeThrustTarget:
+    """A validated setpoint in SI units (NED Euler angles, see the module docstring)."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float  # heading; ignored when yaw_rate_rad_s is not None
+    yaw_rate_rad_s: float | None
+    thrust_n: float
+
+
+def describe_flag(flag: int) -> str:
+    """Human-readable control flag, e.g. 'ANGLE|THRUST|YAW_RATE|GROUND'."""
+    return "|".join(
+        (
+            _HORIZONTAL_NAMES[flag & 0xC0],
+            _VERTICAL_NAMES[flag & 0x30],
+            "YAW_RATE" if flag & YAW_RATE else "YAW_ANGLE",
+            "BODY" if flag & FRAME_BODY else "GROUND",
+        )
+    )
+
+
+def check_flag(flag: int) -> None:
+    """Raise SetpointRejected unless the flag selects a mode this N3 emulator flies."""
+    if not isinstance(flag, int) or not 0 <= flag <= 0xFF:
+        raise SetpointRejected(f"control flag must be a byte, got {flag!r}")
+    if flag & 0xC0 != HORIZONTAL_ANGLE:
+        raise SetpointRejected(f"horizontal {_HORIZONTAL_NAMES[flag & 0xC0]} unsupported, use ANGLE")
+    if flag & 0x30 != VERTICAL_THRUST:
+        raise SetpointRejected(f"vertical {_VERTICAL_NAMES[flag & 0x30]} unsupported, use THRUST")
+    if flag & 0x06 != FRAME_GROUND:
+        raise SetpointRejected("BODY frame unsupported with ANGLE, use GROUND")
+
+
+def tilt_of(roll_rad: float, pitch_rad: float) -> float:
+    """Angle between the body's thrust axis and the vertical for these Euler angles (rad)."""
+    return math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
+
+
+def limit_tilt(roll_rad: float, pitch_rad: float, max_tilt_rad: float) -> tuple[float, float]:
+    """Scale roll and pitch together so that the tilt stays within ``max_tilt_rad``."""
+    if tilt_of(roll_rad, pitch_rad) <= max_tilt_rad:
+        return roll_rad, pitch_rad
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if tilt_of(mid * roll_rad, mid * pitch_rad) > max_tilt_rad:
+            hi = mid
+        else:
+            lo = mid
+    return lo * roll_rad, lo * pitch_rad
+
+
+def wrap_pi(angle_rad: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
+
+
+def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget:
+    """Validate ``sp`` against the flag semantics and the profile's limits; clamp tilt and yaw rate.
+
+    Raises SetpointRejected for an unsupported flag, a non-finite value, a thrust outside 0..100 %, or a
+    roll/pitch outside +-90 deg.
+    """
+    check_flag(sp.flag)
+    values = (sp.roll_deg, sp.pitch_deg, sp.thrust_percent, sp.yaw)
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+        raise SetpointRejected(f"non-finite setpoint {values}")
+    if not 0.0 <= sp.thrust_percent <= 100.0:
+        raise SetpointRejected(f"thrust {sp.thrust_percent:.1f} % outside 0..100 %")
+    if abs(sp.roll_deg) > 90.0 or abs(sp.pitch_deg) > 90.0:
+        raise SetpointRejected(f"roll/pitch {sp.roll_deg:.0f}/{sp.pitch_deg:.0f} deg beyond 90")
+    roll, pitch = limit_tilt(
+        math.radians(sp.roll_deg), math.radians(sp.pitch_deg), math.radians(profile.max_tilt_deg)
+    )
+    thrust_n = profile.thrust_percent_to_force_n(sp.thrust_percent)
+    if sp.flag & YAW_RATE:
+        limit = math.radians(profile.max_yaw_rate_deg_s)
+        rate = max(-limit, min(limit, math.radians(sp.yaw)))
+        return AttitudeThrustTarget(roll, pitch, 0.0, rate, thrust_n)
+    return AttitudeThrustTarget(roll, pitch, wrap_pi(math.radians(sp.yaw)), None, thrust_n)

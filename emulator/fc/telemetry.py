@@ -1,0 +1,218 @@
+"""MAVLink telemetry of an emulated vehicle: its state encoded as PX4 would send it (NED/FRD on the wire)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from emulator.fc.modes import FcState
+from emulator.fc.vehicle import EmulatedVehicle
+from emulator.profile import GRAVITY_M_S2
+from hil.link.mavlink import (
+    PX4_AUTO_LAND,
+    PX4_AUTO_LOITER,
+    PX4_MAIN_AUTO,
+    PX4_MAIN_OFFBOARD,
+    MAVLinkMessage,
+    enu_to_ned,
+    euler_from_quat,
+    flu_to_frd,
+    mav,
+    px4_custom_mode,
+    quat_enu_flu_to_ned_frd,
+)
+
+EARTH_RADIUS_M = 6378137.0
+MAG_FIELD_NED_GAUSS = np.array([0.38, -0.02, 0.23])  # a mid-latitude field (gauss)
+BATTERY_CELLS = 4
+BATTERY_ENDURANCE_S = 900.0  # armed time from full to empty (s)
+#: PX4 custom mode shown for each state (HOLD = AUTO.LOITER)
+CUSTOM_MODE = {
+    FcState.DISARMED: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
+    FcState.HOLD: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
+    FcState.OFFBOARD: px4_custom_mode(PX4_MAIN_OFFBOARD),
+    FcState.LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
+    FcState.FAILSAFE_HOVER: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
+    FcState.FAILSAFE_LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
+}
+SENSORS = (
+    mav.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mav.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | mav.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mav.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+    | mav.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+    | mav.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+)
+
+
+@dataclass(frozen=True)
+class Home:
+    """Where the world origin lies on Earth (WGS84 degrees, metres above mean sea level)."""
+
+    lat_deg: float = 22.3364  # a campus in Hong Kong
+    lon_deg: float = 114.2655
+    alt_m: float = 10.0
+
+
+class TelemetryEncoder:
+    """Builds telemetry messages for one vehicle; ``mav_obj`` is the codec's pymavlink object."""
+
+    def __init__(self, vehicle: EmulatedVehicle, mav_obj: mav.MAVLink, home: Home) -> None:
+        self.vehicle = vehicle
+        self.mav = mav_obj
+        self.home = home
+        self.armed_time_s = 0.0
+        self._last_t: float | None = None
+
+    def track_battery(self, now_s: float) -> None:
+        """Count armed time for the battery model."""
+        if self._last_t is not None and self.vehicle.fc.state.armed:
+            self.armed_time_s += max(0.0, now_s - self._last_t)
+        self._last_t = now_s
+
+    # --- one method per message ------------------------------------------------------------
+    def heartbeat(self) -> MAVLinkMessage:
+        st = self.vehicle.fc.state
+        custom = CUSTOM_MODE[st]
+        if st is FcState.DISARMED and self.vehicle.fc.offboard_selected:
+            custom = px4_custom_mode(PX4_MAIN_OFFBOARD)
+        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if st.armed:
+            base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
+        if st is not FcState.DISARMED and st is not FcState.HOLD:
+            base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED | mav.MAV_MODE_FLAG_AUTO_ENABLED
+        if st.failsafe:
+            status = mav.MAV_STATE_CRITICAL
+        else:
+            status = mav.MAV_STATE_ACTIVE if st.armed else mav.MAV_STATE_STANDBY
+        return self.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, custom, status)
+
+    def attitude(self, now_s: float) -> MAVLinkMessage:
+        s = self.vehicle.state
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(s.quat_wxyz))
+        p, q, r = flu_to_frd(s.omega_rad_s)
+        return self.mav.attitude_encode(_ms(now_s), roll, pitch, yaw, p, q, r)
+
+    def attitude_quaternion(self, now_s: float) -> MAVLinkMessage:
+        s = self.vehicle.state
+        q = quat_enu_flu_to_ned_frd(s.quat_wxyz)
+        p, qr, r = flu_to_frd(s.omega_rad_s)
+        return self.mav.attitude_quaternion_encode(_ms(now_s), *q, p, qr, r, [0.0] * 4)
+
+    def local_position_ned(self, now_s: float) -> MAVLinkMessage:
+        s = self.vehicle.state
+        return self.mav.local_position_ned_encode(_ms(now_s), *enu_to_ned(s.pos_m), *enu_to_ned(s.vel_m_s))
+
+    def global_position_int(self, now_s: float) -> MAVLinkMessage:
+        s = self.vehicle.state
+        lat, lon = self.lat_lon_deg(s.pos_m)
+        v = enu_to_ned(s.vel_m_s) * 100.0
+        _, _, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(s.quat_wxyz))
+        hdg = round(math.degrees(yaw) % 360.0 * 100) % 36000
+        return self.mav.global_position_int_encode(
+            _ms(now_s),
+            round(lat * 1e7),
+            round(lon * 1e7),
+            round((self.home.alt_m + s.pos_m[2]) * 1000),
+            round(s.pos_m[2] * 1000),
+            *(_i16(x) for x in v),
+            hdg,
+        )
+
+    def highres_imu(self, now_s: float) -> MAVLinkMessage:
+        s = self.vehicle.state
+        rot = s.rotation_matrix()  # body FLU -> world ENU
+        specific_enu = np.asarray(s.accel_m_s2) + np.array([0.0, 0.0, GRAVITY_M_S2])
+        acc = flu_to_frd(rot.T @ specific_enu)
+        gyro = flu_to_frd(s.omega_rad_s)
+        mag = flu_to_frd(rot.T @ enu_to_ned(MAG_FIELD_NED_GAUSS))
+        alt = self.home.alt_m + s.pos_m[2]
+        pressure_hpa = 1013.25 * (1.0 - 2.25577e-5 * alt) ** 5.25588
+        return self.mav.highres_imu_encode(
+            _us(now_s), *acc, *gyro, *mag, pressure_hpa, 0.0, alt, 25.0, 0x1FFF, 0
+        )
+
+    def sys_status(self, errors_comm: int) -> MAVLinkMessage:
+        volts, pct = self._battery()
+        return self.mav.sys_status_encode(
+            SENSORS,
+            SENSORS,
+            SENSORS,
+            200,
+            round(volts * 1000),
+            -1,
+            pct,
+            0,
+            min(errors_comm, 65535),
+            0,
+            0,
+            0,
+            0,
+        )
+
+    def battery_status(self) -> MAVLinkMessage:
+        volts, pct = self._battery()
+        cell_mv = round(volts * 1000 / BATTERY_CELLS)
+        cells = [cell_mv] * BATTERY_CELLS + [65535] * (10 - BATTERY_CELLS)
+        return self.mav.battery_status_encode(
+            0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LIPO, 32767, cells, -1, -1, -1, pct
+        )
+
+    def extended_sys_state(self) -> MAVLinkMessage:
+        return self.mav.extended_sys_state_encode(
+            mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value
+        )
+
+    def home_position(self, now_s: float) -> MAVLinkMessage:
+        h = self.home
+        return self.mav.home_position_encode(
+            round(h.lat_deg * 1e7),
+            round(h.lon_deg * 1e7),
+            round(h.alt_m * 1000),
+            0.0,
+            0.0,
+            0.0,
+            [1.0, 0.0, 0.0, 0.0],
+            0.0,
+            0.0,
+            0.0,
+            _us(now_s),
+        )
+
+    def autopilot_version(self, system_id: int) -> MAVLinkMessage:
+        caps = (
+            mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+            | mav.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+            | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+        )
+        version = (1 << 24) | (14 << 16) | (0 << 8) | 255  # reports itself as PX4 1.14.0 release
+        return self.mav.autopilot_version_encode(
+            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x4E33000000000000 | system_id
+        )
+
+    # --- helpers ---------------------------------------------------------------------------
+    def lat_lon_deg(self, pos_enu_m: np.ndarray) -> tuple[float, float]:
+        """Flat-Earth latitude, longitude (deg) of a world ENU position (m)."""
+        lat = self.home.lat_deg + math.degrees(pos_enu_m[1] / EARTH_RADIUS_M)
+        lon = self.home.lon_deg + math.degrees(pos_enu_m[0] / (EARTH_RADIUS_M * math.cos(math.radians(lat))))
+        return lat, lon
+
+    def _battery(self) -> tuple[float, int]:
+        frac = max(0.0, 1.0 - self.armed_time_s / BATTERY_ENDURANCE_S)
+        volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
+        return volts, round(100 * frac)
+
+
+def _ms(t_s: float) -> int:
+    return int(t_s * 1000.0) & 0xFFFFFFFF
+
+
+def _us(t_s: float) -> int:
+    return max(0, int(t_s * 1e6))
+
+
+def _i16(x: float) -> int:
+    return max(-32768, min(32767, round(x)))

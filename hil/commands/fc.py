@@ -1,0 +1,172 @@
+"""`hil fc`: the N3-style flight-controller emulator standalone, in real time, behind a MAVLink link."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from types import FrameType
+
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.physics import backend_names
+from emulator.profile import ProfileError, load_profile
+from emulator.world import CrossingTracker, Gap, LabVolume, World
+from hil.link.clock import WallClock
+from hil.link.endpoint import open_link
+from hil.link.mavlink import MavlinkCodec, mav, parse_signing_key
+from hil.link.tlog import TlogWriter
+
+#: built-in gaps and where the vehicle starts (x, y on the ground, m): the paper's test case (centre
+#: (0, 0.5, 2.1) m, rolled -60 deg, start (-2, -1)), or a level gap at (0, 0, 1.5) m
+GAPS: dict[str, tuple[Gap, tuple[float, float]]] = {
+    "paper": (Gap(centre_m=(0.0, 0.5, 2.1), roll_rad=math.radians(-60.0)), (-2.0, -1.0)),
+    "level": (Gap(), (-2.0, 0.0)),
+}
+GAP_SAMPLE_S = 0.01  # collision and crossing checks at 100 Hz
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fc", help="run the N3-style FC emulator in real time behind a MAVLink link")
+    p.add_argument("--profile", default="n3_tx2", help="vehicle profile name or YAML path (default n3_tx2)")
+    p.add_argument("--physics", default="native", choices=backend_names(), help="physics backend")
+    p.add_argument("--gap", default="paper", choices=[*GAPS, "none"], help="gap to watch for crossings")
+    p.add_argument(
+        "--link",
+        "--command-link",
+        dest="link",
+        default="pty",
+        metavar="SPEC",
+        help="MAVLink command link: pty (default), serial:DEVICE:BAUD, udp:HOST:PORT, tcp:HOST:PORT",
+    )
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
+    p.add_argument(
+        "--failsafe-timeout", type=float, default=1.0, metavar="S", help="setpoint loss before failsafe (1.0)"
+    )
+    p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
+    p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
+    p.set_defaults(func=main)
+
+
+class GapWatch:
+    """Samples the vehicle against the gap world and reports crossings and collisions as STATUSTEXT."""
+
+    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer) -> None:
+        self.vehicle, self.server = vehicle, server
+        self.tracker = CrossingTracker(world)
+        self._next_s = 0.0
+        self._reported_collision = False
+
+    def poll(self, now_s: float) -> None:
+        if now_s < self._next_s:
+            return
+        self._next_s = now_s + GAP_SAMPLE_S
+        if self.vehicle.fc.landed:  # resting on the ground is no collision
+            return
+        s = self.vehicle.state
+        crossing = self.tracker.update(s.time_s + 1e-9 * self.tracker.samples, s.pos_m, s.quat_wxyz)
+        if crossing is not None:
+            where = "through the gap" if crossing.through_opening else "outside the gap"
+            self.server.statustext(mav.MAV_SEVERITY_INFO, f"Crossed the wall {where}", now_s, key="crossing")
+        hit = self.tracker.first_collision
+        if hit is not None and not self._reported_collision:
+            self._reported_collision = True
+            self.server.statustext(mav.MAV_SEVERITY_CRITICAL, f"Collision: {hit.obstacle}", now_s)
+
+
+def main(args: argparse.Namespace) -> int:
+    def fail(msg: str) -> int:
+        print(f"hil fc: {msg}", file=sys.stderr)
+        return 2
+
+    try:
+        profile = load_profile(args.profile)
+        config = FcConfig(failsafe_timeout_s=args.failsafe_timeout)
+        key = parse_signing_key(args.signing_key) if args.signing_key else None
+    except (ProfileError, ValueError) as exc:
+        return fail(str(exc))
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        return fail(f"--duration must be a positive number of seconds, got {args.duration}")
+    if not 1 <= args.system_id <= 255:
+        return fail(f"--system-id must be 1..255, got {args.system_id}")
+    try:
+        link = open_link(args.link, "fc")
+    except (ValueError, OSError) as exc:
+        return fail(str(exc))
+    tlog = None
+    if args.tlog:
+        try:
+            tlog = TlogWriter(args.tlog)
+        except OSError as exc:
+            link.close()
+            return fail(str(exc))
+    try:
+        gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
+        vehicle = EmulatedVehicle(
+            profile, backend=args.physics, config=config, initial_state=resting_state(profile, *start_xy)
+        )
+        # compile the gap checks and the inner loop before the clock starts
+        world = None
+        s0 = vehicle.state
+        if gap is not None:
+            world = World.for_profile(gap, LabVolume(), profile)
+            world.check(s0.pos_m, s0.quat_wxyz)
+        vehicle.fc.inner.update(s0.quat_wxyz, s0.omega_rad_s, 0.0, 0.0, 0.0, 0.0)
+        clock, epoch_unix_s = WallClock(), time.time()  # clock zero in Unix time, for tlog and signing
+        if tlog is not None:
+            tlog.epoch_unix_s = epoch_unix_s
+        codec = MavlinkCodec(
+            link,
+            clock,
+            args.system_id,
+            mav.MAV_COMP_ID_AUTOPILOT1,
+            signing_key=key,
+            recorder=tlog,
+            signing_epoch_unix_s=epoch_unix_s,
+        )
+        server = MavlinkServer(vehicle, codec)
+        links: list = [server]
+        if world is not None:
+            links.append(GapWatch(vehicle, world, server))
+        # A second link (mocap / UWB) is added here: endpoints[...] = its path, links.append(its poller).
+        endpoints = {"command_link": link.endpoint}
+        fds = [link.fileno()] if _has_fileno(link) else []
+        runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
+        _stop_on_signals(runner)
+        print(json.dumps(endpoints), flush=True)
+        runner.run()
+        summary = {
+            "sim_time_s": round(vehicle.time_s, 3),
+            "state": vehicle.fc.state.value,
+            "events": [
+                {"time_s": round(e.time_s, 4), "to": e.to_state.value, "reason": e.reason}
+                for e in vehicle.fc.events
+            ],
+            "link": codec.stats.as_dict(),
+            "server": server.stats.as_dict(),
+        }
+        print(json.dumps(summary), flush=True)
+        return 0
+    finally:
+        if tlog is not None:
+            tlog.close()
+        link.close()
+
+
+def _has_fileno(link: object) -> bool:
+    try:
+        link.fileno()  # type: ignore[attr-defined]
+    except (NotImplementedError, ValueError, OSError):
+        return False
+    return True
+
+
+def _stop_on_signals(runner: RealtimeRunner) -> None:
+    def handler(signum: int, frame: FrameType | None) -> None:
+        runner.stop(timeout_s=0)
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)

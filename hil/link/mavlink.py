@@ -1,0 +1,300 @@
+"""MAVLink 2 over a Transport: a codec with parse-error counters, optional signing, .tlog hooks, and the
+ENU/FLU <-> NED/FRD conversions both sides need at the wire (common dialect, pymavlink underneath)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
+
+from hil.link.clock import Clock
+from hil.link.transport import Transport
+
+#: the pymavlink dialect module (message classes, enums and constants)
+mav = mavlink2
+MAVLinkMessage = mavlink2.MAVLink_message
+
+SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us units from 2015-01-01
+#: messages that must be signed when a key is configured (commands and setpoints)
+SIGNED_ONLY_MSG_IDS: frozenset[int] = frozenset(
+    {
+        mavlink2.MAVLINK_MSG_ID_COMMAND_LONG,
+        mavlink2.MAVLINK_MSG_ID_COMMAND_INT,
+        mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
+        mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
+        mavlink2.MAVLINK_MSG_ID_SET_MODE,
+    }
+)
+
+
+class FrameRecorder(Protocol):
+    """Receives every good frame in either direction (a .tlog writer)."""
+
+    def record(self, frame: bytes, time_s: float) -> None: ...
+
+
+@dataclass
+class MavlinkStats:
+    """What the codec saw on the wire (counts)."""
+
+    frames_received: int = 0  # good frames handed to the caller
+    frames_sent: int = 0
+    garbage_bytes: int = 0  # bytes skipped while looking for a frame start
+    bad_crc: int = 0
+    unknown_msg_id: int = 0
+    bad_signature: int = 0  # unsigned or wrongly signed frames of a signed-only type, rejected
+    malformed: int = 0  # bad length, bad flags, undecodable payload
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @property
+    def errors(self) -> int:
+        return self.garbage_bytes + self.bad_crc + self.unknown_msg_id + self.bad_signature + self.malformed
+
+
+def parse_signing_key(text: str) -> bytes:
+    """A signing key from hex (64 hex digits = 32 bytes); ValueError with the reason otherwise."""
+    try:
+        key = bytes.fromhex(text.strip())
+    except ValueError as exc:
+        raise ValueError(f"signing key must be hex digits: {exc}") from None
+    if len(key) != 32:
+        raise ValueError(f"signing key must be 32 bytes (64 hex digits), got {len(key)} bytes")
+    return key
+
+
+class MavlinkCodec:
+    """MAVLink 2 frames over a byte-stream Transport, stamped by a Clock.
+
+    ``receive()`` returns the good messages now available and counts everything else in ``stats``.
+    With ``signing_key`` set, outgoing frames are signed and incoming frames whose id is in
+    ``signed_only`` must carry a valid signature (others may come unsigned).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        clock: Clock,
+        system_id: int,
+        component_id: int,
+        *,
+        signing_key: bytes | None = None,
+        signed_only: Collection[int] = SIGNED_ONLY_MSG_IDS,
+        link_id: int = 0,
+        signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
+        recorder: FrameRecorder | None = None,
+    ) -> None:
+        if not (0 <= system_id <= 255 and 0 <= component_id <= 255):
+            raise ValueError(f"MAVLink ids must be 0..255, got system {system_id}, component {component_id}")
+        self.transport = transport
+        self.clock = clock
+        self.recorder = recorder
+        self.stats = MavlinkStats()
+        self._out: list[bytes] = []
+        self._mav = mavlink2.MAVLink(_Sink(self._out), srcSystem=system_id, srcComponent=component_id)
+        self._mav.robust_parsing = True
+        self._signed_only = frozenset(signed_only)
+        self._signing_epoch_unix_s = signing_epoch_unix_s
+        if signing_key is not None:
+            if len(signing_key) != 32:
+                raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
+            self._mav.signing.secret_key = signing_key
+            self._mav.signing.sign_outgoing = True
+            self._mav.signing.link_id = link_id
+            self._mav.signing.allow_unsigned_callback = self._allow_unsigned
+            self._refresh_signing_time()
+
+    @property
+    def system_id(self) -> int:
+        return self._mav.srcSystem
+
+    @property
+    def component_id(self) -> int:
+        return self._mav.srcComponent
+
+    @property
+    def signing(self) -> bool:
+        return self._mav.signing.secret_key is not None
+
+    @property
+    def mav(self) -> mavlink2.MAVLink:
+        """The pymavlink object, for its ``*_encode`` helpers."""
+        return self._mav
+
+    def send(self, msg: MAVLinkMessage) -> bytes:
+        """Pack, sign (if configured), write and record ``msg``; returns the frame."""
+        if self.signing:
+            self._refresh_signing_time()
+        self._mav.send(msg)
+        frame = self._out.pop()
+        self.transport.send(frame)
+        self.stats.frames_sent += 1
+        if self.recorder is not None:
+            self.recorder.record(frame, self.clock.now_s())
+        return frame
+
+    def receive(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
+        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes); good messages only."""
+        data = self.transport.recv(timeout_s)
+        return self.feed(data) if data else []
+
+    def feed(self, data: bytes) -> list[MAVLinkMessage]:
+        """Parse ``data`` as if it had arrived on the transport."""
+        good: list[MAVLinkMessage] = []
+        try:
+            msgs = self._mav.parse_buffer(data) or []
+        except Exception:  # pymavlink raising on input it should have flagged: drop the buffer
+            self.stats.malformed += 1
+            self._mav.buf = bytearray()
+            self._mav.buf_index = 0
+            self._mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+            return good
+        now_s = self.clock.now_s()
+        for m in msgs:
+            if isinstance(m, mavlink2.MAVLink_bad_data):
+                self._count_bad(m)
+            elif isinstance(m, mavlink2.MAVLink_unknown):
+                self.stats.unknown_msg_id += 1
+            else:
+                self.stats.frames_received += 1
+                if self.recorder is not None:
+                    self.recorder.record(bytes(m.get_msgbuf()), now_s)
+                good.append(m)
+        return good
+
+    def _count_bad(self, m: Any) -> None:
+        reason = str(m.reason)
+        if reason == "Bad prefix":
+            self.stats.garbage_bytes += len(m.data)
+        elif reason.startswith("invalid MAVLink CRC"):
+            self.stats.bad_crc += 1
+        elif reason == "Invalid signature":
+            pass  # counted in _allow_unsigned
+        else:
+            self.stats.malformed += 1
+
+    def _allow_unsigned(self, _mav: mavlink2.MAVLink, msg_id: int) -> bool:
+        if msg_id in self._signed_only:
+            self.stats.bad_signature += 1
+            return False
+        return True
+
+    def _refresh_signing_time(self) -> None:
+        stamp = int((self._signing_epoch_unix_s - SIGNING_EPOCH_UNIX_S + self.clock.now_s()) * 1e5)
+        self._mav.signing.timestamp = max(self._mav.signing.timestamp, stamp, 0)
+
+
+class _Sink:
+    """A write()-able that keeps what pymavlink writes, for the codec to forward."""
+
+    def __init__(self, out: list[bytes]) -> None:
+        self._out = out
+
+    def write(self, data: bytes) -> None:
+        self._out.append(bytes(data))
+
+
+# --- frames: world ENU / body FLU inside, NED / FRD on the wire ------------------------------
+_Q_ENU_NED = np.array([0.0, math.sqrt(0.5), math.sqrt(0.5), 0.0])  # pi about (x+y): swaps NED <-> ENU
+_Q_FLU_FRD = np.array([0.0, 1.0, 0.0, 0.0])  # pi about x: swaps FLU <-> FRD
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a*b of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def _canonical(q: np.ndarray) -> np.ndarray:
+    q = q / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def quat_enu_flu_to_ned_frd(q_wxyz: np.ndarray) -> np.ndarray:
+    """Body(FLU)->world(ENU) attitude -> body(FRD)->world(NED) attitude, (w, x, y, z)."""
+    return _canonical(quat_multiply(quat_multiply(_Q_ENU_NED, np.asarray(q_wxyz, float)), _Q_FLU_FRD))
+
+
+def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
+    """Body(FRD)->world(NED) attitude -> body(FLU)->world(ENU) attitude, (w, x, y, z)."""
+    return _canonical(quat_multiply(quat_multiply(_Q_ENU_NED, np.asarray(q_wxyz, float)), _Q_FLU_FRD))
+
+
+def enu_to_ned(v: np.ndarray) -> np.ndarray:
+    """A world vector ENU -> NED (the same map both ways)."""
+    return np.array([v[1], v[0], -v[2]])
+
+
+ned_to_enu = enu_to_ned
+
+
+def flu_to_frd(v: np.ndarray) -> np.ndarray:
+    """A body vector FLU -> FRD (the same map both ways)."""
+    return np.array([v[0], -v[1], -v[2]])
+
+
+frd_to_flu = flu_to_frd
+
+
+def euler_from_quat(q_wxyz: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad; aerospace Z-Y-X) of a (w, x, y, z) attitude in its own frames."""
+    w, x, y, z = q_wxyz
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """(w, x, y, z) of aerospace Z-Y-X Euler angles (rad)."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+# --- PX4 custom modes (HEARTBEAT.custom_mode) ------------------------------------------------
+PX4_MAIN_MANUAL = 1
+PX4_MAIN_ALTCTL = 2
+PX4_MAIN_POSCTL = 3
+PX4_MAIN_AUTO = 4
+PX4_MAIN_ACRO = 5
+PX4_MAIN_OFFBOARD = 6
+PX4_MAIN_STABILIZED = 7
+PX4_AUTO_LOITER = 3  # "Hold"
+PX4_AUTO_LAND = 6
+
+
+def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
+    """PX4's custom_mode word: main mode in bits 16..23, sub mode in bits 24..31."""
+    return (main_mode & 0xFF) << 16 | (sub_mode & 0xFF) << 24
+
+
+def px4_mode_parts(custom_mode: int) -> tuple[int, int]:
+    """(main mode, sub mode) of a PX4 custom_mode word."""
+    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+
+
+def message_types(msgs: list[MAVLinkMessage]) -> list[str]:
+    """Type names of ``msgs`` (for logs and tests)."""
+    return [m.get_type() for m in msgs]

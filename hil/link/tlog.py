@@ -1,0 +1,84 @@
+"""Recording MAVLink frames to a .tlog (pymavlink's format: 8-byte big-endian microseconds, raw frame)."""
+
+from __future__ import annotations
+
+import struct
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import BinaryIO
+
+FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
+
+
+class TlogWriter:
+    """Appends frames stamped ``(epoch_unix_s + time_s)`` in microseconds; flushes every 100 ms of wall time.
+
+    With a simulated clock and a fixed ``epoch_unix_s`` the file is byte-for-byte deterministic.
+    """
+
+    def __init__(
+        self, path: str | Path, epoch_unix_s: float = 0.0, flush_interval_s: float = FLUSH_INTERVAL_S
+    ):
+        self.path = Path(path)
+        self.epoch_unix_s = epoch_unix_s
+        self.flush_interval_s = flush_interval_s
+        try:
+            self._file: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            raise OSError(f"cannot write tlog {self.path}: {exc.strerror}") from exc
+        self._last_flush = time.monotonic()
+        self.frames = 0
+
+    def record(self, frame: bytes, time_s: float) -> None:
+        """Append one frame received or sent at ``time_s`` (clock seconds)."""
+        if self._file is None:
+            return
+        stamp_us = max(0, round((self.epoch_unix_s + time_s) * 1e6))
+        self._file.write(struct.pack(">Q", stamp_us) + frame)
+        self.frames += 1
+        self.tick()
+
+    def tick(self) -> None:
+        """Flush if the last flush is older than the flush interval (call it from the main loop too)."""
+        if self._file is not None and time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._file is not None:
+            self._file.flush()
+            self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        """Flush and close; idempotent."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> TlogWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def read_tlog(path: str | Path) -> list[tuple[int, bytes]]:
+    """(timestamp_us, frame) pairs of a .tlog written by TlogWriter (MAVLink 2 and 1 frames)."""
+    data = Path(path).read_bytes()
+    out: list[tuple[int, bytes]] = []
+    i = 0
+    while i + 8 < len(data):
+        (stamp,) = struct.unpack_from(">Q", data, i)
+        i += 8
+        magic = data[i]
+        if magic == 0xFD:
+            n = 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
+        elif magic == 0xFE:
+            n = 8 + data[i + 1]
+        else:
+            raise ValueError(f"{path}: no MAVLink frame at byte {i}")
+        out.append((stamp, data[i : i + n]))
+        i += n
+    return out
