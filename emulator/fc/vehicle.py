@@ -13,11 +13,16 @@ from emulator.profile import VehicleProfile
 
 
 def resting_state(
-    profile: VehicleProfile, x_m: float = 0.0, y_m: float = 0.0, ground_z_m: float = 0.0
+    profile: VehicleProfile,
+    x_m: float = 0.0,
+    y_m: float = 0.0,
+    ground_z_m: float = 0.0,
+    yaw_rad: float = math.pi / 2,
 ) -> VehicleState:
-    """Level, at rest on the ground (body box bottom at ``ground_z_m``), heading north, rotors stopped."""
-    north = np.array([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])  # body x along world +y (north)
-    return VehicleState(pos_m=np.array([x_m, y_m, ground_z_m + 0.5 * profile.body_box_m[2]]), quat_wxyz=north)
+    """Level, at rest on the ground (body box bottom at ``ground_z_m``), rotors stopped, body x at
+    ``yaw_rad`` from world +x (ENU: pi/2, the default, is north)."""
+    quat = np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
+    return VehicleState(pos_m=np.array([x_m, y_m, ground_z_m + 0.5 * profile.body_box_m[2]]), quat_wxyz=quat)
 
 
 class EmulatedVehicle:

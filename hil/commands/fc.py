@@ -10,9 +10,14 @@ import sys
 import time
 from types import FrameType
 
+import numpy as np
+
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.mocap import MocapConfig
+from emulator.mocap_link import MocapLinkServer
 from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
+from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, LabVolume, World
 from hil.link.clock import WallClock
 from hil.link.endpoint import open_link
@@ -41,6 +46,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="SPEC",
         help="MAVLink command link: pty (default), serial:DEVICE:BAUD, udp:HOST:PORT, tcp:HOST:PORT",
     )
+    p.add_argument(
+        "--mocap-link",
+        default="pty",
+        metavar="SPEC",
+        help="mocap-over-UWB link: pty (default), serial:DEVICE:BAUD, udp:HOST:PORT, none",
+    )
+    p.add_argument("--mocap-rate", type=float, default=120.0, metavar="HZ", help="mocap frame rate (100-360)")
+    p.add_argument("--uwb-latency-ms", type=float, default=20.0, metavar="MS", help="UWB latency (20)")
+    p.add_argument("--uwb-jitter-ms", type=float, default=5.0, metavar="MS", help="UWB latency jitter (5)")
+    p.add_argument("--uwb-loss", type=float, default=0.0, metavar="P", help="UWB independent loss 0..1 (0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the mocap noise and the radio (default 0)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
     p.add_argument(
@@ -49,6 +65,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.set_defaults(func=main)
+
+
+class MocapPoll:
+    """Feeds the true vehicle and gap poses to the mocap-over-UWB link when it has something due."""
+
+    def __init__(self, vehicle: EmulatedVehicle, server: MocapLinkServer, gap: Gap | None) -> None:
+        self.vehicle, self.server, self.gap = vehicle, server, gap
+
+    def poll(self, now_s: float) -> None:
+        if now_s >= self.server.next_event_s():
+            self.server.update(now_s, self.vehicle.state, self.gap)
 
 
 class GapWatch:
@@ -93,9 +120,25 @@ def main(args: argparse.Namespace) -> int:
     if not 1 <= args.system_id <= 255:
         return fail(f"--system-id must be 1..255, got {args.system_id}")
     try:
+        mocap_cfg = MocapConfig(rate_hz=args.mocap_rate)
+        uwb_cfg = UwbConfig(
+            latency_s=args.uwb_latency_ms / 1000.0,
+            jitter_s=args.uwb_jitter_ms / 1000.0,
+            loss_prob=args.uwb_loss,
+        )
+    except ValueError as exc:
+        return fail(str(exc))
+    try:
         link = open_link(args.link, "fc")
     except (ValueError, OSError) as exc:
         return fail(str(exc))
+    mocap_link = None
+    if args.mocap_link != "none":
+        try:
+            mocap_link = open_link(args.mocap_link, "fc")
+        except (ValueError, OSError) as exc:
+            link.close()
+            return fail(f"--mocap-link: {exc}")
     tlog = None
     if args.tlog:
         try:
@@ -105,9 +148,8 @@ def main(args: argparse.Namespace) -> int:
             return fail(str(exc))
     try:
         gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
-        vehicle = EmulatedVehicle(
-            profile, backend=args.physics, config=config, initial_state=resting_state(profile, *start_xy)
-        )
+        start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
+        vehicle = EmulatedVehicle(profile, backend=args.physics, config=config, initial_state=start)
         # compile the gap checks and the inner loop before the clock starts
         world = None
         s0 = vehicle.state
@@ -131,8 +173,13 @@ def main(args: argparse.Namespace) -> int:
         links: list = [server]
         if world is not None:
             links.append(GapWatch(vehicle, world, server))
-        # A second link (mocap / UWB) is added here: endpoints[...] = its path, links.append(its poller).
         endpoints = {"command_link": link.endpoint}
+        mocap = None
+        if mocap_link is not None:
+            rng = np.random.default_rng(args.seed)
+            mocap = MocapLinkServer(mocap_link, clock, rng, mocap_cfg, uwb_cfg)
+            links.append(MocapPoll(vehicle, mocap, gap))
+            endpoints["mocap_link"] = mocap_link.endpoint
         fds = [link.fileno()] if _has_fileno(link) else []
         runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
         _stop_on_signals(runner)
@@ -148,12 +195,22 @@ def main(args: argparse.Namespace) -> int:
             "link": codec.stats.as_dict(),
             "server": server.stats.as_dict(),
         }
+        if mocap is not None:
+            st = mocap.stats
+            summary["mocap"] = {
+                "frames_written": st.frames_written,
+                "radio_sent": st.radio.sent,
+                "radio_delivered": st.radio.delivered,
+                "radio_lost": st.radio.lost,
+            }
         print(json.dumps(summary), flush=True)
         return 0
     finally:
         if tlog is not None:
             tlog.close()
         link.close()
+        if mocap_link is not None:
+            mocap_link.close()
 
 
 def _has_fileno(link: object) -> bool:
