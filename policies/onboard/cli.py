@@ -1,0 +1,122 @@
+"""The onboard program's command line (shared by `python -m policies.onboard` and `hil onboard`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from hil.link.endpoint import open_link
+from hil.link.transport import LinkError
+from policies.onboard.estimator import EstimatorConfig
+from policies.onboard.pilots import UnknownPilot, pilot_names
+from policies.onboard.program import EXIT_ERROR, MIN_RATE_HZ, EventLog, OnboardProgram, ProgramConfig
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (m), got {text!r}")
+    try:
+        x, y, z = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}") from None
+    return x, y, z
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The program's options (units in the help)."""
+    d = ProgramConfig()
+    p.add_argument("--command-link", required=True, metavar="SPEC",
+                   help="MAVLink link to the FC, e.g. serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
+    p.add_argument("--mocap-link", required=True, metavar="SPEC",
+                   help="mocap (LinkTrack) link, e.g. serial:/dev/pts/6:921600 or udp:127.0.0.1:14660")
+    p.add_argument("--pilot", default=d.pilot, help=f"pilot by name: {', '.join(pilot_names())}")
+    p.add_argument("--rate-hz", type=float, default=d.rate_hz,
+                   help=f"control rate (Hz, >= {MIN_RATE_HZ:g}, the N3's minimum; default {d.rate_hz:g})")
+    p.add_argument("--approach-speed", type=float, default=d.approach_speed_m_s, metavar="M_S",
+                   help=f"speed through the gap centre (m/s, default {d.approach_speed_m_s:g})")
+    p.add_argument("--approach-duration", type=float, default=d.approach_duration_s, metavar="S",
+                   help=f"approach primitive duration (s, default {d.approach_duration_s:g})")
+    p.add_argument("--traverse-lead", type=float, default=d.traverse_lead_m, metavar="M",
+                   help=f"min. traverse start distance before the gap (m, default {d.traverse_lead_m:g})")
+    p.add_argument("--stale-mocap-ms", type=float, default=d.stale_mocap_s * 1e3, metavar="MS",
+                   help=f"safe hover when the pose is older (ms, default {d.stale_mocap_s * 1e3:g})")
+    p.add_argument("--mocap-latency-ms", type=float, default=EstimatorConfig().latency_s * 1e3, metavar="MS",
+                   help="exposure-to-arrival latency the state estimate is predicted over (ms, default 25)")
+    p.add_argument("--mass", type=float, default=d.mass_kg, metavar="KG", help="mass (kg, default 0.9)")
+    p.add_argument("--full-thrust", type=float, default=d.full_thrust_n, metavar="N",
+                   help="total thrust at N3 100 %% (N, default 24)")
+    p.add_argument("--gap-size", type=float, nargs=2, default=(d.gap_width_m, d.gap_height_m),
+                   metavar=("WIDTH", "HEIGHT"), help="opening's long and short side (m, default 0.8 0.35)")
+    p.add_argument("--lab-min", type=_triple, default=d.lab_min_m, metavar="X,Y,Z",
+                   help="lab lower corner (m)")
+    p.add_argument("--lab-max", type=_triple, default=d.lab_max_m, metavar="X,Y,Z",
+                   help="lab upper corner (m)")
+    p.add_argument("--takeoff-height", type=float, default=d.takeoff_height_m, metavar="M",
+                   help="climb at least to this height before the mission (m, default 0.5)")
+    p.add_argument("--hover-time", type=float, default=d.hover_s, metavar="S",
+                   help="hover at the end point this long before handing back to the FC (s, default 2)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="take time from the FC's TIMESYNC ticks and answer each one (simulated time)")
+    p.add_argument("--max-duration", type=float, default=None, metavar="S",
+                   help="give up after S seconds of wall time (real-time mode)")
+    p.add_argument("--log-json", default=None, metavar="PATH", help="also write the JSON event lines to PATH")
+    p.add_argument("--quiet", action="store_true", help="do not print events on stdout")
+
+
+def config_from_args(args: argparse.Namespace) -> ProgramConfig:
+    """A ProgramConfig from parsed options; ValueError with the reason when one is out of range."""
+    return ProgramConfig(
+        pilot=args.pilot, rate_hz=args.rate_hz, approach_speed_m_s=args.approach_speed,
+        approach_duration_s=args.approach_duration, traverse_lead_m=args.traverse_lead,
+        stale_mocap_s=args.stale_mocap_ms / 1e3, mass_kg=args.mass, full_thrust_n=args.full_thrust,
+        gap_width_m=args.gap_size[0], gap_height_m=args.gap_size[1], lab_min_m=args.lab_min,
+        lab_max_m=args.lab_max, takeoff_height_m=args.takeoff_height, hover_s=args.hover_time,
+        estimator=EstimatorConfig(latency_s=args.mocap_latency_ms / 1e3),
+    )
+
+
+def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
+    """Open the links, run the program, print a summary line; returns the exit code (0 done, 1 error,
+    2 bad options, 3 aborted to a safe hover)."""
+    try:
+        config = config_from_args(args)
+        if config.pilot not in pilot_names():
+            raise UnknownPilot(f"unknown pilot {config.pilot!r}; known: {', '.join(pilot_names())}")
+    except ValueError as exc:
+        print(f"{prog_name}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        command = open_link(args.command_link, "onboard")
+    except (ValueError, OSError) as exc:
+        print(f"{prog_name}: command link: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ValueError) else EXIT_ERROR
+    try:
+        mocap = open_link(args.mocap_link, "onboard")
+    except (ValueError, OSError) as exc:
+        command.close()
+        print(f"{prog_name}: mocap link: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ValueError) else EXIT_ERROR
+    events = EventLog(None if args.quiet else sys.stdout, args.log_json)
+    program = OnboardProgram(command, mocap, config, events=events)
+    try:
+        code = program.run_lockstep() if args.lockstep else program.run_realtime(args.max_duration)
+    except KeyboardInterrupt:
+        code = 130
+    except LinkError as exc:
+        print(f"{prog_name}: link lost: {exc}", file=sys.stderr)
+        code = EXIT_ERROR
+    finally:
+        summary = program.summary()
+        program.close()
+    if not args.quiet:
+        print(json.dumps({"summary": summary}), flush=True)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m policies.onboard",
+                                     description="the onboard program: fly a pilot through the gap")
+    add_arguments(parser)
+    return run(parser.parse_args(argv), "policies.onboard")

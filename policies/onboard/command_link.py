@@ -1,0 +1,168 @@
+"""The onboard computer's MAVLink client over the command link: heartbeats, commands with ACKs, mode
+tracking from the FC's HEARTBEAT, attitude-thrust setpoints, and lockstep TIMESYNC ticks.
+
+World ENU / body FLU inside; the conversion to NED/FRD happens here, through `hil.link.mavlink`.
+Nothing here blocks: `poll()` parses what has arrived, the senders write one frame each.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from hil.link.clock import Clock
+from hil.link.mavlink import (
+    PX4_AUTO_LOITER,
+    PX4_MAIN_AUTO,
+    PX4_MAIN_OFFBOARD,
+    MavlinkCodec,
+    MAVLinkMessage,
+    mav,
+    px4_mode_parts,
+    quat_enu_flu_to_ned_frd,
+    quat_from_euler,
+)
+from hil.link.transport import Transport
+
+ONBOARD_SYSTEM_ID = 1  # same vehicle as the FC (PX4 companion convention)
+ONBOARD_COMPONENT_ID = mav.MAV_COMP_ID_ONBOARD_COMPUTER
+FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
+#: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
+ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
+#: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
+PX4_BASE_MODE_CUSTOM = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+@dataclass(frozen=True)
+class CommandAck:
+    """The FC's answer to a COMMAND_LONG: result code (MAV_RESULT) and our clock time (s)."""
+
+    command: int
+    result: int
+    time_s: float
+
+    @property
+    def accepted(self) -> bool:
+        return self.result == mav.MAV_RESULT_ACCEPTED
+
+
+@dataclass(frozen=True)
+class FcStatus:
+    """What the FC's last HEARTBEAT said: armed flag, PX4 main and sub mode, when it came (s)."""
+
+    armed: bool
+    main_mode: int
+    sub_mode: int
+    system_status: int
+    time_s: float
+
+    @property
+    def offboard(self) -> bool:
+        return self.main_mode == PX4_MAIN_OFFBOARD
+
+    @property
+    def holding(self) -> bool:
+        """AUTO.LOITER (PX4 "Hold"): the FC holds position on its own."""
+        return self.main_mode == PX4_MAIN_AUTO and self.sub_mode == PX4_AUTO_LOITER
+
+
+class CommandLink:
+    """MAVLink client of the FC on ``transport``, stamped with ``clock`` (s)."""
+
+    def __init__(self, transport: Transport, clock: Clock, target_system: int = 1) -> None:
+        self.codec = MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID)
+        self.clock = clock
+        self.target_system = target_system
+        self.status: FcStatus | None = None
+        self.acks: dict[int, CommandAck] = {}
+        self.status_texts: list[str] = []
+        #: TIMESYNC ticks (s of the FC's simulated time) received and not yet taken by `take_ticks`
+        self._ticks: list[float] = []
+        self.setpoints_sent = 0
+
+    @property
+    def transport(self) -> Transport:
+        return self.codec.transport
+
+    # --- input --------------------------------------------------------------------------------
+    def poll(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
+        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes) and return it."""
+        msgs = self.codec.receive(timeout_s)
+        while True:  # drain everything that is waiting now
+            more = self.codec.receive(0.0)
+            if not more:
+                break
+            msgs.extend(more)
+        for m in msgs:
+            self._handle(m)
+        return msgs
+
+    def _handle(self, m: MAVLinkMessage) -> None:
+        kind = m.get_type()
+        now = self.clock.now_s()
+        if kind == "HEARTBEAT":
+            if m.get_srcComponent() != FC_COMPONENT_ID or m.autopilot == mav.MAV_AUTOPILOT_INVALID:
+                return
+            main, sub = px4_mode_parts(m.custom_mode)
+            armed = bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+            self.status = FcStatus(armed, main, sub, m.system_status, now)
+        elif kind == "COMMAND_ACK":
+            self.acks[m.command] = CommandAck(m.command, m.result, now)
+        elif kind == "TIMESYNC":
+            if m.tc1 == 0:  # a request: in lockstep, the FC's tick (ts1 = simulated time, ns)
+                self._ticks.append(m.ts1 * 1e-9)
+        elif kind == "STATUSTEXT":
+            self.status_texts.append(str(m.text))
+
+    def take_ticks(self) -> list[float]:
+        """The TIMESYNC tick times (s) received since the last call, oldest first."""
+        ticks, self._ticks = self._ticks, []
+        return ticks
+
+    def heartbeat_age_s(self, now_s: float) -> float:
+        """Seconds since the FC's last HEARTBEAT (inf if none yet)."""
+        return math.inf if self.status is None else now_s - self.status.time_s
+
+    # --- output -------------------------------------------------------------------------------
+    def send_heartbeat(self) -> None:
+        """The companion computer's own 1 Hz HEARTBEAT."""
+        self.codec.send(self.codec.mav.heartbeat_encode(
+            mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
+
+    def send_attitude_target(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
+                             thrust_fraction: float) -> None:
+        """One attitude-thrust setpoint: ZYX Euler angles of body FLU -> world ENU (rad), thrust 0..1 of
+        the N3's full thrust (clipped). Sent as SET_ATTITUDE_TARGET, NED -> FRD quaternion."""
+        q = quat_enu_flu_to_ned_frd(quat_from_euler(roll_rad, pitch_rad, yaw_rad))
+        thrust = min(1.0, max(0.0, float(thrust_fraction)))
+        now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
+        self.codec.send(self.codec.mav.set_attitude_target_encode(
+            now_ms, self.target_system, FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK,
+            [float(x) for x in q], 0.0, 0.0, 0.0, thrust))
+        self.setpoints_sent += 1
+
+    def send_command(self, command: int, *params: float) -> None:
+        """COMMAND_LONG ``command`` with up to seven parameters; forgets any earlier ACK of it."""
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        self.acks.pop(command, None)
+        self.codec.send(self.codec.mav.command_long_encode(
+            self.target_system, FC_COMPONENT_ID, command, 0, *p))
+
+    def request_arm(self) -> None:
+        self.send_command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+
+    def request_offboard(self) -> None:
+        """DO_SET_MODE to PX4 OFFBOARD (p1 = 129, p2 = 6)."""
+        self.send_command(mav.MAV_CMD_DO_SET_MODE, PX4_BASE_MODE_CUSTOM, PX4_MAIN_OFFBOARD)
+
+    def request_hold(self) -> None:
+        """DO_SET_MODE to PX4 AUTO.LOITER ("Hold": p2 = 4, p3 = 3), the FC hovering on its own."""
+        self.send_command(mav.MAV_CMD_DO_SET_MODE, PX4_BASE_MODE_CUSTOM, PX4_MAIN_AUTO, PX4_AUTO_LOITER)
+
+    def answer_tick(self, tick_s: float) -> None:
+        """Lockstep "done with this tick": TIMESYNC with tc1 = ts1 = the tick time (ns)."""
+        ns = round(tick_s * 1e9)
+        self.codec.send(self.codec.mav.timesync_encode(ns, ns))
+
+    def close(self) -> None:
+        self.codec.transport.close()

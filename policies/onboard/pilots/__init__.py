@@ -1,0 +1,82 @@
+"""Pilots: what turns an observation into an attitude-thrust command, and the registry by name.
+
+A pilot is any object with ``command(obs: Observation) -> AttitudeThrustCommand`` (the `Pilot`
+protocol). Each module in this package is one pilot, named after the module, with a factory
+``make_pilot(context: PilotContext) -> Pilot``; adding a pilot (e.g. ``planner_net.py``) is that one
+file. Only the selected module is imported, so a pilot needing torch or onnxruntime costs nothing to
+the others.
+
+Conventions: world ENU (z up), body FLU, SI units. Commands are `policies.controller`'s
+AttitudeThrustCommand: roll and pitch are the ZYX Euler angles of the desired body -> world rotation
+``Rz(yaw) Ry(pitch) Rx(roll)`` (rad, relative to the ground frame, z up), yaw the heading from +x
+(rad), thrust the total thrust (N). The command link converts them to the NED/FRD wire form.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from policies.controller import AttitudeThrustCommand
+from policies.gap_planning import GapPose, MissionPlan
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What a pilot sees at one control step.
+
+    ``t_s``: time since the mission (approach) started (s); ``pos_m``, ``vel_m_s``, ``acc_m_s2``: the
+    estimated state in world ENU; ``euler_rad``: (roll, pitch, yaw) ZYX of body FLU -> world ENU;
+    ``gap``: the gap pose measured at mission start; ``plan``: the mission plan made then.
+    """
+
+    t_s: float
+    pos_m: np.ndarray
+    vel_m_s: np.ndarray
+    acc_m_s2: np.ndarray
+    euler_rad: np.ndarray
+    gap: GapPose
+    plan: MissionPlan
+
+
+@dataclass(frozen=True)
+class PilotContext:
+    """What a pilot may need to be built: the vehicle's mass (kg) and full thrust (N), and options."""
+
+    mass_kg: float = 0.9
+    full_thrust_n: float = 24.0
+    options: tuple[tuple[str, str], ...] = ()  # free-form name=value pairs, e.g. a weights path
+
+
+@runtime_checkable
+class Pilot(Protocol):
+    """Observation -> attitude-thrust command. Must not block (it runs inside the control loop)."""
+
+    def command(self, obs: Observation) -> AttitudeThrustCommand: ...
+
+
+class UnknownPilot(ValueError):
+    """No pilot of that name; the message lists the known ones."""
+
+
+def pilot_names() -> list[str]:
+    """Names of the pilots available (modules of this package), sorted."""
+    return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+
+
+def make_pilot(name: str, context: PilotContext | None = None) -> Pilot:
+    """Build the pilot called ``name``; UnknownPilot if there is none."""
+    if name not in pilot_names():
+        raise UnknownPilot(f"unknown pilot {name!r}; known: {', '.join(pilot_names())}")
+    module = importlib.import_module(f"{__name__}.{name}")
+    pilot = module.make_pilot(context or PilotContext())
+    if not isinstance(pilot, Pilot):
+        raise TypeError(f"pilot module {name!r} built {type(pilot).__name__}, which has no command(obs)")
+    return pilot
+
+
+__all__ = ["Observation", "Pilot", "PilotContext", "UnknownPilot", "make_pilot", "pilot_names"]

@@ -1,0 +1,23 @@
+"""The `traditional` pilot: the mission plan's reference (approach, traverse, recovery, hover) tracked by
+the expert geometric controller, as in the paper's conventional pipeline."""
+
+from __future__ import annotations
+
+from policies.controller import AttitudeThrustCommand, ExpertController
+from policies.onboard.pilots import Observation, PilotContext
+
+
+class TraditionalPilot:
+    """Reference from ``obs.plan`` at ``obs.t_s``, expert controller on the estimated p and v."""
+
+    def __init__(self, mass_kg: float = 0.9) -> None:
+        self.controller = ExpertController(mass_kg)
+
+    def command(self, obs: Observation) -> AttitudeThrustCommand:
+        ref = obs.plan.reference(obs.t_s)
+        return self.controller.command(ref.pos_m, ref.vel_m_s, ref.acc_m_s2, ref.yaw_rad, obs.pos_m,
+                                       obs.vel_m_s)
+
+
+def make_pilot(context: PilotContext) -> TraditionalPilot:
+    return TraditionalPilot(context.mass_kg)

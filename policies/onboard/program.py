@@ -1,0 +1,607 @@
+"""The onboard program: the mission state machine that flies a pilot through the gap over the links.
+
+Phases: wait for mocap and the FC -> take control authority (stream setpoints, DO_SET_MODE OFFBOARD,
+wait for the ACK and the heartbeat's mode) -> arm -> take off and settle (expert controller) -> the
+mission (approach -> traverse -> recovery -> hover, flown by the pilot) -> hand back to the FC's HOLD.
+
+Driven by time, not by sleeping: `step(now_s)` does everything due at ``now_s`` and returns at once.
+`run_realtime()` calls it on the wall clock, waiting on the links' fds; `run_lockstep()` takes its
+clock from the FC's TIMESYNC ticks and answers each tick once its outputs are sent.
+
+Safe hover on stale mocap (the vehicle's pose older than ``stale_mocap_s``): one level-attitude setpoint
+at hover thrust (m g) is sent at once and repeated every control period, and DO_SET_MODE AUTO.LOITER
+(PX4 Hold) is sent until the FC's heartbeat shows it; from then the FC holds the vehicle on its own and
+the program stops ("abort" then "hold" events, exit code 3).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import select
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+from typing import IO, Any
+
+import numpy as np
+
+from hil.link.clock import WallClock
+from hil.link.mavlink import mav
+from hil.link.transport import LinkError, Transport
+from policies.controller import AttitudeThrustCommand, ExpertController
+from policies.frames import GRAVITY_M_S2
+from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
+from policies.mocap_reader import MocapReader, PoseSample
+from policies.onboard.command_link import CommandLink
+from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
+from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
+from policies.primitives import solve
+
+MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
+EXIT_DONE, EXIT_ERROR, EXIT_ABORTED = 0, 1, 3
+
+
+class Phase(StrEnum):
+    """Where the program is."""
+
+    WAIT = "wait"  # for fresh mocap of vehicle and gap, and the FC's heartbeat
+    AUTHORITY = "authority"  # streaming setpoints, asking for OFFBOARD
+    ARMING = "arming"
+    TAKEOFF = "takeoff"  # climb to the start height, turn to the mission heading, settle
+    MISSION = "mission"  # approach -> traverse -> recovery -> hover, flown by the pilot
+    HANDBACK = "handback"  # mission over: asking the FC to HOLD
+    ABORTING = "aborting"  # safe hover: level, hover thrust, asking the FC to HOLD
+    DONE = "done"
+    ABORTED = "aborted"
+    FAILED = "failed"
+
+
+FINAL_PHASES = (Phase.DONE, Phase.ABORTED, Phase.FAILED)
+
+
+@dataclass(frozen=True)
+class ProgramConfig:
+    """Settings of the onboard program (SI units)."""
+
+    pilot: str = "traditional"
+    rate_hz: float = 100.0  # control rate; >= 50 Hz (the N3's minimum)
+    approach_speed_m_s: float = 2.0  # speed through the gap centre
+    approach_duration_s: float = 2.6
+    traverse_lead_m: float = 0.1  # the traverse starts at least this far before the gap plane (d_min)
+    stale_mocap_s: float = 0.1  # vehicle pose older than this: abort to a safe hover
+    mass_kg: float = 0.9
+    full_thrust_n: float = 24.0  # thrust at N3 100 % (the vehicle's n3_full_thrust_n)
+    gap_width_m: float = 0.8  # the opening's size (mocap gives its pose only)
+    gap_height_m: float = 0.35
+    lab_min_m: tuple[float, float, float] = (-5.0, -5.0, 0.0)
+    lab_max_m: tuple[float, float, float] = (5.0, 5.0, 4.0)
+    takeoff_height_m: float = 0.5  # climb at least to this height (m, world z) before the mission
+    takeoff_duration_s: float = 2.5
+    settle_s: float = 1.0  # hold the start point this long before planning
+    hover_s: float = 2.0  # hover at the end point this long before handing back
+    wait_timeout_s: float = 10.0  # for mocap and the FC at the start
+    command_timeout_s: float = 3.0  # for an ACK and the mode to show in the heartbeat
+    command_retry_s: float = 0.5
+    stream_before_offboard_s: float = 0.3  # setpoints streamed before asking for OFFBOARD
+    fc_lost_s: float = 3.0  # FC heartbeat silence that ends the program
+    heartbeat_period_s: float = 1.0
+    max_catch_up_steps: int = 3  # control steps run at once after a stall; later ones are skipped
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and self.rate_hz >= MIN_RATE_HZ):
+            raise ValueError(f"rate_hz must be >= {MIN_RATE_HZ:g} Hz (the N3's minimum), got {self.rate_hz}")
+        if not (math.isfinite(self.approach_speed_m_s) and 0 < self.approach_speed_m_s <= 6):
+            raise ValueError(f"approach speed must be in (0, 6] m/s, got {self.approach_speed_m_s}")
+        for name in ("approach_duration_s", "traverse_lead_m", "stale_mocap_s", "mass_kg", "full_thrust_n",
+                     "gap_width_m", "gap_height_m", "takeoff_duration_s", "wait_timeout_s",
+                     "command_timeout_s", "command_retry_s", "fc_lost_s", "heartbeat_period_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        for name in ("settle_s", "hover_s", "stream_before_offboard_s", "takeoff_height_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be >= 0, got {v!r}")
+        if self.mass_kg * GRAVITY_M_S2 >= self.full_thrust_n:
+            raise ValueError(f"full thrust {self.full_thrust_n} N cannot hold {self.mass_kg} kg")
+        LabVolume(self.lab_min_m, self.lab_max_m)  # validates
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def hover_thrust_n(self) -> float:
+        return self.mass_kg * GRAVITY_M_S2
+
+
+class ProgramClock:
+    """The program's notion of now (s): set by `step` (wall time or the latest lockstep tick)."""
+
+    def __init__(self) -> None:
+        self._t = 0.0
+
+    def now_s(self) -> float:
+        return self._t
+
+    def set(self, t_s: float) -> None:
+        self._t = t_s
+
+
+class EventLog:
+    """Mission events as JSON lines ({"event": ..., "t_s": ..., ...}) to a stream and/or a file."""
+
+    def __init__(self, stream: IO[str] | None = None, path: str | None = None) -> None:
+        self.stream = stream
+        self._file = open(path, "w", encoding="utf-8") if path else None  # noqa: SIM115
+        self.events: list[dict[str, Any]] = []
+
+    def emit(self, name: str, t_s: float, **fields: Any) -> dict[str, Any]:
+        event = {"event": name, "t_s": round(t_s, 4), **fields}
+        self.events.append(event)
+        line = json.dumps(event, default=_jsonable)
+        for out in (self.stream, self._file):
+            if out is not None:
+                out.write(line + "\n")
+                out.flush()
+        return event
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+def _jsonable(x: object) -> object:
+    if isinstance(x, np.ndarray):
+        return [round(float(v), 4) for v in x]
+    if isinstance(x, np.floating | np.integer):
+        return x.item()
+    return str(x)
+
+
+class _Request:
+    """A command sent until the FC acknowledges it and ``done()`` holds, or until a deadline."""
+
+    def __init__(self, command: int, send: Callable[[], None], done: Callable[[], bool], now_s: float,
+                 timeout_s: float, retry_s: float) -> None:
+        self.command, self._send, self.done = command, send, done
+        self.deadline_s = now_s + timeout_s
+        self.retry_s = retry_s
+        self.next_send_s = now_s
+        self.tries = 0
+
+    def update(self, link: CommandLink, now_s: float) -> bool | None:
+        """True when done, False when timed out, None while pending (sends or resends as due)."""
+        ack = link.acks.get(self.command)
+        if ack is not None and ack.accepted and self.done():
+            return True
+        if now_s >= self.deadline_s:
+            return False
+        if now_s >= self.next_send_s and (self.tries == 0 or ack is None or not ack.accepted):
+            self._send()
+            self.tries += 1
+            self.next_send_s = now_s + self.retry_s
+        return None
+
+
+class OnboardProgram:
+    """The onboard program on a command link (MAVLink to the FC) and a mocap link (LinkTrack frames)."""
+
+    def __init__(self, command_transport: Transport, mocap_transport: Transport,
+                 config: ProgramConfig | None = None, *, pilot: Pilot | None = None,
+                 events: EventLog | None = None) -> None:
+        self.config = cfg = config or ProgramConfig()
+        self.clock = ProgramClock()
+        self.link = CommandLink(command_transport, self.clock)
+        self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_sample=self._on_pose)
+        self.estimator = PoseEstimator(cfg.estimator)
+        self.pilot = pilot or make_pilot(cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n))
+        self.expert = ExpertController(cfg.mass_kg)
+        self.events = events or EventLog()
+        self.lab = LabVolume(cfg.lab_min_m, cfg.lab_max_m)
+        self.phase = Phase.WAIT
+        self.exit_code: int | None = None
+        self.plan: MissionPlan | None = None
+        self.gap: GapPose | None = None
+        self.segment: Segment | None = None
+        self.control_steps = 0
+        self.skipped_steps = 0
+        self._started_s: float | None = None
+        self._phase_since_s = 0.0
+        self._next_control_s: float | None = None
+        self._next_heartbeat_s = -math.inf
+        self._request: _Request | None = None
+        self._mission_start_s = 0.0
+        self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
+        self._abort_yaw = 0.0
+        self._last_cmd: AttitudeThrustCommand | None = None
+
+    # --- the step ---------------------------------------------------------------------------
+    @property
+    def finished(self) -> bool:
+        return self.phase in FINAL_PHASES
+
+    def step(self, now_s: float) -> None:
+        """Do everything due at ``now_s`` (s, the program's clock) without blocking."""
+        self.clock.set(now_s)
+        try:
+            self.link.poll()
+            self.link.take_ticks()  # only meaningful in lockstep (see `lockstep_tick`)
+            self.mocap.poll()
+        except LinkError as exc:
+            self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
+            return
+        self._act(now_s)
+
+    def lockstep_tick(self, tick_s: float) -> None:
+        """One lockstep tick: read the mocap, act at ``tick_s``, then answer the tick."""
+        self.clock.set(tick_s)
+        try:
+            self.mocap.poll()
+        except LinkError as exc:
+            self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
+            return
+        self._act(tick_s)
+        self.link.answer_tick(tick_s)
+
+    def next_wake_s(self) -> float:
+        """When `step` next has something to do if no input arrives (s)."""
+        nxt = self._next_heartbeat_s
+        if self._next_control_s is not None:
+            nxt = min(nxt, self._next_control_s)
+        return nxt
+
+    def _act(self, now_s: float) -> None:
+        if self.finished:
+            return
+        if self._started_s is None:
+            self._started_s = self._phase_since_s = now_s
+            self.events.emit("start", now_s, pilot=self.config.pilot, rate_hz=self.config.rate_hz,
+                             approach_speed_m_s=self.config.approach_speed_m_s)
+        if now_s >= self._next_heartbeat_s:
+            self.link.send_heartbeat()
+            self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
+        self._transitions(now_s)
+        if self.finished or self._next_control_s is None:
+            return
+        steps = 0
+        while self._next_control_s <= now_s and not self.finished:
+            if steps >= self.config.max_catch_up_steps:
+                missed = math.floor((now_s - self._next_control_s) / self.config.period_s) + 1
+                self.skipped_steps += missed
+                self._next_control_s += missed * self.config.period_s
+                break
+            self._control(self._next_control_s, now_s)
+            self._next_control_s += self.config.period_s
+            steps += 1
+
+    # --- phase logic ------------------------------------------------------------------------
+    def _go(self, phase: Phase, now_s: float) -> None:
+        self.phase = phase
+        self._phase_since_s = now_s
+
+    def _finish(self, phase: Phase, code: int, event: str, **fields: Any) -> None:
+        self.events.emit(event, self.clock.now_s(), **fields)
+        self.phase = phase
+        self.exit_code = code
+
+    def _mocap_fresh(self) -> bool:
+        return not self.mocap.is_stale("vehicle") and self.estimator.ready
+
+    def _transitions(self, now_s: float) -> None:
+        cfg, ph = self.config, self.phase
+        if ph is not Phase.WAIT and self.link.heartbeat_age_s(now_s) > cfg.fc_lost_s:
+            self._finish(Phase.FAILED, EXIT_ERROR, "fc_lost", phase=str(ph),
+                         silence_s=round(self.link.heartbeat_age_s(now_s), 3))
+            return
+        if ph in (Phase.AUTHORITY, Phase.ARMING, Phase.TAKEOFF, Phase.MISSION, Phase.HANDBACK) \
+                and not self._mocap_fresh():
+            self._abort(now_s, "stale_mocap", age_s=round(self.mocap.age_s("vehicle"), 4))
+            return
+        if ph is Phase.WAIT:
+            self._wait(now_s)
+        elif ph is Phase.AUTHORITY:
+            self._authority(now_s)
+        elif ph is Phase.ARMING:
+            self._arming(now_s)
+        elif ph is Phase.TAKEOFF:
+            self._takeoff_progress(now_s)
+        elif ph is Phase.MISSION:
+            self._mission_progress(now_s)
+        elif ph is Phase.HANDBACK:
+            self._handback(now_s)
+        elif ph is Phase.ABORTING:
+            self._aborting(now_s)
+
+    def _wait(self, now_s: float) -> None:
+        cfg = self.config
+        gap_ok = not self.mocap.is_stale("gap")
+        fc_ok = self.link.status is not None
+        if self._mocap_fresh() and gap_ok and fc_ok:
+            est = self.estimator.estimate(now_s)
+            gap = self.mocap.latest("gap")
+            assert gap is not None
+            self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap.pos_m,
+                             fc_armed=self.link.status.armed)  # type: ignore[union-attr]
+            self._go(Phase.AUTHORITY, now_s)
+            self._next_control_s = now_s
+            self._abort_yaw = float(est.euler_rad[2])
+            return
+        if now_s - self._phase_since_s > cfg.wait_timeout_s:
+            self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="timed out waiting for mocap and the FC",
+                         vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok)
+
+    def _authority(self, now_s: float) -> None:
+        if self._request is None:
+            if now_s - self._phase_since_s < self.config.stream_before_offboard_s:
+                return
+            self._request = self._new_request(mav.MAV_CMD_DO_SET_MODE, self.link.request_offboard, now_s,
+                                              lambda: self._fc("offboard"))
+        done = self._request.update(self.link, now_s)
+        if done:
+            self.events.emit("authority", now_s, tries=self._request.tries)
+            self._request = None
+            if self._fc("armed"):
+                self.events.emit("armed", now_s, already=True)
+                self._start_takeoff(now_s)
+            else:
+                self._go(Phase.ARMING, now_s)
+        elif done is False:
+            self._request = None
+            self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="FC did not grant OFFBOARD",
+                         status_texts=self.link.status_texts[-3:])
+
+    def _arming(self, now_s: float) -> None:
+        if self._request is None:
+            self._request = self._new_request(mav.MAV_CMD_COMPONENT_ARM_DISARM, self.link.request_arm, now_s,
+                                              lambda: self._fc("armed"))
+        done = self._request.update(self.link, now_s)
+        if done:
+            self.events.emit("armed", now_s, tries=self._request.tries)
+            self._request = None
+            self._start_takeoff(now_s)
+        elif done is False:
+            self._request = None
+            self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="FC did not arm",
+                         status_texts=self.link.status_texts[-3:])
+
+    def _new_request(self, command: int, send: Callable[[], None], now_s: float,
+                     done: Callable[[], bool]) -> _Request:
+        cfg = self.config
+        return _Request(command, send, done, now_s, cfg.command_timeout_s, cfg.command_retry_s)
+
+    def _fc(self, what: str) -> bool:
+        """Whether the FC's last heartbeat says ``what`` ("armed", "offboard", "holding")."""
+        return self.link.status is not None and bool(getattr(self.link.status, what))
+
+    def _mission_yaw(self, pos_m: np.ndarray, gap: GapPose) -> float:
+        """Heading along the crossing direction (the gap normal pointing away from ``pos_m``)."""
+        side = float((pos_m - gap.centre) @ gap.e1)
+        u = gap.e1 * (-1.0 if side > 0 else 1.0)
+        return math.atan2(float(u[1]), float(u[0]))
+
+    def _gap_pose(self) -> GapPose | None:
+        g = self.mocap.latest("gap")
+        if g is None:
+            return None
+        return GapPose.from_quaternion(g.pos_m, g.quat_wxyz, width_m=self.config.gap_width_m,
+                                       height_m=self.config.gap_height_m)
+
+    def _start_takeoff(self, now_s: float) -> None:
+        cfg = self.config
+        est = self.estimator.estimate(now_s)
+        gap = self._gap_pose()
+        assert gap is not None
+        target = est.pos_m.copy()
+        target[2] = max(target[2], cfg.takeoff_height_m)
+        traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
+                     cfg.takeoff_duration_s)
+        yaw0 = float(est.euler_rad[2])
+        yaw1 = yaw0 + _wrap(self._mission_yaw(est.pos_m, gap) - yaw0)
+        self._takeoff = (traj, yaw0, yaw1, now_s)
+        self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1))
+        self._go(Phase.TAKEOFF, now_s)
+
+    def _takeoff_progress(self, now_s: float) -> None:
+        cfg = self.config
+        if now_s - self._phase_since_s < cfg.takeoff_duration_s + cfg.settle_s:
+            return
+        est = self.estimator.estimate(now_s)
+        gap = self._gap_pose()
+        assert gap is not None
+        try:
+            plan = plan_mission(est.pos_m, gap, self.lab, start_vel_m_s=est.vel_m_s,
+                                approach_duration_s=cfg.approach_duration_s,
+                                crossing_speed_m_s=cfg.approach_speed_m_s, d_min_m=cfg.traverse_lead_m)
+        except (PlanningError, ValueError) as exc:
+            self._abort(now_s, "planning_failed", detail=str(exc))
+            return
+        self.plan, self.gap = plan, gap
+        self._mission_start_s = now_s
+        self.segment = None
+        self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
+                         t_gap_s=round(plan.t_gap_s, 3), t_hover_s=round(plan.t_hover_start_s, 3),
+                         hover_m=np.array(plan.hover_m), crossing_speed_m_s=cfg.approach_speed_m_s,
+                         approach=plan.approach_feasibility.name.lower())
+        self._go(Phase.MISSION, now_s)
+
+    def _mission_progress(self, now_s: float) -> None:
+        assert self.plan is not None
+        t = now_s - self._mission_start_s
+        seg = self.plan.segment_at(t)
+        if seg is not self.segment:
+            self.segment = seg
+            est = self.estimator.estimate(now_s)
+            self.events.emit("segment", now_s, segment=str(seg), mission_t_s=round(t, 3), pos_m=est.pos_m,
+                             vel_m_s=est.vel_m_s)
+        if t >= self.plan.t_hover_start_s + self.config.hover_s:
+            est = self.estimator.estimate(now_s)
+            err = float(np.linalg.norm(est.pos_m - np.array(self.plan.hover_m)))
+            self.events.emit("mission_done", now_s, pos_m=est.pos_m, hover_error_m=round(err, 3))
+            self._go(Phase.HANDBACK, now_s)
+
+    def _handback(self, now_s: float) -> None:
+        if self._request is None:
+            self._request = self._new_request(mav.MAV_CMD_DO_SET_MODE, self.link.request_hold, now_s,
+                                              lambda: self._fc("holding"))
+        done = self._request.update(self.link, now_s)
+        if done is None:
+            return
+        self._request = None
+        est = self.estimator.estimate(now_s)
+        self._finish(Phase.DONE, EXIT_DONE, "done", hold=bool(done), pos_m=est.pos_m,
+                     in_lab=self.lab.contains(est.pos_m))
+
+    def _abort(self, now_s: float, reason: str, **fields: Any) -> None:
+        """Abort to a safe hover (see the module docstring); only when the FC is armed."""
+        self._request = None
+        if self.estimator.ready:
+            self._abort_yaw = float(self.estimator.estimate(now_s).euler_rad[2])
+        self.events.emit("abort", now_s, reason=reason, phase=str(self.phase), **fields)
+        armed = self._fc("armed")
+        if not armed:
+            self._finish(Phase.ABORTED, EXIT_ABORTED, "aborted", armed=False)
+            return
+        self._go(Phase.ABORTING, now_s)
+        self._send_safe_hover()
+        self._next_control_s = now_s + self.config.period_s
+
+    def _aborting(self, now_s: float) -> None:
+        if self._request is None:
+            self._request = self._new_request(mav.MAV_CMD_DO_SET_MODE, self.link.request_hold, now_s,
+                                              lambda: self._fc("holding"))
+        done = self._request.update(self.link, now_s)
+        if done is None:
+            return
+        self._request = None
+        self._finish(Phase.ABORTED, EXIT_ABORTED, "hold" if done else "error",
+                     **({} if done else {"reason": "FC did not confirm HOLD"}))
+
+    # --- control ------------------------------------------------------------------------------
+    def _send(self, cmd: AttitudeThrustCommand) -> None:
+        self._last_cmd = cmd
+        self.link.send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
+                                       cmd.thrust_n / self.config.full_thrust_n)
+        self.control_steps += 1
+
+    def _send_safe_hover(self) -> None:
+        self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, self.config.hover_thrust_n))
+
+    def _control(self, t_s: float, now_s: float) -> None:
+        """One control step scheduled at ``t_s`` (s), with the estimate at ``now_s``."""
+        ph = self.phase
+        if ph is Phase.ABORTING:
+            self._send_safe_hover()
+            return
+        est = self.estimator.estimate(now_s)
+        if ph in (Phase.AUTHORITY, Phase.ARMING):
+            armed = self._fc("armed")
+            thrust = self.config.hover_thrust_n if armed else 0.0
+            self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, thrust))
+        elif ph is Phase.TAKEOFF:
+            assert self._takeoff is not None
+            traj, yaw0, yaw1, t0 = self._takeoff
+            tau = min(max(t_s - t0, 0.0), self.config.takeoff_duration_s)
+            p, v, a = traj.state(tau)
+            yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
+            self._send(self.expert.command(p, v, a, yaw, est.pos_m, est.vel_m_s))
+        elif ph in (Phase.MISSION, Phase.HANDBACK):
+            self._send(self.pilot.command(self._observation(t_s, est)))
+
+    def _observation(self, t_s: float, est: StateEstimate) -> Observation:
+        assert self.plan is not None and self.gap is not None
+        return Observation(t_s - self._mission_start_s, est.pos_m, est.vel_m_s, est.acc_m_s2, est.euler_rad,
+                           self.gap, self.plan)
+
+    def _on_pose(self, sample: PoseSample) -> None:
+        if sample.name == "vehicle":
+            self.estimator.update(sample.stamp_s, sample.pos_m, sample.quat_wxyz, sample.received_s)
+
+    # --- loops --------------------------------------------------------------------------------
+    def run_realtime(self, max_duration_s: float | None = None) -> int:
+        """Run on the wall clock until finished (or ``max_duration_s``); returns the exit code."""
+        clock = WallClock()
+        fds = _fds(self.link.transport, self.mocap.transport)
+        while not self.finished:
+            now = clock.now_s()
+            if max_duration_s is not None and now > max_duration_s:
+                self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"out of time ({max_duration_s} s)")
+                break
+            self.step(now)
+            wait = max(0.0, min(self.next_wake_s() - clock.now_s(), 0.05))
+            if fds:
+                select.select(fds, [], [], wait)
+            else:
+                time.sleep(min(wait, 0.001))
+        return self.exit_code if self.exit_code is not None else EXIT_ERROR
+
+    def lockstep_poll(self) -> list[float]:
+        """Read the links and process every TIMESYNC tick that has arrived (non-blocking); returns them."""
+        try:
+            self.link.poll()
+            ticks = self.link.take_ticks()
+            # the mocap link is read at the ticks only: bytes read between ticks would be stamped with the
+            # previous tick's time, and how many there are depends on process scheduling (not lockstep)
+        except LinkError as exc:
+            self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
+            return []
+        done = []
+        for tick in ticks:
+            if tick < self.clock.now_s():
+                continue  # a stale or repeated tick: time never goes back
+            self.lockstep_tick(tick)
+            done.append(tick)
+            if self.finished:
+                break
+        return done
+
+    def run_lockstep(self, tick_timeout_s: float = 10.0) -> int:
+        """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick
+        ends the program with an error."""
+        fds = _fds(self.link.transport)  # ticks come on the command link; the mocap waits for them
+        last_tick_wall = time.monotonic()
+        while not self.finished:
+            if self.lockstep_poll():
+                last_tick_wall = time.monotonic()
+                continue
+            if time.monotonic() - last_tick_wall > tick_timeout_s:
+                self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"no tick for {tick_timeout_s} s")
+                break
+            if fds:
+                select.select(fds, [], [], 0.05)
+            else:
+                time.sleep(0.001)
+        return self.exit_code if self.exit_code is not None else EXIT_ERROR
+
+    def close(self) -> None:
+        self.link.close()
+        self.mocap.close()
+        self.events.close()
+
+    def summary(self) -> dict[str, Any]:
+        """Counters for the end of a run."""
+        return {"phase": str(self.phase), "exit_code": self.exit_code, "control_steps": self.control_steps,
+                "skipped_steps": self.skipped_steps, "mavlink": self.link.codec.stats.as_dict(),
+                "mocap": asdict(self.mocap.counters), "estimator_updates": self.estimator.updates}
+
+
+def _fds(*transports: Transport) -> list[int]:
+    out = []
+    for t in transports:
+        with contextlib.suppress(NotImplementedError, OSError, ValueError):
+            out.append(t.fileno())
+    return out
+
+
+def _wrap(angle_rad: float) -> float:
+    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
+
+
+def _smoothstep(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3 - 2 * x)
