@@ -1,0 +1,52 @@
+"""Runner benches: the full stack in lockstep over ptys (real-time factor) and the suite's wall time."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from hil.bench import BenchRow
+from hil.runner import RunOptions, run_scenario
+from hil.scenario import loads_scenarios
+
+SCENARIOS_DIR = Path(__file__).resolve().parents[2] / "scenarios"
+RTF_SCENARIO = """
+description: bench - the release's 60 deg gap at 2.5 m/s, traditional pilot
+gap: {roll_deg: -60}
+approach: {speed_m_s: 2.5}
+duration_s: 10
+"""
+
+
+def collect(quick: bool) -> Iterator[BenchRow]:
+    s = loads_scenarios(RTF_SCENARIO)[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        for in_process, name in ((False, "full_stack_rtf"), (True, "in_process_rtf")):
+            r = run_scenario(s, Path(tmp) / name, RunOptions(in_process=in_process))
+            sm = r.summary
+            yield BenchRow(
+                name,
+                sm["real_time_factor"],
+                "x real time",
+                f"60 deg gap, {'one process, memory links' if in_process else 'two processes over ptys'}"
+                f", lockstep; {sm['sim_time_s']:.0f} s sim in {sm['loop_wall_time_s']:.2f} s "
+                f"(whole run with start-up {sm['wall_time_s']:.2f} s)",
+            )
+        if quick or not SCENARIOS_DIR.is_dir():
+            return
+        t0 = time.perf_counter()
+        subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", str(SCENARIOS_DIR)],
+            capture_output=True,
+            timeout=3600,
+        )
+        yield BenchRow(
+            "suite_wall_s",
+            time.perf_counter() - t0,
+            "s",
+            "pytest scenarios/ -n 2 (whole shipped suite, pass or fail)",
+        )

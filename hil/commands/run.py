@@ -1,0 +1,102 @@
+"""`hil run SCENARIO`: fly one scenario file and write its report; exit 0 all checks passed, 1 a check
+failed, 2 bad input."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from emulator.physics import backend_names
+from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
+from hil.scenario import ScenarioError, load_scenarios
+from hil.scenario.schema import Scenario
+
+EXIT_PASSED, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="fly one scenario file (every document in it) and write the reports")
+    add_run_options(p)
+    p.add_argument("scenario", metavar="SCENARIO", help="a *.scenario.yaml file")
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default reports/<scenario id>)")
+    p.set_defaults(func=main)
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by `hil run` and `hil suite`."""
+    p.add_argument("--pilot", default=None, help="fly with this pilot instead of the scenario's")
+    p.add_argument("--realtime", action="store_true", default=None, help="real time instead of lockstep")
+    p.add_argument("--seed", type=int, default=None, help="seed instead of the scenario's")
+    p.add_argument("--backend", default=None, choices=backend_names(), help="physics backend")
+    p.add_argument(
+        "--in-process",
+        action="store_true",
+        default=None,
+        help="both sides in this process over memory links (default: two processes over ptys)",
+    )
+
+
+def options_from(args: argparse.Namespace) -> RunOptions:
+    return RunOptions(
+        pilot=args.pilot,
+        in_process=args.in_process,
+        realtime=args.realtime,
+        seed=args.seed,
+        backend=args.backend,
+    )
+
+
+def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool = False) -> RunResult:
+    """Run one scenario, printing a progress line (to a terminal) and the verdict."""
+    tty = sys.stderr.isatty() and not quiet
+
+    def progress(t: float, duration: float) -> None:
+        if tty:
+            print(f"\r  {scenario.id}: sim {t:5.2f} / {duration:g} s", end="", file=sys.stderr, flush=True)
+
+    result = run_scenario(scenario, out_dir, options, progress=progress)
+    if tty:
+        print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
+    s = result.summary
+    rtf = s.get("real_time_factor")
+    word = "PASSED" if result.passed else "FAILED"
+    print(
+        f"{word} {scenario.id}: sim {s['sim_time_s']:.2f} s in {s['wall_time_s']:.2f} s wall"
+        + (f" ({rtf:.1f}x real time)" if rtf else "")
+    )
+    for c in result.failed_checks:
+        when = "" if c.time_s is None else f" at t={c.time_s:.3f} s"
+        print(f"  failed {c.name}: expected {c.expected}, observed {c.observed}{when}")
+    print(f"  report: {result.report_path}")
+    return result
+
+
+def main(args: argparse.Namespace) -> int:
+    path = Path(args.scenario)
+    try:
+        scenarios = load_scenarios(path)
+    except ScenarioError as exc:
+        print(f"hil run: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"hil run: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if not scenarios:
+        print(f"hil run: {path} holds no scenario", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    options = options_from(args)
+    base = Path(args.out) if args.out else Path("reports")
+    failed = False
+    for s in scenarios:
+        if s.skip:
+            print(f"SKIPPED {s.id}: {s.skip}")
+            continue
+        out = base if (args.out and len(scenarios) == 1) else base / s.id
+        try:
+            result = run_one(s, out, options)
+        except (RunSetupError, ValueError) as exc:
+            print(f"hil run: {s.source}:{s.line}: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        failed = failed or not result.passed
+    return EXIT_FAILED if failed else EXIT_PASSED

@@ -1,0 +1,133 @@
+"""`hil suite DIR`: fly every scenario under DIR (in parallel workers), write each report and an
+index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from html import escape
+from pathlib import Path
+from typing import Any
+
+from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
+from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
+from hil.scenario.schema import Scenario
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "suite", help="fly every *.scenario.yaml under a folder and write reports + index.html"
+    )
+    p.add_argument("folder", metavar="DIR", help="folder of scenario files (searched recursively)")
+    p.add_argument("--out", default="reports", metavar="DIR", help="output folder (default reports/)")
+    p.add_argument("-j", "--jobs", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (2)")
+    add_run_options(p)
+    p.set_defaults(func=main)
+
+
+def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
+    s, out, options = args
+    try:
+        r = run_scenario(s, out, options)
+    except (RunSetupError, ValueError) as exc:
+        return {"id": s.id, "passed": False, "error": str(exc), "source": s.source}
+    return {
+        "id": s.id,
+        "passed": r.passed,
+        "source": s.source,
+        "description": s.description,
+        "report": str(Path(s.id) / "report.html"),
+        "sim_time_s": r.summary["sim_time_s"],
+        "wall_time_s": r.summary["wall_time_s"],
+        "failed": [f"{c.name}: expected {c.expected}, observed {c.observed}" for c in r.failed_checks],
+    }
+
+
+def main(args: argparse.Namespace) -> int:
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        print(f"hil suite: {folder} is not a folder", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.jobs < 1:
+        print(f"hil suite: --jobs must be >= 1, got {args.jobs}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        files = [f for f in find_scenario_files(folder) if "examples" not in f.relative_to(folder).parts[:-1]]
+        scenarios = [s for f in files for s in load_scenarios(f)]
+    except ScenarioError as exc:
+        print(f"hil suite: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    ids = [s.id for s in scenarios]
+    dupes = sorted({i for i in ids if ids.count(i) > 1})
+    if dupes:
+        print(f"hil suite: scenario ids used twice: {', '.join(dupes)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    options = options_from(args)
+    todo = [s for s in scenarios if not s.skip]
+    skipped = [{"id": s.id, "skipped": s.skip, "source": s.source} for s in scenarios if s.skip]
+    wall0 = time.perf_counter()
+    results: list[dict[str, Any]] = []
+    work = [(s, str(out / s.id), options) for s in todo]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for res in pool.map(_run, work):
+            word = "PASSED" if res["passed"] else "FAILED"
+            print(
+                f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),
+                flush=True,
+            )
+            for line in res.get("failed", []) + ([res["error"]] if "error" in res else []):
+                print(f"  {line}")
+            results.append(res)
+    wall = time.perf_counter() - wall0
+    index = write_index(out, results, skipped, wall)
+    n_pass = sum(r["passed"] for r in results)
+    print(f"{n_pass}/{len(results)} passed, {len(skipped)} skipped, {wall:.1f} s wall; index: {index}")
+    return EXIT_PASSED if n_pass == len(results) else EXIT_FAILED
+
+
+def write_index(
+    out: Path, results: list[dict[str, Any]], skipped: list[dict[str, Any]], wall_s: float
+) -> Path:
+    """``out/index.html`` (a table linking each report) and ``out/index.json``; returns the HTML path."""
+    (out / "index.json").write_text(
+        json.dumps({"wall_time_s": wall_s, "results": results, "skipped": skipped}, indent=2) + "\n",
+        encoding="utf-8",
+    )
+    rows = []
+    for r in results:
+        cls, word = ("pass", "PASSED") if r["passed"] else ("fail", "FAILED")
+        link = f'<a href="{escape(r["report"])}">{escape(r["id"])}</a>' if "report" in r else escape(r["id"])
+        why = "<br>".join(escape(x) for x in r.get("failed", []) + ([r["error"]] if "error" in r else []))
+        rows.append(
+            f'<tr class="{cls}"><td>{link}</td><td class="v">{word}</td>'
+            f"<td>{escape(r.get('description', ''))}</td><td>{why}</td></tr>"
+        )
+    for r in skipped:
+        rows.append(
+            f'<tr><td>{escape(r["id"])}</td><td class="v">SKIPPED</td><td>{escape(r["skipped"])}</td>'
+            "<td></td></tr>"
+        )
+    n_pass = sum(r["passed"] for r in results)
+    html = (
+        '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>Scenario suite</title><style>'
+        "body{font:14px system-ui,sans-serif;margin:20px;color:#1d232b}"
+        "table{border-collapse:collapse;width:100%}"
+        "td,th{border:1px solid #dde1e6;padding:5px 8px;text-align:left;vertical-align:top}"
+        "tr.pass .v{color:#1e8a4c;font-weight:700}tr.fail .v{color:#c0392b;font-weight:700}"
+        "tr.fail td{background:#fdeceb}</style></head><body>"
+        f"<h1>Scenario suite: {n_pass}/{len(results)} passed</h1>"
+        f"<p>{len(skipped)} skipped; {wall_s:.1f} s wall.</p>"
+        "<table><tr><th>Scenario</th><th>Verdict</th><th>Description</th><th>Failed checks</th></tr>"
+        + "".join(rows)
+        + "</table></body></html>"
+    )
+    path = out / "index.html"
+    path.write_text(html, encoding="utf-8")
+    return path

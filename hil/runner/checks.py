@@ -1,0 +1,185 @@
+"""The scenario's expectations checked against what a run observed: small pure functions, one `Check`
+each (name, passed, expected, observed, sim time)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hil.scenario.schema import Scenario
+
+RECOVERY_MAX_SPEED_M_S = 0.5  # "hovering": slower than this
+
+
+@dataclass(frozen=True)
+class Check:
+    """One expectation's verdict; ``time_s`` is the sim time it refers to (None: the whole run)."""
+
+    name: str
+    passed: bool
+    expected: Any
+    observed: Any
+    time_s: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "passed": self.passed,
+            "expected": self.expected,
+            "observed": self.observed,
+            "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class Observations:
+    """What the checks read, gathered by the runner at the end of a run."""
+
+    sim_time_s: float
+    crossed_gap: bool
+    crossing_time_s: float | None
+    collision: str | None
+    collision_time_s: float | None
+    min_clearance_m: float | None
+    min_clearance_time_s: float | None
+    attitude_error_deg: float | None
+    max_outside_lab_m: float
+    failsafe_states: tuple[tuple[str, float], ...]  # (state, sim s) entered
+    onboard_abort_s: float | None
+    hover_point_m: tuple[float, float, float] | None  # the onboard plan's recovery point
+    columns: dict[str, np.ndarray]
+    link: dict[str, float | None]  # delivered fractions and rates
+
+
+def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
+    """Every check the scenario asks for, in a fixed order."""
+    e = scenario.expect
+    checks = [check_crossing(e.crosses_gap, obs), check_collision(e.collision_expected, obs)]
+    if e.min_clearance_m is not None:
+        checks.append(check_clearance(e.min_clearance_m, obs))
+    if e.max_attitude_error_deg is not None:
+        checks.append(check_attitude(e.max_attitude_error_deg, obs))
+    if e.recovery is not None and e.crosses_gap:
+        checks.append(check_recovery(e.recovery.radius_m, e.recovery.time_s, obs))
+    if e.stays_in_lab:
+        checks.append(
+            Check(
+                "stays_in_lab",
+                obs.max_outside_lab_m <= 0.0,
+                "inside the lab volume",
+                f"{obs.max_outside_lab_m:.3f} m outside at most",
+            )
+        )
+    checks.append(check_failsafe(e.failsafe_expected, obs))
+    checks.append(check_abort(e.onboard_abort_expected, obs))
+    lk = e.link
+    for name, limit, key, unit in (
+        ("mocap_delivered_fraction", lk.mocap_delivered_fraction_min, "mocap_delivered_fraction", ""),
+        ("command_delivered_fraction", lk.command_delivered_fraction_min, "command_delivered_fraction", ""),
+        ("mocap_rate_hz", lk.mocap_rate_hz_min, "mocap_rate_hz", " Hz"),
+        ("command_rate_hz", lk.command_rate_hz_min, "command_rate_hz", " Hz"),
+    ):
+        if limit is not None:
+            value = obs.link.get(key)
+            ok = value is not None and value >= limit
+            checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
+    return checks
+
+
+def check_crossing(expected: bool, obs: Observations) -> Check:
+    observed = "crossed through the opening" if obs.crossed_gap else "did not cross through the opening"
+    return Check(
+        "crosses_gap",
+        obs.crossed_gap == expected,
+        "crosses through the opening" if expected else "does not cross",
+        observed,
+        obs.crossing_time_s,
+    )
+
+
+def check_collision(expected: bool, obs: Observations) -> Check:
+    observed = "none" if obs.collision is None else f"hit the {obs.collision}"
+    return Check(
+        "collision",
+        (obs.collision is not None) == expected,
+        "a collision" if expected else "no collision",
+        observed,
+        obs.collision_time_s,
+    )
+
+
+def check_clearance(limit_m: float, obs: Observations) -> Check:
+    v = obs.min_clearance_m
+    return Check(
+        "min_clearance_m",
+        v is not None and v >= limit_m,
+        f">= {limit_m:g} m",
+        "never at the wall" if v is None else round(v, 4),
+        obs.min_clearance_time_s,
+    )
+
+
+def check_attitude(limit_deg: float, obs: Observations) -> Check:
+    v = obs.attitude_error_deg
+    return Check(
+        "attitude_error_deg",
+        v is not None and v <= limit_deg,
+        f"<= {limit_deg:g} deg at the crossing",
+        "no crossing" if v is None else round(v, 2),
+        obs.crossing_time_s,
+    )
+
+
+def check_recovery(radius_m: float, time_s: float, obs: Observations) -> Check:
+    """At ``time_s`` after the crossing: slower than 0.5 m/s and within ``radius_m`` of the plan's
+    recovery point (of where it is then, if the onboard program reported no plan)."""
+    expected = f"hovering within {radius_m:g} m of the recovery point {time_s:g} s after crossing"
+    if obs.crossing_time_s is None:
+        return Check("recovery", False, expected, "no crossing")
+    t_check = obs.crossing_time_s + time_s
+    cols = obs.columns
+    t = cols["t_s"]
+    if len(t) == 0 or t[-1] < t_check - 0.02:
+        return Check(
+            "recovery",
+            False,
+            expected,
+            f"run ended {t_check - (t[-1] if len(t) else 0):.2f} s early",
+            t_check,
+        )
+    i = int(np.searchsorted(t, t_check))
+    i = min(i, len(t) - 1)
+    pos = np.array([cols["pos_m_x"][i], cols["pos_m_y"][i], cols["pos_m_z"][i]])
+    vel = np.array([cols["vel_m_s_x"][i], cols["vel_m_s_y"][i], cols["vel_m_s_z"][i]])
+    speed = float(np.linalg.norm(vel))
+    target = np.array(obs.hover_point_m) if obs.hover_point_m is not None else pos
+    dist = float(np.linalg.norm(pos - target))
+    ok = dist <= radius_m and speed <= RECOVERY_MAX_SPEED_M_S and math.isfinite(dist)
+    return Check("recovery", ok, expected, f"{dist:.2f} m from it at {speed:.2f} m/s", float(t[i]))
+
+
+def check_failsafe(expected: bool | str, obs: Observations) -> Check:
+    entered = [s for s, _ in obs.failsafe_states]
+    first_t = obs.failsafe_states[0][1] if obs.failsafe_states else None
+    observed = ", ".join(entered) if entered else "none"
+    if expected is False:
+        return Check("failsafe", not entered, "no failsafe", observed, first_t)
+    if expected is True:
+        return Check("failsafe", bool(entered), "a failsafe", observed, first_t)
+    want = f"failsafe_{expected}"
+    times = [t for s, t in obs.failsafe_states if s == want]
+    return Check("failsafe", bool(times), f"failsafe {expected}", observed, times[0] if times else first_t)
+
+
+def check_abort(expected: bool, obs: Observations) -> Check:
+    aborted = obs.onboard_abort_s is not None
+    return Check(
+        "onboard_abort",
+        aborted == expected,
+        "onboard program aborts" if expected else "no abort",
+        "aborted" if aborted else "none",
+        obs.onboard_abort_s,
+    )

@@ -1,0 +1,202 @@
+"""The emulator side of a run: vehicle (physics + FC), the FC's MAVLink server on the command wire,
+mocap over UWB on the mocap link, the gap world, faults on the airframe and the links, and the
+recording, all advanced together on one SimClock by `advance_to(t)`.
+
+Between two calls the loop stops only where something happens (a mocap exposure or delivery, a
+command frame reaching the FC, a fault switching, a world sample) and steps the physics in batches
+in between.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer
+from emulator.mocap import MocapConfig
+from emulator.mocap_link import MocapLinkServer
+from emulator.physics.state import VehicleState
+from emulator.profile import VehicleProfile
+from emulator.uwb import UwbConfig
+from emulator.world import Gap, LabVolume, World
+from hil.link.clock import SimClock
+from hil.link.mavlink import MavlinkCodec, mav
+from hil.link.tlog import TlogWriter
+from hil.link.transport import Transport
+from hil.runner.fast_step import FastStepper
+from hil.runner.faults import FaultSchedule, corrupt
+from hil.runner.recorder import Recorder
+from hil.runner.wires import CommandWire, LinkModel
+from hil.scenario.schema import Scenario
+
+FC_SYSTEM_ID = 1
+
+
+def make_gap(scenario: Scenario) -> Gap:
+    g = scenario.gap
+    return Gap.from_deg(
+        g.centre_m,
+        g.roll_deg,
+        g.pitch_deg,
+        g.yaw_deg,
+        width_m=g.width_m,
+        height_m=g.height_m,
+        wall_thickness_m=g.wall_thickness_m,
+    )
+
+
+def initial_state(scenario: Scenario, profile: VehicleProfile) -> tuple[VehicleState, float]:
+    """The start state and the ground height (m): resting on the ground, or hovering at ``pos_m``."""
+    ini = scenario.initial
+    yaw = ini.yaw_rad
+    quat = np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+    x, y, z = ini.pos_m
+    if ini.on_ground:
+        pos = np.array([x, y, z + 0.5 * profile.body_box_m[2]])
+        return VehicleState(pos_m=pos, quat_wxyz=quat), z
+    w = math.sqrt(profile.hover_throttle) * profile.max_rotor_speed_rad_s
+    ground = min(0.0, scenario.lab.min_m[2])
+    return VehicleState(
+        pos_m=np.array([x, y, z]),
+        vel_m_s=np.array(ini.vel_m_s, dtype=float),
+        quat_wxyz=quat,
+        rotor_speed_rad_s=np.full(4, w),
+    ), ground
+
+
+class _FaultyLink(Transport):
+    """The emulator's sending end of the mocap link with mocap_dropped and corrupt_bytes applied."""
+
+    def __init__(self, raw: Transport, clock: SimClock, faults: FaultSchedule, rng: np.random.Generator):
+        super().__init__()
+        self.raw, self.clock, self.faults, self.rng = raw, clock, faults, rng
+        self.endpoint = raw.endpoint
+        self.bytes_dropped_fault = 0
+        self.bytes_corrupted = 0
+
+    def _send_internal(self, data: bytes) -> int:
+        t = self.clock.now_s()
+        if self.faults.any_active("mocap_dropped", t):
+            self.bytes_dropped_fault += len(data)
+            return len(data)
+        frac = self.faults.corrupt_fraction("mocap", t)
+        if frac > 0:
+            data, n = corrupt(data, frac, self.rng)
+            self.bytes_corrupted += n
+        return self.raw.send(data) if not self.raw.closed else 0
+
+    def _recv_internal(self, max_bytes: int) -> bytes:
+        return b""
+
+    def fileno(self) -> int:
+        return self.raw.fileno()
+
+    def _close_internal(self) -> None:
+        self.raw.close()
+
+
+class EmulatorSide:
+    """Everything on the flight-controller side of one run (see the module docstring)."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        profile: VehicleProfile,
+        rng: np.random.Generator,
+        command_raw: Transport,
+        mocap_raw: Transport,
+        *,
+        clock: SimClock,
+        backend: str,
+        tlog: TlogWriter | None,
+        duration_s: float,
+    ) -> None:
+        self.scenario, self.profile, self.clock = scenario, profile, clock
+        self.faults = FaultSchedule(scenario.faults)
+        cmd_rng, mocap_rng, corrupt_rng = rng.spawn(3)
+        state, ground_z = initial_state(scenario, profile)
+        self.vehicle = EmulatedVehicle(
+            profile, backend=backend, config=FcConfig(ground_z_m=ground_z), initial_state=state
+        )
+        if not scenario.initial.on_ground:
+            self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
+        self.gap = make_gap(scenario)
+        self.world = World.for_profile(self.gap, LabVolume(scenario.lab.min_m, scenario.lab.max_m), profile)
+        self.wire = CommandWire(
+            command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
+        )
+        self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog)
+        self.server = MavlinkServer(self.vehicle, self.codec)
+        m = scenario.links.mocap
+        burst = m.burst
+        uwb = UwbConfig(
+            latency_s=m.latency_ms * 1e-3,
+            jitter_s=m.jitter_ms * 1e-3,
+            loss_prob=m.loss,
+            burst_enter_prob=0.0 if burst is None else burst.p_gb,
+            burst_exit_prob=0.3 if burst is None else burst.p_bg,
+            uart_baud=m.baud,
+        )
+        self.mocap_link = _FaultyLink(mocap_raw, clock, self.faults, corrupt_rng)
+        self.mocap = MocapLinkServer(self.mocap_link, clock, mocap_rng, MocapConfig(rate_hz=m.rate_hz), uwb)
+        self.recorder = Recorder(self.world, profile, duration_s)
+        self.fast = FastStepper.for_vehicle(self.vehicle)
+        self._frozen_truth: VehicleState | None = None
+        self._force_on = False
+        self._next_boundary_s = self.faults.next_boundary_s(-1.0)
+        self.recorder.sample(0.0, self.vehicle.state, self.vehicle.fc, self.server, self.mocap)
+
+    @property
+    def time_s(self) -> float:
+        return self.clock.now_s()
+
+    def advance_to(self, t_end_s: float) -> None:
+        """Run the emulator side from now to ``t_end_s`` (s), then let the FC answer and send what is
+        due at ``t_end_s`` and put the command-link bytes that have arrived on the wire."""
+        t = self.clock.now_s()
+        rec, mocap, wire = self.recorder, self.mocap, self.wire
+        while t < t_end_s - 1e-12:
+            t_next = min(
+                t_end_s, mocap.next_event_s(), wire.next_arrival_s(), rec.next_sample_s, self._next_boundary_s
+            )
+            t_next = max(t_next, t + 1e-9)
+            self._step_physics_to(t_next)
+            self.clock.advance_to(t_next)
+            t = t_next
+            if t >= self._next_boundary_s - 1e-12:
+                self._switch_faults(t)
+            state = (
+                self.vehicle.state
+                if (t >= mocap.next_event_s() - 1e-12 or t >= rec.next_sample_s - 1e-12)
+                else None
+            )
+            if state is not None and t >= mocap.next_event_s() - 1e-12:
+                truth = self._frozen_truth if self._frozen_truth is not None else state
+                mocap.update(t, truth, self.gap)
+            if t >= wire.next_arrival_s() - 1e-12:
+                self.server.poll(t)
+            if state is not None and t >= rec.next_sample_s - 1e-12:
+                rec.sample(t, state, self.vehicle.fc, self.server, mocap)
+        self.server.poll(t_end_s)
+        wire.pump()
+
+    def _step_physics_to(self, t_s: float) -> None:
+        v = self.vehicle
+        n = math.floor((t_s - v.time_s) / v.dt_s + 1e-6)
+        if n > 0:
+            self.fast.step(n)
+
+    def _switch_faults(self, t: float) -> None:
+        faults = self.faults
+        force = faults.wind_force_n(t)
+        self.vehicle.backend.set_external_force(force)
+        frozen = faults.any_active("mocap_frozen", t)
+        if frozen and self._frozen_truth is None:
+            self._frozen_truth = self.vehicle.state
+        elif not frozen:
+            self._frozen_truth = None
+        self._next_boundary_s = faults.next_boundary_s(t)
+
+    def close(self) -> None:
+        self.vehicle.close()

@@ -1,0 +1,107 @@
+"""Fault injection for a run: the scenario's fault schedule queried by sim time, byte corruption, and
+the wind-gust force.
+
+Faults act where they act on the bench: in the links (bytes dropped or flipped, mocap frozen or
+dropped), in the onboard process (killed, stalled) and on the airframe (a gust as an external force).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+
+from hil.scenario.schema import CorruptBytesParams, Fault, WindGustParams
+
+AIR_DENSITY_KG_M3 = 1.225
+#: drag area Cd * A of the airframe seen by a wind (m^2): a 0.45 m quad with props, about 0.05
+WIND_DRAG_AREA_M2 = 0.05
+
+
+class FaultSchedule:
+    """The faults of one run, queried by sim time (s)."""
+
+    def __init__(self, faults: Iterable[Fault]) -> None:
+        self.faults = tuple(faults)
+
+    def active(self, kind: str, time_s: float) -> list[Fault]:
+        """Faults of ``kind`` acting at ``time_s``."""
+        return [f for f in self.faults if f.kind == kind and f.active(time_s)]
+
+    def any_active(self, kind: str, time_s: float) -> bool:
+        return any(f.kind == kind and f.active(time_s) for f in self.faults)
+
+    def boundaries_s(self) -> list[float]:
+        """Every start and end time, sorted (where the loop must stop to switch a fault)."""
+        times = {f.start_s for f in self.faults} | {f.end_s for f in self.faults if f.end_s is not None}
+        return sorted(times)
+
+    def next_boundary_s(self, after_s: float) -> float:
+        """The first start or end strictly after ``after_s`` (inf when none)."""
+        for t in self.boundaries_s():
+            if t > after_s + 1e-12:
+                return t
+        return math.inf
+
+    def corrupt_fraction(self, link: str, time_s: float) -> float:
+        """Fraction of bytes flipped on ``link`` ("command" or "mocap") at ``time_s`` (0 when none)."""
+        frac = 0.0
+        for f in self.active("corrupt_bytes", time_s):
+            p = f.params
+            if isinstance(p, CorruptBytesParams) and p.link == link:
+                frac = max(frac, p.fraction)
+        return frac
+
+    def killed_at_s(self) -> float | None:
+        """When the onboard program is killed (the earliest ``onboard_killed``), or None."""
+        times = [f.start_s for f in self.faults if f.kind == "onboard_killed"]
+        return min(times) if times else None
+
+    def wind_force_n(self, time_s: float) -> np.ndarray:
+        """The total gust force on the airframe at ``time_s`` (N, world ENU)."""
+        total = np.zeros(3)
+        for f in self.active("wind_gust", time_s):
+            total += gust_force_n(f.params)
+        return total
+
+    def events(self) -> list[dict[str, object]]:
+        """The schedule as report events (start and end of each fault)."""
+        out: list[dict[str, object]] = []
+        for f in self.faults:
+            out.append({"time_s": f.start_s, "source": "fault", "text": f"{f.kind} starts"})
+            if f.end_s is not None and f.kind != "onboard_killed":
+                out.append({"time_s": f.end_s, "source": "fault", "text": f"{f.kind} ends"})
+        return out
+
+
+def gust_force_n(params: object) -> np.ndarray:
+    """The force (N, world ENU) of a wind_gust's parameters: ``force_n`` along ``direction``, or the
+    quadratic drag 0.5 rho CdA v^2 of a wind of ``speed_m_s`` (vehicle speed neglected)."""
+    if not isinstance(params, WindGustParams):
+        raise ValueError(f"wind_gust needs WindGustParams, got {type(params).__name__}")
+    d = np.asarray(params.direction, dtype=float)
+    norm = float(np.linalg.norm(d))
+    if not math.isfinite(norm) or norm <= 0:
+        raise ValueError(f"wind_gust direction must be a non-zero vector, got {params.direction}")
+    if params.force_n is not None:
+        magnitude = params.force_n
+    elif params.speed_m_s is not None:
+        magnitude = 0.5 * AIR_DENSITY_KG_M3 * WIND_DRAG_AREA_M2 * params.speed_m_s**2
+    else:
+        raise ValueError("wind_gust needs force_n or speed_m_s")
+    return d / norm * magnitude
+
+
+def corrupt(data: bytes, fraction: float, rng: np.random.Generator) -> tuple[bytes, int]:
+    """``data`` with about ``fraction`` of its bytes each flipped in one random bit; (bytes, flipped)."""
+    if fraction <= 0 or not data:
+        return data, 0
+    hit = rng.random(len(data)) < fraction
+    n = int(hit.sum())
+    if n == 0:
+        return data, 0
+    arr = np.frombuffer(data, dtype=np.uint8).copy()
+    bits = rng.integers(0, 8, n)
+    arr[hit] ^= (1 << bits).astype(np.uint8)
+    return arr.tobytes(), n

@@ -1,0 +1,128 @@
+"""The lockstep loop: simulated time advances tick by tick, each tick only once the onboard program has
+answered it (or has been declared dead), so a run is faster than real time and deterministic.
+
+Per tick at time t: the emulator side runs up to t (physics, FC, mocap, links), the runner writes the
+TIMESYNC tick (tc1 = 0, ts1 = t in ns) on the command link, the onboard program reads everything,
+acts, writes its outputs and answers TIMESYNC(tc1 = ts1 = t); its outputs reach the FC at t plus their
+modelled wire time. A wall-clock guard declares a silent onboard program dead so the run goes on and the
+FC's failsafe can act. Faults on the process: killed at a tick, stalled (not ticked) over an interval.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from hil.link.mavlink import mav
+from hil.runner.emulator_side import FC_SYSTEM_ID, EmulatorSide
+from hil.runner.onboard_side import OnboardSide
+
+DEFAULT_TICK_S = 0.01  # one tick per onboard control period (100 Hz)
+DEFAULT_GUARD_S = 3.0  # wall time without an answer before the onboard program counts as dead
+STARTUP_GUARD_S = 60.0  # the first answer may wait for a process to start
+RESEND_S = 1.0  # a tick not answered within this wall time is sent again (lost on a fresh port)
+
+
+@dataclass
+class LoopReport:
+    """What the loop saw: ticks, onboard status changes (sim s, text) and wall time (s)."""
+
+    ticks: int = 0
+    answered: int = 0
+    events: list[dict[str, object]] = field(default_factory=list)
+    wall_loop_s: float = 0.0
+    onboard_exit_s: float | None = None
+
+
+def run_lockstep(
+    emu: EmulatorSide,
+    onboard: OnboardSide,
+    duration_s: float,
+    *,
+    tick_s: float = DEFAULT_TICK_S,
+    guard_s: float = DEFAULT_GUARD_S,
+    progress: Callable[[float], None] | None = None,
+) -> LoopReport:
+    """Fly ``duration_s`` of sim time in lockstep; returns what the loop saw."""
+    rep = LoopReport()
+    encoder = mav.MAVLink(None, srcSystem=FC_SYSTEM_ID, srcComponent=mav.MAV_COMP_ID_AUTOPILOT1)
+    faults = emu.faults
+    kill_s = faults.killed_at_s()
+    n_ticks = round(duration_s / tick_s)
+    wall0 = time.perf_counter()
+    next_progress = wall0 + 0.5
+    first = True
+    for k in range(1, n_ticks + 1):  # no tick at 0: its answer TIMESYNC(0, 0) would read as a request
+        t = k * tick_s
+        emu.advance_to(t)
+        rep.ticks += 1
+        if onboard.alive and kill_s is not None and t >= kill_s:
+            onboard.kill()
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
+        stalled = faults.any_active("onboard_stalled", t)
+        if stalled and onboard.alive and not onboard.paused:
+            onboard.pause()
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
+        elif not stalled and onboard.paused:
+            onboard.resume()
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program resumed"})
+        if onboard.alive and not onboard.paused:
+            if onboard.exited():
+                _note_exit(rep, onboard, t)
+            else:
+                answered = _tick(emu, onboard, encoder, t, STARTUP_GUARD_S if first else guard_s)
+                first = False
+                if answered:
+                    rep.answered += 1
+                elif onboard.exited():
+                    _note_exit(rep, onboard, t)
+                else:
+                    onboard.kill()
+                    rep.events.append(
+                        {
+                            "time_s": t,
+                            "source": "runner",
+                            "text": f"onboard program silent for {guard_s:g} s (wall): declared dead",
+                        }
+                    )
+        if progress is not None and time.perf_counter() >= next_progress:
+            progress(t)
+            next_progress = time.perf_counter() + 0.5
+    rep.wall_loop_s = time.perf_counter() - wall0
+    return rep
+
+
+def _note_exit(rep: LoopReport, onboard: OnboardSide, t: float) -> None:
+    onboard.alive = False
+    rep.onboard_exit_s = t
+    rep.events.append({"time_s": t, "source": "runner", "text": "onboard program exited"})
+
+
+def _tick(emu: EmulatorSide, onboard: OnboardSide, encoder: mav.MAVLink, t: float, guard_s: float) -> bool:
+    """Send the tick for ``t`` and wait for its answer; False when none came within ``guard_s`` (wall)."""
+    wire = emu.wire
+    ns = round(t * 1e9)
+    frame = bytes(encoder.timesync_encode(0, ns).pack(encoder))
+    wire.send_sync(frame)
+    onboard.service()
+    deadline = time.monotonic() + guard_s
+    resend_at = time.monotonic() + RESEND_S
+    answers = wire.answers
+    while True:
+        if answers:
+            done = ns in answers
+            answers.clear()
+            if done:
+                return True
+        now = time.monotonic()
+        if now >= deadline:
+            return False
+        if onboard.exited():
+            wire.read_onboard(0.0)
+            return ns in answers
+        if now >= resend_at:
+            wire.send_sync(frame)
+            resend_at = now + RESEND_S
+        wire.read_onboard(min(0.05, max(0.0, deadline - now)))
+        onboard.service()

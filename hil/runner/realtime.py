@@ -1,0 +1,51 @@
+"""The real-time loop: the emulator side follows the wall clock, the onboard program runs on its own
+(a real TX2 on a USB-serial adapter, or a pilot watching); faults act at their wall-clock times."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from hil.runner.emulator_side import EmulatorSide
+from hil.runner.lockstep import LoopReport
+from hil.runner.onboard_side import InProcessOnboard, OnboardSide
+
+POLL_S = 0.001  # the loop wakes at least this often (s)
+
+
+def run_realtime(
+    emu: EmulatorSide,
+    onboard: OnboardSide,
+    duration_s: float,
+    progress: Callable[[float], None] | None = None,
+) -> LoopReport:
+    """Fly ``duration_s`` seconds of wall time; returns what the loop saw."""
+    rep = LoopReport()
+    faults = emu.faults
+    kill_s = faults.killed_at_s()
+    wall0 = time.perf_counter()
+    next_progress = 0.5
+    while True:
+        t = time.perf_counter() - wall0
+        if t > duration_s:
+            break
+        emu.advance_to(t)
+        rep.ticks += 1
+        if onboard.alive and kill_s is not None and t >= kill_s:
+            onboard.kill()
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
+        stalled = faults.any_active("onboard_stalled", t)
+        if stalled and onboard.alive and not onboard.paused:
+            onboard.pause()
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
+        elif not stalled and onboard.paused:
+            onboard.resume()
+        if isinstance(onboard, InProcessOnboard):
+            onboard.step_realtime(t)
+        emu.wire.read_onboard(POLL_S)
+        if progress is not None and t >= next_progress:
+            progress(t)
+            next_progress = t + 0.5
+    emu.advance_to(duration_s)
+    rep.wall_loop_s = time.perf_counter() - wall0
+    return rep

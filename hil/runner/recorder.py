@@ -1,0 +1,157 @@
+"""Recording a run on the emulator side: world samples (crossing, clearance, collisions, lab bounds)
+and the time-series columns of timeseries.npz, into preallocated arrays.
+
+Sampled every 10 ms of sim time, every 1 ms while the body is within reach of the wall.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from emulator.fc import FlightController, MavlinkServer
+from emulator.mocap_link import MocapLinkServer
+from emulator.physics.state import VehicleState
+from emulator.profile import VehicleProfile
+from emulator.world import CrossingTracker, Obstacle, World
+from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd
+
+SAMPLE_S = 0.01  # away from the wall (s)
+NEAR_WALL_SAMPLE_S = 0.001  # within NEAR_WALL_M of the gap plane (s)
+NEAR_WALL_M = 0.6
+GROUND_HIT_SPEED_M_S = 1.0  # touching the ground slower than this is a landing, not a crash
+RATE_WINDOW_S = 1.0
+
+COLUMNS = (
+    "t_s",
+    "pos_m_x",
+    "pos_m_y",
+    "pos_m_z",
+    "vel_m_s_x",
+    "vel_m_s_y",
+    "vel_m_s_z",
+    "roll_deg",
+    "pitch_deg",
+    "yaw_deg",
+    "roll_cmd_deg",
+    "pitch_cmd_deg",
+    "yaw_cmd_deg",
+    "thrust_cmd_pct",
+    "clearance_m",
+    "command_rate_hz",
+    "mocap_rate_hz",
+    "command_lost",
+    "mocap_lost",
+    "fc_state",
+    "thrust_n",
+    "body_rate_rad_s",
+)
+FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
+
+
+@dataclass(frozen=True)
+class Collision:
+    """The first collision that counts: what, when (sim s), where (m) and how fast (m/s)."""
+
+    obstacle: str
+    time_s: float
+    pos_m: tuple[float, float, float]
+    speed_m_s: float
+
+
+class Recorder:
+    """World checks and time-series rows for one run of at most ``duration_s`` (s)."""
+
+    def __init__(self, world: World, profile: VehicleProfile, duration_s: float) -> None:
+        self.world = world
+        self.profile = profile
+        self.tracker = CrossingTracker(world)
+        self.next_sample_s = 0.0
+        cap = int(duration_s / SAMPLE_S) + 2000
+        self._cap = cap
+        self._data = np.full((cap, len(COLUMNS)), np.nan)
+        self._n = 0
+        self.collision: Collision | None = None
+        self.max_outside_lab_m = 0.0
+        self.attitude_error_at_crossing_deg: float | None = None
+        self._crossings_seen = 0
+        self._rate_hist: list[tuple[float, int, int]] = []  # (t, setpoints applied, mocap frames written)
+        self._gap_axes = world.gap.axes()
+        self._gap_centre = np.asarray(world.gap.centre_m)
+        self._lab_min = np.asarray(world.lab.min_m)
+        self._lab_max = np.asarray(world.lab.max_m)
+
+    def sample(
+        self,
+        t: float,
+        state: VehicleState,
+        fc: FlightController,
+        server: MavlinkServer,
+        mocap: MocapLinkServer,
+    ) -> None:
+        """Check and record the vehicle at sim time ``t`` (s)."""
+        pos, quat = state.pos_m, state.quat_wxyz
+        hit, clr = self.world.check(pos, quat)
+        if t > 0:
+            crossing = self.tracker.update(t, pos, quat)
+            if crossing is not None and self._crossings_seen == 0:
+                self.attitude_error_at_crossing_deg = self._attitude_error_deg(quat)
+            self._crossings_seen = len(self.tracker.crossings)
+        if hit is not None and self.collision is None:
+            speed = float(np.linalg.norm(state.vel_m_s))
+            if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
+                self.collision = Collision(str(hit), t, (float(pos[0]), float(pos[1]), float(pos[2])), speed)
+        outside = float(max(np.max(self._lab_min - pos), np.max(pos - self._lab_max), 0.0))
+        self.max_outside_lab_m = max(self.max_outside_lab_m, outside)
+        n_wall = float((pos - self._gap_centre) @ self._gap_axes[1])
+        self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
+        if self._n >= self._cap:
+            return
+        applied = server.stats.setpoints_applied
+        frames = mocap.stats.frames_written
+        hist = self._rate_hist
+        hist.append((t, applied, frames))
+        while len(hist) > 1 and hist[0][0] < t - RATE_WINDOW_S:
+            hist.pop(0)
+        span = max(t - hist[0][0], 1e-9)
+        cmd_rate = (applied - hist[0][1]) / span if t > 0 else 0.0
+        mocap_rate = (frames - hist[0][2]) / span if t > 0 else 0.0
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(quat))
+        tg = fc.target
+        full = self.profile.n3_full_thrust_n
+        row = self._data[self._n]
+        row[0] = t
+        row[1:4] = pos
+        row[4:7] = state.vel_m_s
+        row[7:10] = (math.degrees(roll), math.degrees(pitch), math.degrees(yaw))
+        if tg is not None:
+            yaw_cmd = math.degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan
+            row[10:14] = (
+                math.degrees(tg.roll_rad),
+                math.degrees(tg.pitch_rad),
+                yaw_cmd,
+                100.0 * tg.thrust_n / full,
+            )
+        row[14] = clr.clearance_m if clr.in_slab else math.nan
+        row[15] = cmd_rate
+        row[16] = mocap_rate
+        row[17] = server.codec.transport.to_fc.frames_lost + server.codec.transport.to_fc.frames_dropped_fault
+        row[18] = mocap.radio.stats.lost
+        row[19] = FC_STATE_CODES.get(fc.state.value, -1)
+        row[20] = float(np.sum(self.profile.thrust_coeff_n_s2 * state.rotor_speed_rad_s**2))
+        row[21] = float(np.linalg.norm(state.omega_rad_s))
+        self._n += 1
+
+    def _attitude_error_deg(self, quat: np.ndarray) -> float:
+        """Angle between the body's z axis and the gap's short-side axis e2, either sign (deg)."""
+        w, x, y, z = quat
+        body_z = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+        c = abs(float(body_z @ self._gap_axes[2]))
+        return math.degrees(math.acos(min(1.0, c)))
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The recorded columns, trimmed to the samples taken."""
+        data = self._data[: self._n]
+        return {name: data[:, i].copy() for i, name in enumerate(COLUMNS)}

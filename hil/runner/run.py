@@ -1,0 +1,368 @@
+"""Running one scenario: wire the emulator side and the onboard program together (in one process over
+memory links, or as two processes over pseudo-terminals), fly it in lockstep or real time, check the
+expectations and write the results (summary.json, run.tlog, timeseries.npz, report.html)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from emulator.physics import backend_names
+from emulator.profile import load_profile
+from hil.link.clock import SimClock
+from hil.link.memory import MemoryTransport
+from hil.link.pty import PtyTransport
+from hil.link.tlog import TlogWriter
+from hil.link.transport import Transport
+from hil.report import write_report_html, write_summary, write_timeseries
+from hil.runner.checks import Check, Observations, evaluate
+from hil.runner.emulator_side import EmulatorSide
+from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
+from hil.runner.onboard_side import (
+    InProcessOnboard,
+    ProcessOnboard,
+    onboard_argv,
+    onboard_options,
+    program_config,
+)
+from hil.runner.realtime import run_realtime
+from hil.scenario.schema import Scenario
+from policies.onboard import pilot_names
+
+TLOG_NAME = "run.tlog"
+ONBOARD_LOG_NAME = "onboard_events.jsonl"
+MEMORY_CAPACITY_BYTES = 1 << 20
+SEGMENT_PHASES = {"approach": 1, "traverse": 2, "recovery": 3, "hover": 0}
+
+
+class RunSetupError(ValueError):
+    """The scenario or the options cannot be run as given (bad input, exit 2)."""
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Overrides of the scenario for one run; None keeps the scenario's value."""
+
+    pilot: str | None = None
+    in_process: bool | None = None  # None: in-process when both links say "memory"
+    realtime: bool | None = None
+    seed: int | None = None
+    backend: str | None = None
+    tick_s: float = DEFAULT_TICK_S
+    guard_s: float = DEFAULT_GUARD_S
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """One run's verdict and where its files are."""
+
+    passed: bool
+    checks: tuple[Check, ...]
+    out_dir: Path
+    summary: dict[str, Any] = field(repr=False)
+
+    @property
+    def failed_checks(self) -> tuple[Check, ...]:
+        return tuple(c for c in self.checks if not c.passed)
+
+    @property
+    def report_path(self) -> Path:
+        return self.out_dir / "report.html"
+
+    @property
+    def tlog_path(self) -> Path:
+        return self.out_dir / TLOG_NAME
+
+
+def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bool]:
+    """The scenario with the overrides applied, in_process, realtime; RunSetupError for bad values."""
+    s = scenario
+    if options.pilot is not None:
+        s = replace(s, pilot=options.pilot)
+    if options.seed is not None:
+        if options.seed < 0:
+            raise RunSetupError(f"seed must be >= 0, got {options.seed}")
+        s = replace(s, seed=options.seed)
+    if options.backend is not None:
+        s = replace(s, physics=options.backend)
+    if s.pilot not in pilot_names():
+        raise RunSetupError(f"unknown pilot {s.pilot!r}; known: {', '.join(pilot_names())}")
+    if s.physics not in backend_names():
+        raise RunSetupError(f"unknown physics backend {s.physics!r}; known: {', '.join(backend_names())}")
+    transports = {s.links.command.transport, s.links.mocap.transport}
+    if "udp" in transports:
+        raise RunSetupError(
+            "the runner joins the two sides over ptys or memory; transport 'udp' is not supported"
+        )
+    in_process = options.in_process if options.in_process is not None else transports == {"memory"}
+    realtime = options.realtime if options.realtime is not None else s.realtime
+    if not (0.001 <= options.tick_s <= 0.1):
+        raise RunSetupError(f"tick must be 1..100 ms, got {options.tick_s * 1e3:g} ms")
+    return s, in_process, realtime
+
+
+def run_scenario(
+    scenario: Scenario,
+    out_dir: str | Path,
+    options: RunOptions | None = None,
+    progress: Callable[[float, float], None] | None = None,
+) -> RunResult:
+    """Fly ``scenario`` and write its results to ``out_dir``; RunSetupError (or ValueError) for bad input.
+
+    ``progress(sim_time_s, duration_s)`` is called about twice a second of wall time.
+    """
+    options = options or RunOptions()
+    s, in_process, realtime = resolve(scenario, options)
+    try:
+        profile = load_profile(s.vehicle)
+        ob_options = onboard_options(s, profile)
+        config = program_config(ob_options)
+    except ValueError as exc:
+        raise RunSetupError(str(exc)) from exc
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(s.seed)
+    clock = SimClock()
+    links: list[Transport] = []
+    tlog = TlogWriter(out / TLOG_NAME, epoch_unix_s=time.time() if realtime else 0.0)
+    log_path = out / ONBOARD_LOG_NAME
+    emu = None
+    onboard: InProcessOnboard | ProcessOnboard | None = None
+    wall0 = time.perf_counter()
+    try:
+        if in_process:
+            cmd_fc, cmd_ob = MemoryTransport.pair(MEMORY_CAPACITY_BYTES, name="command")
+            moc_fc, moc_ob = MemoryTransport.pair(MEMORY_CAPACITY_BYTES, name="mocap")
+            links += [cmd_fc, cmd_ob, moc_fc, moc_ob]
+        else:
+            cmd_fc = PtyTransport.create(s.links.command.baud)
+            moc_fc = PtyTransport.create(s.links.mocap.baud)
+            links += [cmd_fc, moc_fc]
+        try:
+            emu = EmulatorSide(
+                s,
+                profile,
+                rng,
+                cmd_fc,
+                moc_fc,
+                clock=clock,
+                backend=s.physics,
+                tlog=tlog,
+                duration_s=s.duration_s,
+            )
+        except ValueError as exc:
+            raise RunSetupError(str(exc)) from exc
+        if in_process:
+            onboard = InProcessOnboard(cmd_ob, moc_ob, config, log_path)
+        else:
+            argv = onboard_argv(
+                cmd_fc.endpoint,
+                moc_fc.endpoint,
+                s.links.command.baud,
+                s.links.mocap.baud,
+                ob_options,
+                log_path,
+                lockstep=not realtime,
+            )
+            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt")
+
+        def tell(t: float) -> None:
+            if progress is not None:
+                progress(t, s.duration_s)
+
+        if realtime:
+            loop = run_realtime(emu, onboard, s.duration_s, progress=tell)
+        else:
+            loop = run_lockstep(
+                emu, onboard, s.duration_s, tick_s=options.tick_s, guard_s=options.guard_s, progress=tell
+            )
+        exit_code = onboard.close() if isinstance(onboard, ProcessOnboard) else onboard.program.exit_code
+        onboard_events = onboard.events()
+        wall_s = time.perf_counter() - wall0
+        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime)
+    finally:
+        if onboard is not None:
+            onboard.close()
+        tlog.close()
+        if emu is not None:
+            emu.close()
+        for link in links:
+            link.close()
+
+
+def _finish(
+    s: Scenario,
+    out: Path,
+    emu: EmulatorSide,
+    loop: LoopReport,
+    onboard_events: list[dict[str, Any]],
+    exit_code: int | None,
+    wall_s: float,
+    in_process: bool,
+    realtime: bool,
+) -> RunResult:
+    rec = emu.recorder
+    cols = rec.columns()
+    cols["phase"] = _phase_column(cols, onboard_events)
+    tracker = rec.tracker
+    first = tracker.crossings[0] if tracker.crossings else None
+    fc_events = emu.vehicle.fc.events
+    failsafes = tuple((e.to_state.value, e.time_s) for e in fc_events if e.to_state.failsafe)
+    aborts = [ev for ev in onboard_events if ev.get("event") == "abort"]
+    plan = next((ev for ev in onboard_events if ev.get("event") == "plan"), None)
+    hover = plan.get("hover_m") if plan else None
+    links = _link_stats(emu)
+    sim_time = emu.time_s
+    obs = Observations(
+        sim_time_s=sim_time,
+        crossed_gap=tracker.crossed_through_opening,
+        crossing_time_s=None if first is None else first.time_s,
+        collision=None if rec.collision is None else rec.collision.obstacle,
+        collision_time_s=None if rec.collision is None else rec.collision.time_s,
+        min_clearance_m=tracker.min_clearance_m,
+        min_clearance_time_s=tracker.min_clearance_time_s,
+        attitude_error_deg=rec.attitude_error_at_crossing_deg,
+        max_outside_lab_m=rec.max_outside_lab_m,
+        failsafe_states=failsafes,
+        onboard_abort_s=float(aborts[0]["t_s"]) if aborts else None,
+        hover_point_m=tuple(hover) if isinstance(hover, list) and len(hover) == 3 else None,
+        columns=cols,
+        link={k: links["summary"][k] for k in links["summary"]},
+    )
+    checks = tuple(evaluate(s, obs))
+    passed = all(c.passed for c in checks)
+    airborne = cols["fc_state"] > 0
+    events = [
+        {
+            "time_s": e.time_s,
+            "source": "fc",
+            "text": f"{e.from_state.value} -> {e.to_state.value}: {e.reason}",
+        }
+        for e in fc_events
+    ]
+    events += [
+        {"time_s": ev.get("t_s"), "source": "onboard", "text": _event_text(ev)} for ev in onboard_events
+    ]
+    events += emu.faults.events() + loop.events
+    if rec.collision is not None:
+        events.append(
+            {
+                "time_s": rec.collision.time_s,
+                "source": "world",
+                "text": f"collision: {rec.collision.obstacle}",
+            }
+        )
+    events.sort(key=lambda ev: ev["time_s"] if isinstance(ev["time_s"], int | float) else math.inf)
+    summary: dict[str, Any] = {
+        "passed": passed,
+        "scenario_id": s.id,
+        "end_reason": "duration reached",
+        "checks": [c.to_dict() for c in checks],
+        "crossed_gap": obs.crossed_gap,
+        "collision": obs.collision,
+        "collision_time_s": obs.collision_time_s,
+        "min_clearance_m": obs.min_clearance_m,
+        "attitude_error_deg": obs.attitude_error_deg,
+        "crossing": None
+        if first is None
+        else {
+            "time_s": first.time_s,
+            "point_m": list(first.point_m),
+            "through_opening": first.through_opening,
+        },
+        "sim_time_s": sim_time,
+        "wall_time_s": wall_s,
+        "loop_wall_time_s": loop.wall_loop_s,
+        "real_time_factor": sim_time / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
+        "mode": {
+            "in_process": in_process,
+            "realtime": realtime,
+            "pilot": s.pilot,
+            "seed": s.seed,
+            "physics": s.physics,
+        },
+        "ticks": loop.ticks,
+        "ticks_answered": loop.answered,
+        "links": links,
+        "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
+        "fc_final_state": emu.vehicle.fc.state.value,
+        "onboard_exit_code": exit_code,
+        "onboard_abort_s": obs.onboard_abort_s,
+        "mean_thrust_n": float(np.mean(cols["thrust_n"][airborne])) if np.any(airborne) else 0.0,
+        "mean_angular_rate_rad_s": float(np.mean(cols["body_rate_rad_s"])) if len(cols["t_s"]) else 0.0,
+        "events": events,
+        "scenario": s.to_dict(),
+    }
+    write_summary(out, summary)
+    write_timeseries(out, cols)
+    write_report_html(out, summary, cols, s)
+    return RunResult(passed, checks, out, summary)
+
+
+def _event_text(ev: dict[str, Any]) -> str:
+    name = str(ev.get("event", "?"))
+    extra = {k: v for k, v in ev.items() if k not in ("event", "t_s")}
+    for key in ("segment", "reason"):
+        if key in extra:
+            return f"{name}: {extra[key]}"
+    return name
+
+
+def _phase_column(cols: dict[str, np.ndarray], events: list[dict[str, Any]]) -> np.ndarray:
+    t = cols["t_s"]
+    phase = np.zeros(len(t))
+    for ev in events:
+        name, t0 = ev.get("event"), ev.get("t_s")
+        if not isinstance(t0, int | float):
+            continue
+        if name == "segment":
+            seg = str(ev.get("segment", "")).lower()
+            code = next((c for key, c in SEGMENT_PHASES.items() if key in seg), 0)
+            phase[t >= t0] = code
+        elif name == "abort":
+            phase[t >= t0] = 4
+    failsafe = (cols["fc_state"] == 4) | (cols["fc_state"] == 5)
+    phase[failsafe] = 4
+    return phase
+
+
+def _link_stats(emu: EmulatorSide) -> dict[str, Any]:
+    wire, server, mocap = emu.wire, emu.server, emu.mocap
+    st = mocap.stats
+    sim = max(emu.time_s, 1e-9)
+    sent = wire.setpoints_sent
+    applied = server.stats.setpoints_applied
+    radio = st.radio
+    summary = {
+        "command_delivered_fraction": applied / sent if sent else None,
+        "command_rate_hz": applied / sim,
+        "mocap_delivered_fraction": radio.delivered / radio.sent if radio.sent else None,
+        "mocap_rate_hz": st.frames_written / sim,
+    }
+    return {
+        "summary": summary,
+        "command": {
+            "setpoints_sent": sent,
+            "setpoints_applied": applied,
+            **{f"to_fc_{k}": v for k, v in wire.to_fc.as_dict().items()},
+            **{f"to_onboard_{k}": v for k, v in wire.to_onboard.as_dict().items()},
+            **{f"fc_codec_{k}": v for k, v in emu.codec.stats.as_dict().items()},
+        },
+        "mocap": {
+            "frames_exposed": st.mocap.frames,
+            "radio_sent": radio.sent,
+            "radio_delivered": radio.delivered,
+            "radio_lost": radio.lost,
+            "radio_late": radio.late,
+            "frames_written": st.frames_written,
+            "bytes_written": st.bytes_written,
+            "bytes_dropped_fault": emu.mocap_link.bytes_dropped_fault,
+            "bytes_corrupted": emu.mocap_link.bytes_corrupted,
+        },
+    }

@@ -1,0 +1,271 @@
+"""The command link as the emulator sees it in a run: per-message latency, jitter and loss (with
+Gilbert-Elliott bursts), UART wire time at the link's baud, and the link faults, in both directions,
+on simulated time.
+
+`CommandWire` is the Transport under the FC's MAVLink codec. Frames the FC sends are queued with their
+arrival time and written to the real link (memory end or pty master) by `pump()`; bytes the onboard
+program wrote are split into frames by the runner (`FrameSplitter`), each given an arrival time, and
+read by the FC's codec once the SimClock has reached it. Lockstep ticks and their answers are the
+harness's own traffic: they bypass the model, the faults and the FC (`send_sync`).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from hil.link.clock import SimClock
+from hil.link.transport import Transport
+from hil.runner.faults import FaultSchedule, corrupt
+from hil.scenario.schema import LinkSpec
+
+BITS_PER_BYTE = 10  # 8N1
+MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC = 0xFD, 0xFE
+TIMESYNC_MSG_ID = 111
+
+
+@dataclass(frozen=True)
+class LinkModel:
+    """Per-message behaviour of one link direction (s, bit/s, probabilities)."""
+
+    baud: int = 921600
+    latency_s: float = 0.0
+    jitter_s: float = 0.0
+    loss: float = 0.0
+    burst_p_gb: float = 0.0
+    burst_p_bg: float = 1.0
+
+    @classmethod
+    def from_spec(cls, spec: LinkSpec) -> LinkModel:
+        burst = spec.burst
+        return cls(
+            baud=spec.baud,
+            latency_s=spec.latency_ms * 1e-3,
+            jitter_s=spec.jitter_ms * 1e-3,
+            loss=spec.loss,
+            burst_p_gb=0.0 if burst is None else burst.p_gb,
+            burst_p_bg=1.0 if burst is None else burst.p_bg,
+        )
+
+
+@dataclass
+class DirectionStats:
+    """What happened to the frames of one direction (counts)."""
+
+    frames_sent: int = 0
+    frames_delivered: int = 0
+    frames_lost: int = 0  # by the link model (loss, bursts)
+    frames_dropped_fault: int = 0  # by command_link_down
+    bytes_delivered: int = 0
+    bytes_corrupted: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class _Channel:
+    """Loss, latency and jitter then the UART: gives each accepted frame its arrival time (s)."""
+
+    def __init__(self, model: LinkModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self.byte_time_s = BITS_PER_BYTE / model.baud
+        self._bad = False
+        self._line_free_s = -math.inf
+        self._last_arrival_s = -math.inf
+
+    def arrival_s(self, now_s: float, n_bytes: int) -> float | None:
+        """When a frame of ``n_bytes`` handed over at ``now_s`` arrives, or None if the link loses it."""
+        m, rng = self.model, self.rng
+        if m.burst_p_gb > 0:
+            self._bad = (rng.random() >= m.burst_p_bg) if self._bad else (rng.random() < m.burst_p_gb)
+            if self._bad:
+                return None
+        if m.loss > 0 and rng.random() < m.loss:
+            return None
+        start = max(now_s, self._line_free_s)  # the UART sends one frame after the other
+        self._line_free_s = start + n_bytes * self.byte_time_s
+        latency = m.latency_s
+        if m.jitter_s > 0:
+            latency = max(0.0, latency + rng.normal(0.0, m.jitter_s))
+        arrival = max(self._line_free_s + latency, self._last_arrival_s)  # a serial link keeps order
+        self._last_arrival_s = arrival
+        return arrival
+
+
+class FrameSplitter:
+    """Cuts a MAVLink byte stream into frames by their length fields (no CRC check: the FC's codec does
+    that); bytes before a frame start are passed on as they are."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        i = 0
+        n = len(buf)
+        while i < n:
+            magic = buf[i]
+            if magic == MAVLINK_V2_MAGIC:
+                if i + 3 > n:
+                    break
+                size = 12 + buf[i + 1] + (13 if buf[i + 2] & 0x01 else 0)
+            elif magic == MAVLINK_V1_MAGIC:
+                if i + 2 > n:
+                    break
+                size = 8 + buf[i + 1]
+            else:
+                j = i + 1
+                while j < n and buf[j] not in (MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC):
+                    j += 1
+                out.append(bytes(buf[i:j]))
+                i = j
+                continue
+            if i + size > n:
+                break
+            out.append(bytes(buf[i : i + size]))
+            i += size
+        del buf[:i]
+        return out
+
+
+def timesync_answer_ns(frame: bytes) -> int | None:
+    """The tick time (ns) of a lockstep answer (TIMESYNC with tc1 == ts1 != 0), else None."""
+    if len(frame) < 12 or frame[0] != MAVLINK_V2_MAGIC:
+        return None
+    if frame[7] | frame[8] << 8 | frame[9] << 16 != TIMESYNC_MSG_ID:
+        return None
+    payload = bytes(frame[10 : 10 + frame[1]]).ljust(16, b"\x00")  # MAVLink 2 trims trailing zeros
+    tc1 = int.from_bytes(payload[0:8], "little", signed=True)
+    ts1 = int.from_bytes(payload[8:16], "little", signed=True)
+    return tc1 if tc1 == ts1 and tc1 != 0 else None
+
+
+class CommandWire(Transport):
+    """The FC's end of the command link in a run (see the module docstring)."""
+
+    def __init__(
+        self,
+        raw: Transport,
+        clock: SimClock,
+        model: LinkModel,
+        rng: np.random.Generator,
+        faults: FaultSchedule,
+    ) -> None:
+        super().__init__()
+        self.raw = raw
+        self.clock = clock
+        self.faults = faults
+        self.endpoint = raw.endpoint
+        out_rng, in_rng, self._corrupt_rng = rng.spawn(3)
+        self._out = _Channel(model, out_rng)
+        self._in = _Channel(model, in_rng)
+        self._out_queue: list[tuple[float, int, bytes]] = []
+        self._in_queue: list[tuple[float, int, bytes]] = []
+        self._seq = 0
+        self.splitter = FrameSplitter()
+        self.to_onboard = DirectionStats()
+        self.to_fc = DirectionStats()
+        self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
+        self.answers: list[int] = []  # lockstep answers (tick ns) seen by `read_onboard`
+
+    # --- FC -> onboard --------------------------------------------------------------------------
+    def _send_internal(self, data: bytes) -> int:
+        self.to_onboard.frames_sent += 1
+        arrival = self._out.arrival_s(self.clock.now_s(), len(data))
+        if arrival is None:
+            self.to_onboard.frames_lost += 1
+        else:
+            self._seq += 1
+            heapq.heappush(self._out_queue, (arrival, self._seq, data))
+        return len(data)
+
+    def pump(self) -> int:
+        """Write to the real link the FC frames that have arrived by now; returns bytes written."""
+        now = self.clock.now_s()
+        q, st = self._out_queue, self.to_onboard
+        chunks = []
+        while q and q[0][0] <= now + 1e-12:
+            t, _, frame = heapq.heappop(q)
+            frame = self._apply_faults(frame, t, st)
+            if frame is not None:
+                chunks.append(frame)
+        if not chunks:
+            return 0
+        data = b"".join(chunks)
+        return self.raw.send(data) if not self.raw.closed else 0
+
+    def send_sync(self, frame: bytes) -> None:
+        """Write a lockstep tick straight to the real link (no model, no faults, not seen by the FC)."""
+        if not self.raw.closed:
+            self.raw.send(frame)
+
+    # --- onboard -> FC --------------------------------------------------------------------------
+    def read_onboard(self, timeout_s: float = 0.0) -> bool:
+        """Read what the onboard program wrote, queue its frames for the FC at their arrival times and
+        note lockstep answers in ``answers``; False when nothing came within ``timeout_s`` (wall s)."""
+        data = self.raw.recv(timeout_s)
+        if not data:
+            return False
+        now = self.clock.now_s()
+        for frame in self.splitter.feed(data):
+            tick_ns = timesync_answer_ns(frame)
+            if tick_ns is not None:
+                self.answers.append(tick_ns)
+                continue
+            if (
+                len(frame) > 9
+                and frame[0] == MAVLINK_V2_MAGIC
+                and frame[7] == 82
+                and frame[8] == frame[9] == 0
+            ):
+                self.setpoints_sent += 1
+            self.to_fc.frames_sent += 1
+            arrival = self._in.arrival_s(now, len(frame))
+            if arrival is None:
+                self.to_fc.frames_lost += 1
+                continue
+            self._seq += 1
+            heapq.heappush(self._in_queue, (arrival, self._seq, frame))
+        return True
+
+    def next_arrival_s(self) -> float:
+        """When the next onboard frame reaches the FC (s; inf when none is on the way)."""
+        return self._in_queue[0][0] if self._in_queue else math.inf
+
+    def _recv_internal(self, max_bytes: int) -> bytes:
+        now = self.clock.now_s()
+        q, st = self._in_queue, self.to_fc
+        chunks = []
+        while q and q[0][0] <= now + 1e-12:
+            t, _, frame = heapq.heappop(q)
+            frame = self._apply_faults(frame, t, st)
+            if frame is not None:
+                chunks.append(frame)
+        return b"".join(chunks)
+
+    def _apply_faults(self, frame: bytes, time_s: float, st: DirectionStats) -> bytes | None:
+        if self.faults.any_active("command_link_down", time_s):
+            st.frames_dropped_fault += 1
+            return None
+        frac = self.faults.corrupt_fraction("command", time_s)
+        if frac > 0:
+            frame, flipped = corrupt(frame, frac, self._corrupt_rng)
+            st.bytes_corrupted += flipped
+        st.frames_delivered += 1
+        st.bytes_delivered += len(frame)
+        return frame
+
+    def fileno(self) -> int:
+        return self.raw.fileno()
+
+    def _wait_readable(self, timeout_s: float | None) -> None:
+        return  # the FC's codec only ever polls (timeout 0)
+
+    def _close_internal(self) -> None:
+        self.raw.close()

@@ -1,0 +1,74 @@
+"""The pytest plugin: scenario files collected as tests (one per document), failures showing the failed
+checks and the report, markers from YAML, bad files as collection errors, JUnit XML, xdist."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+FAILSAFE = """
+name: {name}
+description: the command link drops during the climb; the FC must fail safe
+gap: {{roll_deg: 0}}
+faults:
+  - {{kind: command_link_down, start_s: 0.8}}
+duration_s: 2.2
+markers: [faults]
+expect: {{crosses_gap: false, recovery: false, failsafe_expected: {fs}}}
+"""
+
+
+def pytest_run(args: list[str], cwd) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_scenarios_collected_run_and_reported(tmp_path):
+    (tmp_path / "two.scenario.yaml").write_text(
+        FAILSAFE.format(name="good", fs="hover") + "---\n" + FAILSAFE.format(name="wrong", fs="false")
+    )
+    (tmp_path / "skipped.scenario.yaml").write_text("description: not run\nskip: shows skip\n")
+    xml = tmp_path / "junit.xml"
+    p = pytest_run(
+        [
+            str(tmp_path),
+            "-n",
+            "2",
+            "--hil-in-process",
+            "--hil-out",
+            str(tmp_path / "out"),
+            f"--junitxml={xml}",
+            "-m",
+            "faults or not faults",
+        ],
+        tmp_path,
+    )
+    out = p.stdout
+    assert p.returncode == 1, out
+    assert "1 failed, 1 passed, 1 skipped" in out
+    assert "failsafe: expected no failsafe; observed failsafe_hover (t = 1.7" in out
+    assert str(tmp_path / "out" / "wrong" / "report.html") in out
+    cases = {c.get("name"): c for c in ET.parse(xml).getroot().iter("testcase")}
+    assert set(cases) == {"good", "wrong", "skipped"}
+    assert cases["wrong"].find("failure") is not None and cases["good"].find("failure") is None
+    p = pytest_run([str(tmp_path), "--collect-only", "-q", "-m", "not faults"], tmp_path)
+    assert "good" not in p.stdout and "skipped" in p.stdout  # markers come from the YAML
+
+
+def test_a_bad_file_is_a_collection_error_naming_file_line_field(tmp_path):
+    (tmp_path / "bad.scenario.yaml").write_text("description: x\ngap:\n  roll_deg: sixty\n")
+    p = pytest_run([str(tmp_path), "--collect-only"], tmp_path)
+    assert p.returncode != 0
+    assert "bad.scenario.yaml:3" in p.stdout and "gap.roll_deg" in p.stdout
+
+
+def test_pilot_option_reaches_the_runner(tmp_path):
+    (tmp_path / "one.scenario.yaml").write_text(FAILSAFE.format(name="one", fs="hover"))
+    p = pytest_run([str(tmp_path), "--hil-in-process", "--pilot", "no_such_pilot"], tmp_path)
+    assert p.returncode == 1 and "unknown pilot 'no_such_pilot'" in p.stdout

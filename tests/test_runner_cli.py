@@ -1,0 +1,71 @@
+"""`hil run` as a user calls it: exit 0 when every check passes, 1 when one fails (the harness reports
+a collision it was not told to expect), 2 for bad files, each with a message naming file, line, field."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+HIL = [sys.executable, "-m", "hil.cli"]
+
+PASSING = """
+description: command link lost during the climb; the FC must fail safe to a hover
+gap: {roll_deg: 0}
+faults:
+  - {kind: command_link_down, start_s: 1.0}
+duration_s: 2.5
+expect: {crosses_gap: false, recovery: false, failsafe_expected: hover}
+"""
+FAILING = PASSING.replace("failsafe_expected: hover", "failsafe_expected: false")
+
+
+def run(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(HIL + args, cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+def test_exit_0_when_the_checks_pass_and_1_when_one_fails(tmp_path):
+    ok = tmp_path / "ok.scenario.yaml"
+    ok.write_text(PASSING)
+    p = run(["run", str(ok), "--in-process", "--out", str(tmp_path / "ok")], tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "PASSED ok" in p.stdout and str(tmp_path / "ok" / "report.html") in p.stdout
+    summary = json.loads((tmp_path / "ok" / "summary.json").read_text())
+    assert summary["passed"] is True and summary["failsafe_events"]
+    bad = tmp_path / "bad.scenario.yaml"
+    bad.write_text(FAILING)
+    p = run(["run", str(bad), "--in-process", "--out", str(tmp_path / "bad")], tmp_path)
+    assert p.returncode == 1, p.stdout + p.stderr
+    assert "failed failsafe: expected no failsafe, observed failsafe_hover" in p.stdout
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "field"),
+    [
+        ("description: x\ngap: {roll_deg: 30\n", 2, ""),  # bad YAML
+        ("description: x\ngap:\n  rol_deg: 30\n", 3, "gap.rol_deg"),  # unknown field
+        ("description: x\nduration_s: 8\ngap:\n  roll_deg: 120\n", 4, "gap.roll_deg"),  # out of range
+    ],
+    ids=["bad_yaml", "unknown_field", "out_of_range"],
+)
+def test_broken_files_exit_2_naming_file_line_and_field(tmp_path, text, line, field):
+    f = tmp_path / "broken.scenario.yaml"
+    f.write_text(text)
+    p = run(["run", str(f), "--in-process"], tmp_path)
+    assert p.returncode == 2
+    assert f"broken.scenario.yaml:{line}" in p.stderr or f"broken.scenario.yaml:{line + 1}" in p.stderr, (
+        p.stderr
+    )
+    assert field in p.stderr
+
+
+def test_bad_options_exit_2(tmp_path):
+    f = tmp_path / "ok.scenario.yaml"
+    f.write_text(PASSING)
+    p = run(["run", str(f), "--in-process", "--pilot", "nobody"], tmp_path)
+    assert p.returncode == 2 and "unknown pilot 'nobody'" in p.stderr
+    p = run(["run", str(tmp_path / "missing.scenario.yaml")], tmp_path)
+    assert p.returncode == 2 and "cannot read" in p.stderr
