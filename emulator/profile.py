@@ -135,7 +135,9 @@ def _build(data: dict[str, Any], source: str) -> VehicleProfile:
             bound = 0.0 if "drag" in f.name else None
             for x in vec:
                 if (bound is None and x <= 0) or (bound is not None and x < bound):
-                    raise ProfileError(source, f.name, f"expected {'>= 0' if bound is not None else '> 0'}, got {x}")
+                    raise ProfileError(
+                        source, f.name, f"expected {'>= 0' if bound is not None else '> 0'}, got {x}"
+                    )
             values[f.name] = vec
         else:
             x = _number(source, f.name, raw)
@@ -167,7 +169,9 @@ def load_profile(path_or_name: str | Path) -> VehicleProfile:
     if not path.suffix:
         builtin = resources.files("emulator") / "profiles" / f"{path_or_name}.yaml"
         if not builtin.is_file():
-            raise ProfileError(str(path_or_name), "name", f"no built-in profile (have: {', '.join(builtin_profiles())})")
+            raise ProfileError(
+                str(path_or_name), "name", f"no built-in profile (have: {', '.join(builtin_profiles())})"
+            )
         text = builtin.read_text()
         source = f"{path_or_name}.yaml"
     else:

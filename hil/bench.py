@@ -62,8 +62,13 @@ def time_per_call(fn: Callable[[], object], min_time_s: float = 0.5, max_calls: 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="print speed and memory figures (table, or --json)")
     p.add_argument("--json", action="store_true", help="print one JSON object: figure name -> number")
-    p.add_argument("--only", action="append", default=None, metavar="GROUP",
-                   help=f"run only this group (repeatable); groups: {', '.join(bench_modules())}")
+    p.add_argument(
+        "--only",
+        action="append",
+        default=None,
+        metavar="GROUP",
+        help=f"run only this group (repeatable); groups: {', '.join(bench_modules())}",
+    )
     p.add_argument("--quick", action="store_true", help="shorter measurements (noisier)")
     p.set_defaults(func=main)
 
@@ -73,7 +78,10 @@ def main(args: argparse.Namespace) -> int:
     if args.only:
         unknown = sorted(set(args.only) - set(groups))
         if unknown:
-            print(f"hil bench: unknown group(s) {', '.join(unknown)}; have: {', '.join(groups)}", file=sys.stderr)
+            print(
+                f"hil bench: unknown group(s) {', '.join(unknown)}; have: {', '.join(groups)}",
+                file=sys.stderr,
+            )
             return 2
         groups = [g for g in groups if g in args.only]
 

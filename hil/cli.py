@@ -12,11 +12,15 @@ import hil.commands
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hil", description="crossgap-hil: HIL harness and N3-style FC emulator")
+    parser = argparse.ArgumentParser(
+        prog="hil", description="crossgap-hil: HIL harness and N3-style FC emulator"
+    )
     parser.add_argument("--version", action="version", version=f"crossgap-hil {hil.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules = ["hil.bench"] + [
-        f"hil.commands.{m.name}" for m in pkgutil.iter_modules(hil.commands.__path__) if not m.name.startswith("_")
+        f"hil.commands.{m.name}"
+        for m in pkgutil.iter_modules(hil.commands.__path__)
+        if not m.name.startswith("_")
     ]
     for name in sorted(modules):
         importlib.import_module(name).register(sub)
