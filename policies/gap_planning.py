@@ -37,6 +37,10 @@ from policies.primitives import Feasibility, Trajectory, solve
 Vec3 = tuple[float, float, float]
 
 
+#: gravity along the long side below which a gap counts as level (m/s^2; 0.2 is a tilt of about 1.2 deg)
+NEAR_LEVEL_G0_M_S2 = 0.2
+
+
 class PlanningError(ValueError):
     """No plan satisfies the constraints; the message says which one failed."""
 
@@ -217,8 +221,10 @@ def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: Vehicle
         raise PlanningError(f"traverse thrust {thrust:.2f} m/s^2 is outside the vehicle's limits")
     g0 = abs(float(g @ gap.e0))
     a_u = float(a_tr @ u)
-    if g0 < 1e-9:  # tilt 0: no drop along the long side, a straight traverse
-        t_c_all = np.array([d_min_m / s])
+    if g0 < NEAR_LEVEL_G0_M_S2:  # (nearly) level: no drop worth an arc, a straight traverse of d_min
+        # (a gap measured a few mrad off level would otherwise get an l = 0.5 m arc metres long)
+        disc = s * s - 2 * a_u * d_min_m
+        t_c_all = np.array([2 * d_min_m / (s + math.sqrt(disc)) if disc >= 0 else d_min_m / s])
     else:  # grid over l plus the value where d = d_min exactly (the usual optimum)
         l_grid = np.linspace(l_max_m / 1000, l_max_m, 1000)
         t_c_all = np.sqrt(2 * l_grid / g0)

@@ -5,6 +5,7 @@ Simulated time advances in 1 ms steps; the program is stepped by time (or by TIM
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,8 +19,8 @@ from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import MavlinkCodec, mav
 from policies.onboard import OnboardProgram, ProgramConfig
 
-#: the test gap: large enough for this 0.52 m vehicle to pass at 60 deg with a few cm to spare
-TEST_GAP_SIZE_M = (1.1, 0.55)
+#: the test gap: the program's (and the scenario files') default opening, 0.8 m x 0.45 m
+TEST_GAP_SIZE_M = (ProgramConfig.gap_width_m, ProgramConfig.gap_height_m)
 GAP_CENTRE_M = (0.0, 0.5, 2.1)
 START_XY_M = (-2.0, -1.0)
 
@@ -46,10 +47,12 @@ class RigResult:
 def run_mission(roll_deg: float = 0.0, speed_m_s: float = 2.0, *, t_end_s: float = 20.0,
                 gap_size_m: tuple[float, float] = TEST_GAP_SIZE_M, lockstep_period_s: float | None = None,
                 mocap_cut_s: float | None = None, seed: int = 1, after_s: float = 0.0,
+                probe: Callable[[float, EmulatedVehicle, OnboardProgram], None] | None = None,
                 **config: Any) -> RigResult:
     """Fly one mission; ``mocap_cut_s``: stop the mocap stream at that simulated time (s);
     ``lockstep_period_s``: drive the program by TIMESYNC ticks at that period instead of `step`;
-    ``after_s``: keep the emulator running this long after the program ends (the FC on its own)."""
+    ``after_s``: keep the emulator running this long after the program ends (the FC on its own);
+    ``probe(t, vehicle, program)``: called every 10 ms of simulated time while the program runs."""
     profile = load_profile("n3_tx2")
     gap = Gap(centre_m=GAP_CENTRE_M, roll_rad=math.radians(roll_deg), width_m=gap_size_m[0],
               height_m=gap_size_m[1])
@@ -78,6 +81,8 @@ def run_mission(roll_deg: float = 0.0, speed_m_s: float = 2.0, *, t_end_s: float
             mocap.update(t, vehicle.state, gap)
         if k % 10 == 0 and not vehicle.fc.landed:
             tracker.update(t, vehicle.state.pos_m, vehicle.state.quat_wxyz)
+        if probe is not None and k % 10 == 0:
+            probe(t, vehicle, program)
         if lockstep_period_s is None:
             program.step(t)
         elif t >= next_tick - 1e-9:

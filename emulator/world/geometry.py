@@ -113,14 +113,14 @@ def _vec3(name: str, value: object) -> tuple[float, float, float]:
 class Gap:
     """A rectangular opening in a finite wall (metres, radians; frame in the module docstring).
 
-    Defaults: a 0.8 m x 0.35 m opening in a 5 cm thick wall of 4 m x 4 m, level, at (0, 0, 1.5)."""
+    Defaults: a 0.8 m x 0.45 m opening in a 5 cm thick wall of 4 m x 4 m, level, at (0, 0, 1.5)."""
 
     centre_m: tuple[float, float, float] = (0.0, 0.0, 1.5)
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
     width_m: float = 0.8  # long side, along e0
-    height_m: float = 0.35  # short side, along e2
+    height_m: float = 0.45  # short side, along e2
     wall_thickness_m: float = 0.05  # along e1
     wall_width_m: float = DEFAULT_WALL_WIDTH_M  # along e0
     wall_height_m: float = DEFAULT_WALL_HEIGHT_M  # along e2

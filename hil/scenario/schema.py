@@ -61,7 +61,7 @@ class GapSpec:
     pitch_deg: float = spec(0.0, lo=-90.0, hi=90.0, doc="rotation about world y, applied after roll")
     yaw_deg: float = spec(0.0, lo=-180.0, hi=180.0, doc="heading of the crossing direction from world +x")
     width_m: float = spec(0.8, lo=0.0, hi=5.0, lo_open=True, doc="long side of the opening (along e0)")
-    height_m: float = spec(0.35, lo=0.0, hi=5.0, lo_open=True, doc="short side of the opening (along e2)")
+    height_m: float = spec(0.45, lo=0.0, hi=5.0, lo_open=True, doc="short side of the opening (along e2)")
     wall_thickness_m: float = spec(
         0.05, lo=0.0, hi=1.0, lo_open=True, doc="wall depth along the crossing axis"
     )

@@ -12,6 +12,13 @@ Safe hover on stale mocap (the vehicle's pose older than ``stale_mocap_s``): one
 at hover thrust (m g) is sent at once and repeated every control period, and DO_SET_MODE AUTO.LOITER
 (PX4 Hold) is sent until the FC's heartbeat shows it; from then the FC holds the vehicle on its own and
 the program stops ("abort" then "hold" events, exit code 3).
+
+Actuation lead: the FC reaches a commanded attitude with a lag (the emulated N3 answers a 20 deg roll
+step with an equivalent lag of about 0.09 s), which takes most of the phase margin of the expert's
+lightly damped position loop (zeta ~0.3 by design) and left a +-0.2 m, 1.6 s ringing after every
+manoeuvre. Each control step therefore computes its command for ``control_lead_s`` ahead: the state
+estimate predicted that far and the reference taken that far along, so that the attitude is right
+when the FC gets there.
 """
 
 from __future__ import annotations
@@ -70,12 +77,14 @@ class ProgramConfig:
     rate_hz: float = 100.0  # control rate; >= 50 Hz (the N3's minimum)
     approach_speed_m_s: float = 2.0  # speed through the gap centre
     approach_duration_s: float = 2.6
-    traverse_lead_m: float = 0.1  # the traverse starts at least this far before the gap plane (d_min)
+    # the traverse starts at least this far before the gap plane (d_min; the paper: 0.1 m): 0.25 m lets the
+    # FC finish most of the roll into the gap's tilt before the 0.52 m body reaches the wall
+    traverse_lead_m: float = 0.25
     stale_mocap_s: float = 0.1  # vehicle pose older than this: abort to a safe hover
     mass_kg: float = 0.9
     full_thrust_n: float = 24.0  # thrust at N3 100 % (the vehicle's n3_full_thrust_n)
     gap_width_m: float = 0.8  # the opening's size (mocap gives its pose only)
-    gap_height_m: float = 0.35
+    gap_height_m: float = 0.45
     lab_min_m: tuple[float, float, float] = (-5.0, -5.0, 0.0)
     lab_max_m: tuple[float, float, float] = (5.0, 5.0, 4.0)
     takeoff_height_m: float = 0.5  # climb at least to this height (m, world z) before the mission
@@ -89,6 +98,7 @@ class ProgramConfig:
     fc_lost_s: float = 3.0  # FC heartbeat silence that ends the program
     heartbeat_period_s: float = 1.0
     max_catch_up_steps: int = 3  # control steps run at once after a stall; later ones are skipped
+    control_lead_s: float = 0.06  # state and reference taken this far ahead (the FC's attitude lag)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
 
     def __post_init__(self) -> None:
@@ -102,6 +112,8 @@ class ProgramConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if not (math.isfinite(self.control_lead_s) and 0 <= self.control_lead_s <= 0.2):
+            raise ValueError(f"control_lead_s must be in [0, 0.2] s, got {self.control_lead_s!r}")
         for name in ("settle_s", "hover_s", "stream_before_offboard_s", "takeoff_height_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -493,12 +505,15 @@ class OnboardProgram:
         self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, self.config.hover_thrust_n))
 
     def _control(self, t_s: float, now_s: float) -> None:
-        """One control step scheduled at ``t_s`` (s), with the estimate at ``now_s``."""
+        """One control step scheduled at ``t_s`` (s), with the estimate at ``now_s``; the pilot and the
+        expert see the state and the reference ``control_lead_s`` ahead (module docstring)."""
         ph = self.phase
         if ph is Phase.ABORTING:
             self._send_safe_hover()
             return
-        est = self.estimator.estimate(now_s)
+        lead = self.config.control_lead_s
+        est = self.estimator.estimate(now_s + lead)
+        t_s += lead
         if ph in (Phase.AUTHORITY, Phase.ARMING):
             armed = self._fc("armed")
             thrust = self.config.hover_thrust_n if armed else 0.0
