@@ -22,7 +22,7 @@ test: lint
 	$(VENV)/bin/pytest -n 2 -q
 
 suite: setup
-	$(VENV)/bin/hil demo --out reports/demo
+	$(VENV)/bin/hil suite scenarios/ --out reports/
 
 clean:
 	rm -rf $(VENV) reports .pytest_cache .ruff_cache
