@@ -131,6 +131,24 @@ def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
     return np.array([math.cos(0.5 * angle), v[0] * s, v[1] * s, v[2] * s])
 
 
+def _pose_arrays(obj: object) -> tuple[np.ndarray, np.ndarray]:
+    """(pos_m (3,), quat_wxyz (4,)) float arrays of ``obj``, as `pose_of` reads them; a VehicleState's
+    own read-only arrays are used as they are."""
+    pos = getattr(obj, "pos_m", None)
+    quat = getattr(obj, "quat_wxyz", None)
+    if (
+        pos.__class__ is np.ndarray
+        and quat.__class__ is np.ndarray
+        and pos.shape == (3,)
+        and quat.shape == (4,)
+        and pos.dtype == np.float64
+        and quat.dtype == np.float64
+    ):
+        return pos, quat
+    pose = pose_of(obj)
+    return pose.pos_m, pose.quat_wxyz
+
+
 class MocapSystem:
     """Samples true poses on its frame grid (k / rate_hz) and releases frames after their latency.
 
@@ -151,6 +169,18 @@ class MocapSystem:
         """The next time something happens: an exposure or a frame leaving (s)."""
         t = self._next_exposure_k * self.config.period_s
         return min(t, self._pending[0][0]) if self._pending else t
+
+    def next_exposure_s(self) -> float:
+        """When the next exposure is taken (s): the only event that needs the true poses."""
+        return self._next_exposure_k * self.config.period_s
+
+    def release(self, now_s: float) -> list[MocapFrame]:
+        """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
+        out = []
+        pending = self._pending
+        while pending and pending[0][0] <= now_s + 1e-12:
+            out.append(heapq.heappop(pending)[2])
+        return out
 
     def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
         """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads);
@@ -175,10 +205,10 @@ class MocapSystem:
         cfg, rng = self.config, self._rng
         bodies = []
         for body_id in sorted(truth):
-            pose = pose_of(truth[body_id])
-            pos, quat = pose.pos_m, pose.quat_wxyz
-            finite = bool(np.all(np.isfinite(pos)) and np.all(np.isfinite(quat)))
-            valid = finite and float(np.linalg.norm(quat)) > 0.5
+            pos, quat = _pose_arrays(truth[body_id])
+            qw, qx, qy, qz = quat.tolist()
+            sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
+            valid = math.isfinite(sq) and sq > 0.25 and all(map(math.isfinite, pos.tolist()))
             if cfg.occlusion_prob > 0 and t_s >= self._occluded_until.get(body_id, -1.0) \
                     and rng.random() < cfg.occlusion_prob:
                 self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
@@ -186,11 +216,21 @@ class MocapSystem:
                 valid = False
             if valid:
                 pos = pos + rng.normal(0.0, cfg.pos_noise_m, 3) if cfg.pos_noise_m > 0 else pos.copy()
-                quat = quat / np.linalg.norm(quat)
-                if cfg.att_noise_rad > 0:
-                    quat = quat_multiply(quat, quat_from_rotvec(rng.normal(0.0, cfg.att_noise_rad, 3)))
-                if quat[0] < 0:
-                    quat = -quat
+                n = math.sqrt(sq)
+                aw, ax, ay, az = qw / n, qx / n, qy / n, qz / n
+                if cfg.att_noise_rad > 0:  # times the small rotation of a noise rotation vector
+                    rx, ry, rz = rng.normal(0.0, cfg.att_noise_rad, 3).tolist()
+                    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+                    if angle < 1e-12:
+                        bw, bx, by, bz = 1.0, 0.5 * rx, 0.5 * ry, 0.5 * rz
+                    else:
+                        sk = math.sin(0.5 * angle) / angle
+                        bw, bx, by, bz = math.cos(0.5 * angle), rx * sk, ry * sk, rz * sk
+                    aw, ax, ay, az = (aw * bw - ax * bx - ay * by - az * bz,
+                                      aw * bx + ax * bw + ay * bz - az * by,
+                                      aw * by - ax * bz + ay * bw + az * bx,
+                                      aw * bz + ax * by - ay * bx + az * bw)
+                quat = np.array((-aw, -ax, -ay, -az) if aw < 0 else (aw, ax, ay, az))
             else:
                 self.stats.bodies_occluded += 1
                 pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])

@@ -88,7 +88,15 @@ class MocapLinkServer:
             truth[BODY_IDS["vehicle"]] = vehicle_state
         if gap_pose is not None:
             truth[BODY_IDS["gap"]] = gap_pose
-        for frame in self.mocap.update(now, truth):
+        return self._forward(now, self.mocap.update(now, truth))
+
+    def deliver(self, now_s: float) -> int:
+        """Advance the radio and the wire to ``now_s`` without taking an exposure (none may be due
+        before ``now_s``: see `next_exposure_s`); returns bytes written."""
+        return self._forward(now_s, self.mocap.release(now_s))
+
+    def _forward(self, now: float, frames: list[MocapFrame]) -> int:
+        for frame in frames:
             self.radio.send(frame.ready_s, encode_mocap_payload(to_packet(frame)))
         for delivery in self.radio.update(now):
             node = Node(role=ROLE_ANCHOR, node_id=self.station_node_id, data=delivery.data)
@@ -110,6 +118,16 @@ class MocapLinkServer:
         """When ``update`` next has something to do (s, on the clock)."""
         return min(self.mocap.next_event_s(), self.radio.next_event_s(), self.uart.next_event_s())
 
+    def next_exposure_s(self) -> float:
+        """When the tracker next needs the true poses (s); everything between exposures can be caught
+        up later by `deliver` (or `update`), each frame keeping its own times."""
+        return self.mocap.next_exposure_s()
+
+    @property
+    def frames_written(self) -> int:
+        """LinkTrack frames handed to the transport so far."""
+        return self._frames_written
+
     @property
     def stats(self) -> MocapLinkStats:
         return MocapLinkStats(
@@ -127,9 +145,8 @@ def to_packet(frame: MocapFrame) -> MocapPacket:
         BodySample(
             body_id=b.body_id,
             stamp_s=frame.stamp_s,
-            pos_m=(float(b.pos_m[0]), float(b.pos_m[1]), float(b.pos_m[2])),
-            quat_wxyz=(float(b.quat_wxyz[0]), float(b.quat_wxyz[1]), float(b.quat_wxyz[2]),
-                       float(b.quat_wxyz[3])),
+            pos_m=tuple(b.pos_m.tolist()),
+            quat_wxyz=tuple(b.quat_wxyz.tolist()),
             valid=b.valid,
         )
         for b in frame.bodies[:MAX_BODIES]

@@ -96,15 +96,45 @@ class ExpertController:
 
         Raises ValueError for non-finite or wrongly shaped inputs.
         """
-        arrays = []
+        vals = []
         for name, value in (("pos_ref_m", pos_ref_m), ("vel_ref_m_s", vel_ref_m_s),
                             ("acc_ref_m_s2", acc_ref_m_s2), ("pos_m", pos_m), ("vel_m_s", vel_m_s)):
-            arr = np.asarray(value, dtype=float)
-            if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+            try:
+                x, y, z = (float(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value))
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
-            arrays.append(arr)
+            vals.append((x, y, z))
         if not math.isfinite(yaw_ref_rad):
             raise ValueError("yaw_ref_rad must be finite")
-        roll, pitch, yaw, thrust = expert_command_batch(arrays[0], arrays[1], arrays[2], yaw_ref_rad,
-                                                        arrays[3], arrays[4], self.mass_kg, self.gains)
-        return AttitudeThrustCommand(float(roll), float(pitch), float(yaw), float(thrust))
+        return _expert_one(*vals, float(yaw_ref_rad), self.mass_kg, self.gains)
+
+
+def _expert_one(p_ref: tuple[float, float, float], v_ref: tuple[float, float, float],
+                a_ref: tuple[float, float, float], p: tuple[float, float, float],
+                v: tuple[float, float, float], yaw: float, mass_kg: float,
+                gains: ExpertGains) -> AttitudeThrustCommand:
+    """`expert_command_batch` for one sample in plain floats (the same operations, no arrays)."""
+    mp, mv = gains.max_pos_err_m, gains.max_vel_err_m_s
+    acc = []
+    for k in range(3):
+        e_p = min(max(p_ref[k] - p[k], -mp), mp)
+        e_v = min(max(v_ref[k] - v[k], -mv), mv)
+        acc.append(gains.kv[k] * (e_v + gains.kp[k] * e_p) + gains.ka * a_ref[k])
+    hx, hy = acc[0] + 0.0, acc[1] + 0.0
+    f_z = max(acc[2] + GRAVITY_M_S2, gains.min_thrust_frac * GRAVITY_M_S2)
+    h_norm = math.sqrt(hx * hx + hy * hy)
+    h_max = f_z * math.tan(gains.tilt_max_rad)
+    if h_norm > h_max:
+        scale = h_max / h_norm
+        hx, hy = hx * scale, hy * scale
+    fx, fy, fz = mass_kg * hx, mass_kg * hy, mass_kg * f_z
+    thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
+    zx_w, zy_w, zz = fx / thrust, fy / thrust, fz / thrust
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    zx = cy * zx_w + sy * zy_w
+    zy = -sy * zx_w + cy * zy_w
+    roll = math.asin(min(max(-zy, -1.0), 1.0))
+    pitch = math.atan2(zx, zz)
+    return AttitudeThrustCommand(roll, pitch, yaw, thrust)

@@ -132,13 +132,14 @@ class MocapReader:
             return 0
         self._frames_ok += 1
         for body in packet.bodies:
-            quat = np.array(body.quat_wxyz)
-            norm = float(np.linalg.norm(quat))
+            qw, qx, qy, qz = body.quat_wxyz
+            norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             if not body.valid or not 0.5 < norm < 1.5:
                 self._bodies_invalid += 1
                 continue
             sample = PoseSample(
-                name=body.name, body_id=body.body_id, pos_m=np.array(body.pos_m), quat_wxyz=quat / norm,
+                name=body.name, body_id=body.body_id, pos_m=np.array(body.pos_m),
+                quat_wxyz=np.array((qw / norm, qx / norm, qy / norm, qz / norm)),
                 stamp_s=body.stamp_s, received_s=now_s, frame_no=packet.frame_no,
             )
             self._latest[body.body_id] = sample

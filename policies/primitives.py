@@ -109,12 +109,29 @@ class Trajectory:
         outputs (..., 3)), or an array of the batch shape plus a trailing sample axis of length S (S
         times per trajectory; outputs (..., S, 3)). The polynomial is evaluated as is outside [0, T].
         """
+        if not self.batch_shape and t.__class__ is float:
+            return self._state_one(t)
         t1, (p0, v0, a0, al, be, ga) = self._coeffs_for(t)
         t2, t3 = t1 * t1, t1 * t1 * t1
         p = p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120
         v = v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24
         a = a0 + ga * t1 + be * t2 / 2 + al * t3 / 6
         return p, v, a
+
+    def _state_one(self, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`state` of a single trajectory at one time, in plain floats (the same operations)."""
+        coeffs = self.__dict__.get("_floats")
+        if coeffs is None:
+            coeffs = self._floats = tuple(
+                zip(*(c.tolist() for c in (self.p0, self.v0, self.a0, self.alpha, self.beta, self.gamma)),
+                    strict=True))
+        t2, t3 = t1 * t1, t1 * t1 * t1
+        p, v, a = [], [], []
+        for p0, v0, a0, al, be, ga in coeffs:
+            p.append(p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120)
+            v.append(v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24)
+            a.append(a0 + ga * t1 + be * t2 / 2 + al * t3 / 6)
+        return np.array(p), np.array(v), np.array(a)
 
     def jerk(self, t: object) -> np.ndarray:
         """Jerk (m/s^3) at ``t`` (s); same shape rules as ``state``."""

@@ -194,8 +194,12 @@ class FlightController:
             self.offboard_selected = False
 
     def _detect_landed(self, state: VehicleState, t: float) -> None:
-        near = state.pos_m[2] - self._rest_height_m <= self.config.landed_margin_m
-        landed = bool(near and abs(state.vel_m_s[2]) < 0.3)
+        self.detect_landed(state.pos_m[2], state.vel_m_s[2], t)
+
+    def detect_landed(self, z_m: float, vz_m_s: float, t: float) -> None:
+        """Update ``landed`` from the body height ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) at ``t``."""
+        near = z_m - self._rest_height_m <= self.config.landed_margin_m
+        landed = bool(near and abs(vz_m_s) < 0.3)
         if landed and not self.landed:
             self._landed_since_s = t
         elif not landed:

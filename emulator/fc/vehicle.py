@@ -41,17 +41,25 @@ class EmulatedVehicle:
         self.backend = make_backend(backend, profile, dt_s) if isinstance(backend, str) else backend
         self.fc = FlightController(profile, config)
         self.backend.reset(initial_state or resting_state(profile, ground_z_m=self.fc.config.ground_z_m))
-        self._state = self.backend.state
+        self._state: VehicleState | None = self.backend.state
         self.steps = 0
 
     @property
     def state(self) -> VehicleState:
-        """The state after the last step."""
-        return self._state
+        """The state after the last step (built from the backend when first asked for)."""
+        st = self._state
+        if st is None:
+            st = self._state = self.backend.state
+        return st
 
     @property
     def time_s(self) -> float:
-        return self._state.time_s
+        st = self._state
+        return self.backend.time_s if st is None else st.time_s
+
+    def invalidate_state(self) -> None:
+        """The backend was stepped behind this object's back (a batched stepper): rebuild on demand."""
+        self._state = None
 
     @property
     def dt_s(self) -> float:
@@ -61,13 +69,13 @@ class EmulatedVehicle:
         """Run ``n_steps`` physics steps, the FC deciding the throttles before each."""
         backend, fc = self.backend, self.fc
         for _ in range(n_steps):
-            backend.step(fc.update(self._state), 1)
+            backend.step(fc.update(self.state), 1)
             self._state = backend.state
         self.steps += n_steps
 
     def step_to(self, time_s: float) -> int:
         """Step until simulated time reaches ``time_s`` (to the step below); returns the steps taken."""
-        n = math.floor((time_s - self._state.time_s) / self.backend.dt_s + 1e-6)
+        n = math.floor((time_s - self.time_s) / self.backend.dt_s + 1e-6)
         if n > 0:
             self.step(n)
         return max(n, 0)

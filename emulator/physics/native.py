@@ -10,6 +10,7 @@ with the same kernel (`emulator.physics.kernels.step_vehicle`); one vehicle is t
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 
 import numpy as np
 
@@ -63,6 +64,27 @@ def _check_steps(n_steps: int) -> int:
     return int(n_steps)
 
 
+_STATE_FIELDS = ("time_s", "pos_m", "vel_m_s", "quat_wxyz", "omega_rad_s", "rotor_speed_rad_s", "accel_m_s2")
+assert tuple(f.name for f in fields(VehicleState)) == _STATE_FIELDS, "VehicleState changed: update here"
+
+
+def _state_from_vector(x: np.ndarray, time_s: float, accel: np.ndarray) -> VehicleState:
+    """`VehicleState.from_vector` for the backend's own finite float64 vector, without the per-field
+    conversions: one read-only copy of the vector, the fields are views of it."""
+    v = np.concatenate((x, accel))
+    v.flags.writeable = False
+    st = object.__new__(VehicleState)
+    put = object.__setattr__
+    put(st, "time_s", time_s)
+    put(st, "pos_m", v[POS])
+    put(st, "vel_m_s", v[VEL])
+    put(st, "quat_wxyz", v[QUAT])
+    put(st, "omega_rad_s", v[OMEGA])
+    put(st, "rotor_speed_rad_s", v[ROTOR])
+    put(st, "accel_m_s2", v[STATE_SIZE : STATE_SIZE + 3])
+    return st
+
+
 class NativeBackend:
     """One vehicle stepped by the numba kernel at a fixed ``dt_s`` (s); implements PhysicsBackend.
 
@@ -110,7 +132,7 @@ class NativeBackend:
     @property
     def state(self) -> VehicleState:
         """The current state (built on demand)."""
-        return VehicleState.from_vector(self._x, time_s=self.time_s, accel_m_s2=self._aux[AUX_ACCEL])
+        return _state_from_vector(self._x, self.time_s, self._aux[AUX_ACCEL])
 
     def state_vector(self) -> np.ndarray:
         """A copy of the flat state (STATE_SIZE,), cheaper than ``state``."""

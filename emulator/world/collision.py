@@ -151,6 +151,15 @@ class World:
         )
         return _CODE_TO_OBSTACLE.get(code), Clearance(float(clr), bool(in_slab), EDGE_NAMES[edge])
 
+    def check_state(self, pos_m: np.ndarray, quat_wxyz: np.ndarray) -> tuple[Obstacle | None, Clearance]:
+        """`check` for a simulated state's own arrays, straight into the compiled kernels: float64
+        position (3,) and non-zero quaternion (4,), finite (the caller vouches; nothing is validated)."""
+        code, clr, in_slab, edge = check_pose(
+            pos_m, quat_to_rot(quat_wxyz), self._centre, self._axes, self._half, self._wall_half, self._hw,
+            self._hh, self._lab_min, self._lab_max, self.contact_tolerance_m,
+        )
+        return _CODE_TO_OBSTACLE.get(code), Clearance(float(clr), bool(in_slab), EDGE_NAMES[edge])
+
     def collision(self, pos_m: np.ndarray, attitude: np.ndarray) -> Obstacle | None:
         """What the box hits at this pose, or None. Order when several: wall, ground, lab boundary."""
         return self.check(pos_m, attitude)[0]
@@ -162,6 +171,10 @@ class World:
     def gap_coords(self, pos_m: np.ndarray) -> np.ndarray:
         """A point's gap coordinates (u along e0, n along e1, v along e2) in metres (3,)."""
         return self._axes @ (_as_positions(pos_m, batch=False) - self._centre)
+
+    def gap_coords_unchecked(self, pos_m: np.ndarray) -> np.ndarray:
+        """`gap_coords` of a float64 (3,) position the caller has validated."""
+        return self._axes @ (pos_m - self._centre)
 
     # --- batch queries (N poses) ---------------------------------------------------------------------
     def collision_batch(self, pos_m: np.ndarray, attitude: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from emulator.world.collision import Obstacle, World
+from emulator.world.collision import Clearance, Obstacle, World
 
 
 @dataclass(frozen=True)
@@ -49,9 +49,16 @@ class CrossingTracker:
         self.first_collision: CollisionEvent | None = None
         self.samples = 0
 
-    def update(self, time_s: float, pos_m: np.ndarray, attitude: np.ndarray) -> Crossing | None:
+    def update(
+        self,
+        time_s: float,
+        pos_m: np.ndarray,
+        attitude: np.ndarray,
+        checked: tuple[Obstacle | None, Clearance] | None = None,
+    ) -> Crossing | None:
         """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz); returns the
-        crossing completed by this sample, if any. Times must increase."""
+        crossing completed by this sample, if any. Times must increase. ``checked``: the result of
+        ``world.check(pos_m, attitude)`` when the caller has it already (and has validated the pose)."""
         t = float(time_s)
         if not math.isfinite(t):
             raise ValueError(f"time_s must be finite, got {time_s!r}")
@@ -59,12 +66,12 @@ class CrossingTracker:
             raise ValueError(f"time_s must increase: got {t} after {self._prev[0]}")
         world = self.world
         p = np.array(pos_m, dtype=np.float64)
-        hit, clr = world.check(p, attitude)  # validates the pose
+        hit, clr = world.check(p, attitude) if checked is None else checked  # validates the pose
         if clr.in_slab and (self.min_clearance_m is None or clr.clearance_m < self.min_clearance_m):
             self.min_clearance_m, self.min_clearance_time_s = clr.clearance_m, t
         if hit is not None and self.first_collision is None:
             self.first_collision = CollisionEvent(t, hit)
-        n = float(world.gap_coords(p)[1])
+        n = float((world.gap_coords(p) if checked is None else world.gap_coords_unchecked(p))[1])
         crossing = None
         if self._prev is not None:
             t0, p0, n0 = self._prev

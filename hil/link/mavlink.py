@@ -18,6 +18,7 @@ from hil.link.transport import Transport
 mav = mavlink2
 MAVLinkMessage = mavlink2.MAVLink_message
 
+MAVLINK_V2_MAGIC = 0xFD
 SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us units from 2015-01-01
 #: messages that must be signed when a key is configured (commands and setpoints)
 SIGNED_ONLY_MSG_IDS: frozenset[int] = frozenset(
@@ -43,6 +44,7 @@ class MavlinkStats:
 
     frames_received: int = 0  # good frames handed to the caller
     frames_sent: int = 0
+    frames_ignored: int = 0  # good frames of ids the caller does not use, dropped undecoded
     garbage_bytes: int = 0  # bytes skipped while looking for a frame start
     bad_crc: int = 0
     unknown_msg_id: int = 0
@@ -88,7 +90,10 @@ class MavlinkCodec:
         link_id: int = 0,
         signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
         recorder: FrameRecorder | None = None,
+        accept_ids: Collection[int] | None = None,
     ) -> None:
+        """``accept_ids``: the message ids the caller uses; other well-formed frames are CRC-checked
+        and dropped without being decoded (counted in ``stats.frames_ignored``). None decodes all."""
         if not (0 <= system_id <= 255 and 0 <= component_id <= 255):
             raise ValueError(f"MAVLink ids must be 0..255, got system {system_id}, component {component_id}")
         self.transport = transport
@@ -100,6 +105,7 @@ class MavlinkCodec:
         self._mav.robust_parsing = True
         self._signed_only = frozenset(signed_only)
         self._signing_epoch_unix_s = signing_epoch_unix_s
+        self._accept = None if accept_ids is None else frozenset(accept_ids)
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
@@ -128,11 +134,16 @@ class MavlinkCodec:
 
     def send(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured), write and record ``msg``; returns the frame."""
+        frame = self.pack(msg)
+        self.transport.send(frame)
+        return frame
+
+    def pack(self, msg: MAVLinkMessage) -> bytes:
+        """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
         if self.signing:
             self._refresh_signing_time()
         self._mav.send(msg)
         frame = self._out.pop()
-        self.transport.send(frame)
         self.stats.frames_sent += 1
         if self.recorder is not None:
             self.recorder.record(frame, self.clock.now_s())
@@ -145,6 +156,10 @@ class MavlinkCodec:
 
     def feed(self, data: bytes) -> list[MAVLinkMessage]:
         """Parse ``data`` as if it had arrived on the transport."""
+        if self._accept is not None and len(self._mav.buf) == self._mav.buf_index:
+            data = self._drop_unused(data)
+            if not data:
+                return []
         good: list[MAVLinkMessage] = []
         try:
             msgs = self._mav.parse_buffer(data) or []
@@ -166,6 +181,34 @@ class MavlinkCodec:
                     self.recorder.record(bytes(m.get_msgbuf()), now_s)
                 good.append(m)
         return good
+
+    def _drop_unused(self, data: bytes) -> bytes:
+        """``data`` without its leading complete, unsigned MAVLink 2 frames of ids not accepted whose
+        CRC is good; from the first byte that is not such a frame on, everything goes to pymavlink."""
+        accept, n, i = self._accept, len(data), 0
+        assert accept is not None
+        kept: list[bytes] = []
+        while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
+            end = i + 12 + data[i + 1]
+            if end > n:
+                break
+            msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
+            frame_cls = mavlink2.mavlink_map.get(msg_id)
+            if frame_cls is None:
+                break
+            if msg_id in accept:
+                kept.append(data[i:end])
+            elif crc_x25(data[i + 1 : end - 2], frame_cls.crc_extra) == data[end - 2] | data[end - 1] << 8:
+                self.stats.frames_ignored += 1
+                if self.recorder is not None:
+                    self.recorder.record(bytes(data[i:end]), self.clock.now_s())
+            else:
+                break  # a bad frame: pymavlink counts it
+            i = end
+        if i == 0:
+            return data
+        kept.append(data[i:])
+        return b"".join(kept)
 
     def _count_bad(self, m: Any) -> None:
         reason = str(m.reason)
@@ -189,6 +232,29 @@ class MavlinkCodec:
         self._mav.signing.timestamp = max(self._mav.signing.timestamp, stamp, 0)
 
 
+def _crc_table() -> tuple[int, ...]:
+    table = []
+    for b in range(256):
+        crc = b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1  # reflected 0x1021
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc_x25(data: bytes, extra: int | None = None) -> int:
+    """MAVLink's CRC-16/MCRF4XX of ``data`` (then the message's CRC_EXTRA byte, if given)."""
+    crc, table = 0xFFFF, _CRC_TABLE
+    for b in data:
+        crc = (crc >> 8) ^ table[(b ^ crc) & 0xFF]
+    if extra is not None:
+        crc = (crc >> 8) ^ table[(extra ^ crc) & 0xFF]
+    return crc
+
+
 class _Sink:
     """A write()-able that keeps what pymavlink writes, for the codec to forward."""
 
@@ -200,7 +266,8 @@ class _Sink:
 
 
 # --- frames: world ENU / body FLU inside, NED / FRD on the wire ------------------------------
-_Q_ENU_NED = np.array([0.0, math.sqrt(0.5), math.sqrt(0.5), 0.0])  # pi about (x+y): swaps NED <-> ENU
+_SQRT_HALF = math.sqrt(0.5)
+_Q_ENU_NED = np.array([0.0, _SQRT_HALF, _SQRT_HALF, 0.0])  # pi about (x+y): swaps NED <-> ENU
 _Q_FLU_FRD = np.array([0.0, 1.0, 0.0, 0.0])  # pi about x: swaps FLU <-> FRD
 
 
@@ -226,6 +293,18 @@ def _canonical(q: np.ndarray) -> np.ndarray:
 def quat_enu_flu_to_ned_frd(q_wxyz: np.ndarray) -> np.ndarray:
     """Body(FLU)->world(ENU) attitude -> body(FRD)->world(NED) attitude, (w, x, y, z)."""
     return _canonical(quat_multiply(quat_multiply(_Q_ENU_NED, np.asarray(q_wxyz, float)), _Q_FLU_FRD))
+
+
+def quat_enu_flu_to_ned_frd_tuple(
+    w: float, x: float, y: float, z: float
+) -> tuple[float, float, float, float]:
+    """`quat_enu_flu_to_ned_frd` in plain floats, for the per-tick paths (unit, w >= 0)."""
+    s = _SQRT_HALF
+    qw, qx, qy, qz = -(s * w + s * z), -(s * x) - s * y, s * y - s * x, -(s * w - s * z)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if qw < 0:
+        n = -n
+    return qw / n, qx / n, qy / n, qz / n
 
 
 def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
@@ -260,16 +339,21 @@ def euler_from_quat(q_wxyz: np.ndarray) -> tuple[float, float, float]:
 
 def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """(w, x, y, z) of aerospace Z-Y-X Euler angles (rad)."""
+    return np.array(quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
+
+
+def quat_from_euler_tuple(
+    roll_rad: float, pitch_rad: float, yaw_rad: float
+) -> tuple[float, float, float, float]:
+    """`quat_from_euler` as plain floats."""
     cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
     cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
     cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
-    return np.array(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
     )
 
 

@@ -2,9 +2,11 @@
 mocap over UWB on the mocap link, the gap world, faults on the airframe and the links, and the
 recording, all advanced together on one SimClock by `advance_to(t)`.
 
-Between two calls the loop stops only where something happens (a mocap exposure or delivery, a
-command frame reaching the FC, a fault switching, a world sample) and steps the physics in batches
-in between.
+Between two calls the loop stops only where something needs the vehicle's state or changes it (a
+mocap exposure, a command frame reaching the FC, a fault switching, a world sample) and steps the
+physics in batches in between; the radio and UART legs of the mocap chain are caught up at the next
+stop with their own times. What the emulator side writes goes out once per call: the mocap frames in
+one write, the FC's frames with the lockstep tick in another.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import math
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
@@ -31,6 +33,17 @@ from hil.runner.wires import CommandWire, LinkModel
 from hil.scenario.schema import Scenario
 
 FC_SYSTEM_ID = 1
+#: the FC's telemetry in a run (s between messages): what the onboard program acts on (HEARTBEAT) and
+#: a 10 Hz attitude and position trace for the .tlog; the full state is in timeseries.npz at 100 Hz.
+#: `hil fc` keeps the PX4-like defaults; the onboard side may ask for more with SET_MESSAGE_INTERVAL.
+RUN_STREAMS_S: dict[int, float] = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 1 / 10,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1 / 10,
+}
 
 
 def make_gap(scenario: Scenario) -> Gap:
@@ -66,7 +79,11 @@ def initial_state(scenario: Scenario, profile: VehicleProfile) -> tuple[VehicleS
 
 
 class _FaultyLink(Transport):
-    """The emulator's sending end of the mocap link with mocap_dropped and corrupt_bytes applied."""
+    """The emulator's sending end of the mocap link with mocap_dropped and corrupt_bytes applied.
+
+    Frames are held and written to the real link by `flush()` (once per `advance_to`: one write per
+    tick instead of one per frame); bytes the real link refuses then are counted in ``bytes_refused``.
+    """
 
     def __init__(self, raw: Transport, clock: SimClock, faults: FaultSchedule, rng: np.random.Generator):
         super().__init__()
@@ -74,17 +91,31 @@ class _FaultyLink(Transport):
         self.endpoint = raw.endpoint
         self.bytes_dropped_fault = 0
         self.bytes_corrupted = 0
+        self.bytes_refused = 0
+        self._held: list[bytes] = []
 
     def _send_internal(self, data: bytes) -> int:
-        t = self.clock.now_s()
-        if self.faults.any_active("mocap_dropped", t):
-            self.bytes_dropped_fault += len(data)
-            return len(data)
-        frac = self.faults.corrupt_fraction("mocap", t)
-        if frac > 0:
-            data, n = corrupt(data, frac, self.rng)
-            self.bytes_corrupted += n
-        return self.raw.send(data) if not self.raw.closed else 0
+        faults = self.faults
+        if faults.has_mocap_faults:
+            t = self.clock.now_s()
+            if faults.any_active("mocap_dropped", t):
+                self.bytes_dropped_fault += len(data)
+                return len(data)
+            frac = faults.corrupt_fraction("mocap", t)
+            if frac > 0:
+                data, n = corrupt(data, frac, self.rng)
+                self.bytes_corrupted += n
+        self._held.append(data)
+        return len(data)
+
+    def flush(self) -> None:
+        """Write the held frames to the real link in one go."""
+        if not self._held:
+            return
+        data = b"".join(self._held) if len(self._held) > 1 else self._held[0]
+        self._held.clear()
+        sent = self.raw.send(data) if not self.raw.closed else 0
+        self.bytes_refused += len(data) - sent
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         return b""
@@ -127,7 +158,8 @@ class EmulatorSide:
             command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
         )
         self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog)
-        self.server = MavlinkServer(self.vehicle, self.codec)
+        streams = ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S))
+        self.server = MavlinkServer(self.vehicle, self.codec, streams)
         m = scenario.links.mocap
         burst = m.burst
         uwb = UwbConfig(
@@ -155,30 +187,33 @@ class EmulatorSide:
         """Run the emulator side from now to ``t_end_s`` (s), then let the FC answer and send what is
         due at ``t_end_s`` and put the command-link bytes that have arrived on the wire."""
         t = self.clock.now_s()
-        rec, mocap, wire = self.recorder, self.mocap, self.wire
+        rec, mocap, wire, vehicle = self.recorder, self.mocap, self.wire, self.vehicle
+        # the loop stops at mocap exposures only (the radio and the UART are caught up at the next
+        # stop, each frame keeping its own times); with faults on the mocap link it stops at every
+        # mocap event, as the faults act at the time a frame reaches the link
+        exact = self.faults.has_mocap_faults
         while t < t_end_s - 1e-12:
-            t_next = min(
-                t_end_s, mocap.next_event_s(), wire.next_arrival_s(), rec.next_sample_s, self._next_boundary_s
-            )
+            m_next = mocap.next_event_s() if exact else mocap.next_exposure_s()
+            t_next = min(t_end_s, m_next, wire.next_arrival_s(), rec.next_sample_s, self._next_boundary_s)
             t_next = max(t_next, t + 1e-9)
             self._step_physics_to(t_next)
             self.clock.advance_to(t_next)
             t = t_next
             if t >= self._next_boundary_s - 1e-12:
                 self._switch_faults(t)
-            state = (
-                self.vehicle.state
-                if (t >= mocap.next_event_s() - 1e-12 or t >= rec.next_sample_s - 1e-12)
-                else None
-            )
-            if state is not None and t >= mocap.next_event_s() - 1e-12:
-                truth = self._frozen_truth if self._frozen_truth is not None else state
+            mocap_due = t >= m_next - 1e-12
+            if mocap_due:
+                truth = self._frozen_truth if self._frozen_truth is not None else vehicle.state
                 mocap.update(t, truth, self.gap)
             if t >= wire.next_arrival_s() - 1e-12:
                 self.server.poll(t)
-            if state is not None and t >= rec.next_sample_s - 1e-12:
-                rec.sample(t, state, self.vehicle.fc, self.server, mocap)
+            if t >= rec.next_sample_s - 1e-12:
+                if not mocap_due:
+                    mocap.deliver(t)
+                rec.sample(t, vehicle.state, vehicle.fc, self.server, mocap)
+        mocap.deliver(t_end_s)
         self.server.poll(t_end_s)
+        self.mocap_link.flush()
         wire.pump()
 
     def _step_physics_to(self, t_s: float) -> None:

@@ -8,7 +8,6 @@ millisecond); the batch stops before the FC's setpoint-loss timeout could fire, 
 
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
 
 from emulator.fc import EmulatedVehicle, FcState
@@ -35,7 +34,12 @@ class FastStepper:
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
-        return cls(vehicle, isinstance(vehicle.backend, NativeBackend))
+        stepper = cls(vehicle, isinstance(vehicle.backend, NativeBackend))
+        if stepper.native:  # compile (or load from the cache) now, not inside the timed loop
+            be, inner = vehicle.backend, vehicle.fc.inner
+            _fly_batch(be._x, be._aux, be._params, 0.0, 0.0, 0.0, 0.0, inner._params, inner._mix_inv,
+                       inner._out, 0)
+        return stepper
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
@@ -83,10 +87,11 @@ class FastStepper:
         be._steps += n
         v.steps += n
         self.batched_steps += n
-        state = be.state
-        v._state = state
+        v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
+        x = be._x
         # the FC's bookkeeping as its own per-step update would have left it
-        fc._last_t = state.time_s - v.dt_s
-        fc._quat = np.array(state.quat_wxyz)
-        fc._detect_landed(state, fc._last_t)
+        t_last = be.time_s - v.dt_s
+        fc._last_t = t_last
+        fc._quat = x[6:10].copy()
+        fc.detect_landed(x[2], x[5], t_last)
         fc.motor_cmd = inner._out

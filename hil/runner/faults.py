@@ -24,6 +24,17 @@ class FaultSchedule:
 
     def __init__(self, faults: Iterable[Fault]) -> None:
         self.faults = tuple(faults)
+        #: whether any fault acts on the mocap link / the command link (the per-frame paths skip the
+        #: schedule when none does)
+        self.has_mocap_faults = any(self._on_link(f, "mocap", "mocap_dropped") for f in self.faults)
+        self.has_command_faults = any(self._on_link(f, "command", "command_link_down") for f in self.faults)
+
+    @staticmethod
+    def _on_link(f: Fault, link: str, drop_kind: str) -> bool:
+        if f.kind == drop_kind:
+            return True
+        p = f.params
+        return f.kind == "corrupt_bytes" and isinstance(p, CorruptBytesParams) and p.link == link
 
     def active(self, kind: str, time_s: float) -> list[Fault]:
         """Faults of ``kind`` acting at ``time_s``."""

@@ -53,6 +53,8 @@ def run_lockstep(
     wall0 = time.perf_counter()
     next_progress = wall0 + 0.5
     first = True
+    wire = emu.wire
+    wire.hold_output = True  # the FC's frames go out with the tick, in one write
     for k in range(1, n_ticks + 1):  # no tick at 0: its answer TIMESYNC(0, 0) would read as a request
         t = k * tick_s
         emu.advance_to(t)
@@ -86,6 +88,7 @@ def run_lockstep(
                             "text": f"onboard program silent for {guard_s:g} s (wall): declared dead",
                         }
                     )
+        wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)
             next_progress = time.perf_counter() + 0.5
@@ -118,11 +121,11 @@ def _tick(emu: EmulatorSide, onboard: OnboardSide, encoder: mav.MAVLink, t: floa
         now = time.monotonic()
         if now >= deadline:
             return False
-        if onboard.exited():
-            wire.read_onboard(0.0)
-            return ns in answers
         if now >= resend_at:
             wire.send_sync(frame)
             resend_at = now + RESEND_S
-        wire.read_onboard(min(0.05, max(0.0, deadline - now)))
+        # the process is asked whether it has exited only when it has been silent for a while
+        if not wire.read_onboard(min(0.05, max(0.0, deadline - now))) and onboard.exited():
+            wire.read_onboard(0.0)
+            return ns in answers
         onboard.service()

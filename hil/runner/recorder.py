@@ -16,7 +16,7 @@ from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 from emulator.world import CrossingTracker, Obstacle, World
-from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd
+from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple
 
 SAMPLE_S = 0.01  # away from the wall (s)
 NEAR_WALL_SAMPLE_S = 0.001  # within NEAR_WALL_M of the gap plane (s)
@@ -82,6 +82,11 @@ class Recorder:
         self._gap_centre = np.asarray(world.gap.centre_m)
         self._lab_min = np.asarray(world.lab.min_m)
         self._lab_max = np.asarray(world.lab.max_m)
+        self._lab_min_t = tuple(float(v) for v in world.lab.min_m)
+        self._lab_max_t = tuple(float(v) for v in world.lab.max_m)
+        self._gap_centre_t = tuple(float(v) for v in world.gap.centre_m)
+        self._gap_e1_t = tuple(float(v) for v in self._gap_axes[1])
+        self._thrust_coeff = float(profile.thrust_coeff_n_s2)
 
     def sample(
         self,
@@ -93,9 +98,10 @@ class Recorder:
     ) -> None:
         """Check and record the vehicle at sim time ``t`` (s)."""
         pos, quat = state.pos_m, state.quat_wxyz
-        hit, clr = self.world.check(pos, quat)
+        checked = self.world.check_state(pos, quat)  # the simulated state is finite: no validation
+        hit, clr = checked
         if t > 0:
-            crossing = self.tracker.update(t, pos, quat)
+            crossing = self.tracker.update(t, pos, quat, checked)
             if crossing is not None and self._crossings_seen == 0:
                 self.attitude_error_at_crossing_deg = self._attitude_error_deg(quat)
             self._crossings_seen = len(self.tracker.crossings)
@@ -103,14 +109,17 @@ class Recorder:
             speed = float(np.linalg.norm(state.vel_m_s))
             if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
                 self.collision = Collision(str(hit), t, (float(pos[0]), float(pos[1]), float(pos[2])), speed)
-        outside = float(max(np.max(self._lab_min - pos), np.max(pos - self._lab_max), 0.0))
+        px, py, pz = pos.tolist()
+        lo, hi = self._lab_min_t, self._lab_max_t
+        outside = max(lo[0] - px, lo[1] - py, lo[2] - pz, px - hi[0], py - hi[1], pz - hi[2], 0.0)
         self.max_outside_lab_m = max(self.max_outside_lab_m, outside)
-        n_wall = float((pos - self._gap_centre) @ self._gap_axes[1])
+        c, e1 = self._gap_centre_t, self._gap_e1_t
+        n_wall = (px - c[0]) * e1[0] + (py - c[1]) * e1[1] + (pz - c[2]) * e1[2]
         self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
         if self._n >= self._cap:
             return
         applied = server.stats.setpoints_applied
-        frames = mocap.stats.frames_written
+        frames = mocap.frames_written
         hist = self._rate_hist
         hist.append((t, applied, frames))
         while len(hist) > 1 and hist[0][0] < t - RATE_WINDOW_S:
@@ -118,7 +127,7 @@ class Recorder:
         span = max(t - hist[0][0], 1e-9)
         cmd_rate = (applied - hist[0][1]) / span if t > 0 else 0.0
         mocap_rate = (frames - hist[0][2]) / span if t > 0 else 0.0
-        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(quat))
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*quat.tolist()))
         tg = fc.target
         full = self.profile.n3_full_thrust_n
         row = self._data[self._n]
@@ -140,8 +149,10 @@ class Recorder:
         row[17] = server.codec.transport.to_fc.frames_lost + server.codec.transport.to_fc.frames_dropped_fault
         row[18] = mocap.radio.stats.lost
         row[19] = FC_STATE_CODES.get(fc.state.value, -1)
-        row[20] = float(np.sum(self.profile.thrust_coeff_n_s2 * state.rotor_speed_rad_s**2))
-        row[21] = float(np.linalg.norm(state.omega_rad_s))
+        kf = self._thrust_coeff
+        row[20] = sum(kf * (w * w) for w in state.rotor_speed_rad_s.tolist())
+        wx, wy, wz = state.omega_rad_s.tolist()
+        row[21] = math.sqrt(wx * wx + wy * wy + wz * wz)
         self._n += 1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:

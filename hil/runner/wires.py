@@ -173,6 +173,9 @@ class CommandWire(Transport):
         self.to_fc = DirectionStats()
         self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
         self.answers: list[int] = []  # lockstep answers (tick ns) seen by `read_onboard`
+        #: hold pumped FC frames until the next `send_sync` / `flush` (lockstep: one write per tick)
+        self.hold_output = False
+        self._held = bytearray()
 
     # --- FC -> onboard --------------------------------------------------------------------------
     def _send_internal(self, data: bytes) -> int:
@@ -186,7 +189,8 @@ class CommandWire(Transport):
         return len(data)
 
     def pump(self) -> int:
-        """Write to the real link the FC frames that have arrived by now; returns bytes written."""
+        """Write to the real link the FC frames that have arrived by now; returns bytes written (or
+        held: with ``hold_output`` set they wait for the next `send_sync` or `flush`)."""
         now = self.clock.now_s()
         q, st = self._out_queue, self.to_onboard
         chunks = []
@@ -198,12 +202,27 @@ class CommandWire(Transport):
         if not chunks:
             return 0
         data = b"".join(chunks)
+        if self.hold_output:
+            self._held += data
+            return len(data)
         return self.raw.send(data) if not self.raw.closed else 0
 
     def send_sync(self, frame: bytes) -> None:
-        """Write a lockstep tick straight to the real link (no model, no faults, not seen by the FC)."""
+        """Write a lockstep tick straight to the real link (no model, no faults, not seen by the FC),
+        after the held FC frames, in one write."""
+        if self._held:
+            frame = bytes(self._held) + frame
+            self._held.clear()
         if not self.raw.closed:
             self.raw.send(frame)
+
+    def flush(self) -> None:
+        """Write the held FC frames now."""
+        if self._held:
+            data = bytes(self._held)
+            self._held.clear()
+            if not self.raw.closed:
+                self.raw.send(data)
 
     # --- onboard -> FC --------------------------------------------------------------------------
     def read_onboard(self, timeout_s: float = 0.0) -> bool:
@@ -250,6 +269,10 @@ class CommandWire(Transport):
         return b"".join(chunks)
 
     def _apply_faults(self, frame: bytes, time_s: float, st: DirectionStats) -> bytes | None:
+        if not self.faults.has_command_faults:
+            st.frames_delivered += 1
+            st.bytes_delivered += len(frame)
+            return frame
         if self.faults.any_active("command_link_down", time_s):
             st.frames_dropped_fault += 1
             return None

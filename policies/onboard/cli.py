@@ -100,6 +100,7 @@ def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
         return 2 if isinstance(exc, ValueError) else EXIT_ERROR
     events = EventLog(None if args.quiet else sys.stdout, args.log_json)
     program = OnboardProgram(command, mocap, config, events=events)
+    program.link.lockstep = bool(args.lockstep)  # a tick's frames go out with its answer, in one write
     try:
         code = program.run_lockstep() if args.lockstep else program.run_realtime(args.max_duration)
     except KeyboardInterrupt:

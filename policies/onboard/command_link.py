@@ -7,6 +7,7 @@ Nothing here blocks: `poll()` parses what has arrived, the senders write one fra
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -19,14 +20,17 @@ from hil.link.mavlink import (
     MAVLinkMessage,
     mav,
     px4_mode_parts,
-    quat_enu_flu_to_ned_frd,
-    quat_from_euler,
+    quat_enu_flu_to_ned_frd_tuple,
+    quat_from_euler_tuple,
 )
 from hil.link.transport import Transport
 
 ONBOARD_SYSTEM_ID = 1  # same vehicle as the FC (PX4 companion convention)
 ONBOARD_COMPONENT_ID = mav.MAV_COMP_ID_ONBOARD_COMPUTER
 FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
+#: the FC's messages this client acts on; other telemetry is CRC-checked and dropped undecoded
+USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMAND_ACK,
+                          mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_STATUSTEXT})
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
@@ -70,7 +74,8 @@ class CommandLink:
     """MAVLink client of the FC on ``transport``, stamped with ``clock`` (s)."""
 
     def __init__(self, transport: Transport, clock: Clock, target_system: int = 1) -> None:
-        self.codec = MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID)
+        self.codec = MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID,
+                                  accept_ids=USED_MSG_IDS)
         self.clock = clock
         self.target_system = target_system
         self.status: FcStatus | None = None
@@ -79,6 +84,11 @@ class CommandLink:
         #: TIMESYNC ticks (s of the FC's simulated time) received and not yet taken by `take_ticks`
         self._ticks: list[float] = []
         self.setpoints_sent = 0
+        #: set when the program runs on lockstep ticks: then, while ticks taken by `take_ticks` are not
+        #: yet answered, frames are held and go out with the last answer in one write
+        self.lockstep = False
+        self._open_ticks = 0
+        self._held: list[bytes] = []
 
     @property
     def transport(self) -> Transport:
@@ -87,6 +97,7 @@ class CommandLink:
     # --- input --------------------------------------------------------------------------------
     def poll(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
         """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes) and return it."""
+        self.flush()
         msgs = self.codec.receive(timeout_s)
         while True:  # drain everything that is waiting now
             more = self.codec.receive(0.0)
@@ -117,6 +128,8 @@ class CommandLink:
     def take_ticks(self) -> list[float]:
         """The TIMESYNC tick times (s) received since the last call, oldest first."""
         ticks, self._ticks = self._ticks, []
+        if self.lockstep:
+            self._open_ticks = len(ticks)
         return ticks
 
     def heartbeat_age_s(self, now_s: float) -> float:
@@ -124,28 +137,43 @@ class CommandLink:
         return math.inf if self.status is None else now_s - self.status.time_s
 
     # --- output -------------------------------------------------------------------------------
+    def _send(self, msg: MAVLinkMessage) -> None:
+        if self._open_ticks > 0:
+            self._held.append(self.codec.pack(msg))
+        else:
+            self.codec.send(msg)
+
+    def flush(self) -> None:
+        """Write the held frames now (one write)."""
+        if self._held:
+            data = b"".join(self._held)
+            self._held.clear()
+            transport = self.codec.transport
+            if not transport.closed:
+                transport.send(data)
+
     def send_heartbeat(self) -> None:
         """The companion computer's own 1 Hz HEARTBEAT."""
-        self.codec.send(self.codec.mav.heartbeat_encode(
+        self._send(self.codec.mav.heartbeat_encode(
             mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
 
     def send_attitude_target(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
                              thrust_fraction: float) -> None:
         """One attitude-thrust setpoint: ZYX Euler angles of body FLU -> world ENU (rad), thrust 0..1 of
         the N3's full thrust (clipped). Sent as SET_ATTITUDE_TARGET, NED -> FRD quaternion."""
-        q = quat_enu_flu_to_ned_frd(quat_from_euler(roll_rad, pitch_rad, yaw_rad))
+        q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
         thrust = min(1.0, max(0.0, float(thrust_fraction)))
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
-        self.codec.send(self.codec.mav.set_attitude_target_encode(
+        self._send(self.codec.mav.set_attitude_target_encode(
             now_ms, self.target_system, FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK,
-            [float(x) for x in q], 0.0, 0.0, 0.0, thrust))
+            list(q), 0.0, 0.0, 0.0, thrust))
         self.setpoints_sent += 1
 
     def send_command(self, command: int, *params: float) -> None:
         """COMMAND_LONG ``command`` with up to seven parameters; forgets any earlier ACK of it."""
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         self.acks.pop(command, None)
-        self.codec.send(self.codec.mav.command_long_encode(
+        self._send(self.codec.mav.command_long_encode(
             self.target_system, FC_COMPONENT_ID, command, 0, *p))
 
     def request_arm(self) -> None:
@@ -162,7 +190,12 @@ class CommandLink:
     def answer_tick(self, tick_s: float) -> None:
         """Lockstep "done with this tick": TIMESYNC with tc1 = ts1 = the tick time (ns)."""
         ns = round(tick_s * 1e9)
-        self.codec.send(self.codec.mav.timesync_encode(ns, ns))
+        self._send(self.codec.mav.timesync_encode(ns, ns))
+        self._open_ticks = max(0, self._open_ticks - 1)
+        if self._open_ticks == 0:
+            self.flush()
 
     def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.flush()
         self.codec.transport.close()
