@@ -115,3 +115,21 @@ def test_faults_make_the_fc_fail_safe_and_are_reported(tmp_path):
     for name in ("summary.json", "run.tlog", "timeseries.npz", "report.html"):
         assert (tmp_path / name).stat().st_size > 0
     assert math.isfinite(r.summary["mean_thrust_n"]) and r.summary["mean_thrust_n"] > 5
+
+
+FROZEN = """
+description: mocap frozen for 50 ms during the settle; the freeze must end when its window does
+gap: {roll_deg: 0}
+approach: {speed_m_s: 2.0}
+faults:
+  - {kind: mocap_frozen, start_s: 3.0, end_s: 3.05}
+duration_s: 11
+"""
+
+
+def test_a_mocap_freeze_ends_at_its_end_time(tmp_path):
+    # 3.0 + 0.05 lands a rounding error off 3.05: the fault switch must still see the window close,
+    # or the onboard program flies on one frozen pose for the rest of the run
+    s = loads_scenarios(FROZEN)[0]
+    r = run_scenario(s, tmp_path, RunOptions(in_process=True))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]

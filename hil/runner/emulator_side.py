@@ -200,7 +200,9 @@ class EmulatorSide:
             self.clock.advance_to(t_next)
             t = t_next
             if t >= self._next_boundary_s - 1e-12:
-                self._switch_faults(t)
+                # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
+                # fault ending there would still read as active and never be switched off
+                self._switch_faults(max(t, self._next_boundary_s))
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
                 truth = self._frozen_truth if self._frozen_truth is not None else vehicle.state
