@@ -19,7 +19,7 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 test: lint
-	$(VENV)/bin/pytest -n 2 -q
+	$(VENV)/bin/pytest -n 2 -q tests scenarios
 
 suite: setup
 	$(VENV)/bin/hil suite scenarios/ --out reports/
