@@ -1,0 +1,27 @@
+"""Bench group `learning`: shipped end-to-end policy latency (onnxruntime and torch, one sample) and the
+rate of labelled planner training samples."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from hil.bench import BenchRow
+
+
+def collect(quick: bool) -> Iterator[BenchRow]:
+    from policies.learning.data import planner_samples_per_s
+
+    try:
+        from policies.learning.latency import e2e_latencies_us
+    except ImportError:  # torch/onnxruntime are the optional 'learn' extra
+        return
+    lat = e2e_latencies_us(500 if quick else 5000)
+    yield BenchRow("e2e_inference_us", lat["onnx"], "us",
+                   "shipped e2e.onnx (float64), onnxruntime CPU, 1 thread, one sample, median")
+    yield BenchRow("e2e_torch_inference_us", lat["torch"], "us",
+                   "the same policy in torch (float32, 1 thread, inference mode), one sample, median")
+    yield BenchRow("e2e_float32_inference_us", lat["onnx_float32"], "us",
+                   "the policy exported in float32 (not shipped: misses the 1e-5 parity), one sample, median")
+    n = 20_000 if quick else 200_000
+    yield BenchRow("planner_samples_per_s", planner_samples_per_s(n), "samples/s",
+                   f"labelled, augmented planner samples (primitive closed form), numpy, one batch of {n:,}")

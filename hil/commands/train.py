@@ -1,0 +1,93 @@
+"""`hil train planner|controller|export`: train the imitation networks, export them to ONNX."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _common(p: argparse.ArgumentParser, out: str, batch: int, lr: float) -> None:
+    p.add_argument("--out", default=out, help=f"output folder (default {out})")
+    p.add_argument("--epochs", type=float, default=1000.0,
+                   help="epoch budget (default 1000; --minutes usually ends first)")
+    p.add_argument("--minutes", type=float, default=None, help="wall-clock budget in minutes")
+    p.add_argument("--batch-size", type=int, default=batch, help=f"minibatch size (default {batch})")
+    p.add_argument("--lr", type=float, default=lr, help=f"initial Adam learning rate (default {lr})")
+    p.add_argument("--lr-final-frac", type=float, default=0.01,
+                   help="final lr as a fraction of --lr (default 0.01)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the data and of the training (default 0)")
+    p.add_argument("--no-resume", action="store_true", help="start afresh even if OUT/checkpoint.pt exists")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--threads", type=int, default=2, help="CPU threads for torch (default 2)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train the planner/controller networks (imitation of the expert)")
+    tsub = p.add_subparsers(dest="what", metavar="WHAT", required=True)
+    pl = tsub.add_parser("planner", help="imitate the motion primitives (17 -> 9)")
+    _common(pl, "out/planner", 1024, 7e-4)
+    pl.add_argument("--trajectories", type=int, default=20_000, help="training trajectories (default 20000)")
+    pl.add_argument("--samples-per-trajectory", type=int, default=1000,
+                    help="time grid per trajectory (default 1000)")
+    pl.set_defaults(func=main)
+    co = tsub.add_parser("controller", help="imitate the expert controller (12 -> 3)")
+    _common(co, "out/controller", 1024, 1e-3)
+    co.add_argument("--samples-per-set", type=int, default=6_000_000,
+                    help="samples in each of the large- and short-range sets (default 6e6)")
+    co.set_defaults(func=main)
+    ex = tsub.add_parser("export", help="write planner.onnx, controller.onnx and e2e.onnx from state dicts")
+    ex.add_argument("--planner", required=True, help="planner state dict (planner.pt)")
+    ex.add_argument("--controller", required=True, help="controller state dict (controller.pt)")
+    ex.add_argument("--out", required=True, help="output folder")
+    ex.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        from policies.learning import export, train
+        from policies.learning.data import ControllerDataConfig, PlannerDataConfig
+    except ImportError as exc:  # torch is an optional dependency
+        print(f"hil train: needs the 'learn' extra (torch, onnx, onnxruntime, tqdm): {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.what == "export":
+            planner, controller = export.load_planner(args.planner), export.load_controller(args.controller)
+            paths = export.export_all(planner, controller, args.out)
+            for name, path in paths.items():
+                print(f"{name}: {path}")
+            return 0
+        cfg = train.TrainConfig(out_dir=args.out, epochs=args.epochs, minutes=args.minutes,
+                                batch_size=args.batch_size, lr=args.lr, lr_final_frac=args.lr_final_frac,
+                                seed=args.seed, resume=not args.no_resume, threads=args.threads,
+                                progress=not args.no_progress)
+        if args.what == "planner":
+            data = PlannerDataConfig(n_trajectories=args.trajectories,
+                                     samples_per_trajectory=args.samples_per_trajectory, seed=args.seed)
+            print(f"hil train planner: device {train.device()}, {args.trajectories} trajectories x "
+                  f"{args.samples_per_trajectory} samples, out {args.out}", file=sys.stderr)
+            result = train.train_planner(data, cfg)
+            net = export.load_planner(result.weights_path)
+            onnx_path = export.export_onnx(net, export.N_INPUTS["planner"], Path(args.out) / "planner.onnx",
+                                           export.EXPORT_DTYPES["planner"])
+            summary = {"holdout": result.metrics["holdout"], "paper_case": result.metrics["paper_case"]}
+        else:
+            data = ControllerDataConfig(n_per_set=args.samples_per_set, seed=args.seed)
+            print(f"hil train controller: device {train.device()}, 2 x {args.samples_per_set} samples, "
+                  f"out {args.out}", file=sys.stderr)
+            result = train.train_controller(data, cfg)
+            net = export.load_controller(result.weights_path)
+            onnx_path = export.export_onnx(net, export.N_INPUTS["controller"],
+                                           Path(args.out) / "controller.onnx",
+                                           export.EXPORT_DTYPES["controller"])
+            summary = {"holdout_large": result.metrics["holdout_large"],
+                       "holdout_short": result.metrics["holdout_short"]}
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"hil train: {exc}", file=sys.stderr)
+        return 1
+    report = {"steps": result.steps, "train_time_s": round(result.train_time_s, 1), **summary}
+    print(json.dumps(report, indent=2))
+    print(f"wrote {result.weights_path}, {onnx_path}, {result.out_dir / 'metrics.json'}, "
+          f"{result.out_dir / 'curve.png'}")
+    return 0

@@ -1,0 +1,120 @@
+"""Learned pilots on onnxruntime: ``PlannerNetPilot`` (network planner + expert controller) and
+``EndToEndPilot`` (the merged 29 -> 3 policy). Both fly the approach with their network and leave the
+traverse, recovery and hover to the plan's reference and the expert controller, as the paper does.
+
+The networks were trained for desired yaw 0 and a 0.9 kg vehicle: world vectors are turned into the
+frame of the plan's yaw before the networks see them (roll/pitch then come out relative to that yaw,
+the command convention), and thrust is scaled by mass / 0.9 kg. The controller network's acceleration
+input is the expert's acceleration feed-forward; ``acc_input="zero"`` (default) feeds a zero current
+acceleration so the network sees the reference acceleration there, as the expert law does;
+``"measured"`` feeds the estimated acceleration (the paper's figure).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from policies.controller import AttitudeThrustCommand, ExpertController
+from policies.frames import rot_z
+from policies.gap_planning import MissionPlan, Segment
+from policies.learning.features import CONTROLLER_MASS_KG, planner_inputs
+from policies.learning.onnx_runtime import OnnxModel, load_shipped
+
+
+def approach_planner_inputs(plan: MissionPlan, t_s: float,
+                            yaw_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Planner inputs (17,) for the plan's approach at ``t_s`` (s), in the frame turned by -``yaw_rad``,
+    and the approach start position (3,) in the world."""
+    tr = plan.approach
+    pf, vf, af = plan.traverse.start_state
+    turn = rot_z(-yaw_rad)
+    p0 = np.asarray(tr.p0, float)
+    x = planner_inputs(min(max(t_s, 0.0), float(tr.T)), turn @ (pf - p0), turn @ tr.v0, turn @ tr.a0,
+                       turn @ vf, turn @ af, float(tr.T))
+    return x, p0
+
+
+class PlannerNetPilot:
+    """Approach reference from the planner network, tracked by the expert controller."""
+
+    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None) -> None:
+        self.model = model or load_shipped("planner")
+        self.controller = ExpertController(mass_kg)
+
+    def reference(self, plan: MissionPlan, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position (m), velocity (m/s), acceleration (m/s^2) of the approach at ``t_s`` from the network."""
+        x, p0 = approach_planner_inputs(plan, t_s)
+        y = self.model.predict(x)
+        return p0 + y[0:3], y[3:6], y[6:9]
+
+    def command(self, obs: object) -> AttitudeThrustCommand:
+        plan: MissionPlan = obs.plan  # type: ignore[attr-defined]
+        if plan.segment_at(obs.t_s) is Segment.APPROACH:  # type: ignore[attr-defined]
+            p, v, a = self.reference(plan, obs.t_s)  # type: ignore[attr-defined]
+            yaw = plan.yaw_rad
+        else:
+            ref = plan.reference(obs.t_s)  # type: ignore[attr-defined]
+            p, v, a, yaw = ref.pos_m, ref.vel_m_s, ref.acc_m_s2, ref.yaw_rad
+        return self.controller.command(p, v, a, yaw, obs.pos_m, obs.vel_m_s)  # type: ignore[attr-defined]
+
+
+class EndToEndPilot:
+    """The merged policy network on the approach; the expert on the plan's reference afterwards."""
+
+    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None, acc_input: str = "zero") -> None:
+        if acc_input not in ("zero", "measured"):
+            raise ValueError(f"acc_input must be 'zero' or 'measured', got {acc_input!r}")
+        if not (math.isfinite(mass_kg) and mass_kg > 0):
+            raise ValueError("mass_kg must be positive")
+        self.model = model or load_shipped("e2e")
+        self.mass_kg, self.acc_input = mass_kg, acc_input
+        self.expert = ExpertController(mass_kg)
+
+    def inputs(self, obs: object) -> np.ndarray:
+        """The policy's 29 inputs for an observation (in the frame of the plan's yaw)."""
+        plan: MissionPlan = obs.plan  # type: ignore[attr-defined]
+        yaw = plan.yaw_rad
+        x17, p0 = approach_planner_inputs(plan, obs.t_s, yaw)  # type: ignore[attr-defined]
+        turn = rot_z(-yaw)
+        acc = np.asarray(obs.acc_m_s2, float) if self.acc_input == "measured" else np.zeros(3)  # type: ignore[attr-defined]
+        euler = np.asarray(obs.euler_rad, float).copy()  # type: ignore[attr-defined]
+        euler[2] = (euler[2] - yaw + math.pi) % (2 * math.pi) - math.pi
+        state = [turn @ (np.asarray(obs.pos_m, float) - p0), turn @ np.asarray(obs.vel_m_s, float),  # type: ignore[attr-defined]
+                 turn @ acc, euler]
+        return np.concatenate([*state, x17])
+
+    def command(self, obs: object) -> AttitudeThrustCommand:
+        plan: MissionPlan = obs.plan  # type: ignore[attr-defined]
+        if plan.segment_at(obs.t_s) is not Segment.APPROACH:  # type: ignore[attr-defined]
+            ref = plan.reference(obs.t_s)  # type: ignore[attr-defined]
+            return self.expert.command(ref.pos_m, ref.vel_m_s, ref.acc_m_s2, ref.yaw_rad, obs.pos_m,  # type: ignore[attr-defined]
+                                       obs.vel_m_s)  # type: ignore[attr-defined]
+        roll, pitch, thrust = self.model.predict(self.inputs(obs))
+        return AttitudeThrustCommand(float(roll), float(pitch), plan.yaw_rad,
+                                     float(thrust) * self.mass_kg / CONTROLLER_MASS_KG)
+
+
+def _options(options: tuple[tuple[str, str], ...]) -> dict[str, str]:
+    known = {"onnx", "acc_input"}
+    opts = dict(options)
+    unknown = sorted(set(opts) - known)
+    if unknown:
+        raise ValueError(f"unknown pilot option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    return opts
+
+
+def make_planner_net(mass_kg: float, options: tuple[tuple[str, str], ...] = ()) -> PlannerNetPilot:
+    """``planner_net`` pilot; option ``onnx=<path>`` replaces the shipped planner."""
+    opts = _options(options)
+    model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
+    return PlannerNetPilot(mass_kg, model)
+
+
+def make_e2e(mass_kg: float, options: tuple[tuple[str, str], ...] = ()) -> EndToEndPilot:
+    """``e2e`` pilot; options ``onnx=<path>`` and ``acc_input=zero|measured``."""
+    opts = _options(options)
+    model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
+    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"))
