@@ -192,6 +192,9 @@ class UartWire:
 
     def update(self, now_s: float) -> list[tuple[float, bytes]]:
         """(done_s, bytes) of the chunks whose wire time has passed by ``now_s``."""
+        q = self._queue
+        if not q or q[0][0] > now_s + 1e-12:
+            return []  # nothing done yet (most calls)
         n = 0
         while n < len(self._queue) and self._queue[n][0] <= now_s + 1e-12:
             n += 1

@@ -33,6 +33,9 @@ from hil.link.transport import LinkError, Transport
 
 DEFAULT_BAUD = 921600
 DEFAULT_STALE_AFTER_S = 0.1
+READ_BYTES = 65536  # one read takes up to this much
+#: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
+SHORT_READ_BYTES = 4000
 
 
 @dataclass(frozen=True)
@@ -112,7 +115,7 @@ class MocapReader:
         """Read what has arrived (waiting up to ``timeout_s`` for the first bytes); returns the number
         of mocap frames accepted. Never raises on bad data; raises LinkError if the link is gone."""
         accepted = 0
-        data = self.transport.recv(timeout_s)
+        data = self.transport.recv(timeout_s, READ_BYTES)
         while data:
             now = self.clock.now_s()
             for frame in self._decoder.feed(data):
@@ -121,7 +124,9 @@ class MocapReader:
                     self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(n.data)
                                                                    for n in frame.nodes)
                 accepted += taken
-            data = self.transport.recv(0.0)
+            # a read that did not fill the buffer took all there was: no second (empty) read
+            drained = len(data) < SHORT_READ_BYTES and getattr(self.transport, "short_read_is_all", False)
+            data = b"" if drained else self.transport.recv(0.0, READ_BYTES)
         return accepted
 
     def _take(self, payload: bytes, now_s: float) -> int:

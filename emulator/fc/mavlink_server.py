@@ -88,6 +88,7 @@ class MavlinkServer:
         self.telemetry = TelemetryEncoder(vehicle, codec.mav, self.config.home)
         self._intervals = dict(self.config.stream_intervals_s)
         self._next_due: dict[int, float] = {}
+        self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
         self._events_seen = 0
         self._last_text_s: dict[str, float] = {}
         #: called with (message, now_s) after a setpoint is applied (for latency measurements)
@@ -155,12 +156,17 @@ class MavlinkServer:
         return True
 
     def _send_streams(self, now_s: float) -> None:
+        if now_s < self._streams_due_s:
+            return  # nothing due yet (most polls)
+        due_min = math.inf
         for msg_id, interval in self._intervals.items():
             due = self._next_due.get(msg_id, now_s)
             if now_s >= due:
                 self.send(self._senders[msg_id](now_s))
                 nxt = due + interval
-                self._next_due[msg_id] = nxt if nxt > now_s else now_s + interval
+                due = self._next_due[msg_id] = nxt if nxt > now_s else now_s + interval
+            due_min = min(due_min, due)
+        self._streams_due_s = due_min
 
     def _report_events(self, now_s: float) -> None:
         events = self.fc.events
@@ -297,6 +303,7 @@ class MavlinkServer:
                 None,
             )
         self._next_due.pop(msg_id, None)
+        self._streams_due_s = -math.inf
         return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
 
     def _set_mode(self, base_mode: int, main: int, sub: int, now_s: float) -> CommandResult:

@@ -3,7 +3,9 @@ ENU/FLU <-> NED/FRD conversions both sides need at the wire (common dialect, pym
 
 from __future__ import annotations
 
+import binascii
 import math
+import struct
 from collections.abc import Collection
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
@@ -140,10 +142,29 @@ class MavlinkCodec:
 
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
+        msg_id = msg.get_msgId()  # not ``msg.id``: some messages have a field of that name
+        if msg_id in FAST_DECODE_IDS and not self.signing:  # the per-tick ids: framed here
+            return self.pack_payload(msg_id, payload_of(msg))
         if self.signing:
             self._refresh_signing_time()
         self._mav.send(msg)
         frame = self._out.pop()
+        self.stats.frames_sent += 1
+        if self.recorder is not None:
+            self.recorder.record(frame, self.clock.now_s())
+        return frame
+
+    def pack_payload(self, msg_id: int, payload: bytes) -> bytes:
+        """`pack` for a message given as its full payload (fields in wire order, as the message's
+        ``unpacker`` packs them): the same frame pymavlink would make, without building the message
+        (signed links go through pymavlink)."""
+        if self.signing:
+            return self.pack(message_from_payload(msg_id, payload))
+        m = self._mav
+        frame = encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent)
+        m.seq = (m.seq + 1) % 256
+        m.total_packets_sent += 1
+        m.total_bytes_sent += len(frame)
         self.stats.frames_sent += 1
         if self.recorder is not None:
             self.recorder.record(frame, self.clock.now_s())
@@ -156,11 +177,16 @@ class MavlinkCodec:
 
     def feed(self, data: bytes) -> list[MAVLinkMessage]:
         """Parse ``data`` as if it had arrived on the transport."""
-        if self._accept is not None and len(self._mav.buf) == self._mav.buf_index:
-            data = self._drop_unused(data)
-            if not data:
-                return []
         good: list[MAVLinkMessage] = []
+        if len(self._mav.buf) == self._mav.buf_index and (self._accept is not None or not self.signing):
+            data = self._take_leading(data, good)
+            if not data:
+                return good
+        self._parse_slow(data, good)
+        return good
+
+    def _parse_slow(self, data: bytes, good: list[MAVLinkMessage]) -> None:
+        """pymavlink's parser on ``data``; good messages appended to ``good``."""
         try:
             msgs = self._mav.parse_buffer(data) or []
         except Exception:  # pymavlink raising on input it should have flagged: drop the buffer
@@ -168,7 +194,7 @@ class MavlinkCodec:
             self._mav.buf = bytearray()
             self._mav.buf_index = 0
             self._mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
-            return good
+            return
         now_s = self.clock.now_s()
         for m in msgs:
             if isinstance(m, mavlink2.MAVLink_bad_data):
@@ -180,14 +206,15 @@ class MavlinkCodec:
                 if self.recorder is not None:
                     self.recorder.record(bytes(m.get_msgbuf()), now_s)
                 good.append(m)
-        return good
 
-    def _drop_unused(self, data: bytes) -> bytes:
-        """``data`` without its leading complete, unsigned MAVLink 2 frames of ids not accepted whose
-        CRC is good; from the first byte that is not such a frame on, everything goes to pymavlink."""
+    def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
+        """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
+        not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, unsigned links only)
+        are decoded here, others go through pymavlink one by one, all in stream order. Returns the
+        rest (from the first byte that is not such a frame on), for pymavlink."""
         accept, n, i = self._accept, len(data), 0
-        assert accept is not None
-        kept: list[bytes] = []
+        fast = not self.signing
+        recorder = self.recorder
         while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
             end = i + 12 + data[i + 1]
             if end > n:
@@ -196,19 +223,22 @@ class MavlinkCodec:
             frame_cls = mavlink2.mavlink_map.get(msg_id)
             if frame_cls is None:
                 break
-            if msg_id in accept:
-                kept.append(data[i:end])
-            elif crc_x25(data[i + 1 : end - 2], frame_cls.crc_extra) == data[end - 2] | data[end - 1] << 8:
-                self.stats.frames_ignored += 1
-                if self.recorder is not None:
-                    self.recorder.record(bytes(data[i:end]), self.clock.now_s())
-            else:
+            if crc_x25(data[i + 1 : end - 2], frame_cls.crc_extra) != data[end - 2] | data[end - 1] << 8:
                 break  # a bad frame: pymavlink counts it
+            if accept is not None and msg_id not in accept:
+                self.stats.frames_ignored += 1
+                if recorder is not None:
+                    recorder.record(bytes(data[i:end]), self.clock.now_s())
+            elif fast and msg_id in FAST_DECODE_IDS:
+                frame = bytes(data[i:end])
+                good.append(decode_frame(frame))
+                self.stats.frames_received += 1
+                if recorder is not None:
+                    recorder.record(frame, self.clock.now_s())
+            else:
+                self._parse_slow(bytes(data[i:end]), good)
             i = end
-        if i == 0:
-            return data
-        kept.append(data[i:])
-        return b"".join(kept)
+        return data[i:] if i else data
 
     def _count_bad(self, m: Any) -> None:
         reason = str(m.reason)
@@ -232,27 +262,103 @@ class MavlinkCodec:
         self._mav.signing.timestamp = max(self._mav.signing.timestamp, stamp, 0)
 
 
-def _crc_table() -> tuple[int, ...]:
-    table = []
-    for b in range(256):
-        crc = b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1  # reflected 0x1021
-        table.append(crc)
-    return tuple(table)
-
-
-_CRC_TABLE = _crc_table()
+_BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
 def crc_x25(data: bytes, extra: int | None = None) -> int:
-    """MAVLink's CRC-16/MCRF4XX of ``data`` (then the message's CRC_EXTRA byte, if given)."""
-    crc, table = 0xFFFF, _CRC_TABLE
-    for b in data:
-        crc = (crc >> 8) ^ table[(b ^ crc) & 0xFF]
+    """MAVLink's CRC-16/MCRF4XX of ``data`` (then the message's CRC_EXTRA byte, if given).
+
+    Computed by the C CRC-CCITT of `binascii` on the bit-reversed bytes: the reflected CRC is the
+    plain one of the mirrored input, mirrored back (init 0xFFFF is its own mirror image)."""
+    rev = _BIT_REVERSED
     if extra is not None:
-        crc = (crc >> 8) ^ table[(extra ^ crc) & 0xFF]
-    return crc
+        data = bytes(data) + bytes((extra,))
+    crc = binascii.crc_hqx(bytes(data).translate(rev), 0xFFFF)
+    return rev[crc & 0xFF] << 8 | rev[crc >> 8]
+
+
+#: per-tick messages framed and decoded here rather than by pymavlink's generic code (same bytes, same
+#: message objects): setpoints, lockstep ticks, and the FC's heartbeat, ACKs and attitude/position
+FAST_DECODE_IDS: frozenset[int] = frozenset(
+    {
+        mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
+        mavlink2.MAVLINK_MSG_ID_TIMESYNC,
+        mavlink2.MAVLINK_MSG_ID_HEARTBEAT,
+        mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,
+        mavlink2.MAVLINK_MSG_ID_ATTITUDE,
+        mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+    }
+)
+_V2_HEADER = struct.Struct("<BBBBBBBHB")
+
+
+def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, component_id: int) -> bytes:
+    """An unsigned MAVLink 2 frame of ``payload`` (full length; trailing zeros are trimmed to one byte
+    at least, as MAVLink 2 does), byte for byte what pymavlink makes of the same message."""
+    body = payload.rstrip(b"\x00") or payload[:1]
+    head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
+                           msg_id & 0xFFFF, msg_id >> 16)
+    crc = crc_x25(head[1:] + body, mavlink2.mavlink_map[msg_id].crc_extra)
+    return head + body + bytes((crc & 0xFF, crc >> 8))
+
+
+_FIELD_PLANS: dict[int, tuple[tuple[int, int], ...]] = {}
+
+
+def _field_plan(cls: Any) -> tuple[tuple[int, int], ...]:
+    """(first index in the unpacked tuple, count) of each field in declaration order."""
+    plan = _FIELD_PLANS.get(cls.id)
+    if plan is None:
+        lengths = cls.lengths
+        plan = tuple((sum(lengths[:o]), lengths[o]) for o in cls.orders)
+        _FIELD_PLANS[cls.id] = plan
+    return plan
+
+
+def payload_of(msg: MAVLinkMessage) -> bytes:
+    """The full payload of ``msg`` (fields in wire order, arrays spread), as pymavlink packs it."""
+    values: list[Any] = []
+    for name, count in zip(msg.ordered_fieldnames, msg.lengths, strict=True):
+        v = getattr(msg, name)
+        if count > 1:  # an array field: any sequence, its first ``count`` items (as pymavlink reads it)
+            values.extend(v[k] for k in range(count))
+        else:
+            values.append(v)
+    return msg.unpacker.pack(*values)
+
+
+def message_from_payload(msg_id: int, payload: bytes) -> MAVLinkMessage:
+    """The pymavlink message of ``payload`` (zero-padded or cut to the message's size, as pymavlink
+    does); KeyError for an unknown id."""
+    cls = mavlink2.mavlink_map[msg_id]
+    unpacker = cls.unpacker
+    size = unpacker.size
+    if len(payload) != size:
+        payload = bytes(payload[:size]).ljust(size, b"\x00")
+    t = unpacker.unpack(payload)
+    values = []
+    for tip, count in _field_plan(cls):
+        v = t[tip]
+        if isinstance(v, bytes):
+            v = v.rstrip(b"\x00")
+        elif count > 1:
+            v = list(t[tip : tip + count])
+        values.append(v)
+    return cls(*values)
+
+
+def decode_frame(frame: bytes) -> MAVLinkMessage:
+    """The message of one complete, unsigned MAVLink 2 frame whose CRC has been checked, with the header,
+    payload and buffer pymavlink's parser would give it."""
+    mlen = frame[1]
+    msg_id = frame[7] | frame[8] << 8 | frame[9] << 16
+    m = message_from_payload(msg_id, frame[10 : 10 + mlen])
+    buf = bytearray(frame)
+    m._msgbuf = buf
+    m._payload = buf[6:-2]
+    m._crc = frame[-2] | frame[-1] << 8
+    m._header = mavlink2.MAVLink_header(msg_id, frame[2], frame[3], mlen, frame[4], frame[5], frame[6])
+    return m
 
 
 class _Sink:

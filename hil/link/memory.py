@@ -75,6 +75,9 @@ class _PairState:
 class MemoryTransport(Transport):
     """One end of an in-process byte link. Create with `MemoryTransport.pair()`."""
 
+    #: a read that returns fewer bytes than asked took all that was waiting (readers skip a second read)
+    short_read_is_all = True
+
     def __init__(self, state: _PairState, side: int, name: str = "memory") -> None:
         super().__init__()
         self._state = state

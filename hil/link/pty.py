@@ -41,6 +41,9 @@ def set_termios_baud(fd: int, baud: int) -> None:
 class PtyTransport(Transport):
     """The master side of a raw pseudo-terminal; peers open `endpoint` (the slave path)."""
 
+    #: a read that returns fewer bytes than asked took all that was waiting (readers skip a second read)
+    short_read_is_all = True
+
     def __init__(self, master_fd: int, slave_fd: int, baud: int) -> None:
         super().__init__()
         self._master = master_fd

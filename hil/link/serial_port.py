@@ -24,6 +24,9 @@ DEFAULT_BAUD = 921600
 class SerialTransport(Transport):
     """A serial device opened with pyserial at ``baud`` (bit/s), 8N1, no flow control."""
 
+    #: a read that returns fewer bytes than asked took all that was waiting (readers skip a second read)
+    short_read_is_all = True
+
     def __init__(self, device: str, baud: int = DEFAULT_BAUD, *, exclusive: bool = False) -> None:
         super().__init__()
         if int(baud) <= 0:

@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
-from emulator.mocap import MocapConfig
+from emulator.mocap import MocapConfig, pose_of
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
@@ -153,6 +153,7 @@ class EmulatorSide:
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.gap = make_gap(scenario)
+        self._gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
         self.world = World.for_profile(self.gap, LabVolume(scenario.lab.min_m, scenario.lab.max_m), profile)
         self.wire = CommandWire(
             command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
@@ -206,7 +207,7 @@ class EmulatorSide:
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
                 truth = self._frozen_truth if self._frozen_truth is not None else vehicle.state
-                mocap.update(t, truth, self.gap)
+                mocap.update(t, truth, self._gap_pose)
             if t >= wire.next_arrival_s() - 1e-12:
                 self.server.poll(t)
             if t >= rec.next_sample_s - 1e-12:

@@ -6,6 +6,10 @@ TIMESYNC tick (tc1 = 0, ts1 = t in ns) on the command link, the onboard program 
 acts, writes its outputs and answers TIMESYNC(tc1 = ts1 = t); its outputs reach the FC at t plus their
 modelled wire time. A wall-clock guard declares a silent onboard program dead so the run goes on and the
 FC's failsafe can act. Faults on the process: killed at a tick, stalled (not ticked) over an interval.
+
+The loop's wall time (and so the real-time factor) starts at the first answered tick: a new onboard
+process first imports its libraries and opens its ports (`LoopReport.startup_wall_s`). While the onboard
+program works on a tick, the emulator side records the tick's world checks and time-series rows.
 """
 
 from __future__ import annotations
@@ -14,25 +18,35 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from hil.link.mavlink import mav
+from hil.link.mavlink import encode_frame, mav
 from hil.runner.emulator_side import FC_SYSTEM_ID, EmulatorSide
 from hil.runner.onboard_side import OnboardSide
 
 DEFAULT_TICK_S = 0.01  # one tick per onboard control period (100 Hz)
 DEFAULT_GUARD_S = 3.0  # wall time without an answer before the onboard program counts as dead
 STARTUP_GUARD_S = 60.0  # the first answer may wait for a process to start
+_TIMESYNC = mav.MAVLink_timesync_message.unpacker
 RESEND_S = 1.0  # a tick not answered within this wall time is sent again (lost on a fresh port)
+#: until the first answer: a new process opening its port drops what was written before (pyserial
+#: flushes on open), so the first tick is repeated often; the program acts on a repeat only once
+STARTUP_RESEND_S = 0.02
 
 
 @dataclass
 class LoopReport:
-    """What the loop saw: ticks, onboard status changes (sim s, text) and wall time (s)."""
+    """What the loop saw: ticks, onboard status changes (sim s, text) and wall times (s).
+
+    ``wall_loop_s`` is the wall time of the loop proper, which covers ``loop_sim_s`` of simulated time:
+    in lockstep it starts once the first tick is answered, so the onboard program's start-up (a new
+    process importing its libraries) is in ``startup_wall_s`` and not in the real-time factor."""
 
     ticks: int = 0
     answered: int = 0
     events: list[dict[str, object]] = field(default_factory=list)
     wall_loop_s: float = 0.0
     onboard_exit_s: float | None = None
+    startup_wall_s: float = 0.0
+    loop_sim_s: float | None = None  # None: the whole run
 
 
 def run_lockstep(
@@ -46,11 +60,11 @@ def run_lockstep(
 ) -> LoopReport:
     """Fly ``duration_s`` of sim time in lockstep; returns what the loop saw."""
     rep = LoopReport()
-    encoder = mav.MAVLink(None, srcSystem=FC_SYSTEM_ID, srcComponent=mav.MAV_COMP_ID_AUTOPILOT1)
     faults = emu.faults
     kill_s = faults.killed_at_s()
     n_ticks = round(duration_s / tick_s)
-    wall0 = time.perf_counter()
+    wall0 = loop0 = time.perf_counter()
+    t_loop0 = 0.0
     next_progress = wall0 + 0.5
     first = True
     wire = emu.wire
@@ -73,8 +87,11 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                answered = _tick(emu, onboard, encoder, t, STARTUP_GUARD_S if first else guard_s)
-                first = False
+                answered = (_tick(emu, onboard, t, STARTUP_GUARD_S, STARTUP_RESEND_S) if first
+                            else _tick(emu, onboard, t, guard_s))
+                if first:  # the loop proper starts here, the onboard program being up
+                    loop0, t_loop0 = time.perf_counter(), t
+                    first = False
                 if answered:
                     rep.answered += 1
                 elif onboard.exited():
@@ -92,7 +109,9 @@ def run_lockstep(
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)
             next_progress = time.perf_counter() + 0.5
-    rep.wall_loop_s = time.perf_counter() - wall0
+    rep.startup_wall_s = loop0 - wall0
+    rep.wall_loop_s = time.perf_counter() - loop0
+    rep.loop_sim_s = n_ticks * tick_s - t_loop0
     return rep
 
 
@@ -102,15 +121,20 @@ def _note_exit(rep: LoopReport, onboard: OnboardSide, t: float) -> None:
     rep.events.append({"time_s": t, "source": "runner", "text": "onboard program exited"})
 
 
-def _tick(emu: EmulatorSide, onboard: OnboardSide, encoder: mav.MAVLink, t: float, guard_s: float) -> bool:
+def _tick(
+    emu: EmulatorSide, onboard: OnboardSide, t: float, guard_s: float, resend_s: float = RESEND_S
+) -> bool:
     """Send the tick for ``t`` and wait for its answer; False when none came within ``guard_s`` (wall)."""
     wire = emu.wire
     ns = round(t * 1e9)
-    frame = bytes(encoder.timesync_encode(0, ns).pack(encoder))
+    # TIMESYNC(tc1 = 0, ts1 = t): the harness's own frame, sequence number always 0
+    frame = encode_frame(mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(0, ns), 0, FC_SYSTEM_ID,
+                         mav.MAV_COMP_ID_AUTOPILOT1)
     wire.send_sync(frame)
     onboard.service()
+    emu.recorder.flush()  # the world checks and time-series rows of the tick, while the onboard works
     deadline = time.monotonic() + guard_s
-    resend_at = time.monotonic() + RESEND_S
+    resend_at = time.monotonic() + resend_s
     answers = wire.answers
     while True:
         if answers:
@@ -123,9 +147,9 @@ def _tick(emu: EmulatorSide, onboard: OnboardSide, encoder: mav.MAVLink, t: floa
             return False
         if now >= resend_at:
             wire.send_sync(frame)
-            resend_at = now + RESEND_S
+            resend_at = now + resend_s
         # the process is asked whether it has exited only when it has been silent for a while
-        if not wire.read_onboard(min(0.05, max(0.0, deadline - now))) and onboard.exited():
+        if not wire.read_onboard(min(0.05, resend_s, max(0.0, deadline - now))) and onboard.exited():
             wire.read_onboard(0.0)
             return ns in answers
         onboard.service()

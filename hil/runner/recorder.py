@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from emulator.fc import FlightController, MavlinkServer
+from emulator.fc.n3 import AttitudeThrustTarget
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
@@ -48,6 +49,10 @@ COLUMNS = (
     "thrust_n",
     "body_rate_rad_s",
 )
+#: what `Recorder.sample` keeps for `Recorder.flush`: t, state, FC target, FC state, setpoints applied,
+#: mocap frames written, command frames lost, mocap packets lost
+_Sample = tuple[float, VehicleState, AttitudeThrustTarget | None, str, int, int, int, int]
+_NO_COMMAND = (math.nan,) * 4  # no FC target yet
 FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
 
 
@@ -67,16 +72,18 @@ class Recorder:
     def __init__(self, world: World, profile: VehicleProfile, duration_s: float) -> None:
         self.world = world
         self.profile = profile
-        self.tracker = CrossingTracker(world)
+        self._tracker = CrossingTracker(world)
         self.next_sample_s = 0.0
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
         self._data = np.full((cap, len(COLUMNS)), np.nan)
         self._n = 0
-        self.collision: Collision | None = None
-        self.max_outside_lab_m = 0.0
-        self.attitude_error_at_crossing_deg: float | None = None
+        self._collision: Collision | None = None
+        self._max_outside_lab_m = 0.0
+        self._attitude_error_deg_at_crossing: float | None = None
         self._crossings_seen = 0
+        #: samples taken and not yet checked and recorded (see `sample`)
+        self._pending: list[_Sample] = []
         self._rate_hist: list[tuple[float, int, int]] = []  # (t, setpoints applied, mocap frames written)
         self._gap_axes = world.gap.axes()
         self._gap_centre = np.asarray(world.gap.centre_m)
@@ -88,6 +95,31 @@ class Recorder:
         self._gap_e1_t = tuple(float(v) for v in self._gap_axes[1])
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
 
+    # --- results (what is pending is processed first) --------------------------------------------
+    @property
+    def tracker(self) -> CrossingTracker:
+        self.flush()
+        return self._tracker
+
+    @property
+    def collision(self) -> Collision | None:
+        """The first collision that counts, None if none."""
+        self.flush()
+        return self._collision
+
+    @property
+    def max_outside_lab_m(self) -> float:
+        """How far the body went outside the lab volume at most (m)."""
+        self.flush()
+        return self._max_outside_lab_m
+
+    @property
+    def attitude_error_at_crossing_deg(self) -> float | None:
+        """The attitude error at the first crossing of the gap plane (deg), None if none."""
+        self.flush()
+        return self._attitude_error_deg_at_crossing
+
+    # --- sampling -------------------------------------------------------------------------------
     def sample(
         self,
         t: float,
@@ -96,30 +128,46 @@ class Recorder:
         server: MavlinkServer,
         mocap: MocapLinkServer,
     ) -> None:
-        """Check and record the vehicle at sim time ``t`` (s)."""
+        """Take the sample at sim time ``t`` (s): what the row needs is copied now and ``next_sample_s``
+        set; the world checks and the row itself wait for `flush` (the lockstep loop calls it while
+        the onboard program works on a tick; results and `columns` call it first)."""
+        px, py, pz = state.pos_m.tolist()
+        c, e1 = self._gap_centre_t, self._gap_e1_t
+        n_wall = (px - c[0]) * e1[0] + (py - c[1]) * e1[1] + (pz - c[2]) * e1[2]
+        self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
+        to_fc = server.codec.transport.to_fc
+        self._pending.append((t, state, fc.target, fc.state.value, server.stats.setpoints_applied,
+                              mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
+                              mocap.radio.stats.lost))
+
+    def flush(self) -> None:
+        """Check and record the samples taken since the last call."""
+        pending = self._pending
+        if pending:
+            for p in pending:
+                self._record(*p)
+            pending.clear()
+
+    def _record(self, t: float, state: VehicleState, tg: AttitudeThrustTarget | None, fc_state: str,
+                applied: int, frames: int, command_lost: int, mocap_lost: int) -> None:
         pos, quat = state.pos_m, state.quat_wxyz
         checked = self.world.check_state(pos, quat)  # the simulated state is finite: no validation
         hit, clr = checked
         if t > 0:
-            crossing = self.tracker.update(t, pos, quat, checked)
+            crossing = self._tracker.update(t, pos, quat, checked)
             if crossing is not None and self._crossings_seen == 0:
-                self.attitude_error_at_crossing_deg = self._attitude_error_deg(quat)
-            self._crossings_seen = len(self.tracker.crossings)
-        if hit is not None and self.collision is None:
+                self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat)
+            self._crossings_seen = len(self._tracker.crossings)
+        if hit is not None and self._collision is None:
             speed = float(np.linalg.norm(state.vel_m_s))
             if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
-                self.collision = Collision(str(hit), t, (float(pos[0]), float(pos[1]), float(pos[2])), speed)
+                self._collision = Collision(str(hit), t, (float(pos[0]), float(pos[1]), float(pos[2])), speed)
         px, py, pz = pos.tolist()
         lo, hi = self._lab_min_t, self._lab_max_t
         outside = max(lo[0] - px, lo[1] - py, lo[2] - pz, px - hi[0], py - hi[1], pz - hi[2], 0.0)
-        self.max_outside_lab_m = max(self.max_outside_lab_m, outside)
-        c, e1 = self._gap_centre_t, self._gap_e1_t
-        n_wall = (px - c[0]) * e1[0] + (py - c[1]) * e1[1] + (pz - c[2]) * e1[2]
-        self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
+        self._max_outside_lab_m = max(self._max_outside_lab_m, outside)
         if self._n >= self._cap:
             return
-        applied = server.stats.setpoints_applied
-        frames = mocap.frames_written
         hist = self._rate_hist
         hist.append((t, applied, frames))
         while len(hist) > 1 and hist[0][0] < t - RATE_WINDOW_S:
@@ -128,31 +176,37 @@ class Recorder:
         cmd_rate = (applied - hist[0][1]) / span if t > 0 else 0.0
         mocap_rate = (frames - hist[0][2]) / span if t > 0 else 0.0
         roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*quat.tolist()))
-        tg = fc.target
-        full = self.profile.n3_full_thrust_n
-        row = self._data[self._n]
-        row[0] = t
-        row[1:4] = pos
-        row[4:7] = state.vel_m_s
-        row[7:10] = (math.degrees(roll), math.degrees(pitch), math.degrees(yaw))
         if tg is not None:
-            yaw_cmd = math.degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan
-            row[10:14] = (
+            cmd = (
                 math.degrees(tg.roll_rad),
                 math.degrees(tg.pitch_rad),
-                yaw_cmd,
-                100.0 * tg.thrust_n / full,
+                math.degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan,
+                100.0 * tg.thrust_n / self.profile.n3_full_thrust_n,
             )
-        row[14] = clr.clearance_m if clr.in_slab else math.nan
-        row[15] = cmd_rate
-        row[16] = mocap_rate
-        row[17] = server.codec.transport.to_fc.frames_lost + server.codec.transport.to_fc.frames_dropped_fault
-        row[18] = mocap.radio.stats.lost
-        row[19] = FC_STATE_CODES.get(fc.state.value, -1)
+        else:
+            cmd = _NO_COMMAND
         kf = self._thrust_coeff
-        row[20] = sum(kf * (w * w) for w in state.rotor_speed_rad_s.tolist())
         wx, wy, wz = state.omega_rad_s.tolist()
-        row[21] = math.sqrt(wx * wx + wy * wy + wz * wz)
+        # one assignment of the whole row (columns as in COLUMNS)
+        self._data[self._n] = (
+            t,
+            px,
+            py,
+            pz,
+            *state.vel_m_s.tolist(),
+            math.degrees(roll),
+            math.degrees(pitch),
+            math.degrees(yaw),
+            *cmd,
+            clr.clearance_m if clr.in_slab else math.nan,
+            cmd_rate,
+            mocap_rate,
+            command_lost,
+            mocap_lost,
+            FC_STATE_CODES.get(fc_state, -1),
+            sum(kf * (w * w) for w in state.rotor_speed_rad_s.tolist()),
+            math.sqrt(wx * wx + wy * wy + wz * wz),
+        )
         self._n += 1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:
@@ -164,5 +218,6 @@ class Recorder:
 
     def columns(self) -> dict[str, np.ndarray]:
         """The recorded columns, trimmed to the samples taken."""
+        self.flush()
         data = self._data[: self._n]
         return {name: data[:, i].copy() for i, name in enumerate(COLUMNS)}

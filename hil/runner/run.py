@@ -170,6 +170,9 @@ def run_scenario(
                 log_path,
                 lockstep=not realtime,
             )
+            # started only now, right before the first tick: the frames written with that tick reach
+            # a program that has not opened its ports yet and are dropped, always (a program started
+            # earlier would get them or not depending on how fast it starts)
             onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt")
 
         def tell(t: float) -> None:
@@ -259,6 +262,7 @@ def _finish(
             }
         )
     events.sort(key=lambda ev: ev["time_s"] if isinstance(ev["time_s"], int | float) else math.inf)
+    loop_sim = sim_time if loop.loop_sim_s is None else loop.loop_sim_s
     summary: dict[str, Any] = {
         "passed": passed,
         "scenario_id": s.id,
@@ -279,7 +283,9 @@ def _finish(
         "sim_time_s": sim_time,
         "wall_time_s": wall_s,
         "loop_wall_time_s": loop.wall_loop_s,
-        "real_time_factor": sim_time / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
+        "loop_sim_time_s": loop_sim,
+        "onboard_startup_s": loop.startup_wall_s,
+        "real_time_factor": loop_sim / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
         "mode": {
             "in_process": in_process,
             "realtime": realtime,

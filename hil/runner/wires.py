@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import heapq
 import math
+import select
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -176,6 +177,10 @@ class CommandWire(Transport):
         #: hold pumped FC frames until the next `send_sync` / `flush` (lockstep: one write per tick)
         self.hold_output = False
         self._held = bytearray()
+        try:
+            self._fd: int | None = raw.fileno()
+        except (NotImplementedError, OSError, ValueError):
+            self._fd = None
 
     # --- FC -> onboard --------------------------------------------------------------------------
     def _send_internal(self, data: bytes) -> int:
@@ -228,6 +233,12 @@ class CommandWire(Transport):
     def read_onboard(self, timeout_s: float = 0.0) -> bool:
         """Read what the onboard program wrote, queue its frames for the FC at their arrival times and
         note lockstep answers in ``answers``; False when nothing came within ``timeout_s`` (wall s)."""
+        fd = self._fd
+        if timeout_s > 0 and fd is not None and not self.raw.closed:
+            # the answer is not there yet when this is called: wait first, then read once
+            if not select.select([fd], [], [], timeout_s)[0]:
+                return False
+            timeout_s = 0.0
         data = self.raw.recv(timeout_s)
         if not data:
             return False

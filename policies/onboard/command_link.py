@@ -31,6 +31,12 @@ FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
 #: the FC's messages this client acts on; other telemetry is CRC-checked and dropped undecoded
 USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMAND_ACK,
                           mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_STATUSTEXT})
+READ_BYTES = 65536  # one read takes up to this much
+#: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
+SHORT_READ_BYTES = 4000
+#: payload layouts (wire order) of the per-tick messages, framed by `MavlinkCodec.pack_payload`
+_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker
+_TIMESYNC = mav.MAVLink_timesync_message.unpacker
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
@@ -98,12 +104,15 @@ class CommandLink:
     def poll(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
         """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes) and return it."""
         self.flush()
-        msgs = self.codec.receive(timeout_s)
-        while True:  # drain everything that is waiting now
-            more = self.codec.receive(0.0)
-            if not more:
-                break
-            msgs.extend(more)
+        transport, codec = self.codec.transport, self.codec
+        data = transport.recv(timeout_s, READ_BYTES)
+        msgs = codec.feed(data) if data else []
+        # drain what is waiting; on a stream whose short read took it all, no second (empty) read
+        all_read = getattr(transport, "short_read_is_all", False)
+        while data and not (all_read and len(data) < SHORT_READ_BYTES):
+            data = transport.recv(0.0, READ_BYTES)
+            if data:
+                msgs.extend(codec.feed(data))
         for m in msgs:
             self._handle(m)
         return msgs
@@ -138,10 +147,14 @@ class CommandLink:
 
     # --- output -------------------------------------------------------------------------------
     def _send(self, msg: MAVLinkMessage) -> None:
+        self._send_frame(self.codec.pack(msg))
+
+    def _send_frame(self, frame: bytes) -> None:
         if self._open_ticks > 0:
-            self._held.append(self.codec.pack(msg))
+            self._held.append(frame)
         else:
-            self.codec.send(msg)
+            transport = self.codec.transport
+            transport.send(frame)
 
     def flush(self) -> None:
         """Write the held frames now (one write)."""
@@ -164,9 +177,9 @@ class CommandLink:
         q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
         thrust = min(1.0, max(0.0, float(thrust_fraction)))
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
-        self._send(self.codec.mav.set_attitude_target_encode(
-            now_ms, self.target_system, FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK,
-            list(q), 0.0, 0.0, 0.0, thrust))
+        payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
+                                        FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK)
+        self._send_frame(self.codec.pack_payload(mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET, payload))
         self.setpoints_sent += 1
 
     def send_command(self, command: int, *params: float) -> None:
@@ -190,7 +203,7 @@ class CommandLink:
     def answer_tick(self, tick_s: float) -> None:
         """Lockstep "done with this tick": TIMESYNC with tc1 = ts1 = the tick time (ns)."""
         ns = round(tick_s * 1e9)
-        self._send(self.codec.mav.timesync_encode(ns, ns))
+        self._send_frame(self.codec.pack_payload(mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(ns, ns)))
         self._open_ticks = max(0, self._open_ticks - 1)
         if self._open_ticks == 0:
             self.flush()

@@ -18,8 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.frames import matrix_to_euler, quat_to_matrix
-
 
 @dataclass(frozen=True)
 class EstimatorConfig:
@@ -57,56 +55,85 @@ class StateEstimate:
 
 
 class PoseEstimator:
-    """Feed poses with `update(stamp_s, pos_m, quat_wxyz, received_s)`; read `estimate(now_s)`."""
+    """Feed poses with `update(stamp_s, pos_m, quat_wxyz, received_s)`; read `estimate(now_s)`.
+
+    The per-axis filters share one covariance (the same model and measurements on every axis), kept as
+    the six scalars of the symmetric 3x3 matrix; the products with F and Q are written out (plain floats:
+    this runs once per pose and once per control step)."""
 
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config or EstimatorConfig()
-        self._x: np.ndarray | None = None  # (3 states p, v, a) x (3 axes)
-        self._P = np.zeros((3, 3))  # covariance, the same for every axis
+        self._ready = False
+        self._x = [0.0] * 9  # p, v, a of x, then of y, then of z (m, m/s, m/s^2)
+        self._P = (0.0,) * 6  # shared covariance: p00, p01, p02, p11, p12, p22
         self._stamp_s = -math.inf
         self._received_s = -math.inf
         self._delay_s = 0.0  # arrival - stamp of the latest pose (s; includes any clock offset)
         self._mean_delay_s = 0.0  # its running mean over delay_window_s
-        self._quat = np.array([1.0, 0.0, 0.0, 0.0])
+        self._quat = (1.0, 0.0, 0.0, 0.0)
+        self._euler = (0.0, 0.0, 0.0)
         self.updates = 0
         self.rejected = 0  # poses out of order, repeated or not finite
 
     @property
     def ready(self) -> bool:
-        return self._x is not None
+        return self._ready
 
     def update(self, stamp_s: float, pos_m: np.ndarray, quat_wxyz: np.ndarray, received_s: float) -> bool:
         """Take one pose (exposure time ``stamp_s``, arrival ``received_s``, s); False if rejected."""
-        pos = np.asarray(pos_m, dtype=float)
-        quat = np.asarray(quat_wxyz, dtype=float)
-        if (pos.shape != (3,) or quat.shape != (4,) or not np.all(np.isfinite(pos))
-                or not np.all(np.isfinite(quat)) or not math.isfinite(stamp_s) or stamp_s <= self._stamp_s):
+        try:
+            px, py, pz = (float(v) for v in pos_m)
+            qw, qx, qy, qz = (float(v) for v in quat_wxyz)
+            stamp_s, received_s = float(stamp_s), float(received_s)
+        except (TypeError, ValueError):
             self.rejected += 1
             return False
+        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if (not math.isfinite(px + py + pz + qn + stamp_s) or qn == 0.0 or stamp_s <= self._stamp_s):
+            self.rejected += 1
+            return False
+        cfg = self.config
         dt = stamp_s - self._stamp_s
         delay = received_s - stamp_s
-        if self._x is None or dt > self.config.reset_after_s:
-            self._x = np.stack([pos, np.zeros(3), np.zeros(3)])
-            r2 = self.config.pos_noise_m**2
-            self._P = np.diag([r2, 1.0, 10.0])
+        r2 = cfg.pos_noise_m * cfg.pos_noise_m
+        if not self._ready or dt > cfg.reset_after_s:
+            self._x = [px, 0.0, 0.0, py, 0.0, 0.0, pz, 0.0, 0.0]
+            self._P = (r2, 0.0, 0.0, 1.0, 0.0, 10.0)
             self._mean_delay_s = delay
+            self._ready = True
         else:
-            self._mean_delay_s += min(1.0, dt / self.config.delay_window_s) * (delay - self._mean_delay_s)
-            F = np.array([[1.0, dt, dt * dt / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
-            q = self.config.jerk_psd
-            Q = q * np.array([[dt**5 / 20, dt**4 / 8, dt**3 / 6],
-                              [dt**4 / 8, dt**3 / 3, dt**2 / 2],
-                              [dt**3 / 6, dt**2 / 2, dt]])
-            x = F @ self._x
-            P = F @ self._P @ F.T + Q
-            s = P[0, 0] + self.config.pos_noise_m**2
-            k = P[:, 0] / s
-            self._x = x + np.outer(k, pos - x[0])
-            self._P = P - np.outer(k, P[0, :])
+            self._mean_delay_s += min(1.0, dt / cfg.delay_window_s) * (delay - self._mean_delay_s)
+            p00, p01, p02, p11, p12, p22 = self._P
+            h = dt * dt / 2
+            # F P F^T + Q, F = [[1, dt, h], [0, 1, dt], [0, 0, 1]], Q = q [dt^5/20 ...] (white jerk)
+            a0, a1, a2 = p00 + dt * p01 + h * p02, p01 + dt * p11 + h * p12, p02 + dt * p12 + h * p22
+            b1, b2 = p11 + dt * p12, p12 + dt * p22
+            q, dt2 = cfg.jerk_psd, dt * dt
+            dt3 = dt2 * dt
+            n00 = a0 + dt * a1 + h * a2 + q * dt3 * dt2 / 20
+            n01 = a1 + dt * a2 + q * dt2 * dt2 / 8
+            n02 = a2 + q * dt3 / 6
+            n11 = b1 + dt * b2 + q * dt3 / 3
+            n12 = b2 + q * dt2 / 2
+            n22 = p22 + q * dt
+            s = n00 + r2
+            k0, k1, k2 = n00 / s, n01 / s, n02 / s
+            self._P = (n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n11 - k1 * n01, n12 - k1 * n02,
+                       n22 - k2 * n02)
+            x = self._x
+            for i, z in ((0, px), (3, py), (6, pz)):
+                p, v, a = x[i], x[i + 1], x[i + 2]
+                pp = p + dt * v + h * a
+                e = z - pp
+                x[i], x[i + 1], x[i + 2] = pp + k0 * e, v + dt * a + k1 * e, a + k2 * e
         self._stamp_s = stamp_s
         self._received_s = received_s
         self._delay_s = delay
-        self._quat = quat / np.linalg.norm(quat)
+        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        self._quat = (qw, qx, qy, qz)
+        self._euler = (math.atan2(2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
+                       math.asin(min(max(2 * (qw * qy - qx * qz), -1.0), 1.0)),
+                       math.atan2(2 * (qx * qy + qw * qz), 1 - 2 * (qy * qy + qz * qz)))
         self.updates += 1
         return True
 
@@ -114,12 +141,14 @@ class PoseEstimator:
         """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the
         configured mean latency, plus how much later than the average it arrived. ValueError if no
         pose has come yet."""
-        if self._x is None:
+        if not self._ready:
             raise ValueError("no pose received yet")
+        cfg = self.config
         age = max(0.0, now_s - self._received_s)
-        h = age + self.config.latency_s + (self._delay_s - self._mean_delay_s)
-        h = min(max(h, 0.0), self.config.reset_after_s)
-        p, v, a = self._x
-        roll, pitch, yaw = matrix_to_euler(quat_to_matrix(self._quat))
-        return StateEstimate(p + v * h + a * h * h / 2, v + a * h, a.copy(),
-                             np.array([float(roll), float(pitch), float(yaw)]), self._quat.copy())
+        h = age + cfg.latency_s + (self._delay_s - self._mean_delay_s)
+        h = min(max(h, 0.0), cfg.reset_after_s)
+        hh = h * h / 2
+        px, vx, ax, py, vy, ay, pz, vz, az = self._x
+        return StateEstimate(np.array((px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh)),
+                             np.array((vx + ax * h, vy + ay * h, vz + az * h)), np.array((ax, ay, az)),
+                             np.array(self._euler), np.array(self._quat))

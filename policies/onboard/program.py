@@ -232,6 +232,7 @@ class OnboardProgram:
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
         self._abort_yaw = 0.0
         self._last_cmd: AttitudeThrustCommand | None = None
+        self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
 
     # --- the step ---------------------------------------------------------------------------
     @property
@@ -568,7 +569,11 @@ class OnboardProgram:
         done = []
         for tick in ticks:
             if tick < self.clock.now_s():
-                continue  # a stale or repeated tick: time never goes back
+                continue  # a stale tick: time never goes back
+            if tick == self._last_tick_s:  # a repeat (sent again while this program started): answer only
+                self.link.answer_tick(tick)
+                continue
+            self._last_tick_s = tick
             self.lockstep_tick(tick)
             done.append(tick)
             if self.finished:
@@ -582,7 +587,11 @@ class OnboardProgram:
         last_tick_wall = time.monotonic()
         while not self.finished:
             if self.lockstep_poll():
+                # answered: the next tick is not there yet (the FC waits for this answer), so wait for
+                # it rather than reading the link again at once
                 last_tick_wall = time.monotonic()
+                if fds and not self.finished:
+                    select.select(fds, [], [], 0.05)
                 continue
             if time.monotonic() - last_tick_wall > tick_timeout_s:
                 self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"no tick for {tick_timeout_s} s")
