@@ -18,7 +18,7 @@ RTF_SCENARIO = """
 description: bench - the release's 60 deg gap at 2.5 m/s, traditional pilot
 gap: {roll_deg: -60}
 approach: {speed_m_s: 2.5}
-duration_s: 10
+duration_s: 11
 """
 
 
@@ -27,6 +27,9 @@ def collect(quick: bool) -> Iterator[BenchRow]:
     with tempfile.TemporaryDirectory() as tmp:
         for in_process, name in ((False, "full_stack_rtf"), (True, "in_process_rtf")):
             r = run_scenario(s, Path(tmp) / name, RunOptions(in_process=in_process))
+            if not r.passed:  # a figure from a failed flight would not be the figure asked for
+                failed = "; ".join(f"{c.name}: {c.observed}" for c in r.failed_checks)
+                raise RuntimeError(f"bench scenario failed its checks ({name}): {failed}")
             sm = r.summary
             yield BenchRow(
                 name,
