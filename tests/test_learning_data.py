@@ -77,6 +77,27 @@ def test_augmentation_keeps_labels_exact():
     np.testing.assert_allclose(ya, _relabel(xa), atol=1e-5)
 
 
+def test_end_fraction_samples_more_times_near_both_ends():
+    data = planner_data(SMALL, use_cache=False)
+    x_uni, _ = PlannerSampler(data, np.random.default_rng(0), augment=False).batch(20_000)
+    ends = PlannerSampler(data, np.random.default_rng(0), augment=False, end_fraction=1.0)
+    x_end, y_end = ends.batch(20_000)
+
+    def tau(x: np.ndarray) -> np.ndarray:  # t / T, T = |dp| / v_bar
+        return x[:, 0] / (np.linalg.norm(x[:, 2:5], axis=1) / x[:, 1])
+
+    def near(t: np.ndarray) -> float:
+        return float(np.mean((t < 0.1) | (t > 0.9)))
+
+    tau_uni, tau_end = tau(x_uni), tau(x_end)
+    assert near(tau_uni) == pytest.approx(0.2, abs=0.02)
+    assert near(tau_end) == pytest.approx(0.41, abs=0.02)  # arcsine law: 2 * acos(0.8) / pi
+    assert tau_end.min() >= 0.0 and tau_end.max() <= 1.0 + 1e-12
+    np.testing.assert_allclose(y_end, _relabel(x_end), atol=1e-6)  # still exact labels on the grid
+    with pytest.raises(ValueError, match="end_fraction"):
+        PlannerSampler(data, np.random.default_rng(0), end_fraction=1.5)
+
+
 def test_planner_data_is_cached_by_its_parameters():
     first = planner_data(SMALL)
     files = sorted(cache_dir().glob("planner-*.npz"))

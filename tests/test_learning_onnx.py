@@ -1,5 +1,6 @@
-"""ONNX export and onnxruntime inference: parity with torch on 10k random inputs, input checks, and the
-shipped weights (present, small, consistent with their state dicts, and accurate on the paper's case)."""
+"""ONNX export and onnxruntime inference: parity with torch on 10k random inputs, the folded inference
+forms computing the trained functions, the one-sample fast path, input checks, and the shipped weights
+(present, small, consistent with their state dicts, and accurate on the paper's case)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,15 @@ from policies.learning.data import (
     draw_controller_inputs,
     planner_data,
 )
-from policies.learning.evaluate import PAPER_WORST_ERRORS, paper_case_errors
-from policies.learning.export import EXPORT_DTYPES, export_all, load_controller, load_planner
+from policies.learning.evaluate import PAPER_WORST_ERRORS, paper_case, paper_case_errors
+from policies.learning.export import (
+    EXPORT_DTYPES,
+    EXPORT_HIDDEN,
+    export_all,
+    inference_module,
+    load_controller,
+    load_planner,
+)
 from policies.learning.features import LARGE_RANGE
 from policies.learning.networks import ControllerNet, EndToEndPolicy, PlannerNet
 from policies.learning.onnx_runtime import OnnxModel, load_shipped, shipped_path
@@ -35,13 +43,17 @@ def _inputs() -> dict[str, np.ndarray]:
 
 
 def _torch_out(net: torch.nn.Module, x: np.ndarray, dtype: torch.dtype) -> np.ndarray:
+    """Outputs of ``net`` (already in its dtypes) for inputs ``x`` given in ``dtype``."""
     with torch.no_grad():
-        return net.to(dtype)(torch.as_tensor(x, dtype=dtype)).double().numpy()
+        return net(torch.as_tensor(x, dtype=dtype)).double().numpy()
 
 
 def _check_parity(nets: dict[str, torch.nn.Module], onnx: dict[str, OnnxModel]) -> None:
+    """onnxruntime against torch running what was exported (``inference_module``: for the merged
+    policy, float32 hidden layers between float64 physical units)."""
     for name, x in _inputs().items():
-        ref = _torch_out(nets[name], x, EXPORT_DTYPES[name])
+        ref = _torch_out(inference_module(nets[name], EXPORT_DTYPES[name], EXPORT_HIDDEN[name]), x,
+                         EXPORT_DTYPES[name])
         out = onnx[name].predict(x)
         assert out.shape == ref.shape == (N, onnx[name].n_outputs)
         assert np.abs(out - ref).max() <= 1e-5, name
@@ -55,6 +67,44 @@ def test_export_matches_torch_within_1e_5_on_10k_random_inputs(tmp_path):
     _check_parity(nets, {name: OnnxModel(path) for name, path in paths.items()})
 
 
+def test_inference_forms_compute_the_trained_functions():
+    """The folded float64 forms equal the networks to rounding; the merged policy with float32 hidden
+    layers stays within 1e-4 N / 1e-5 rad of the float64 policy near the paper's test case."""
+    torch.manual_seed(6)
+    planner, controller = PlannerNet().double(), ControllerNet().double()
+    policy = EndToEndPolicy(planner, controller)
+    x = _inputs()
+    for name, net in (("planner", planner), ("e2e", policy)):
+        folded = inference_module(net, torch.float64)
+        ref, out = _torch_out(net, x[name], torch.float64), _torch_out(folded, x[name], torch.float64)
+        assert np.all(np.abs(out - ref) <= 1e-9 * (1.0 + np.abs(ref))), name
+    x17, _ = paper_case(200)
+    rng = np.random.default_rng(3)
+    state = np.concatenate([rng.normal(0.0, 0.3, (200, 9)), rng.normal(0.0, 0.3, (200, 3))], axis=1)
+    xe = np.concatenate([state, x17], axis=1)
+    mixed = inference_module(policy, torch.float64, EXPORT_HIDDEN["e2e"])
+    diff = np.abs(_torch_out(mixed, xe, torch.float64) - _torch_out(policy, xe, torch.float64))
+    assert diff[:, 0:2].max() <= 1e-5 and diff[:, 2].max() <= 1e-4
+
+
+def test_one_sample_fast_path_matches_batched_inference(tmp_path):
+    torch.manual_seed(7)
+    paths = export_all(PlannerNet(), ControllerNet(), tmp_path)
+    x = _inputs()["e2e"][:20]
+    model = OnnxModel(paths["e2e"])
+    batch = model.predict(x)
+    for row, want in zip(x, batch, strict=True):
+        got = model.run_one(row)
+        assert got.shape == (3,)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(model.predict(row), want)
+    kept = model.predict(x[0])  # predict returns a copy: a later call does not overwrite it
+    model.run_one(x[1])
+    np.testing.assert_array_equal(kept, batch[0])
+    with pytest.raises(ValueError, match="threads"):
+        OnnxModel(paths["e2e"], threads=0)
+
+
 def test_shipped_onnx_files_match_the_shipped_state_dicts():
     weights = shipped_path("planner").parent
     for name in ("planner", "controller", "e2e"):
@@ -66,15 +116,15 @@ def test_shipped_onnx_files_match_the_shipped_state_dicts():
 
 def test_shipped_planner_on_the_papers_test_case_is_what_the_model_card_says():
     """The shipped planner's worst errors on the paper's test case are those recorded in
-    policies/weights/metrics.json (and MODEL_CARD.md), and within 3x of the paper's network.
-
-    The paper's own figures (0.058 m, 0.125 m/s, 0.505 m/s^2) are not reached by the shipped weights
-    (see MODEL_CARD.md); tighten the bound here when better weights are shipped."""
+    policies/weights/metrics.json (and MODEL_CARD.md); velocity and acceleration are below the paper's
+    network's (0.125 m/s, 0.505 m/s^2), position within 1.5x of its 0.058 m (that target is not met
+    yet: see MODEL_CARD.md; tighten the position bound when better weights are shipped)."""
     card = json.loads((shipped_path("planner").parent / "metrics.json").read_text())["planner"]["paper_case"]
     errors = paper_case_errors(load_shipped("planner").predict)
-    for key, paper in (("max_pos_m", "pos_m"), ("max_vel_m_s", "vel_m_s"), ("max_acc_m_s2", "acc_m_s2")):
+    for key, paper, factor in (("max_pos_m", "pos_m", 1.5), ("max_vel_m_s", "vel_m_s", 1.0),
+                               ("max_acc_m_s2", "acc_m_s2", 1.0)):
         assert errors[key] == pytest.approx(card[key], rel=1e-6)
-        assert errors[key] < 3.0 * PAPER_WORST_ERRORS[paper]
+        assert errors[key] < factor * PAPER_WORST_ERRORS[paper]
 
 
 def test_onnx_model_rejects_bad_inputs(tmp_path):

@@ -3,6 +3,7 @@ checkpoint stopped, bad options give a clear error."""
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 from hil.cli import main as hil_main
 from policies.learning.data import ControllerDataConfig, PlannerDataConfig
 from policies.learning.onnx_runtime import OnnxModel
-from policies.learning.train import TrainConfig, train_controller, train_planner
+from policies.learning.train import TrainConfig, lr_at, train_controller, train_planner
 
 TINY_PLANNER = PlannerDataConfig(n_trajectories=60, samples_per_trajectory=100, seed=2)
 
@@ -46,6 +47,18 @@ def test_planner_training_writes_weights_metrics_curve_and_resumes(tmp_path):
     assert fresh.steps == 2 * steps_one_epoch
 
 
+def test_lr_schedules_run_from_lr_to_the_final_fraction():
+    for schedule in ("exp", "cosine"):
+        cfg = TrainConfig(lr=2e-3, lr_final_frac=0.01, schedule=schedule)
+        assert lr_at(cfg, 0.0) == pytest.approx(2e-3) and lr_at(cfg, 1.0) == pytest.approx(2e-5)
+        values = [lr_at(cfg, f) for f in np.linspace(0.0, 1.0, 11)]
+        assert all(a > b for a, b in itertools.pairwise(values))
+    # the cosine schedule keeps a higher rate for longer: at half time, about half of lr
+    assert lr_at(TrainConfig(lr=2e-3, schedule="cosine"), 0.5) == pytest.approx(1e-3 * 1.01)
+    with pytest.raises(ValueError, match="schedule"):
+        TrainConfig(schedule="linear")
+
+
 def len_kept(result) -> int:
     return int(result.metrics["data"]["trajectories"])
 
@@ -68,7 +81,8 @@ def test_controller_training_reports_angle_and_thrust_errors(tmp_path):
 def test_hil_train_cli_trains_exports_and_rejects_bad_options(tmp_path, capsys):
     out = tmp_path / "cli"
     rc = hil_main(["train", "planner", "--trajectories", "40", "--samples-per-trajectory", "10",
-                   "--epochs", "1", "--batch-size", "128", "--out", str(out), "--no-progress"])
+                   "--epochs", "1", "--batch-size", "128", "--out", str(out), "--no-progress",
+                   "--schedule", "cosine", "--end-fraction", "0.5"])
     assert rc == 0
     printed = json.loads(capsys.readouterr().out.split("\nwrote")[0])
     assert printed["steps"] >= 1 and "max_pos_m" in printed["paper_case"]
@@ -81,6 +95,11 @@ def test_hil_train_cli_trains_exports_and_rejects_bad_options(tmp_path, capsys):
     rc = hil_main(["train", "export", "--planner", str(out / "planner.pt"), "--controller",
                    str(tmp_path / "ctl" / "controller.pt"), "--out", str(tmp_path / "onnx")])
     assert rc == 0 and OnnxModel(tmp_path / "onnx" / "e2e.onnx").n_inputs == 29
+    exported = json.loads((tmp_path / "onnx" / "metrics.json").read_text())
+    assert exported["planner"]["steps"] == printed["steps"]  # the training's metrics carried over
+    assert exported["planner"]["paper_case"]["max_pos_m"] == pytest.approx(printed["paper_case"]["max_pos_m"],
+                                                                           rel=1e-4)
+    assert "holdout_large" in exported["controller"]
     rc = hil_main(["train", "planner", "--batch-size", "0", "--out", str(tmp_path / "bad"), "--no-progress"])
     assert rc == 1
     assert "batch_size" in capsys.readouterr().err

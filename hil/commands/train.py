@@ -17,6 +17,9 @@ def _common(p: argparse.ArgumentParser, out: str, batch: int, lr: float) -> None
     p.add_argument("--lr", type=float, default=lr, help=f"initial Adam learning rate (default {lr})")
     p.add_argument("--lr-final-frac", type=float, default=0.01,
                    help="final lr as a fraction of --lr (default 0.01)")
+    p.add_argument("--schedule", choices=("exp", "cosine"), default="exp",
+                   help="lr decay from --lr to --lr x --lr-final-frac: exp(onential) or half cosine "
+                        "(default exp)")
     p.add_argument("--seed", type=int, default=0, help="seed of the data and of the training (default 0)")
     p.add_argument("--no-resume", action="store_true", help="start afresh even if OUT/checkpoint.pt exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -31,13 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--trajectories", type=int, default=20_000, help="training trajectories (default 20000)")
     pl.add_argument("--samples-per-trajectory", type=int, default=1000,
                     help="time grid per trajectory (default 1000)")
+    pl.add_argument("--end-fraction", type=float, default=0.0,
+                    help="fraction of training samples timed by the arcsine law, denser near t = 0 and "
+                         "t = T (default 0: uniform)")
     pl.set_defaults(func=main)
     co = tsub.add_parser("controller", help="imitate the expert controller (12 -> 3)")
     _common(co, "out/controller", 1024, 1e-3)
     co.add_argument("--samples-per-set", type=int, default=6_000_000,
                     help="samples in each of the large- and short-range sets (default 6e6)")
     co.set_defaults(func=main)
-    ex = tsub.add_parser("export", help="write planner.onnx, controller.onnx and e2e.onnx from state dicts")
+    ex = tsub.add_parser("export", help="write planner.onnx, controller.onnx, e2e.onnx and metrics.json from "
+                                        "state dicts (and the metrics.json files beside them)")
     ex.add_argument("--planner", required=True, help="planner state dict (planner.pt)")
     ex.add_argument("--controller", required=True, help="controller state dict (controller.pt)")
     ex.add_argument("--out", required=True, help="output folder")
@@ -55,11 +62,13 @@ def main(args: argparse.Namespace) -> int:
         if args.what == "export":
             planner, controller = export.load_planner(args.planner), export.load_controller(args.controller)
             paths = export.export_all(planner, controller, args.out)
+            paths["metrics"] = export.export_metrics(args.planner, args.controller, args.out)
             for name, path in paths.items():
                 print(f"{name}: {path}")
             return 0
         cfg = train.TrainConfig(out_dir=args.out, epochs=args.epochs, minutes=args.minutes,
                                 batch_size=args.batch_size, lr=args.lr, lr_final_frac=args.lr_final_frac,
+                                schedule=args.schedule,
                                 seed=args.seed, resume=not args.no_resume, threads=args.threads,
                                 progress=not args.no_progress)
         if args.what == "planner":
@@ -67,7 +76,7 @@ def main(args: argparse.Namespace) -> int:
                                      samples_per_trajectory=args.samples_per_trajectory, seed=args.seed)
             print(f"hil train planner: device {train.device()}, {args.trajectories} trajectories x "
                   f"{args.samples_per_trajectory} samples, out {args.out}", file=sys.stderr)
-            result = train.train_planner(data, cfg)
+            result = train.train_planner(data, cfg, end_fraction=args.end_fraction)
             net = export.load_planner(result.weights_path)
             onnx_path = export.export_onnx(net, export.N_INPUTS["planner"], Path(args.out) / "planner.onnx",
                                            export.EXPORT_DTYPES["planner"])

@@ -174,15 +174,25 @@ def augment_planner(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, p_fl
 
 
 class PlannerSampler:
-    """Random training batches from a ``PlannerData``: uniform trajectory, uniform grid time."""
+    """Random training batches from a ``PlannerData``: uniform trajectory; grid time uniform, or for a
+    fraction ``end_fraction`` of the samples from the arcsine (Chebyshev) law on the grid, which is
+    denser near t = 0 and t = T, where the boundary conditions must be met exactly."""
 
-    def __init__(self, data: PlannerData, rng: np.random.Generator, augment: bool = True) -> None:
-        self.data, self.rng, self.augment = data, rng, augment
+    def __init__(self, data: PlannerData, rng: np.random.Generator, augment: bool = True,
+                 end_fraction: float = 0.0) -> None:
+        if not 0.0 <= end_fraction <= 1.0:
+            raise ValueError(f"end_fraction must be in [0, 1], got {end_fraction}")
+        self.data, self.rng, self.augment, self.end_fraction = data, rng, augment, end_fraction
 
     def batch(self, size: int) -> tuple[np.ndarray, np.ndarray]:
         """Inputs (size, 17) and labels (size, 9), float64."""
         idx = self.rng.integers(0, len(self.data), size)
-        grid = self.rng.integers(0, self.data.config.samples_per_trajectory, size)
+        last = self.data.config.samples_per_trajectory - 1
+        grid = self.rng.integers(0, last + 1, size)
+        if self.end_fraction > 0.0:
+            ends = self.rng.random(size) < self.end_fraction
+            cheb = np.rint(last * 0.5 * (1.0 - np.cos(np.pi * self.rng.random(size)))).astype(grid.dtype)
+            grid = np.where(ends, cheb, grid)
         x, y = self.data.inputs_outputs(idx, grid)
         return augment_planner(x, y, self.rng) if self.augment else (x, y)
 

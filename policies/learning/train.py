@@ -1,7 +1,8 @@
 """Training loops for the planner and controller networks: time/epoch budget, checkpoints, resume, eval.
 
-Both loops draw random minibatches, use Adam with an exponentially decaying learning rate (from ``lr`` to
-``lr * lr_final_frac`` over the budget, the budget being the sooner of ``epochs`` and ``minutes``),
+Both loops draw random minibatches, use Adam with a learning rate decaying exponentially or along a half
+cosine (``schedule``) from ``lr`` to ``lr * lr_final_frac`` over the budget (the sooner of ``epochs``
+and ``minutes``),
 checkpoint to ``out_dir/checkpoint.pt`` every ``checkpoint_every_s`` seconds and at the end, and
 resume from that file. They finish by writing ``out_dir/<name>.pt`` (the state dict),
 ``metrics.json`` (held-out errors in physical units) and ``curve.png`` (training and validation loss).
@@ -43,6 +44,7 @@ class TrainConfig:
     batch_size: int = 8192
     lr: float = 1e-3
     lr_final_frac: float = 0.01
+    schedule: str = "exp"  # lr from lr to lr * lr_final_frac: "exp" (exponential) or "cosine" (half cosine)
     weight_decay: float = 0.0  # the paper's "g" (L2 on the weights)
     seed: int = 0
     checkpoint_every_s: float = 60.0
@@ -54,6 +56,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.lr <= 0 or not 0 < self.lr_final_frac <= 1 or self.epochs <= 0:
             raise ValueError("need batch_size >= 1, lr > 0, 0 < lr_final_frac <= 1 and epochs > 0")
+        if self.schedule not in ("exp", "cosine"):
+            raise ValueError(f"schedule must be 'exp' or 'cosine', got {self.schedule!r}")
         if self.minutes is not None and self.minutes <= 0:
             raise ValueError("minutes must be positive")
 
@@ -72,6 +76,14 @@ class TrainResult:
 def device() -> torch.device:
     """The GPU when torch sees one, else the CPU."""
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def lr_at(cfg: TrainConfig, frac: float) -> float:
+    """Learning rate at ``frac`` (0..1) of the budget."""
+    if cfg.schedule == "cosine":
+        cos = 0.5 * (1.0 + math.cos(math.pi * min(frac, 1.0)))
+        return cfg.lr * (cfg.lr_final_frac + (1.0 - cfg.lr_final_frac) * cos)
+    return cfg.lr * cfg.lr_final_frac ** frac
 
 
 def _loop(name: str, model: torch.nn.Module, cfg: TrainConfig, steps_per_epoch: int,
@@ -109,7 +121,7 @@ def _loop(name: str, model: torch.nn.Module, cfg: TrainConfig, steps_per_epoch: 
     running = None
     model.train()
     while progress_frac() < 1.0:
-        lr = cfg.lr * cfg.lr_final_frac ** progress_frac()
+        lr = lr_at(cfg, progress_frac())
         for group in opt.param_groups:
             group["lr"] = lr
         x, y = batch(cfg.batch_size)
@@ -183,16 +195,17 @@ def predictor(model: torch.nn.Module, chunk: int = 65536) -> Callable[[np.ndarra
     return predict
 
 
-def train_planner(data_cfg: PlannerDataConfig, cfg: TrainConfig, holdout_trajectories: int = 100
-                  ) -> TrainResult:
-    """Train ``PlannerNet`` on the planner data set; evaluate on ``holdout_trajectories`` fresh ones."""
+def train_planner(data_cfg: PlannerDataConfig, cfg: TrainConfig, holdout_trajectories: int = 100,
+                  end_fraction: float = 0.0) -> TrainResult:
+    """Train ``PlannerNet`` on the planner data set; evaluate on ``holdout_trajectories`` fresh ones.
+    ``end_fraction`` of the training samples take their time from the arcsine law (see PlannerSampler)."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     dev = device()
     data = planner_data(data_cfg)
     hold_cfg = replace(data_cfg, n_trajectories=holdout_trajectories, seed=data_cfg.seed + 1_000_003)
     hold = planner_data(hold_cfg)
-    sampler = PlannerSampler(data, np.random.default_rng(cfg.seed))
+    sampler = PlannerSampler(data, np.random.default_rng(cfg.seed), end_fraction=end_fraction)
     model = PlannerNet().to(dev)
     x_val, y_val = PlannerSampler(hold, np.random.default_rng(cfg.seed + 1), augment=False).batch(8192)
     xv = torch.as_tensor(x_val, dtype=torch.float32, device=dev)
@@ -212,12 +225,13 @@ def train_planner(data_cfg: PlannerDataConfig, cfg: TrainConfig, holdout_traject
             return float(loss_fn(model, xv, yv))
 
     steps_per_epoch = math.ceil(len(data) * data_cfg.samples_per_trajectory / cfg.batch_size)
-    extra = {"data_config": asdict(data_cfg)}
+    extra = {"data_config": asdict(data_cfg), "end_fraction": end_fraction}
     steps, elapsed, history = _loop("planner", model, cfg, steps_per_epoch, batch, loss_fn, val, extra)
     predict = predictor(model)
     xh, yh = hold.all_samples()
     metrics = {"data": {"trajectories": len(data), "dropped": data.n_dropped,
-                        "samples_per_trajectory": data_cfg.samples_per_trajectory, **asdict(data_cfg)},
+                        "samples_per_trajectory": data_cfg.samples_per_trajectory, **asdict(data_cfg),
+                        "end_fraction": end_fraction},
                "holdout": {"trajectories": len(hold), **planner_errors(predict(xh), yh)},
                "paper_case": paper_case_errors(predict)}
     return _finish("planner", model, cfg, steps, elapsed, history, metrics)
