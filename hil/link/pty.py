@@ -23,7 +23,7 @@ import os
 import termios
 import tty
 
-from hil.link.transport import LinkError, Transport
+from hil.link.transport import LinkError, Transport, write_nonblocking
 
 DEFAULT_BAUD = 921600
 
@@ -83,19 +83,7 @@ class PtyTransport(Transport):
             termios.tcflush(self._master, termios.TCIFLUSH)
 
     def _send_internal(self, data: bytes) -> int:
-        sent = 0
-        view = memoryview(data)
-        while sent < len(data):
-            try:
-                n = os.write(self._master, view[sent:])
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError as e:
-                raise LinkError(f"{self.endpoint}: write failed: {e}") from e
-            if n <= 0:
-                break
-            sent += n
-        return sent
+        return write_nonblocking(self._master, data, self.endpoint)
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         try:

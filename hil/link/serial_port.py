@@ -16,7 +16,7 @@ import select
 
 import serial
 
-from hil.link.transport import LinkError, Transport
+from hil.link.transport import LinkError, Transport, write_nonblocking
 
 DEFAULT_BAUD = 921600
 
@@ -50,19 +50,7 @@ class SerialTransport(Transport):
         return self._fd
 
     def _send_internal(self, data: bytes) -> int:
-        sent = 0
-        view = memoryview(data)
-        while sent < len(data):
-            try:
-                n = os.write(self._fd, view[sent:])
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError as e:
-                raise LinkError(f"{self.device}: write failed (device gone?): {e}") from e
-            if n <= 0:
-                break
-            sent += n
-        return sent
+        return write_nonblocking(self._fd, data, f"{self.device} (device gone?)")
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         try:

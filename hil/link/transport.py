@@ -7,6 +7,7 @@ as byte streams too: framing (MAVLink, LinkTrack) lives above, in the codecs.
 
 from __future__ import annotations
 
+import os
 import select
 import time
 from abc import ABC, abstractmethod
@@ -112,3 +113,23 @@ class Transport(ABC):
     def _wait_readable(self, timeout_s: float | None) -> None:
         """Block until data may be readable or ``timeout_s`` passes; default uses select on fileno()."""
         select.select([self.fileno()], [], [], timeout_s)
+
+
+def write_nonblocking(fd: int, data: bytes, what: str) -> int:
+    """Write what a non-blocking ``fd`` takes now; return the bytes written (the rest did not fit).
+
+    Raises LinkError naming ``what`` when the device is gone.
+    """
+    sent = 0
+    view = memoryview(data)
+    while sent < len(data):
+        try:
+            n = os.write(fd, view[sent:])
+        except (BlockingIOError, InterruptedError):
+            break
+        except OSError as e:
+            raise LinkError(f"{what}: write failed: {e}") from e
+        if n <= 0:
+            break
+        sent += n
+    return sent
