@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 from hil.link.mavlink import encode_frame, mav
 from hil.runner.emulator_side import FC_SYSTEM_ID, EmulatorSide
+from hil.runner.faults import FaultSchedule
 from hil.runner.onboard_side import OnboardSide
 
 DEFAULT_TICK_S = 0.01  # one tick per onboard control period (100 Hz)
@@ -49,6 +50,22 @@ class LoopReport:
     loop_sim_s: float | None = None  # None: the whole run
 
 
+def apply_process_faults(
+    rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, kill_s: float | None, t: float
+) -> None:
+    """Kill, stall or resume the onboard program as the fault schedule says at ``t`` (s), noting it."""
+    if onboard.alive and kill_s is not None and t >= kill_s:
+        onboard.kill()
+        rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
+    stalled = faults.any_active("onboard_stalled", t)
+    if stalled and onboard.alive and not onboard.paused:
+        onboard.pause()
+        rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
+    elif not stalled and onboard.paused:
+        onboard.resume()
+        rep.events.append({"time_s": t, "source": "runner", "text": "onboard program resumed"})
+
+
 def run_lockstep(
     emu: EmulatorSide,
     onboard: OnboardSide,
@@ -73,22 +90,16 @@ def run_lockstep(
         t = k * tick_s
         emu.advance_to(t)
         rep.ticks += 1
-        if onboard.alive and kill_s is not None and t >= kill_s:
-            onboard.kill()
-            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
-        stalled = faults.any_active("onboard_stalled", t)
-        if stalled and onboard.alive and not onboard.paused:
-            onboard.pause()
-            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
-        elif not stalled and onboard.paused:
-            onboard.resume()
-            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program resumed"})
+        apply_process_faults(rep, onboard, faults, kill_s, t)
         if onboard.alive and not onboard.paused:
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                answered = (_tick(emu, onboard, t, STARTUP_GUARD_S, STARTUP_RESEND_S) if first
-                            else _tick(emu, onboard, t, guard_s))
+                answered = (
+                    _tick(emu, onboard, t, STARTUP_GUARD_S, STARTUP_RESEND_S)
+                    if first
+                    else _tick(emu, onboard, t, guard_s)
+                )
                 if first:  # the loop proper starts here, the onboard program being up
                     loop0, t_loop0 = time.perf_counter(), t
                     first = False
@@ -128,8 +139,9 @@ def _tick(
     wire = emu.wire
     ns = round(t * 1e9)
     # TIMESYNC(tc1 = 0, ts1 = t): the harness's own frame, sequence number always 0
-    frame = encode_frame(mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(0, ns), 0, FC_SYSTEM_ID,
-                         mav.MAV_COMP_ID_AUTOPILOT1)
+    frame = encode_frame(
+        mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(0, ns), 0, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1
+    )
     wire.send_sync(frame)
     onboard.service()
     emu.recorder.flush()  # the world checks and time-series rows of the tick, while the onboard works

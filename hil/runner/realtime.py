@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 
 from hil.runner.emulator_side import EmulatorSide
-from hil.runner.lockstep import LoopReport
+from hil.runner.lockstep import LoopReport, apply_process_faults
 from hil.runner.onboard_side import InProcessOnboard, OnboardSide
 
 POLL_S = 0.001  # the loop wakes at least this often (s)
@@ -31,15 +31,7 @@ def run_realtime(
             break
         emu.advance_to(t)
         rep.ticks += 1
-        if onboard.alive and kill_s is not None and t >= kill_s:
-            onboard.kill()
-            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
-        stalled = faults.any_active("onboard_stalled", t)
-        if stalled and onboard.alive and not onboard.paused:
-            onboard.pause()
-            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
-        elif not stalled and onboard.paused:
-            onboard.resume()
+        apply_process_faults(rep, onboard, faults, kill_s, t)
         if isinstance(onboard, InProcessOnboard):
             onboard.step_realtime(t)
         emu.wire.read_onboard(POLL_S)
