@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from emulator.fc import EmulatedVehicle
+from emulator.fc.batched_steps import FastStepper
 from emulator.fc.n3 import N3Setpoint
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
 from hil.link.mavlink import mav
 from hil.runner import RunOptions, run_scenario
-from hil.runner.fast_step import FastStepper
 from hil.runner.wires import FrameSplitter, timesync_answer_ns
 from hil.scenario import loads_scenarios
 

@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
+from emulator.fc.batched_steps import FastStepper
 from emulator.mocap import MocapConfig, pose_of
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
@@ -26,7 +27,6 @@ from hil.link.clock import SimClock
 from hil.link.mavlink import MavlinkCodec, mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
-from hil.runner.fast_step import FastStepper
 from hil.runner.faults import FaultSchedule, corrupt
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, LinkModel

@@ -1,5 +1,6 @@
-"""Batched physics for the lockstep loop: while the FC flies an offboard attitude target, its inner loop
-and the native physics run together in one numba call for a whole batch of 1 kHz steps.
+"""Batched steps of an emulated vehicle: while the FC flies an offboard attitude target, its inner loop
+and the native physics run together in one numba call for a whole batch of 1 kHz steps (the lockstep
+runner's fast path; it lives here because it keeps the FC's and the backend's own bookkeeping).
 
 Same arithmetic as `EmulatedVehicle.step` (the FC's inner-loop kernel, then one physics step, each
 millisecond); the batch stops before the FC's setpoint-loss timeout could fire, and anything else
