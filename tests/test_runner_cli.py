@@ -69,3 +69,27 @@ def test_bad_options_exit_2(tmp_path):
     assert p.returncode == 2 and "unknown pilot 'nobody'" in p.stderr
     p = run(["run", str(tmp_path / "missing.scenario.yaml")], tmp_path)
     assert p.returncode == 2 and "cannot read" in p.stderr
+
+
+def test_the_recovery_point_comes_from_the_scenario_not_the_pilot():
+    import math
+
+    import numpy as np
+
+    from emulator.world import Gap
+    from hil.runner.run import recovery_point_m
+
+    level = Gap(centre_m=(0.0, 0.5, 2.1))
+    # the paper's case: start at (-2, -1), cross along +x, hover 2.5 m past the centre, 1 m up
+    assert recovery_point_m(level.axes(), np.array(level.centre_m), np.array([-2.0, -1.0, 0.5])) == (
+        2.5,
+        0.5,
+        1.0,
+    )
+    # from the other side the vehicle crosses along -x
+    p = recovery_point_m(level.axes(), np.array(level.centre_m), np.array([2.0, 0.0, 0.5]))
+    assert np.allclose(p, (-2.5, 0.5, 1.0))
+    # a gap yawed 90 deg is crossed along +y; its roll does not change the horizontal direction
+    yawed = Gap(centre_m=(1.0, 0.0, 2.0), yaw_rad=math.pi / 2, roll_rad=math.radians(60))
+    p = recovery_point_m(yawed.axes(), np.array(yawed.centre_m), np.array([1.0, -3.0, 0.5]))
+    assert np.allclose(p, (1.0, 2.5, 1.0))

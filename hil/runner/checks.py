@@ -49,7 +49,7 @@ class Observations:
     max_outside_lab_m: float
     failsafe_states: tuple[tuple[str, float], ...]  # (state, sim s) entered
     onboard_abort_s: float | None
-    hover_point_m: tuple[float, float, float] | None  # the onboard plan's recovery point
+    hover_point_m: tuple[float, float, float] | None  # the scenario's recovery point (run.recovery_point_m)
     columns: dict[str, np.ndarray]
     link: dict[str, float | None]  # delivered fractions and rates
 
@@ -134,8 +134,9 @@ def check_attitude(limit_deg: float, obs: Observations) -> Check:
 
 
 def check_recovery(radius_m: float, time_s: float, obs: Observations) -> Check:
-    """At ``time_s`` after the crossing: slower than 0.5 m/s and within ``radius_m`` of the plan's
-    recovery point (of where it is then, if the onboard program reported no plan)."""
+    """At ``time_s`` after the crossing: slower than 0.5 m/s and within ``radius_m`` of the recovery
+    point the harness derives from the scenario (1 m up, 2.5 m past the gap centre along the crossing;
+    of where the vehicle is then, for a vertical crossing, which has none)."""
     expected = f"hovering within {radius_m:g} m of the recovery point {time_s:g} s after crossing"
     if obs.crossing_time_s is None:
         return Check("recovery", False, expected, "no crossing")

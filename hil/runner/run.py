@@ -219,7 +219,8 @@ def _finish(
     failsafes = tuple((e.to_state.value, e.time_s) for e in fc_events if e.to_state.failsafe)
     aborts = [ev for ev in onboard_events if ev.get("event") == "abort"]
     plan = next((ev for ev in onboard_events if ev.get("event") == "plan"), None)
-    hover = plan.get("hover_m") if plan else None
+    reported = plan.get("hover_m") if plan else None
+    hover = recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m), np.asarray(s.initial.pos_m))
     links = _link_stats(emu)
     sim_time = emu.time_s
     obs = Observations(
@@ -234,7 +235,7 @@ def _finish(
         max_outside_lab_m=rec.max_outside_lab_m,
         failsafe_states=failsafes,
         onboard_abort_s=float(aborts[0]["t_s"]) if aborts else None,
-        hover_point_m=tuple(hover) if isinstance(hover, list) and len(hover) == 3 else None,
+        hover_point_m=hover,
         columns=cols,
         link={k: links["summary"][k] for k in links["summary"]},
     )
@@ -300,6 +301,8 @@ def _finish(
         "fc_final_state": emu.vehicle.fc.state.value,
         "onboard_exit_code": exit_code,
         "onboard_abort_s": obs.onboard_abort_s,
+        "recovery_point_m": obs.hover_point_m,
+        "onboard_hover_point_m": reported,
         "mean_thrust_n": float(np.mean(cols["thrust_n"][airborne])) if np.any(airborne) else 0.0,
         "mean_angular_rate_rad_s": float(np.mean(cols["body_rate_rad_s"])) if len(cols["t_s"]) else 0.0,
         "events": events,
@@ -372,3 +375,23 @@ def _link_stats(emu: EmulatorSide) -> dict[str, Any]:
             "bytes_corrupted": emu.mocap_link.bytes_corrupted,
         },
     }
+
+
+#: the paper's recovery point: 1 m above the ground, 2.5 m past the gap centre along the crossing
+RECOVERY_DISTANCE_M = 2.5
+RECOVERY_HEIGHT_M = 1.0
+
+
+def recovery_point_m(
+    gap_axes: np.ndarray, centre_m: np.ndarray, start_m: np.ndarray
+) -> tuple[float, float, float] | None:
+    """Where the scenario expects the vehicle to hover after crossing (m), from the gap and the start
+    alone, so that the check does not take the pilot's word for it; None for a vertical crossing."""
+    e1 = gap_axes[1]
+    direction = -e1 if float(np.dot(start_m - centre_m, e1)) > 0 else e1  # away from the start side
+    horiz = np.array([direction[0], direction[1], 0.0])
+    norm = float(np.linalg.norm(horiz))
+    if norm < 1e-6:
+        return None
+    p = centre_m + RECOVERY_DISTANCE_M * horiz / norm
+    return (float(p[0]), float(p[1]), RECOVERY_HEIGHT_M)
