@@ -14,6 +14,7 @@ import numpy as np
 from emulator.physics import backend_names, make_backend
 from emulator.physics.state import VehicleState
 from emulator.profile import ProfileError, VehicleProfile, load_profile
+from hil.link.mavlink import euler_from_quat
 
 DURATION_S = 5.0
 RECORD_EVERY_S = 0.01
@@ -38,15 +39,6 @@ def throttle_at(t_s: float, hover: float) -> np.ndarray:
     return np.full(4, hover)
 
 
-def euler_rpy(q: np.ndarray) -> tuple[float, float, float]:
-    """Roll, pitch, yaw (rad, ZYX convention) of a body->world quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
-
-
 def fly(profile: VehicleProfile, backend_name: str, progress=print) -> dict[str, np.ndarray]:
     """Run the sequence from rest on the ground; returns time series sampled every 10 ms."""
     backend = make_backend(backend_name, profile)
@@ -66,7 +58,7 @@ def fly(profile: VehicleProfile, backend_name: str, progress=print) -> dict[str,
             s = backend.state
             rows["t_s"].append(s.time_s)
             rows["pos_m"].append(s.pos_m)
-            rows["rpy_rad"].append(euler_rpy(s.quat_wxyz))
+            rows["rpy_rad"].append(euler_from_quat(s.quat_wxyz))
             rows["rotor_rad_s"].append(s.rotor_speed_rad_s)
             rows["cmd"].append(cmd)
         series = {key: np.array(value) for key, value in rows.items()}
@@ -142,7 +134,7 @@ def main(args: argparse.Namespace) -> int:
             "pos_m": final.pos_m.tolist(),
             "vel_m_s": final.vel_m_s.tolist(),
             "quat_wxyz": final.quat_wxyz.tolist(),
-            "rpy_deg": [math.degrees(a) for a in euler_rpy(final.quat_wxyz)],
+            "rpy_deg": [math.degrees(a) for a in euler_from_quat(final.quat_wxyz)],
             "omega_rad_s": final.omega_rad_s.tolist(),
             "rotor_speed_rad_s": final.rotor_speed_rad_s.tolist(),
         },

@@ -196,17 +196,9 @@ class CommandWire(Transport):
     def pump(self) -> int:
         """Write to the real link the FC frames that have arrived by now; returns bytes written (or
         held: with ``hold_output`` set they wait for the next `send_sync` or `flush`)."""
-        now = self.clock.now_s()
-        q, st = self._out_queue, self.to_onboard
-        chunks = []
-        while q and q[0][0] <= now + 1e-12:
-            t, _, frame = heapq.heappop(q)
-            frame = self._apply_faults(frame, t, st)
-            if frame is not None:
-                chunks.append(frame)
-        if not chunks:
+        data = self._drain(self._out_queue, self.to_onboard)
+        if not data:
             return 0
-        data = b"".join(chunks)
         if self.hold_output:
             self._held += data
             return len(data)
@@ -269,8 +261,11 @@ class CommandWire(Transport):
         return self._in_queue[0][0] if self._in_queue else math.inf
 
     def _recv_internal(self, max_bytes: int) -> bytes:
+        return self._drain(self._in_queue, self.to_fc)
+
+    def _drain(self, q: list, st: DirectionStats) -> bytes:
+        """The frames of queue ``q`` that have arrived by now, with the link's faults applied."""
         now = self.clock.now_s()
-        q, st = self._in_queue, self.to_fc
         chunks = []
         while q and q[0][0] <= now + 1e-12:
             t, _, frame = heapq.heappop(q)

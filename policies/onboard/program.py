@@ -66,6 +66,18 @@ class Phase(StrEnum):
     FAILED = "failed"
 
 
+#: what `step` does in each active phase (a method name of OnboardProgram)
+_PHASE_HANDLERS = {
+    Phase.WAIT: "_wait",
+    Phase.AUTHORITY: "_authority",
+    Phase.ARMING: "_arming",
+    Phase.TAKEOFF: "_takeoff_progress",
+    Phase.MISSION: "_mission_progress",
+    Phase.HANDBACK: "_handback",
+    Phase.ABORTING: "_aborting",
+}
+
+
 FINAL_PHASES = (Phase.DONE, Phase.ABORTED, Phase.FAILED)
 
 
@@ -316,20 +328,9 @@ class OnboardProgram:
                 and not self._mocap_fresh():
             self._abort(now_s, "stale_mocap", age_s=round(self.mocap.age_s("vehicle"), 4))
             return
-        if ph is Phase.WAIT:
-            self._wait(now_s)
-        elif ph is Phase.AUTHORITY:
-            self._authority(now_s)
-        elif ph is Phase.ARMING:
-            self._arming(now_s)
-        elif ph is Phase.TAKEOFF:
-            self._takeoff_progress(now_s)
-        elif ph is Phase.MISSION:
-            self._mission_progress(now_s)
-        elif ph is Phase.HANDBACK:
-            self._handback(now_s)
-        elif ph is Phase.ABORTING:
-            self._aborting(now_s)
+        handler = _PHASE_HANDLERS.get(ph)
+        if handler is not None:  # the final phases have none
+            getattr(self, handler)(now_s)
 
     def _wait(self, now_s: float) -> None:
         cfg = self.config
