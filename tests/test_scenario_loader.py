@@ -252,6 +252,7 @@ faults:
   - {kind: onboard_killed, at_s: 8.5}
 seed: 1234
 duration_s: 9.0
+onboard_compute_ms: 4.5
 realtime: true
 skip: shows every field; the lossy links and the kill at 8.5 s make its expectations illustrative
 markers: [slow, jsbsim]

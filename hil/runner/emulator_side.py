@@ -6,7 +6,8 @@ Between two calls the loop stops only where something needs the vehicle's state 
 mocap exposure, a command frame reaching the FC, a fault switching, a world sample) and steps the
 physics in batches in between; the radio and UART legs of the mocap chain are caught up at the next
 stop with their own times. What the emulator side writes goes out once per call: the mocap frames in
-one write, the FC's frames with the lockstep tick in another.
+one write (in lockstep held until the tick, see ``hold_mocap``), the FC's frames with the lockstep tick
+in another.
 """
 
 from __future__ import annotations
@@ -177,6 +178,8 @@ class EmulatorSide:
         self.fast = FastStepper.for_vehicle(self.vehicle)
         self._frozen_truth: VehicleState | None = None
         self._force_on = False
+        #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)
+        self.hold_mocap = False
         self._next_boundary_s = self.faults.next_boundary_s(-1.0)
         self.recorder.sample(0.0, self.vehicle.state, self.vehicle.fc, self.server, self.mocap)
 
@@ -216,7 +219,8 @@ class EmulatorSide:
                 rec.sample(t, vehicle.state, vehicle.fc, self.server, mocap)
         mocap.deliver(t_end_s)
         self.server.poll(t_end_s)
-        self.mocap_link.flush()
+        if not self.hold_mocap:
+            self.mocap_link.flush()
         wire.pump()
 
     def _step_physics_to(self, t_s: float) -> None:

@@ -104,6 +104,11 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
     realtime = options.realtime if options.realtime is not None else s.realtime
     if not (0.001 <= options.tick_s <= 0.1):
         raise RunSetupError(f"tick must be 1..100 ms, got {options.tick_s * 1e3:g} ms")
+    if s.onboard_compute_ms is not None and s.onboard_compute_ms > options.tick_s * 1e3 + 1e-9:
+        raise RunSetupError(
+            f"{s.source}: onboard_compute_ms is {s.onboard_compute_ms:g} ms, longer than the lockstep tick "
+            f"({options.tick_s * 1e3:g} ms): expected 0..{options.tick_s * 1e3:g} or null (one tick)"
+        )
     return s, in_process, realtime
 
 
@@ -182,8 +187,15 @@ def run_scenario(
         if realtime:
             loop = run_realtime(emu, onboard, s.duration_s, progress=tell)
         else:
+            compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
             loop = run_lockstep(
-                emu, onboard, s.duration_s, tick_s=options.tick_s, guard_s=options.guard_s, progress=tell
+                emu,
+                onboard,
+                s.duration_s,
+                tick_s=options.tick_s,
+                compute_s=compute_s,
+                guard_s=options.guard_s,
+                progress=tell,
             )
         exit_code = onboard.close() if isinstance(onboard, ProcessOnboard) else onboard.program.exit_code
         onboard_events = onboard.events()

@@ -222,9 +222,12 @@ class CommandWire(Transport):
                 self.raw.send(data)
 
     # --- onboard -> FC --------------------------------------------------------------------------
-    def read_onboard(self, timeout_s: float = 0.0) -> bool:
+    def read_onboard(self, timeout_s: float = 0.0, stamp_s: float | None = None) -> bool:
         """Read what the onboard program wrote, queue its frames for the FC at their arrival times and
-        note lockstep answers in ``answers``; False when nothing came within ``timeout_s`` (wall s)."""
+        note lockstep answers in ``answers``; False when nothing came within ``timeout_s`` (wall s).
+
+        The frames count as handed to the link at ``stamp_s`` (s; None: now on the clock): in lockstep,
+        the tick's time plus the onboard computer's modelled compute time."""
         fd = self._fd
         if timeout_s > 0 and fd is not None and not self.raw.closed:
             # the answer is not there yet when this is called: wait first, then read once
@@ -234,7 +237,7 @@ class CommandWire(Transport):
         data = self.raw.recv(timeout_s)
         if not data:
             return False
-        now = self.clock.now_s()
+        now = self.clock.now_s() if stamp_s is None else stamp_s
         for frame in self.splitter.feed(data):
             tick_ns = timesync_answer_ns(frame)
             if tick_ns is not None:

@@ -270,6 +270,7 @@ class Scenario:
     faults: tuple[Fault, ...] = ()
     seed: int = 0
     duration_s: float = 8.0
+    onboard_compute_ms: float | None = None
     realtime: bool = False
     skip: str | None = None
     markers: tuple[str, ...] = ()
@@ -295,6 +296,11 @@ class Scenario:
 SCENARIO_LIMITS: dict[str, dict[str, Any]] = {
     "seed": {"lo": 0, "hi": 2**63 - 1, "doc": "seed of every random draw in the run"},
     "duration_s": {"lo": 0.0, "hi": 3600.0, "lo_open": True, "doc": "simulated time the run lasts"},
+    "onboard_compute_ms": {
+        "lo": 0.0,
+        "hi": 100.0,
+        "doc": "lockstep: sim time from a tick to the onboard computer's outputs; null: one tick",
+    },
 }
 
 
