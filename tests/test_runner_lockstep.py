@@ -4,17 +4,19 @@ stepping, the lockstep wire's framing, and fault effects a user relies on."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle
+from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.batched_steps import FastStepper
 from emulator.fc.n3 import N3Setpoint
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
 from hil.link.mavlink import mav
-from hil.runner import RunOptions, run_scenario
+from hil.link.tlog import read_tlog
+from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.wires import FrameSplitter, timesync_answer_ns
 from hil.scenario import loads_scenarios
 
@@ -133,3 +135,68 @@ def test_a_mocap_freeze_ends_at_its_end_time(tmp_path):
     s = loads_scenarios(FROZEN)[0]
     r = run_scenario(s, tmp_path, RunOptions(in_process=True))
     assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+
+
+COMPUTE = """
+description: a level gap, cut short; the onboard computer's modelled compute time
+gap: {roll_deg: 0}
+duration_s: 1.5
+"""
+
+
+def _setpoint_phases_ms(tlog_path, tick_ms: float) -> list[float]:
+    """Where in the tick (ms) the FC read each SET_ATTITUDE_TARGET (the .tlog stamps received frames)."""
+    out = []
+    for stamp_us, frame in read_tlog(tlog_path):
+        if frame[0] == 0xFD and frame[7] | frame[8] << 8 | frame[9] << 16 == 82:
+            out.append((stamp_us / 1e3) % tick_ms)
+    return out
+
+
+@pytest.mark.parametrize("in_process", [True, False], ids=["in_process", "ptys"])
+def test_onboard_outputs_reach_the_fc_compute_time_after_their_tick(tmp_path, in_process):
+    wire_ms = 51 * 10 / 921600 * 1e3  # one SET_ATTITUDE_TARGET at the default baud
+    for compute_ms in (0.0, 6.0):
+        s = loads_scenarios(COMPUTE + f"onboard_compute_ms: {compute_ms}\n")[0]
+        r = run_scenario(s, tmp_path / f"c{compute_ms:g}", RunOptions(in_process=in_process))
+        phases = _setpoint_phases_ms(r.tlog_path, 10.0)
+        assert len(phases) > 100  # the onboard program streams setpoints from its first ticks
+        # none before the tick + compute + wire time; most at it (a few queue behind other frames)
+        assert min(phases) > compute_ms + wire_ms - 0.01, sorted(set(phases))[:5]
+        assert float(np.median(phases)) == pytest.approx(compute_ms + wire_ms, abs=0.01)
+
+
+def test_a_compute_time_longer_than_a_tick_is_refused(tmp_path):
+    s = loads_scenarios(COMPUTE + "onboard_compute_ms: 15\n")[0]
+    with pytest.raises(RunSetupError, match="onboard_compute_ms is 15 ms, longer than the lockstep tick"):
+        run_scenario(s, tmp_path, RunOptions(in_process=True))
+
+
+@pytest.mark.parametrize("mode", ["hold", "land", "failsafe"])
+def test_batched_hold_hover_and_land_equal_per_step_flight(mode):
+    # the FC's own velocity controller, batched, down to the landing and the disarm that follows
+    profile = load_profile("n3_tx2")
+    runs = []
+    for batched in (False, True):
+        v = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.0, 0.0, 1.0)))
+        v.backend.reset(replace(v.state, vel_m_s=np.array([1.0, -0.5, 0.3])))  # drifting: the hold works
+        v.invalidate_state()
+        v.fc.arm(0.0)
+        if mode == "land":
+            assert v.fc.request_land(0.0).accepted
+        elif mode == "failsafe":  # a stream that stops: failsafe hover after 1 s, land 5 s later
+            for k in range(3):
+                v.fc.set_setpoint(N3Setpoint(0x20, 0.0, 0.0, 40.0, 0.0), 0.001 * k)
+            assert v.fc.request_offboard(0.003).accepted
+        stepper = FastStepper.for_vehicle(v)
+        if batched:
+            for _ in range(40):  # in pieces, as the runner's stops cut them
+                stepper.step(250)
+            assert stepper.batched_steps > (1500 if mode == "land" else 7000)  # land: down in 1.7 s
+        else:
+            v.step(10_000)
+        runs.append((v.state.to_vector(), v.fc.state, [(e.time_s, e.reason) for e in v.fc.events]))
+    np.testing.assert_allclose(runs[0][0], runs[1][0], rtol=0, atol=1e-9)
+    assert runs[0][1:] == runs[1][1:]
+    if mode != "hold":
+        assert runs[1][1] is FcState.DISARMED  # it came down, and the batches stopped for the landing

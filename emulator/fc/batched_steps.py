@@ -1,20 +1,34 @@
-"""Batched steps of an emulated vehicle: while the FC flies an offboard attitude target, its inner loop
-and the native physics run together in one numba call for a whole batch of 1 kHz steps (the lockstep
-runner's fast path; it lives here because it keeps the FC's and the backend's own bookkeeping).
+"""Batched steps of an emulated vehicle: while the FC flies an offboard attitude target, or holds,
+hovers or lands in the air on its own velocity controller, its controller and the native physics run
+together in one numba call for a whole batch of 1 kHz steps (the lockstep runner's fast path; it lives
+here because it keeps the FC's and the backend's own bookkeeping).
 
-Same arithmetic as `EmulatedVehicle.step` (the FC's inner-loop kernel, then one physics step, each
-millisecond); the batch stops before the FC's setpoint-loss timeout could fire, and anything else
-(other FC states, other backends) takes the vehicle's own per-step path.
+Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
+millisecond); a batch stops before anything the FC's own step would act on: the setpoint-loss timeout,
+the failsafe hover's end, the body reaching the ground. Anything else (other FC states, other
+backends, yaw-rate targets) takes the vehicle's own per-step path.
 """
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 from numba import njit
 
 from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.inner_loop import _control
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
+from emulator.profile import GRAVITY_M_S2
+
+#: FC states flown by the velocity controller while in the air, with their climb rate's sign
+_HOLD_STATES = {
+    FcState.HOLD: 0.0,
+    FcState.FAILSAFE_HOVER: 0.0,
+    FcState.LAND: -1.0,
+    FcState.FAILSAFE_LAND: -1.0,
+}
 
 
 @njit(cache=True, nogil=True)
@@ -22,6 +36,38 @@ def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_ste
     for _ in range(n_steps):
         _control(x[6:10], x[10:13], roll, pitch, yaw, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
+
+
+@njit(cache=True, nogil=True)
+def _hold_batch(x, aux, p, hold, gains, mix_inv, out, n_steps):  # pragma: no cover
+    """Velocity-hold steps (`FlightController._velocity_hold` per step) until ``n_steps`` or the body
+    would count as landed; returns the steps taken. ``hold``: climb rate (m/s, up), yaw (NED, rad),
+    mass (kg), tan of the tilt limit, max thrust (N), rest height (m), landed margin (m)."""
+    climb, yaw, m, tan_tilt = hold[0], hold[1], hold[2], hold[3]
+    max_thrust, rest_z, margin = hold[4], hold[5], hold[6]
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    for k in range(n_steps):
+        if x[2] - rest_z <= margin and abs(x[5]) < 0.3:
+            return k  # the FC would see the landing at this step: its own step takes over
+        ve, vn, vu = x[3], x[4], x[5]
+        ax, ay = -1.5 * vn, -1.5 * ve
+        norm = math.hypot(ax, ay)
+        if norm > 3.0:
+            ax, ay = ax * 3.0 / norm, ay * 3.0 / norm
+        az = max(-4.0, min(4.0, -3.0 * (climb - vu)))
+        fx, fy, fz = m * ax, m * ay, m * (az - GRAVITY_M_S2)
+        max_h = abs(fz) * tan_tilt
+        fh = math.hypot(fx, fy)
+        if fh > max_h:
+            fx, fy = fx * max_h / fh, fy * max_h / fh
+        thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = -fx / thrust, -fy / thrust, -fz / thrust
+        hx, hy = cy * zx + sy * zy, -sy * zx + cy * zy
+        roll = math.asin(max(-1.0, min(1.0, -hy)))
+        pitch = math.atan2(hx, zz)
+        _control(x[6:10], x[10:13], roll, pitch, yaw, min(thrust, max_thrust), gains, mix_inv, out)
+        step_vehicle(x, aux, p, out, 1)
+    return n_steps
 
 
 class FastStepper:
@@ -32,6 +78,7 @@ class FastStepper:
         self.native = native
         self.batched_steps = 0
         self.single_steps = 0
+        self._hold = np.zeros(7)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -40,6 +87,9 @@ class FastStepper:
             be, inner = vehicle.backend, vehicle.fc.inner
             _fly_batch(be._x, be._aux, be._params, 0.0, 0.0, 0.0, 0.0, inner._params, inner._mix_inv,
                        inner._out, 0)
+            _hold_batch(
+                be._x, be._aux, be._params, stepper._hold, inner._params, inner._mix_inv, inner._out, 0
+            )
         return stepper
 
     def step(self, n_steps: int) -> None:
@@ -47,13 +97,17 @@ class FastStepper:
         v = self.vehicle
         while n_steps > 0:
             n = self._batchable(n_steps)
-            if n == 0:
-                v.step(1)
-                self.single_steps += 1
-                n_steps -= 1
+            if n > 0:
+                self._fly(n)
+                n_steps -= n
                 continue
-            self._fly(n)
-            n_steps -= n
+            n = self._hold_steps(n_steps)
+            if n > 0:
+                n_steps -= n
+                continue
+            v.step(1)
+            self.single_steps += 1
+            n_steps -= 1
 
     def _batchable(self, n_steps: int) -> int:
         """How many of the next steps can run in one batch (0: take the per-step path)."""
@@ -66,6 +120,37 @@ class FastStepper:
         room = fc.last_setpoint_s + fc.config.failsafe_timeout_s - v.time_s
         n_ok = int(room / v.dt_s) if room > 0 else 0
         return min(n_steps, n_ok)
+
+    def _hold_steps(self, n_steps: int) -> int:
+        """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
+        returns the steps taken (0: take the per-step path)."""
+        v = self.vehicle
+        fc = v.fc
+        sign = _HOLD_STATES.get(fc.state)
+        if not self.native or sign is None or fc.landed:
+            return 0
+        cfg = fc.config
+        if fc.state is FcState.FAILSAFE_HOVER:  # ends failsafe_hover_s after it began
+            room = fc.machine.since_s + cfg.failsafe_hover_s - v.time_s
+            n_steps = min(n_steps, int(room / v.dt_s) if room > 0 else 0)
+        elif fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(v.time_s):
+            return 0
+        if n_steps <= 0:
+            return 0
+        be, inner = v.backend, fc.inner
+        assert isinstance(be, NativeBackend)
+        h = self._hold
+        h[0] = sign * cfg.land_speed_m_s
+        h[1] = fc._hold_yaw_rad
+        h[2] = v.profile.mass_kg
+        h[3] = math.tan(math.radians(cfg.hover_max_tilt_deg))
+        h[4] = v.profile.max_total_thrust_n
+        h[5] = fc._rest_height_m
+        h[6] = cfg.landed_margin_m
+        n = _hold_batch(be._x, be._aux, be._params, h, inner._params, inner._mix_inv, inner._out, n_steps)
+        if n > 0:  # every step began in the air: the FC's landed flag stays as it was
+            self._after_batch(n, detect_landed=False)
+        return n
 
     def _fly(self, n: int) -> None:
         v = self.vehicle
@@ -85,6 +170,12 @@ class FastStepper:
             inner._out,
             n,
         )
+        self._after_batch(n)
+
+    def _after_batch(self, n: int, detect_landed: bool = True) -> None:
+        v = self.vehicle
+        fc, be, inner = v.fc, v.backend, v.fc.inner
+        assert isinstance(be, NativeBackend)
         be._steps += n
         v.steps += n
         self.batched_steps += n
@@ -94,5 +185,6 @@ class FastStepper:
         t_last = be.time_s - v.dt_s
         fc._last_t = t_last
         fc._quat = x[6:10].copy()
-        fc.detect_landed(x[2], x[5], t_last)
+        if detect_landed:
+            fc.detect_landed(x[2], x[5], t_last)
         fc.motor_cmd = inner._out
