@@ -24,6 +24,9 @@ def _common(p: argparse.ArgumentParser, out: str, batch: int, lr: float) -> None
     p.add_argument("--no-resume", action="store_true", help="start afresh even if OUT/checkpoint.pt exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--threads", type=int, default=2, help="CPU threads for torch (default 2)")
+    p.add_argument("--bf16-fraction", type=float, default=0.0,
+                   help="share of the budget trained under bfloat16 autocast, the rest in float32 "
+                        "(about 2x faster where the CPU has AVX512-BF16 or AMX; default 0)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -70,7 +73,7 @@ def main(args: argparse.Namespace) -> int:
                                 batch_size=args.batch_size, lr=args.lr, lr_final_frac=args.lr_final_frac,
                                 schedule=args.schedule,
                                 seed=args.seed, resume=not args.no_resume, threads=args.threads,
-                                progress=not args.no_progress)
+                                progress=not args.no_progress, bf16_fraction=args.bf16_fraction)
         if args.what == "planner":
             data = PlannerDataConfig(n_trajectories=args.trajectories,
                                      samples_per_trajectory=args.samples_per_trajectory, seed=args.seed)

@@ -6,6 +6,7 @@ graph nodes, which is what one-sample latency on onnxruntime pays for:
 - consecutive Linears with no activation between them (each stack's first two) are merged into one;
 - the fixed input gain/offset and output weights are folded into the first and last Linear;
 - the normalisation uses slices instead of mask products;
+- the planner's odd part (``PlannerNet.odd_symmetric``) runs the stack once on two stacked rows;
 - optionally (``hidden_dtype=torch.float32``) the Linear+ReLU layers between the first input and the
   last Linear run in float32 while the normalisation, the last Linear of each stack and everything in
   physical units stay in float64: onnxruntime's float64 matrix products cost about three times its
@@ -76,6 +77,9 @@ class DeployPlanner(nn.Module):
         self.register_buffer("in_pow", net.in_pow.double().clone(), persistent=False)
         self.register_buffer("in_weight", net.in_weight.double().clone(), persistent=False)
         self.register_buffer("out_pow", net.out_pow.double().clone(), persistent=False)
+        self.odd_symmetric = net.odd_symmetric
+        self.register_buffer("odd_flip", net.odd_flip.double().clone(), persistent=False)
+        self.register_buffer("odd_half", net.odd_half.double().clone(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         dp = x[..., 2:5]
@@ -84,7 +88,11 @@ class DeployPlanner(nn.Module):
         st = z[..., 2:17]
         m = torch.sqrt((st * st).sum(-1, keepdim=True) + _EPS**2)
         inp = torch.cat([z[..., 0:1], z[..., 1:17] / m], -1)
-        return self.mlp(inp) * (m * torch.pow(s, self.out_pow))
+        if self.odd_symmetric:
+            out = (self.mlp(torch.stack([inp, inp * self.odd_flip], -2)) * self.odd_half).sum(-2)
+        else:
+            out = self.mlp(inp)
+        return out * (m * torch.pow(s, self.out_pow))
 
 
 class DeployController(nn.Module):

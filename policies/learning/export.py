@@ -112,6 +112,15 @@ def export_metrics(planner_pt: str | Path, controller_pt: str | Path, out_dir: s
     planner["paper_case_per_axis"] = {"max_pos_m": float(err[:, 0:3].max()),
                                       "max_vel_m_s": float(err[:, 3:6].max()),
                                       "max_acc_m_s2": float(err[:, 6:9].max())}
+    bare = load_planner(planner_pt).double()
+    bare.odd_symmetric = False  # the MLP alone, as trained, for comparison
+
+    def predict_bare(inputs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return bare(torch.as_tensor(inputs, dtype=torch.float64)).numpy()
+
+    planner["paper_case_bare_mlp"] = {k: v for k, v in paper_case_errors(predict_bare).items()
+                                      if not k.startswith("paper_")}
     metrics = {"planner": planner, "controller": _training_metrics(Path(controller_pt), "controller")}
     path = out / "metrics.json"
     path.write_text(json.dumps(metrics, indent=2, default=float) + "\n")

@@ -7,7 +7,11 @@ physical units:
   back), then a spatial scale m = |(dp', w_v v0', w_a a0', w_v vf', w_a af')| that divides every
   spatial input and multiplies the outputs back, and fixed per-group output weights. Time and space
   scaling are exact symmetries of the minimum-jerk primitive, so the MLP sees T = 1 and unit-size
-  boundary states whatever the trajectory.
+  boundary states whatever the trajectory. The primitive is also odd in its boundary states (reverse
+  dp, v0, a0, vf, af and the trajectory reverses): by default (``odd_symmetric``) the planner returns
+  (mlp(z) - mlp(z reversed)) / 2, the MLP's odd part, which cancels the even part of its error (the
+  paper-case worst position error of the shipped weights drops from 0.064 m to 0.035 m). Training
+  fits the bare MLP (with the paper's sign-flip augmentation); only inference takes the odd part.
 - ``ControllerNet``: inputs divided by per-feature spans, thrust output scaled around the hover thrust.
 - ``EndToEndPolicy``: planner on inputs 12..28; the controller sees [planner_out - state(0:9), euler].
 """
@@ -76,6 +80,10 @@ class PlannerNet(nn.Module):
         self.register_buffer("state_mask", torch.tensor(zero * 2 + one * 15), persistent=False)
         self.register_buffer("time_mask", torch.tensor(one + zero * 16), persistent=False)
         self.register_buffer("spatial_mask", torch.tensor(zero + one * 16), persistent=False)
+        # reversing the boundary states reverses the MLP's inputs but t/T and v_bar
+        self.register_buffer("odd_flip", torch.tensor(one * 2 + [-1.0] * 15), persistent=False)
+        self.register_buffer("odd_half", torch.tensor([[0.5], [-0.5]]), persistent=False)
+        self.odd_symmetric = True  # inference returns the MLP's odd part (see the module docstring)
 
     def normalise(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """MLP inputs (..., 17), the time scale s = T (..., 1) and the spatial scale m (..., 1).
@@ -100,7 +108,11 @@ class PlannerNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         inp, s, m = self.normalise(x)
-        return self.denormalise(self.mlp(inp), s, m)
+        if self.odd_symmetric:
+            out = (self.mlp(torch.stack([inp, inp * self.odd_flip], -2)) * self.odd_half).sum(-2)
+        else:
+            out = self.mlp(inp)
+        return self.denormalise(out, s, m)
 
 
 class ControllerNet(nn.Module):

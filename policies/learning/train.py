@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from policies.learning.data import (
     ControllerDataConfig,
+    PlannerData,
     PlannerDataConfig,
     PlannerSampler,
     controller_data,
@@ -52,6 +53,9 @@ class TrainConfig:
     resume: bool = True
     threads: int = 2
     progress: bool = True
+    #: share of the budget (0..1) run under bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16
+    #: or AMX, and on GPUs); the rest, the low-learning-rate end, runs in float32 for full precision
+    bf16_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.lr <= 0 or not 0 < self.lr_final_frac <= 1 or self.epochs <= 0:
@@ -60,6 +64,8 @@ class TrainConfig:
             raise ValueError(f"schedule must be 'exp' or 'cosine', got {self.schedule!r}")
         if self.minutes is not None and self.minutes <= 0:
             raise ValueError("minutes must be positive")
+        if not 0.0 <= self.bf16_fraction <= 1.0:
+            raise ValueError(f"bf16_fraction must be in [0, 1], got {self.bf16_fraction}")
 
 
 @dataclass
@@ -117,6 +123,7 @@ def _loop(name: str, model: torch.nn.Module, cfg: TrainConfig, steps_per_epoch: 
     bar = tqdm(total=total_steps, initial=step, desc=f"train {name}", disable=not cfg.progress,
                unit="step", dynamic_ncols=True)
     last_ckpt = time.perf_counter()
+    dev_type = next(model.parameters()).device.type
     start = time.perf_counter() - elapsed
     running = None
     model.train()
@@ -125,7 +132,8 @@ def _loop(name: str, model: torch.nn.Module, cfg: TrainConfig, steps_per_epoch: 
         for group in opt.param_groups:
             group["lr"] = lr
         x, y = batch(cfg.batch_size)
-        loss = loss_fn(model, x, y)
+        with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=progress_frac() < cfg.bf16_fraction):
+            loss = loss_fn(model, x, y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -227,14 +235,28 @@ def train_planner(data_cfg: PlannerDataConfig, cfg: TrainConfig, holdout_traject
     steps_per_epoch = math.ceil(len(data) * data_cfg.samples_per_trajectory / cfg.batch_size)
     extra = {"data_config": asdict(data_cfg), "end_fraction": end_fraction}
     steps, elapsed, history = _loop("planner", model, cfg, steps_per_epoch, batch, loss_fn, val, extra)
-    predict = predictor(model)
-    xh, yh = hold.all_samples()
     metrics = {"data": {"trajectories": len(data), "dropped": data.n_dropped,
                         "samples_per_trajectory": data_cfg.samples_per_trajectory, **asdict(data_cfg),
                         "end_fraction": end_fraction},
-               "holdout": {"trajectories": len(hold), **planner_errors(predict(xh), yh)},
-               "paper_case": paper_case_errors(predict)}
+               **planner_metrics(model, hold)}
     return _finish("planner", model, cfg, steps, elapsed, history, metrics)
+
+
+def planner_metrics(model: PlannerNet, hold: PlannerData) -> dict[str, object]:
+    """Held-out and paper-case errors in physical units, of the planner as deployed (the MLP's odd part)
+    and of the bare MLP (``*_bare_mlp``)."""
+    xh, yh = hold.all_samples()
+    out: dict[str, object] = {}
+    symmetric = model.odd_symmetric
+    try:
+        for odd, suffix in ((True, ""), (False, "_bare_mlp")):
+            model.odd_symmetric = odd
+            predict = predictor(model)
+            out[f"holdout{suffix}"] = {"trajectories": len(hold), **planner_errors(predict(xh), yh)}
+            out[f"paper_case{suffix}"] = paper_case_errors(predict)
+    finally:
+        model.odd_symmetric = symmetric
+    return out
 
 
 def train_controller(data_cfg: ControllerDataConfig, cfg: TrainConfig, holdout_per_set: int = 100_000
