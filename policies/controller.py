@@ -96,19 +96,32 @@ class ExpertController:
 
         Raises ValueError for non-finite or wrongly shaped inputs.
         """
-        vals = []
-        for name, value in (("pos_ref_m", pos_ref_m), ("vel_ref_m_s", vel_ref_m_s),
-                            ("acc_ref_m_s2", acc_ref_m_s2), ("pos_m", pos_m), ("vel_m_s", vel_m_s)):
-            try:
-                x, y, z = (float(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value))
-            except (TypeError, ValueError):
-                raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
-            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-                raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
-            vals.append((x, y, z))
+        try:  # the usual case, checked in one go: five vectors of three finite numbers
+            vals = [_floats3(pos_ref_m), _floats3(vel_ref_m_s), _floats3(acc_ref_m_s2), _floats3(pos_m),
+                    _floats3(vel_m_s)]
+        except (TypeError, ValueError):
+            vals = None
+        if vals is None or not math.isfinite(sum(vals[0]) + sum(vals[1]) + sum(vals[2]) + sum(vals[3])
+                                             + sum(vals[4])):
+            vals = []  # find which input is bad (or, after an overflowing sum, that none is)
+            for name, value in (("pos_ref_m", pos_ref_m), ("vel_ref_m_s", vel_ref_m_s),
+                                ("acc_ref_m_s2", acc_ref_m_s2), ("pos_m", pos_m), ("vel_m_s", vel_m_s)):
+                try:
+                    x, y, z = _floats3(value)
+                except (TypeError, ValueError):
+                    raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
+                if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+                    raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+                vals.append((x, y, z))
         if not math.isfinite(yaw_ref_rad):
             raise ValueError("yaw_ref_rad must be finite")
         return _expert_one(*vals, float(yaw_ref_rad), self.mass_kg, self.gains)
+
+
+def _floats3(value: object) -> tuple[float, float, float]:
+    """Three floats from an array or a sequence; TypeError or ValueError if it is not three numbers."""
+    x, y, z = value.tolist() if isinstance(value, np.ndarray) else value  # type: ignore[attr-defined,misc]
+    return float(x), float(y), float(z)
 
 
 def _expert_one(p_ref: tuple[float, float, float], v_ref: tuple[float, float, float],
@@ -117,13 +130,20 @@ def _expert_one(p_ref: tuple[float, float, float], v_ref: tuple[float, float, fl
                 gains: ExpertGains) -> AttitudeThrustCommand:
     """`expert_command_batch` for one sample in plain floats (the same operations, no arrays)."""
     mp, mv = gains.max_pos_err_m, gains.max_vel_err_m_s
-    acc = []
-    for k in range(3):
-        e_p = min(max(p_ref[k] - p[k], -mp), mp)
-        e_v = min(max(v_ref[k] - v[k], -mv), mv)
-        acc.append(gains.kv[k] * (e_v + gains.kp[k] * e_p) + gains.ka * a_ref[k])
-    hx, hy = acc[0] + 0.0, acc[1] + 0.0
-    f_z = max(acc[2] + GRAVITY_M_S2, gains.min_thrust_frac * GRAVITY_M_S2)
+    (kpx, kpy, kpz), (kvx, kvy, kvz), ka = gains.kp, gains.kv, gains.ka
+    # e = clip(ref - measured, +-limit), written as comparisons (the inputs are finite)
+    ex, ey, ez = p_ref[0] - p[0], p_ref[1] - p[1], p_ref[2] - p[2]
+    ex = mp if ex > mp else (-mp if ex < -mp else ex)
+    ey = mp if ey > mp else (-mp if ey < -mp else ey)
+    ez = mp if ez > mp else (-mp if ez < -mp else ez)
+    fx, fy, fz = v_ref[0] - v[0], v_ref[1] - v[1], v_ref[2] - v[2]
+    fx = mv if fx > mv else (-mv if fx < -mv else fx)
+    fy = mv if fy > mv else (-mv if fy < -mv else fy)
+    fz = mv if fz > mv else (-mv if fz < -mv else fz)
+    hx = kvx * (fx + kpx * ex) + ka * a_ref[0] + 0.0
+    hy = kvy * (fy + kpy * ey) + ka * a_ref[1] + 0.0
+    az = kvz * (fz + kpz * ez) + ka * a_ref[2]
+    f_z = max(az + GRAVITY_M_S2, gains.min_thrust_frac * GRAVITY_M_S2)
     h_norm = math.sqrt(hx * hx + hy * hy)
     h_max = f_z * math.tan(gains.tilt_max_rad)
     if h_norm > h_max:
@@ -137,4 +157,12 @@ def _expert_one(p_ref: tuple[float, float, float], v_ref: tuple[float, float, fl
     zy = -sy * zx_w + cy * zy_w
     roll = math.asin(min(max(-zy, -1.0), 1.0))
     pitch = math.atan2(zx, zz)
-    return AttitudeThrustCommand(roll, pitch, yaw, thrust)
+    return _new_command(roll, pitch, yaw, thrust)
+
+
+def _new_command(roll_rad: float, pitch_rad: float, yaw_rad: float, thrust_n: float) -> AttitudeThrustCommand:
+    """``AttitudeThrustCommand(roll_rad, pitch_rad, yaw_rad, thrust_n)`` made without the frozen
+    dataclass's per-field __setattr__ calls (once per control step): the same object, built faster."""
+    cmd = object.__new__(AttitudeThrustCommand)
+    cmd.__dict__.update(roll_rad=roll_rad, pitch_rad=pitch_rad, yaw_rad=yaw_rad, thrust_n=thrust_n)
+    return cmd

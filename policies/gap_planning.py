@@ -187,6 +187,16 @@ class Traverse:
         v_c = self.crossing_speed_m_s * np.array(self.direction)
         return np.array(self.gap_centre_m) + v_c * tau + a * tau * tau / 2, v_c + a * tau, a
 
+    def state_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3]:
+        """`state` as (x, y, z) tuples of plain floats (the same operations and numbers)."""
+        tau = float(t) - self.t_c_s
+        s = self.crossing_speed_m_s
+        (cx, cy, cz), (ux, uy, uz), (ax, ay, az) = self.gap_centre_m, self.direction, self.acc_m_s2
+        vx, vy, vz = s * ux, s * uy, s * uz
+        return ((cx + vx * tau + ax * tau * tau / 2, cy + vy * tau + ay * tau * tau / 2,
+                 cz + vz * tau + az * tau * tau / 2),
+                (vx + ax * tau, vy + ay * tau, vz + az * tau), (ax, ay, az))
+
     @property
     def start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.state(0.0)
@@ -298,11 +308,14 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
         raise PlanningError(f"hover point {hover.round(3).tolist()} is outside the lab")
     traj = solve(_vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2),
                  hover, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
-    ok = np.ones(traj.batch_shape, dtype=bool)
-    for point, normal in lab.half_spaces():
-        ok &= traj.position_feasible(point, normal, margin_m)
+    # every plane in one batched call: rows are the lab's six walls (then the gap's wall), columns durations
+    planes = lab.half_spaces()
+    margins = np.array([margin_m] * len(planes) + [0.0] * (wall is not None))
     if wall is not None:
-        ok &= traj.position_feasible(wall[0], wall[1])
+        planes.append((_vec3("wall point", wall[0]), _vec3("wall normal", wall[1])))
+    points, normals = np.array([p for p, _ in planes]), np.array([n for _, n in planes])
+    dist = traj.min_plane_distance(points[:, None, :], normals[:, None, :])
+    ok = np.all(dist >= margins[:, None] - 1e-9, axis=0)
     candidates = np.flatnonzero(ok)
     if candidates.size:
         sub = solve(traj.p0[candidates], traj.v0[candidates], traj.a0[candidates], hover, np.zeros(3),
@@ -379,16 +392,26 @@ class MissionPlan:
     def reference(self, t: float) -> Reference:
         """The reference at mission time ``t`` (s); before 0 the start state, after the end hover."""
         seg = self.segment_at(t)
+        p, v, a = self._state_tuples(seg, t)
+        ref = object.__new__(Reference)  # a frozen dataclass, filled without its per-field __setattr__
+        ref.__dict__.update(pos_m=np.array(p), vel_m_s=np.array(v), acc_m_s2=np.array(a),
+                            yaw_rad=self.yaw_rad, segment=seg)
+        return ref
+
+    def reference_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3, float]:
+        """`reference` in plain floats: position (m), velocity (m/s), acceleration (m/s^2) as (x, y, z)
+        tuples and the yaw (rad); the same numbers, for the per-step paths."""
+        p, v, a = self._state_tuples(self.segment_at(t), t)
+        return p, v, a, self.yaw_rad
+
+    def _state_tuples(self, seg: Segment, t: float) -> tuple[Vec3, Vec3, Vec3]:
         if seg is Segment.APPROACH:
-            p, v, a = self.approach.state(max(t, 0.0))
-        elif seg is Segment.TRAVERSE:
-            p, v, a = self.traverse.state(t - self.t_traverse_start_s)
-        elif seg is Segment.RECOVERY:
-            p, v, a = self.recovery.trajectory.state(t - self.t_recovery_start_s)
-        else:
-            p, v, a = np.array(self.hover_m), np.zeros(3), np.zeros(3)
-        return Reference(np.asarray(p, dtype=float), np.asarray(v, dtype=float),
-                         np.asarray(a, dtype=float), self.yaw_rad, seg)
+            return self.approach.state_tuples(max(t, 0.0))  # type: ignore[return-value]
+        if seg is Segment.TRAVERSE:
+            return self.traverse.state_tuples(t - self.t_traverse_start_s)
+        if seg is Segment.RECOVERY:
+            return self.recovery.trajectory.state_tuples(t - self.t_recovery_start_s)  # type: ignore[return-value]
+        return self.hover_m, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
 
 
 def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel_m_s: object = (0, 0, 0),
@@ -415,7 +438,9 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
                                                    limits.max_body_rate_rad_s, limits.min_dt_s)))
     if strict and feas is Feasibility.INFEASIBLE:
         raise PlanningError(f"the approach in {approach_duration_s} s exceeds the thrust or body-rate limits")
-    if strict and not all(bool(approach.position_feasible(pt, n)) for pt, n in lab.half_spaces()):
+    planes = lab.half_spaces()
+    if strict and not np.all(approach.position_feasible(np.array([p for p, _ in planes]),
+                                                         np.array([n for _, n in planes]))):
         raise PlanningError(f"the approach in {approach_duration_s} s leaves the lab")
     u = np.array(trav.direction)
     hover = hover_point(gap, u, hover_distance_m, hover_height_m)

@@ -120,18 +120,27 @@ class Trajectory:
 
     def _state_one(self, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`state` of a single trajectory at one time, in plain floats (the same operations)."""
+        p, v, a = self.state_tuples(t1)
+        return np.array(p), np.array(v), np.array(a)
+
+    def state_tuples(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        """`state` of a single trajectory (empty batch shape) at one time ``t`` (s) as plain floats:
+        position (m), velocity (m/s), acceleration (m/s^2), each an (x, y, z) tuple; the same numbers."""
         coeffs = self.__dict__.get("_floats")
         if coeffs is None:
+            if self.batch_shape:
+                raise ValueError(f"state_tuples needs a single trajectory, batch shape is {self.batch_shape}")
             coeffs = self._floats = tuple(
                 zip(*(c.tolist() for c in (self.p0, self.v0, self.a0, self.alpha, self.beta, self.gamma)),
                     strict=True))
+        t1 = float(t)
         t2, t3 = t1 * t1, t1 * t1 * t1
         p, v, a = [], [], []
         for p0, v0, a0, al, be, ga in coeffs:
             p.append(p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120)
             v.append(v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24)
             a.append(a0 + ga * t1 + be * t2 / 2 + al * t3 / 6)
-        return np.array(p), np.array(v), np.array(a)
+        return tuple(p), tuple(v), tuple(a)
 
     def jerk(self, t: object) -> np.ndarray:
         """Jerk (m/s^3) at ``t`` (s); same shape rules as ``state``."""
@@ -238,6 +247,12 @@ class Trajectory:
         return self.min_plane_distance(point, normal) >= margin_m - 1e-9
 
 
+def _finite_or_zero(x: np.ndarray) -> np.ndarray:
+    """``x`` with NaN and +-inf replaced by 0 (what ``np.nan_to_num(x, nan=0, posinf=0, neginf=0)``
+    gives, in one ufunc and one select)."""
+    return np.where(np.isfinite(x), x, 0.0)
+
+
 class _FlatCoeffs:
     """Coefficients flattened to (N, 3) for the feasibility recursion."""
 
@@ -280,14 +295,14 @@ class _FlatCoeffs:
             r2 = np.where(al != 0, (-be - disc) / al, -ga / be)
             r_snap = -be / al  # jerk extremum
         cand = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
-                         np.clip(np.nan_to_num(r1, nan=0.0, posinf=0.0, neginf=0.0), lo, hi),
-                         np.clip(np.nan_to_num(r2, nan=0.0, posinf=0.0, neginf=0.0), lo, hi)], 0)
+                         np.clip(_finite_or_zero(r1), lo, hi),
+                         np.clip(_finite_or_zero(r2), lo, hi)], 0)
         acc = self.a0[idx] + ga * cand + be * cand**2 / 2 + al * cand**3 / 6
         a_min, a_max = acc.min(axis=0), acc.max(axis=0)
         sq_hi = np.maximum(a_min**2, a_max**2)
         sq_lo = np.where((a_min <= 0) & (a_max >= 0), 0.0, np.minimum(a_min**2, a_max**2))
         jc = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
-                       np.clip(np.nan_to_num(r_snap, nan=0.0, posinf=0.0, neginf=0.0), lo, hi)], 0)
+                       np.clip(_finite_or_zero(r_snap), lo, hi)], 0)
         jer = ga + be * jc + al * jc**2 / 2
         return sq_lo.sum(-1), sq_hi.sum(-1), (np.abs(jer).max(axis=0) ** 2).sum(-1)
 

@@ -71,7 +71,7 @@ class PoseEstimator:
         self._delay_s = 0.0  # arrival - stamp of the latest pose (s; includes any clock offset)
         self._mean_delay_s = 0.0  # its running mean over delay_window_s
         self._quat = (1.0, 0.0, 0.0, 0.0)
-        self._euler = (0.0, 0.0, 0.0)
+        self._euler: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
         self.updates = 0
         self.rejected = 0  # poses out of order, repeated or not finite
 
@@ -82,8 +82,8 @@ class PoseEstimator:
     def update(self, stamp_s: float, pos_m: np.ndarray, quat_wxyz: np.ndarray, received_s: float) -> bool:
         """Take one pose (exposure time ``stamp_s``, arrival ``received_s``, s); False if rejected."""
         try:
-            px, py, pz = (float(v) for v in pos_m)
-            qw, qx, qy, qz = (float(v) for v in quat_wxyz)
+            px, py, pz = map(float, _items(pos_m))
+            qw, qx, qy, qz = map(float, _items(quat_wxyz))
             stamp_s, received_s = float(stamp_s), float(received_s)
         except (TypeError, ValueError):
             self.rejected += 1
@@ -120,20 +120,18 @@ class PoseEstimator:
             k0, k1, k2 = n00 / s, n01 / s, n02 / s
             self._P = (n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n11 - k1 * n01, n12 - k1 * n02,
                        n22 - k2 * n02)
-            x = self._x
-            for i, z in ((0, px), (3, py), (6, pz)):
-                p, v, a = x[i], x[i + 1], x[i + 2]
-                pp = p + dt * v + h * a
-                e = z - pp
-                x[i], x[i + 1], x[i + 2] = pp + k0 * e, v + dt * a + k1 * e, a + k2 * e
+            # predict and correct each axis (written out: this runs at the mocap rate)
+            xp, xv, xa, yp, yv, ya, zp, zv, za = self._x
+            xp, yp, zp = xp + dt * xv + h * xa, yp + dt * yv + h * ya, zp + dt * zv + h * za
+            ex, ey, ez = px - xp, py - yp, pz - zp
+            self._x = [xp + k0 * ex, xv + dt * xa + k1 * ex, xa + k2 * ex,
+                       yp + k0 * ey, yv + dt * ya + k1 * ey, ya + k2 * ey,
+                       zp + k0 * ez, zv + dt * za + k1 * ez, za + k2 * ez]
         self._stamp_s = stamp_s
         self._received_s = received_s
         self._delay_s = delay
-        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
-        self._quat = (qw, qx, qy, qz)
-        self._euler = (math.atan2(2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
-                       math.asin(min(max(2 * (qw * qy - qx * qz), -1.0), 1.0)),
-                       math.atan2(2 * (qx * qy + qw * qz), 1 - 2 * (qy * qy + qz * qz)))
+        self._quat = (qw / qn, qx / qn, qy / qn, qz / qn)
+        self._euler = None  # from the quaternion when first asked for
         self.updates += 1
         return True
 
@@ -149,6 +147,27 @@ class PoseEstimator:
         h = min(max(h, 0.0), cfg.reset_after_s)
         hh = h * h / 2
         px, vx, ax, py, vy, ay, pz, vz, az = self._x
-        return StateEstimate(np.array((px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh)),
+        euler = self._euler
+        if euler is None:
+            qw, qx, qy, qz = self._quat
+            euler = self._euler = (math.atan2(2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
+                                   math.asin(min(max(2 * (qw * qy - qx * qz), -1.0), 1.0)),
+                                   math.atan2(2 * (qx * qy + qw * qz), 1 - 2 * (qy * qy + qz * qz)))
+        return _new_estimate(np.array((px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh)),
                              np.array((vx + ax * h, vy + ay * h, vz + az * h)), np.array((ax, ay, az)),
-                             np.array(self._euler), np.array(self._quat))
+                             np.array(euler), np.array(self._quat))
+
+
+def _items(v: object) -> object:
+    """The numbers of a 1-D array as floats (one call, not one per element); anything else as is."""
+    return v.tolist() if v.__class__ is np.ndarray and v.ndim == 1 else v  # type: ignore[attr-defined]
+
+
+def _new_estimate(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, euler_rad: np.ndarray,
+                  quat_wxyz: np.ndarray) -> StateEstimate:
+    """A StateEstimate without the frozen dataclass's per-field __setattr__ calls (once per control
+    step): the same fields, set straight into the instance dict."""
+    est = object.__new__(StateEstimate)
+    est.__dict__.update(pos_m=pos_m, vel_m_s=vel_m_s, acc_m_s2=acc_m_s2, euler_rad=euler_rad,
+                        quat_wxyz=quat_wxyz)
+    return est

@@ -14,9 +14,8 @@ class TraditionalPilot:
         self.controller = ExpertController(mass_kg)
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
-        ref = obs.plan.reference(obs.t_s)
-        return self.controller.command(ref.pos_m, ref.vel_m_s, ref.acc_m_s2, ref.yaw_rad, obs.pos_m,
-                                       obs.vel_m_s)
+        p, v, a, yaw = obs.plan.reference_tuples(obs.t_s)  # `reference` in plain floats
+        return self.controller.command(p, v, a, yaw, obs.pos_m, obs.vel_m_s)
 
 
 def make_pilot(context: PilotContext) -> TraditionalPilot:
