@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -23,6 +24,7 @@ from hil.link.clock import Clock, WallClock
 from hil.link.endpoint import open_link
 from hil.link.linktrack import (
     BODY_IDS,
+    BODY_NAMES,
     FIXED_LEN,
     NODE_HEADER_LEN,
     FrameDecoder,
@@ -36,6 +38,7 @@ DEFAULT_STALE_AFTER_S = 0.1
 READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
+LOCKSTEP_COUNT_MASK = 0x7FFFFFFF  # the lockstep harness counts the mocap bytes it wrote mod 2^31
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,8 @@ class MocapReader:
         self._bodies_invalid = 0
         self._frames_ok = 0
         self._latest: dict[int, PoseSample] = {}
+        self.lockstep_short_reads = 0  # `poll_to` calls that got fewer bytes than announced
+        self._lockstep_read = 0  # bytes read by `poll_to` (mod 2^31)
 
     @classmethod
     def open(cls, spec: str, baud: int = DEFAULT_BAUD, **kwargs: object) -> MocapReader:
@@ -117,16 +122,40 @@ class MocapReader:
         accepted = 0
         data = self.transport.recv(timeout_s, READ_BYTES)
         while data:
-            now = self.clock.now_s()
-            for frame in self._decoder.feed(data):
-                taken = sum(self._take(node.data, now) for node in frame.nodes)
-                if not taken:
-                    self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(n.data)
-                                                                   for n in frame.nodes)
-                accepted += taken
+            accepted += self._feed(data)
             # a read that did not fill the buffer took all there was: no second (empty) read
             drained = len(data) < SHORT_READ_BYTES and getattr(self.transport, "short_read_is_all", False)
             data = b"" if drained else self.transport.recv(0.0, READ_BYTES)
+        return accepted
+
+    def poll_to(self, total_bytes: int, timeout_s: float = 1.0) -> int:
+        """Lockstep: read until ``total_bytes`` (mod 2^31) have been read through this method, waiting up
+        to ``timeout_s`` of wall time, and no further (the next tick's bytes may follow at once): the
+        harness says how many it has written in all. Returns the mocap frames accepted; a shortfall is
+        counted in ``lockstep_short_reads`` and read with the next call."""
+        accepted = 0
+        left = (total_bytes - self._lockstep_read) & LOCKSTEP_COUNT_MASK
+        deadline = time.monotonic() + timeout_s
+        while left > 0:
+            data = self.transport.recv(max(0.0, deadline - time.monotonic()), left)
+            if not data:
+                self.lockstep_short_reads += 1
+                break
+            left -= len(data)
+            self._lockstep_read = (self._lockstep_read + len(data)) & LOCKSTEP_COUNT_MASK
+            accepted += self._feed(data)
+        return accepted
+
+    def _feed(self, data: bytes) -> int:
+        """Decode bytes read from the link; returns the mocap frames accepted."""
+        accepted = 0
+        now = self.clock.now_s()
+        for frame in self._decoder.feed(data):
+            taken = sum(self._take(node.data, now) for node in frame.nodes)
+            if not taken:
+                self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(n.data)
+                                                               for n in frame.nodes)
+            accepted += taken
         return accepted
 
     def _take(self, payload: bytes, now_s: float) -> int:
@@ -136,20 +165,20 @@ class MocapReader:
             self._bad_payload += 1
             return 0
         self._frames_ok += 1
+        latest, on_sample, frame_no = self._latest, self.on_sample, packet.frame_no
         for body in packet.bodies:
             qw, qx, qy, qz = body.quat_wxyz
             norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             if not body.valid or not 0.5 < norm < 1.5:
                 self._bodies_invalid += 1
                 continue
-            sample = PoseSample(
-                name=body.name, body_id=body.body_id, pos_m=np.array(body.pos_m),
-                quat_wxyz=np.array((qw / norm, qx / norm, qy / norm, qz / norm)),
-                stamp_s=body.stamp_s, received_s=now_s, frame_no=packet.frame_no,
-            )
-            self._latest[body.body_id] = sample
-            if self.on_sample is not None:
-                self.on_sample(sample)
+            body_id = body.body_id
+            sample = _new_sample(_body_name(body_id), body_id, np.array(body.pos_m),
+                                 np.array((qw / norm, qx / norm, qy / norm, qz / norm)), body.stamp_s, now_s,
+                                 frame_no)
+            latest[body_id] = sample
+            if on_sample is not None:
+                on_sample(sample)
         return 1
 
     # --- what pilots ask -----------------------------------------------------------------------
@@ -159,8 +188,8 @@ class MocapReader:
 
     def age_s(self, body: str | int = "vehicle") -> float:
         """Seconds since ``body``'s latest valid pose arrived (inf if none yet)."""
-        sample = self.latest(body)
-        return math.inf if sample is None else sample.age_s(self.clock.now_s())
+        sample = self._latest.get(_body_id(body))
+        return math.inf if sample is None else self.clock.now_s() - sample.received_s
 
     def is_stale(self, body: str | int = "vehicle") -> bool:
         """True when ``body`` has no valid pose younger than ``stale_after_s``."""
@@ -189,11 +218,33 @@ class MocapReader:
 def _body_id(body: str | int) -> int:
     if isinstance(body, int):
         return body
-    if body in BODY_IDS:
-        return BODY_IDS[body]
+    known = BODY_IDS.get(body)
+    if known is not None:
+        return known
     if body.startswith("body") and body[4:].isdigit():
         return int(body[4:])
     raise KeyError(f"unknown body {body!r}; known: {', '.join(BODY_IDS)} or body<N>")
+
+
+#: body id -> name, filled as ids are seen (the same names as `BodySample.name`)
+_NAMES: dict[int, str] = {}
+
+
+def _body_name(body_id: int) -> str:
+    name = _NAMES.get(body_id)
+    if name is None:
+        name = _NAMES[body_id] = BODY_NAMES.get(body_id, f"body{body_id}")
+    return name
+
+
+def _new_sample(name: str, body_id: int, pos_m: np.ndarray, quat_wxyz: np.ndarray, stamp_s: float,
+                received_s: float, frame_no: int) -> PoseSample:
+    """A PoseSample without the frozen dataclass's per-field __setattr__ calls (two per mocap frame):
+    the same fields, set straight into the instance dict."""
+    sample = object.__new__(PoseSample)
+    sample.__dict__.update(name=name, body_id=body_id, pos_m=pos_m, quat_wxyz=quat_wxyz, stamp_s=stamp_s,
+                           received_s=received_s, frame_no=frame_no)
+    return sample
 
 
 def open_transport(spec: str, baud: int = DEFAULT_BAUD) -> Transport:

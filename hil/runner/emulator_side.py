@@ -109,14 +109,15 @@ class _FaultyLink(Transport):
         self._held.append(data)
         return len(data)
 
-    def flush(self) -> None:
-        """Write the held frames to the real link in one go."""
+    def flush(self) -> int:
+        """Write the held frames to the real link in one go; returns the bytes it took."""
         if not self._held:
-            return
+            return 0
         data = b"".join(self._held) if len(self._held) > 1 else self._held[0]
         self._held.clear()
         sent = self.raw.send(data) if not self.raw.closed else 0
         self.bytes_refused += len(data) - sent
+        return sent
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         return b""

@@ -18,6 +18,7 @@ process first imports its libraries and opens its ports (`LoopReport.startup_wal
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -30,7 +31,13 @@ DEFAULT_TICK_S = 0.01  # one tick per onboard control period (100 Hz)
 DEFAULT_GUARD_S = 3.0  # wall time without an answer before the onboard program counts as dead
 STARTUP_GUARD_S = 60.0  # the first answer may wait for a process to start
 _TIMESYNC = mav.MAVLink_timesync_message.unpacker
-RESEND_S = 1.0  # a tick not answered within this wall time is sent again (lost on a fresh port)
+_NAMED_INT = mav.MAVLink_named_value_int_message.unpacker
+MOCAP_COUNT_NAME = b"mocap_n"  # NAMED_VALUE_INT of a tick: mocap bytes written in all, mod 2^31
+MOCAP_COUNT_MASK = 0x7FFFFFFF
+RESEND_FILLER = bytes(280)  # longer than any MAVLink frame; zeros are never a frame start
+#: a tick not answered within this wall time is sent again (lost on a fresh port, or in the program's
+#: parser behind a frame with a corrupt length): a repeat is only answered, so a spurious one costs nothing
+RESEND_S = 0.1
 #: until the first answer: a new process opening its port drops what was written before (pyserial
 #: flushes on open), so the first tick is repeated often; the program acts on a repeat only once
 STARTUP_RESEND_S = 0.02
@@ -69,6 +76,13 @@ def apply_process_faults(
         rep.events.append({"time_s": t, "source": "runner", "text": "onboard program resumed"})
 
 
+def process_fault_due(onboard: OnboardSide, faults: FaultSchedule, kill_s: float | None, t: float) -> bool:
+    """Whether `apply_process_faults` would kill, stall or resume the onboard program at ``t``."""
+    if onboard.alive and kill_s is not None and t >= kill_s:
+        return True
+    return faults.any_active("onboard_stalled", t) != onboard.paused
+
+
 def run_lockstep(
     emu: EmulatorSide,
     onboard: OnboardSide,
@@ -82,8 +96,9 @@ def run_lockstep(
     """Fly ``duration_s`` of sim time in lockstep; returns what the loop saw.
 
     ``compute_s`` (s, 0..``tick_s``; None: ``tick_s``) is the onboard computer's modelled compute time:
-    its outputs for the tick at t are handed to the command link at t + ``compute_s``. Until then the
-    emulator side runs on, so with one tick (the default) the two sides work on the same tick at once.
+    its outputs for the tick at t are handed to the command link at t + ``compute_s``. The emulator
+    side runs on until then, so with one tick (the default) the next tick is sent before the answer to
+    this one is read, and the two processes work at once.
     """
     compute = tick_s if compute_s is None else compute_s
     if not 0.0 <= compute <= tick_s + 1e-12:
@@ -100,39 +115,46 @@ def run_lockstep(
     first = True
     wire = emu.wire
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
-    emu.hold_mocap = True  # and the mocap frames just before it: never while the onboard reads a tick
-    pending: float | None = None  # the tick whose outputs are still being computed
+    emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
+    mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
+    pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first
     for k in range(1, n_ticks + 1):  # no tick at 0: its answer TIMESYNC(0, 0) would read as a request
         t = k * tick_s
-        if pending is not None:
-            t_out = min(pending + compute, t)
-            emu.advance_to(t_out)
-            _collect(rep, emu, onboard, pending, t_out, guard_s)
-            pending = None
-        if emu.time_s < t - 1e-12:
-            emu.advance_to(t)
+        # the outputs of a pending tick act from its time + compute on: read them before running past it
+        while pending and pending[0] + compute < t - 1e-12:
+            emu.advance_to(pending[0] + compute)
+            tick = pending.popleft()
+            _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
+        emu.advance_to(t)
         rep.ticks += 1
+        if pending and process_fault_due(onboard, faults, kill_s, t):
+            while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
+                tick = pending.popleft()
+                _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
         apply_process_faults(rep, onboard, faults, kill_s, t)
-        emu.mocap_link.flush()
+        if not first:  # the first tick's mocap waits for a program that has opened its ports
+            mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                _send_tick(emu, t)
+                emu.wire.send_sync(tick_frames(t, mocap_total))
                 onboard.service()
                 emu.recorder.flush()  # the tick's checks and time-series rows, while the onboard works
-                pending = t
                 if first:  # wait for the new process, then the loop proper starts
-                    _collect(rep, emu, onboard, t, t + compute, STARTUP_GUARD_S, STARTUP_RESEND_S)
-                    pending = None
+                    startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
+                    _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
                     loop0, t_loop0 = time.perf_counter(), t
                     first = False
+                else:
+                    pending.append(t)
         wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)
             next_progress = time.perf_counter() + 0.5
-    if pending is not None:  # the last tick's answer: the program has acted on it before the run ends
-        _collect(rep, emu, onboard, pending, pending + compute, guard_s)
+    while pending:  # the last ticks' answers: the program has acted on them before the run ends
+        tick = pending.popleft()
+        _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
     rep.startup_wall_s = loop0 - wall0
     rep.wall_loop_s = time.perf_counter() - loop0
     rep.loop_sim_s = n_ticks * tick_s - t_loop0
@@ -145,19 +167,17 @@ def _note_exit(rep: LoopReport, onboard: OnboardSide, t: float) -> None:
     rep.events.append({"time_s": t, "source": "runner", "text": "onboard program exited"})
 
 
-def _tick_frame(t: float) -> bytes:
-    """TIMESYNC(tc1 = 0, ts1 = t in ns): the harness's own frame, sequence number always 0."""
-    return encode_frame(
-        mav.MAVLINK_MSG_ID_TIMESYNC,
-        _TIMESYNC.pack(0, round(t * 1e9)),
-        0,
-        FC_SYSTEM_ID,
-        mav.MAV_COMP_ID_AUTOPILOT1,
+def tick_frames(t: float, mocap_total: int) -> bytes:
+    """The harness's tick at ``t`` (s): NAMED_VALUE_INT "mocap_n" (the mocap bytes written for the onboard
+    program in all, mod 2^31: it reads up to there before acting) then TIMESYNC(tc1 = 0, ts1 = t in ns);
+    sequence numbers always 0. A total, not a per-tick count, so a tick lost to corrupt bytes costs
+    nothing: the next one says it again."""
+    ms = round(t * 1e3) & 0xFFFFFFFF
+    count = _NAMED_INT.pack(ms, mocap_total & MOCAP_COUNT_MASK, MOCAP_COUNT_NAME)
+    comp = mav.MAV_COMP_ID_AUTOPILOT1
+    return encode_frame(mav.MAVLINK_MSG_ID_NAMED_VALUE_INT, count, 0, FC_SYSTEM_ID, comp) + encode_frame(
+        mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(0, round(t * 1e9)), 0, FC_SYSTEM_ID, comp
     )
-
-
-def _send_tick(emu: EmulatorSide, t: float) -> None:
-    emu.wire.send_sync(_tick_frame(t))
 
 
 def _collect(
@@ -166,6 +186,7 @@ def _collect(
     onboard: OnboardSide,
     t: float,
     stamp_s: float,
+    mocap_total: int,
     guard_s: float,
     resend_s: float = RESEND_S,
 ) -> None:
@@ -173,7 +194,7 @@ def _collect(
     onboard program silent for ``guard_s`` (wall) is declared dead."""
     if not (onboard.alive and not onboard.paused):
         return  # killed or stalled since the tick was sent: no answer will come
-    if _await_answer(emu, onboard, t, stamp_s, guard_s, resend_s):
+    if _await_answer(emu, onboard, t, stamp_s, mocap_total, guard_s, resend_s):
         rep.answered += 1
     elif onboard.exited():
         _note_exit(rep, onboard, t)
@@ -189,30 +210,39 @@ def _collect(
 
 
 def _await_answer(
-    emu: EmulatorSide, onboard: OnboardSide, t: float, stamp_s: float, guard_s: float, resend_s: float
+    emu: EmulatorSide,
+    onboard: OnboardSide,
+    t: float,
+    stamp_s: float,
+    mocap_total: int,
+    guard_s: float,
+    resend_s: float,
 ) -> bool:
-    """Read the onboard program's outputs until it answers the tick at ``t``; False when no answer came
-    within ``guard_s`` (wall)."""
+    """Queue the onboard program's outputs until its answer to the tick at ``t``; False when no answer
+    came within ``guard_s`` (wall)."""
     wire = emu.wire
     ns = round(t * 1e9)
+    if wire.take_until_answer(ns, stamp_s):
+        return True
     deadline = time.monotonic() + guard_s
     resend_at = time.monotonic() + resend_s
-    answers = wire.answers
+    lost = False
     while True:
-        if answers:
-            done = ns in answers
-            answers.clear()
-            if done:
-                return True
         now = time.monotonic()
         if now >= deadline:
             return False
-        if now >= resend_at:
-            wire.send_sync(_tick_frame(t))
+        if now >= resend_at or (not lost and wire.answered_later_than(ns)):
+            lost = True
+            # lost on a port opened after it was written, or to corrupt bytes in front of it (a later
+            # tick has been answered): the same tick again, after enough filler bytes to complete any
+            # frame the program's parser is still collecting on a corrupt length
+            wire.send_sync(RESEND_FILLER + tick_frames(t, mocap_total))
             resend_at = now + resend_s
         # the process is asked whether it has exited only when it has been silent for a while
         wait = min(0.05, resend_s, max(0.0, deadline - now))
-        if not wire.read_onboard(wait, stamp_s=stamp_s) and onboard.exited():
-            wire.read_onboard(0.0, stamp_s=stamp_s)
-            return ns in answers
+        if not wire.read_raw(wait) and onboard.exited():
+            wire.read_raw(0.0)
+            return wire.take_until_answer(ns, stamp_s)
+        if wire.take_until_answer(ns, stamp_s):
+            return True
         onboard.service()

@@ -42,11 +42,17 @@ class InProcessOnboard:
     """`OnboardProgram` over in-memory links, run when `service()` is called (lockstep)."""
 
     def __init__(
-        self, command: Transport, mocap: Transport, config: ProgramConfig, log_path: Path | None = None
+        self,
+        command: Transport,
+        mocap: Transport,
+        config: ProgramConfig,
+        log_path: Path | None = None,
+        lockstep: bool = True,
     ) -> None:
         self.program = OnboardProgram(
             command, mocap, config, events=EventLog(path=None if log_path is None else str(log_path))
         )
+        self.program.link.lockstep = lockstep  # as `python -m policies.onboard --lockstep` runs
         self.alive = True
         self.paused = False
 

@@ -164,7 +164,7 @@ def run_scenario(
         except ValueError as exc:
             raise RunSetupError(str(exc)) from exc
         if in_process:
-            onboard = InProcessOnboard(cmd_ob, moc_ob, config, log_path)
+            onboard = InProcessOnboard(cmd_ob, moc_ob, config, log_path, lockstep=not realtime)
         else:
             argv = onboard_argv(
                 cmd_fc.endpoint,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import heapq
 import math
 import select
+from collections import deque
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -174,6 +175,9 @@ class CommandWire(Transport):
         self.to_fc = DirectionStats()
         self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
         self.answers: list[int] = []  # lockstep answers (tick ns) seen by `read_onboard`
+        self._backlog: deque[bytes] = deque()  # onboard frames read, not yet handed to the link
+        self._unanswered: list[bytes] = []  # frames taken from the backlog whose answer has not come
+        self._answered_later: dict[int, list[bytes]] = {}  # tick ns -> its frames, answered out of turn
         #: hold pumped FC frames until the next `send_sync` / `flush` (lockstep: one write per tick)
         self.hold_output = False
         self._held = bytearray()
@@ -222,42 +226,78 @@ class CommandWire(Transport):
                 self.raw.send(data)
 
     # --- onboard -> FC --------------------------------------------------------------------------
-    def read_onboard(self, timeout_s: float = 0.0, stamp_s: float | None = None) -> bool:
-        """Read what the onboard program wrote, queue its frames for the FC at their arrival times and
-        note lockstep answers in ``answers``; False when nothing came within ``timeout_s`` (wall s).
-
-        The frames count as handed to the link at ``stamp_s`` (s; None: now on the clock): in lockstep,
-        the tick's time plus the onboard computer's modelled compute time."""
+    def read_raw(self, timeout_s: float = 0.0) -> bool:
+        """Read what the onboard program wrote into the backlog of frames not yet handed to the link;
+        False when nothing came within ``timeout_s`` (wall s)."""
         fd = self._fd
         if timeout_s > 0 and fd is not None and not self.raw.closed:
-            # the answer is not there yet when this is called: wait first, then read once
+            # the bytes are not there yet when this is called: wait first, then read once
             if not select.select([fd], [], [], timeout_s)[0]:
                 return False
             timeout_s = 0.0
         data = self.raw.recv(timeout_s)
         if not data:
             return False
-        now = self.clock.now_s() if stamp_s is None else stamp_s
-        for frame in self.splitter.feed(data):
+        self._backlog.extend(self.splitter.feed(data))
+        return True
+
+    def read_onboard(self, timeout_s: float = 0.0) -> bool:
+        """Read what the onboard program wrote and queue all of it for the FC, handed to the link now
+        (real time); lockstep answers are noted in ``answers``. False when nothing came in time."""
+        got = self.read_raw(timeout_s)
+        now = self.clock.now_s()
+        backlog = self._backlog
+        while backlog:
+            frame = backlog.popleft()
             tick_ns = timesync_answer_ns(frame)
             if tick_ns is not None:
                 self.answers.append(tick_ns)
+            else:
+                self._queue_for_fc(frame, now)
+        return got
+
+    def take_until_answer(self, tick_ns: int, stamp_s: float) -> bool:
+        """Queue for the FC, handed to the link at ``stamp_s`` (s), what the onboard program wrote for
+        the tick at ``tick_ns`` (the frames before its answer); True once that answer has come. Frames
+        answered for a later tick (this one's TIMESYNC was lost to corrupt bytes and sent again) wait
+        for their own tick; what follows the last answer (the next tick's outputs) stays."""
+        stashed = self._answered_later.pop(tick_ns, None)
+        if stashed is not None:
+            for frame in stashed:
+                self._queue_for_fc(frame, stamp_s)
+            return True
+        backlog, frames = self._backlog, self._unanswered
+        while backlog:
+            frame = backlog.popleft()
+            answered = timesync_answer_ns(frame)
+            if answered is None:
+                frames.append(frame)
                 continue
-            if (
-                len(frame) > 9
-                and frame[0] == MAVLINK_V2_MAGIC
-                and frame[7] == 82
-                and frame[8] == frame[9] == 0
-            ):
-                self.setpoints_sent += 1
-            self.to_fc.frames_sent += 1
-            arrival = self._in.arrival_s(now, len(frame))
-            if arrival is None:
-                self.to_fc.frames_lost += 1
-                continue
-            self._seq += 1
-            heapq.heappush(self._in_queue, (arrival, self._seq, frame))
-        return True
+            self._unanswered = []
+            if answered > tick_ns:
+                self._answered_later[answered] = frames
+            else:  # this tick's answer, or one to a tick sent twice (nothing new in front of it)
+                for f in frames:
+                    self._queue_for_fc(f, stamp_s)
+                if answered == tick_ns:
+                    return True
+            frames = self._unanswered
+        return False
+
+    def answered_later_than(self, tick_ns: int) -> bool:
+        """Whether the onboard program has answered a tick after ``tick_ns`` (so it never saw that one)."""
+        return any(k > tick_ns for k in self._answered_later)
+
+    def _queue_for_fc(self, frame: bytes, handed_s: float) -> None:
+        if len(frame) > 9 and frame[0] == MAVLINK_V2_MAGIC and frame[7] == 82 and frame[8] == frame[9] == 0:
+            self.setpoints_sent += 1
+        self.to_fc.frames_sent += 1
+        arrival = self._in.arrival_s(handed_s, len(frame))
+        if arrival is None:
+            self.to_fc.frames_lost += 1
+            return
+        self._seq += 1
+        heapq.heappush(self._in_queue, (arrival, self._seq, frame))
 
     def next_arrival_s(self) -> float:
         """When the next onboard frame reaches the FC (s; inf when none is on the way)."""

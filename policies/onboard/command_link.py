@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from hil.link.clock import Clock
@@ -30,7 +31,11 @@ ONBOARD_COMPONENT_ID = mav.MAV_COMP_ID_ONBOARD_COMPUTER
 FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
 #: the FC's messages this client acts on; other telemetry is CRC-checked and dropped undecoded
 USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMAND_ACK,
-                          mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_STATUSTEXT})
+                          mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_STATUSTEXT,
+                          mav.MAVLINK_MSG_ID_NAMED_VALUE_INT})
+#: NAMED_VALUE_INT a lockstep harness sends before a tick: the mocap bytes it has written in all (mod
+#: 2^31), which the program reads before acting on the tick
+MOCAP_COUNT_NAME = "mocap_n"
 READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
@@ -95,6 +100,11 @@ class CommandLink:
         self.lockstep = False
         self._open_ticks = 0
         self._held: list[bytes] = []
+        #: lockstep: messages parsed but not yet acted on (those after a tick wait for it to be done)
+        self._backlog: deque[MAVLinkMessage] = deque()
+        #: lockstep: the mocap bytes the harness has written in all, as of the last tick handled (mod
+        #: 2^31; None: it never said)
+        self.mocap_announced: int | None = None
 
     @property
     def transport(self) -> Transport:
@@ -113,9 +123,21 @@ class CommandLink:
             data = transport.recv(0.0, READ_BYTES)
             if data:
                 msgs.extend(codec.feed(data))
-        for m in msgs:
+        if not self.lockstep:
+            for m in msgs:
+                self._handle(m)
+            return msgs
+        # lockstep: act on the messages up to the next tick only; what came after it (the FC's next
+        # tick, already written when the harness keeps two ticks in flight) waits for that tick
+        backlog = self._backlog
+        backlog.extend(msgs)
+        handled = []
+        ticks = len(self._ticks)
+        while backlog and len(self._ticks) == ticks:
+            m = backlog.popleft()
             self._handle(m)
-        return msgs
+            handled.append(m)
+        return handled
 
     def _handle(self, m: MAVLinkMessage) -> None:
         kind = m.get_type()
@@ -131,6 +153,9 @@ class CommandLink:
         elif kind == "TIMESYNC":
             if m.tc1 == 0:  # a request: in lockstep, the FC's tick (ts1 = simulated time, ns)
                 self._ticks.append(m.ts1 * 1e-9)
+        elif kind == "NAMED_VALUE_INT":
+            if m.name == MOCAP_COUNT_NAME and m.value >= 0:
+                self.mocap_announced = int(m.value)
         elif kind == "STATUSTEXT":
             self.status_texts.append(str(m.text))
 

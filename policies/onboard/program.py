@@ -264,10 +264,11 @@ class OnboardProgram:
         self._act(now_s)
 
     def lockstep_tick(self, tick_s: float) -> None:
-        """One lockstep tick: read the mocap, act at ``tick_s``, then answer the tick."""
+        """One lockstep tick: read the mocap (up to what the harness says it has written, when it says),
+        act at ``tick_s``, then answer the tick."""
         self.clock.set(tick_s)
         try:
-            self.mocap.poll()
+            self._read_tick_mocap()
         except LinkError as exc:
             self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
             return
@@ -558,28 +559,43 @@ class OnboardProgram:
         return self.exit_code if self.exit_code is not None else EXIT_ERROR
 
     def lockstep_poll(self) -> list[float]:
-        """Read the links and process every TIMESYNC tick that has arrived (non-blocking); returns them."""
-        try:
-            self.link.poll()
-            ticks = self.link.take_ticks()
-            # the mocap link is read at the ticks only: bytes read between ticks would be stamped with the
-            # previous tick's time, and how many there are depends on process scheduling (not lockstep)
-        except LinkError as exc:
-            self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
-            return []
-        done = []
-        for tick in ticks:
-            if tick < self.clock.now_s():
-                continue  # a stale tick: time never goes back
-            if tick == self._last_tick_s:  # a repeat (sent again while this program started): answer only
-                self.link.answer_tick(tick)
-                continue
-            self._last_tick_s = tick
-            self.lockstep_tick(tick)
-            done.append(tick)
-            if self.finished:
+        """Read the links and process every TIMESYNC tick that has arrived, one after the other
+        (non-blocking); returns them."""
+        done: list[float] = []
+        while not self.finished:
+            try:
+                self.link.poll()  # in lockstep: the messages up to the next tick
+                ticks = self.link.take_ticks()
+                # the mocap link is read at the ticks only: bytes read between ticks would be stamped
+                # with the previous tick's time, and how many there are depends on process scheduling
+            except LinkError as exc:
+                self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
                 break
+            if not ticks:
+                break
+            for tick in ticks:
+                if tick <= self._last_tick_s:
+                    # a repeat (sent again while this program started) or a tick sent again after a
+                    # later one was done (the first copy lost to corrupt bytes): answer, do not act, as
+                    # time never goes back
+                    self._read_tick_mocap()
+                    self.link.answer_tick(tick)
+                    continue
+                self._last_tick_s = tick
+                self.lockstep_tick(tick)
+                done.append(tick)
+                if self.finished:
+                    break
         return done
+
+    def _read_tick_mocap(self) -> None:
+        """Lockstep: read the mocap link up to what the harness has announced (all that has arrived
+        when it does not say)."""
+        announced = self.link.mocap_announced
+        if announced is None:
+            self.mocap.poll()
+        else:
+            self.mocap.poll_to(announced)
 
     def run_lockstep(self, tick_timeout_s: float = 10.0) -> int:
         """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick
