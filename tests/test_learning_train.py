@@ -103,3 +103,17 @@ def test_hil_train_cli_trains_exports_and_rejects_bad_options(tmp_path, capsys):
     rc = hil_main(["train", "planner", "--batch-size", "0", "--out", str(tmp_path / "bad"), "--no-progress"])
     assert rc == 1
     assert "batch_size" in capsys.readouterr().err
+
+
+def test_a_bfloat16_phase_trains_and_the_metrics_show_both_planner_forms(tmp_path):
+    cfg = _cfg(tmp_path / "bf", epochs=2.0, bf16_fraction=0.5)
+    r = train_planner(TINY_PLANNER, cfg, holdout_trajectories=5)
+    history = torch.load(tmp_path / "bf" / "checkpoint.pt", weights_only=False)["history"]
+    assert all(np.isfinite(row[2]) for row in history) and history[0][3] > history[-1][3]
+    metrics = r.metrics
+    # the deployed planner (the MLP's odd part) and the bare MLP, each on held-out data and the paper case
+    for key in ("holdout", "holdout_bare_mlp", "paper_case", "paper_case_bare_mlp"):
+        assert np.isfinite(metrics[key]["max_pos_m"]) and metrics[key]["max_pos_m"] > 0
+    assert metrics["holdout"]["max_pos_m"] != metrics["holdout_bare_mlp"]["max_pos_m"]
+    with pytest.raises(ValueError, match="bf16_fraction"):
+        TrainConfig(bf16_fraction=1.5)
