@@ -194,32 +194,22 @@ def _collect(
     onboard program silent for ``guard_s`` (wall) is declared dead."""
     if not (onboard.alive and not onboard.paused):
         return  # killed or stalled since the tick was sent: no answer will come
-    if _await_answer(emu, onboard, t, stamp_s, mocap_total, guard_s, resend_s):
+    if _await_answer(emu, onboard, (t, stamp_s, mocap_total), guard_s, resend_s):
         rep.answered += 1
     elif onboard.exited():
         _note_exit(rep, onboard, t)
     else:
         onboard.kill()
-        rep.events.append(
-            {
-                "time_s": t,
-                "source": "runner",
-                "text": f"onboard program silent for {guard_s:g} s (wall): declared dead",
-            }
-        )
+        text = f"onboard program silent for {guard_s:g} s (wall): declared dead"
+        rep.events.append({"time_s": t, "source": "runner", "text": text})
 
 
 def _await_answer(
-    emu: EmulatorSide,
-    onboard: OnboardSide,
-    t: float,
-    stamp_s: float,
-    mocap_total: int,
-    guard_s: float,
-    resend_s: float,
+    emu: EmulatorSide, onboard: OnboardSide, tick: tuple[float, float, int], guard_s: float, resend_s: float
 ) -> bool:
-    """Queue the onboard program's outputs until its answer to the tick at ``t``; False when no answer
-    came within ``guard_s`` (wall)."""
+    """Queue the onboard program's outputs until its answer to ``tick`` (time, outputs' stamp (s),
+    mocap byte total); False when no answer came within ``guard_s`` (wall)."""
+    t, stamp_s, mocap_total = tick
     wire = emu.wire
     ns = round(t * 1e9)
     if wire.take_until_answer(ns, stamp_s):
