@@ -7,12 +7,14 @@ import heapq
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
+_F64 = np.dtype(np.float64)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -103,6 +105,27 @@ class MocapFrame:
     bodies: tuple[TrackedBody, ...]
 
 
+class FrameRows(NamedTuple):
+    """A frame as plain values, what the mocap link encodes: per body (body id, valid, stamp_s, the 7
+    values pos_m (3) then quat_wxyz (4)); an occluded body has zeros and the identity."""
+
+    frame_no: int
+    stamp_s: float
+    ready_s: float
+    rows: list[tuple[int, bool, float, list[float]]]
+
+
+def frame_of(rows: FrameRows) -> MocapFrame:
+    """The `MocapFrame` of ``rows``."""
+    return MocapFrame(
+        frame_no=rows.frame_no,
+        stamp_s=rows.stamp_s,
+        ready_s=rows.ready_s,
+        bodies=tuple(TrackedBody(body_id, np.array(v[:3]), np.array(v[3:]), valid)
+                     for body_id, valid, _, v in rows.rows),
+    )
+
+
 @dataclass
 class MocapStats:
     frames: int = 0
@@ -141,8 +164,8 @@ def _pose_arrays(obj: object) -> tuple[np.ndarray, np.ndarray]:
         and quat.__class__ is np.ndarray
         and pos.shape == (3,)
         and quat.shape == (4,)
-        and pos.dtype == np.float64
-        and quat.dtype == np.float64
+        and (pos.dtype is _F64 or pos.dtype == _F64)
+        and (quat.dtype is _F64 or quat.dtype == _F64)
     ):
         return pos, quat
     pose = pose_of(obj)
@@ -161,23 +184,35 @@ class MocapSystem:
         self.config = config
         self._rng = rng
         self._next_exposure_k = 0
-        self._pending: list[tuple[float, int, MocapFrame]] = []
+        self._pending: list[tuple[float, int, FrameRows]] = []
         self._occluded_until: dict[int, float] = {}
         self.stats = MocapStats()
+        self._period_s = config.period_s
+        self._latency_s = config.camera_latency_s
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
-        t = self._next_exposure_k * self.config.period_s
+        t = self._next_exposure_k * self._period_s
         return min(t, self._pending[0][0]) if self._pending else t
 
     def next_exposure_s(self) -> float:
         """When the next exposure is taken (s): the only event that needs the true poses."""
-        return self._next_exposure_k * self.config.period_s
+        return self._next_exposure_k * self._period_s
+
+    def next_release_s(self) -> float:
+        """When the next frame already exposed is ready (s; inf when none is waiting)."""
+        return self._pending[0][0] if self._pending else math.inf
 
     def release(self, now_s: float) -> list[MocapFrame]:
         """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
-        out = []
+        return [frame_of(r) for r in self.release_rows(now_s)]
+
+    def release_rows(self, now_s: float) -> list[FrameRows]:
+        """`release` as plain values (no objects per body)."""
         pending = self._pending
+        if not pending or pending[0][0] > now_s + 1e-12:
+            return []  # nothing ready yet (most calls)
+        out = []
         while pending and pending[0][0] <= now_s + 1e-12:
             out.append(heapq.heappop(pending)[2])
         return out
@@ -185,7 +220,11 @@ class MocapSystem:
     def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
         """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads);
         return the frames ready by then, oldest first."""
-        period = self.config.period_s
+        return [frame_of(r) for r in self.update_rows(now_s, truth)]
+
+    def update_rows(self, now_s: float, truth: Mapping[int, object]) -> list[FrameRows]:
+        """`update` as plain values (no objects per body): what the mocap link encodes."""
+        period = self._period_s
         if now_s - self._next_exposure_k * period > MAX_CATCH_UP_S:
             # called after a long gap (or first at a late time): do not replay frames nobody could see
             skip_to = math.floor(now_s / period)
@@ -196,30 +235,53 @@ class MocapSystem:
             self._next_exposure_k += 1
             frame = self._expose(k, k * period, truth)
             heapq.heappush(self._pending, (frame.ready_s, k, frame))
-        out = []
-        while self._pending and self._pending[0][0] <= now_s + 1e-12:
-            out.append(heapq.heappop(self._pending)[2])
-        return out
+        return self.release_rows(now_s)
 
-    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> MocapFrame:
+    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> FrameRows:
         cfg, rng = self.config, self._rng
-        bodies = []
+        pos_sd, att_sd, occlusion = cfg.pos_noise_m, cfg.att_noise_rad, cfg.occlusion_prob
+        n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)  # normal draws per body seen
+        # the draws keep the order of one body after the other (occlusion, position noise, attitude
+        # noise); without occlusion the noise of the whole frame comes from one call
+        seen = []
+        noise: list[float] = []
         for body_id in sorted(truth):
             pos, quat = _pose_arrays(truth[body_id])
+            px, py, pz = pos.tolist()
             qw, qx, qy, qz = quat.tolist()
             sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
-            valid = math.isfinite(sq) and sq > 0.25 and all(map(math.isfinite, pos.tolist()))
-            if cfg.occlusion_prob > 0 and t_s >= self._occluded_until.get(body_id, -1.0) \
-                    and rng.random() < cfg.occlusion_prob:
-                self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
-            if t_s < self._occluded_until.get(body_id, -1.0):
-                valid = False
+            # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
+            valid = math.isfinite(sq) and sq > 0.25 and (
+                math.isfinite(px + py + pz) or all(map(math.isfinite, (px, py, pz))))
+            if occlusion > 0:
+                until = self._occluded_until.get(body_id, -1.0)
+                if t_s >= until and rng.random() < occlusion:
+                    until = self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
+                if t_s < until:
+                    valid = False
+                if valid and n_noise:
+                    noise += rng.standard_normal(n_noise).tolist()
+            seen.append((body_id, valid, px, py, pz, qw, qx, qy, qz, sq))
+        if occlusion <= 0 and n_noise:
+            n_valid = sum(1 for b in seen if b[1])
+            if n_valid:
+                noise = rng.standard_normal(n_valid * n_noise).tolist()
+        rows = []
+        i = 0
+        for body_id, valid, px, py, pz, qw, qx, qy, qz, sq in seen:
             if valid:
-                pos = pos + rng.normal(0.0, cfg.pos_noise_m, 3) if cfg.pos_noise_m > 0 else pos.copy()
+                if pos_sd > 0:  # as normal(0, sd) makes them from the same draws: 0 + sd * z
+                    px += 0.0 + pos_sd * noise[i]
+                    py += 0.0 + pos_sd * noise[i + 1]
+                    pz += 0.0 + pos_sd * noise[i + 2]
+                    i += 3
                 n = math.sqrt(sq)
                 aw, ax, ay, az = qw / n, qx / n, qy / n, qz / n
-                if cfg.att_noise_rad > 0:  # times the small rotation of a noise rotation vector
-                    rx, ry, rz = rng.normal(0.0, cfg.att_noise_rad, 3).tolist()
+                if att_sd > 0:  # times the small rotation of a noise rotation vector
+                    rx = 0.0 + att_sd * noise[i]
+                    ry = 0.0 + att_sd * noise[i + 1]
+                    rz = 0.0 + att_sd * noise[i + 2]
+                    i += 3
                     angle = math.sqrt(rx * rx + ry * ry + rz * rz)
                     if angle < 1e-12:
                         bw, bx, by, bz = 1.0, 0.5 * rx, 0.5 * ry, 0.5 * rz
@@ -230,12 +292,12 @@ class MocapSystem:
                                       aw * bx + ax * bw + ay * bz - az * by,
                                       aw * by - ax * bz + ay * bw + az * bx,
                                       aw * bz + ax * by - ay * bx + az * bw)
-                quat = np.array((-aw, -ax, -ay, -az) if aw < 0 else (aw, ax, ay, az))
+                if aw < 0:
+                    aw, ax, ay, az = -aw, -ax, -ay, -az
+                rows.append((body_id, True, t_s, [px, py, pz, aw, ax, ay, az]))
             else:
                 self.stats.bodies_occluded += 1
-                pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
-            bodies.append(TrackedBody(body_id, pos, quat, valid))
+                rows.append((body_id, False, t_s, [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
         extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         self.stats.frames += 1
-        return MocapFrame(frame_no=k, stamp_s=t_s, ready_s=t_s + cfg.camera_latency_s + extra,
-                          bodies=tuple(bodies))
+        return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)

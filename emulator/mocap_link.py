@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from emulator.mocap import MocapConfig, MocapFrame, MocapStats, MocapSystem
+from emulator.mocap import FrameRows, MocapConfig, MocapFrame, MocapStats, MocapSystem
 from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
@@ -23,12 +23,12 @@ from hil.link.linktrack import (
     ROLE_TAG,
     BodySample,
     MocapPacket,
-    Node,
-    NodeFrame,
-    encode_frame,
-    encode_mocap_payload,
+    encode_mocap_rows,
+    encode_node_frame,
 )
 from hil.link.transport import Transport
+
+_VEHICLE_ID, _GAP_ID = BODY_IDS["vehicle"], BODY_IDS["gap"]
 
 
 @dataclass(frozen=True)
@@ -85,29 +85,40 @@ class MocapLinkServer:
             raise ValueError(f"now_s must be finite, got {now_s}")
         truth: dict[int, object] = {}
         if vehicle_state is not None:
-            truth[BODY_IDS["vehicle"]] = vehicle_state
+            truth[_VEHICLE_ID] = vehicle_state
         if gap_pose is not None:
-            truth[BODY_IDS["gap"]] = gap_pose
-        return self._forward(now, self.mocap.update(now, truth))
+            truth[_GAP_ID] = gap_pose
+        return self._forward(now, self.mocap.update_rows(now, truth))
 
     def deliver(self, now_s: float) -> int:
         """Advance the radio and the wire to ``now_s`` without taking an exposure (none may be due
         before ``now_s``: see `next_exposure_s`); returns bytes written."""
-        return self._forward(now_s, self.mocap.release(now_s))
+        limit = now_s + 1e-12
+        if (
+            self.mocap.next_release_s() > limit
+            and self.radio.next_event_s() > limit
+            and self.uart.next_event_s() > limit
+        ):
+            return 0  # nothing leaves the tracker, the radio or the wire by then (most calls)
+        return self._forward(now_s, self.mocap.release_rows(now_s))
 
-    def _forward(self, now: float, frames: list[MocapFrame]) -> int:
+    def _forward(self, now: float, frames: list[FrameRows]) -> int:
+        radio, uart = self.radio, self.uart
         for frame in frames:
-            self.radio.send(frame.ready_s, encode_mocap_payload(to_packet(frame)))
-        for delivery in self.radio.update(now):
-            node = Node(role=ROLE_ANCHOR, node_id=self.station_node_id, data=delivery.data)
-            wire = encode_frame(NodeFrame(role=ROLE_TAG, module_id=self.module_id, nodes=(node,)))
-            self.uart.write(delivery.arrival_s, wire)
+            radio.send(frame.ready_s, encode_mocap_rows(frame.frame_no & 0xFFFFFFFF, frame.rows[:MAX_BODIES]))
+        for delivery in radio.update(now):
+            uart.write(delivery.arrival_s, encode_node_frame(
+                delivery.data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))
+        chunks = uart.update(now)
+        if not chunks:
+            return 0  # nothing off the wire yet (most calls)
         written = 0
-        for _, chunk in self.uart.update(now):
-            if self.transport.closed:
+        transport = self.transport
+        for _, chunk in chunks:
+            if transport.closed:
                 self._bytes_refused += len(chunk)
                 continue
-            n = self.transport.send(chunk)
+            n = transport.send(chunk)
             written += n
             self._bytes_refused += len(chunk) - n
             self._frames_written += 1
@@ -152,3 +163,4 @@ def to_packet(frame: MocapFrame) -> MocapPacket:
         for b in frame.bodies[:MAX_BODIES]
     )
     return MocapPacket(frame_no=frame.frame_no & 0xFFFFFFFF, bodies=bodies)
+

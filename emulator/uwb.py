@@ -92,7 +92,8 @@ class Delivery:
 
 class UwbRadio:
     """One-way radio: ``send(now_s, data)`` then ``update(now_s)`` returns what has arrived by then,
-    in sending order. ``next_event_s()`` is the next arrival (inf when nothing is in flight)."""
+    in sending order. ``next_event_s()`` is the next arrival (inf when nothing is in flight).
+    The radio may draw ahead from ``rng``: give it a generator of its own (``rng.spawn``)."""
 
     def __init__(self, config: UwbConfig, rng: np.random.Generator) -> None:
         self.config = config
@@ -104,32 +105,55 @@ class UwbRadio:
         self._seq = 0
         self._bad = False
         self.stats = UwbStats()
+        # with no loss the radio's generator draws only the jitter: drawn ahead in blocks, the same
+        # numbers in the same order (one call per block instead of one per packet)
+        self._can_lose = config.loss_prob > 0 or config.burst_enter_prob > 0
+        self._jitter_block: list[float] = []
+        self._jitter_next = 0
 
     def send(self, now_s: float, data: bytes) -> bool:
         """Hand a packet to the radio at ``now_s``; False when it is refused (size, full queue).
         A packet the channel will lose is accepted (True) and simply never arrives."""
-        cfg = self.config
-        self.stats.sent += 1
-        if len(data) > cfg.max_packet_bytes:
-            self.stats.oversize += 1
+        cfg, stats = self.config, self.stats
+        stats.sent += 1
+        n_bytes = len(data)
+        if n_bytes > cfg.max_packet_bytes:
+            stats.oversize += 1
             return False
-        self._air_ends = [t for t in self._air_ends if t > now_s]
-        if len(self._air_ends) >= cfg.queue_packets:
-            self.stats.overflow += 1
+        ends = self._air_ends  # increasing: the packets leave the air in order
+        while ends and ends[0] <= now_s:
+            del ends[0]
+        if len(ends) >= cfg.queue_packets:
+            stats.overflow += 1
             return False
-        start = max(now_s, self._air_busy_until_s)
-        self._air_busy_until_s = start + cfg.air_time_s(len(data))
-        self._air_ends.append(self._air_busy_until_s)
-        if self._lost():
+        busy = self._air_busy_until_s
+        busy = (now_s if now_s > busy else busy) + (n_bytes + cfg.air_overhead_bytes) * 8.0 / cfg.air_rate_bps
+        self._air_busy_until_s = busy
+        ends.append(busy)
+        if self._can_lose and self._lost():
             return True
         latency = cfg.latency_s
         if cfg.jitter_s > 0:
-            latency = max(0.0, latency + self._rng.normal(0.0, cfg.jitter_s))
-        arrival = max(self._air_busy_until_s + latency, self._last_arrival_s)  # the radio keeps order
+            latency = max(0.0, latency + self._jitter(cfg.jitter_s))
+        arrival = busy + latency
+        if arrival < self._last_arrival_s:
+            arrival = self._last_arrival_s  # the radio keeps order
         self._last_arrival_s = arrival
         self._seq += 1
         heapq.heappush(self._in_flight, (arrival, self._seq, Delivery(bytes(data), now_s, arrival)))
         return True
+
+    def _jitter(self, jitter_s: float) -> float:
+        """One jitter draw, N(0, jitter_s) (s)."""
+        if self._can_lose:
+            return self._rng.normal(0.0, jitter_s)
+        k = self._jitter_next
+        block = self._jitter_block
+        if k >= len(block):
+            block = self._jitter_block = self._rng.standard_normal(64).tolist()
+            k = 0
+        self._jitter_next = k + 1
+        return 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
 
     def _lost(self) -> bool:
         cfg, rng = self.config, self._rng
@@ -152,12 +176,16 @@ class UwbRadio:
 
     def update(self, now_s: float) -> list[Delivery]:
         """Packets that have arrived by ``now_s``."""
+        q = self._in_flight
+        if not q or q[0][0] > now_s + 1e-12:
+            return []  # nothing arrived yet (most calls)
         out = []
-        while self._in_flight and self._in_flight[0][0] <= now_s + 1e-12:
-            d = heapq.heappop(self._in_flight)[2]
-            self.stats.delivered += 1
-            if d.arrival_s - d.sent_s > self.config.late_after_s:
-                self.stats.late += 1
+        stats, late_after = self.stats, self.config.late_after_s
+        while q and q[0][0] <= now_s + 1e-12:
+            d = heapq.heappop(q)[2]
+            stats.delivered += 1
+            if d.arrival_s - d.sent_s > late_after:
+                stats.late += 1
             out.append(d)
         return out
 

@@ -119,15 +119,30 @@ class MavlinkServer:
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
-        """Parse and act on what arrived, then send what is due at ``now_s``."""
-        for msg in self.codec.receive():
-            self.handle(msg, now_s)
-        self._report_events(now_s)
+        """Parse and act on what arrived, then send what is due at ``now_s``.
+
+        A transport that models arrival times (``next_arrival_s()``, s on its ``clock``: the runner's
+        command wire) is read only when something has arrived."""
+        if self._input_due():
+            for msg in self.codec.receive():
+                self.handle(msg, now_s)
+        if self._events_seen != len(self.fc.events):
+            self._report_events(now_s)
         self.telemetry.track_battery(now_s)
-        self._send_streams(now_s)
+        if now_s >= self._streams_due_s:
+            self._send_streams(now_s)
         recorder = self.codec.recorder
         if recorder is not None and hasattr(recorder, "tick"):
             recorder.tick()
+
+    def _input_due(self) -> bool:
+        """False only when the transport says nothing can be read now (see `poll`)."""
+        transport = self.codec.transport
+        next_arrival = getattr(transport, "next_arrival_s", None)
+        clock = getattr(transport, "clock", None)
+        if next_arrival is None or clock is None or transport.closed:
+            return True
+        return next_arrival() <= clock.now_s() + 1e-12
 
     def handle(self, msg: MAVLinkMessage, now_s: float) -> None:
         """Act on one received message (never raises)."""
@@ -348,14 +363,22 @@ def setpoint_from_attitude_target(msg: MAVLinkMessage) -> N3Setpoint:
         raise SetpointRejected("thrust ignored: N3 needs vertical thrust")
     q = [float(x) for x in msg.q]
     thrust = float(msg.thrust)
-    if not all(math.isfinite(x) for x in q):
+    # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
+    if not (math.isfinite(sum(q)) or all(math.isfinite(x) for x in q)):
         raise SetpointRejected("non-finite attitude quaternion")
     if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
         raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    norm = math.sqrt(sum(x * x for x in q))
-    if abs(norm - 1.0) > 0.1:
-        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-    roll, pitch, yaw = euler_from_quat([x / norm for x in q])
+    if len(q) == 4:  # the message's own size: in plain floats
+        w, x, y, z = q
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if abs(norm - 1.0) > 0.1:
+            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+        roll, pitch, yaw = euler_from_quat((w / norm, x / norm, y / norm, z / norm))
+    else:
+        norm = math.sqrt(sum(x * x for x in q))
+        if abs(norm - 1.0) > 0.1:
+            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+        roll, pitch, yaw = euler_from_quat([x / norm for x in q])
     if mask & mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE:
         flag, yaw_value = ATTITUDE_THRUST_YAW_ANGLE, math.degrees(yaw)
     else:

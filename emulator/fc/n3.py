@@ -122,7 +122,11 @@ def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget:
     """
     check_flag(sp.flag)
     values = (sp.roll_deg, sp.pitch_deg, sp.thrust_percent, sp.yaw)
-    if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+    # plain floats with a finite sum are finite (inf and NaN propagate); anything else: look closer
+    if not (
+        values[0].__class__ is values[1].__class__ is values[2].__class__ is values[3].__class__ is float
+        and math.isfinite(sum(values))
+    ) and not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
         raise SetpointRejected(f"non-finite setpoint {values}")
     if not 0.0 <= sp.thrust_percent <= 100.0:
         raise SetpointRejected(f"thrust {sp.thrust_percent:.1f} % outside 0..100 %")

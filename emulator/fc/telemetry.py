@@ -21,7 +21,7 @@ from hil.link.mavlink import (
     flu_to_frd,
     mav,
     px4_custom_mode,
-    quat_enu_flu_to_ned_frd,
+    quat_enu_flu_to_ned_frd_tuple,
 )
 
 EARTH_RADIUS_M = 6378137.0
@@ -90,27 +90,30 @@ class TelemetryEncoder:
             status = mav.MAV_STATE_ACTIVE if st.armed else mav.MAV_STATE_STANDBY
         return self.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, custom, status)
 
+    # the per-tick messages work in plain floats (FLU -> FRD and ENU -> NED are sign flips and swaps)
     def attitude(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
-        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(s.quat_wxyz))
-        p, q, r = flu_to_frd(s.omega_rad_s)
-        return self.mav.attitude_encode(_ms(now_s), roll, pitch, yaw, p, q, r)
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*s.quat_wxyz.tolist()))
+        p, q, r = s.omega_rad_s.tolist()
+        return self.mav.attitude_encode(_ms(now_s), roll, pitch, yaw, p, -q, -r)
 
     def attitude_quaternion(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
-        q = quat_enu_flu_to_ned_frd(s.quat_wxyz)
-        p, qr, r = flu_to_frd(s.omega_rad_s)
-        return self.mav.attitude_quaternion_encode(_ms(now_s), *q, p, qr, r, [0.0] * 4)
+        q = quat_enu_flu_to_ned_frd_tuple(*s.quat_wxyz.tolist())
+        p, qr, r = s.omega_rad_s.tolist()
+        return self.mav.attitude_quaternion_encode(_ms(now_s), *q, p, -qr, -r, [0.0] * 4)
 
     def local_position_ned(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
-        return self.mav.local_position_ned_encode(_ms(now_s), *enu_to_ned(s.pos_m), *enu_to_ned(s.vel_m_s))
+        e, n, u = s.pos_m.tolist()
+        ve, vn, vu = s.vel_m_s.tolist()
+        return self.mav.local_position_ned_encode(_ms(now_s), n, e, -u, vn, ve, -vu)
 
     def global_position_int(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
         lat, lon = self.lat_lon_deg(s.pos_m)
         v = enu_to_ned(s.vel_m_s) * 100.0
-        _, _, yaw = euler_from_quat(quat_enu_flu_to_ned_frd(s.quat_wxyz))
+        _, _, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*s.quat_wxyz.tolist()))
         hdg = round(math.degrees(yaw) % 360.0 * 100) % 36000
         return self.mav.global_position_int_encode(
             _ms(now_s),

@@ -124,3 +124,30 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     r[1, 0], r[1, 1], r[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     r[2, 0], r[2, 1], r[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
     return r
+
+
+#: layout of the packed world constants of `check_state_pose` (see `pack_world`)
+_P_CENTRE, _P_AXES, _P_HALF, _P_WALL, _P_HW, _P_HH, _P_MIN, _P_MAX, _P_TOL = 0, 3, 12, 15, 18, 19, 20, 23, 26
+
+
+def pack_world(
+    centre: np.ndarray, axes: np.ndarray, h: np.ndarray, wall_half: np.ndarray, hw: float, hh: float,
+    lab_min: np.ndarray, lab_max: np.ndarray, tol: float,
+) -> np.ndarray:
+    """`check_pose`'s constant arguments in one float64 array (27,), for `check_state_pose`."""
+    return np.concatenate([
+        np.asarray(centre, np.float64).ravel(), np.asarray(axes, np.float64).ravel(),
+        np.asarray(h, np.float64).ravel(), np.asarray(wall_half, np.float64).ravel(), [hw, hh],
+        np.asarray(lab_min, np.float64).ravel(), np.asarray(lab_max, np.float64).ravel(), [tol],
+    ]).astype(np.float64)
+
+
+@njit(cache=True)
+def check_state_pose(p: np.ndarray, q: np.ndarray, world: np.ndarray) -> tuple:
+    """`check_pose` of position ``p`` and quaternion ``q`` (w, x, y, z; non-zero, finite) with the world's
+    constants packed by `pack_world`: one compiled call instead of two."""
+    return check_pose(
+        p, quat_to_rot(q), world[_P_CENTRE:_P_AXES], world[_P_AXES:_P_HALF].reshape((3, 3)),
+        world[_P_HALF:_P_WALL], world[_P_WALL:_P_HW], world[_P_HW], world[_P_HH], world[_P_MIN:_P_MAX],
+        world[_P_MAX:_P_TOL], world[_P_TOL],
+    )

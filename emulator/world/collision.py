@@ -30,7 +30,7 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
-from emulator.world.box_kernel import check_pose, quat_to_rot
+from emulator.world.box_kernel import check_pose, check_state_pose, pack_world, quat_to_rot
 from emulator.world.geometry import Gap, LabVolume, quat_to_matrix
 
 EDGE_NAMES: tuple[str, ...] = ("+e0", "-e0", "+e2", "-e2")
@@ -130,6 +130,8 @@ class World:
         self._wall_half = np.array([self.gap.wall_width_m / 2, self._ht, self.gap.wall_height_m / 2])
         self._lab_min, self._lab_max = np.asarray(self.lab.min_m), np.asarray(self.lab.max_m)
         self._signs_half = _SIGNS * self._half
+        self._packed = pack_world(self._centre, self._axes, self._half, self._wall_half, self._hw, self._hh,
+                                  self._lab_min, self._lab_max, self.contact_tolerance_m)
 
     @classmethod
     def for_profile(cls, gap: Gap, lab: LabVolume, profile: object, **kwargs: float) -> World:
@@ -154,11 +156,13 @@ class World:
     def check_state(self, pos_m: np.ndarray, quat_wxyz: np.ndarray) -> tuple[Obstacle | None, Clearance]:
         """`check` for a simulated state's own arrays, straight into the compiled kernels: float64
         position (3,) and non-zero quaternion (4,), finite (the caller vouches; nothing is validated)."""
-        code, clr, in_slab, edge = check_pose(
-            pos_m, quat_to_rot(quat_wxyz), self._centre, self._axes, self._half, self._wall_half, self._hw,
-            self._hh, self._lab_min, self._lab_max, self.contact_tolerance_m,
-        )
+        code, clr, in_slab, edge = check_state_pose(pos_m, quat_wxyz, self._packed)
         return _CODE_TO_OBSTACLE.get(code), Clearance(float(clr), bool(in_slab), EDGE_NAMES[edge])
+
+    def check_state_values(self, pos_m: np.ndarray, quat_wxyz: np.ndarray) -> tuple[int, float, bool, int]:
+        """`check_state` as plain values: (`ObstacleCode`, clearance_m, in_slab, limiting edge index into
+        `EDGE_NAMES`), for per-sample loops."""
+        return check_state_pose(pos_m, quat_wxyz, self._packed)
 
     def collision(self, pos_m: np.ndarray, attitude: np.ndarray) -> Obstacle | None:
         """What the box hits at this pose, or None. Order when several: wall, ground, lab boundary."""

@@ -59,23 +59,43 @@ class CrossingTracker:
         """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz); returns the
         crossing completed by this sample, if any. Times must increase. ``checked``: the result of
         ``world.check(pos_m, attitude)`` when the caller has it already (and has validated the pose)."""
+        t = self._check_time(time_s)
+        world = self.world
+        p = np.array(pos_m, dtype=np.float64)
+        hit, clr = world.check(p, attitude) if checked is None else checked  # validates the pose
+        n = float((world.gap_coords(p) if checked is None else world.gap_coords_unchecked(p))[1])
+        return self._add(t, p, n, hit, clr.clearance_m, clr.in_slab)
+
+    def add_checked(
+        self, time_s: float, pos_m: np.ndarray, hit: Obstacle | None, clearance_m: float, in_slab: bool
+    ) -> Crossing | None:
+        """`update` for a sample whose pose the caller has validated and checked already (``hit``,
+        ``clearance_m`` (m) and ``in_slab`` as ``world.check`` gives them); the same bookkeeping."""
+        t = self._check_time(time_s)
+        p = np.array(pos_m, dtype=np.float64)
+        return self._add(t, p, float(self.world.gap_coords_unchecked(p)[1]), hit, clearance_m, in_slab)
+
+    def _check_time(self, time_s: float) -> float:
         t = float(time_s)
         if not math.isfinite(t):
             raise ValueError(f"time_s must be finite, got {time_s!r}")
         if self._prev is not None and t <= self._prev[0]:
             raise ValueError(f"time_s must increase: got {t} after {self._prev[0]}")
-        world = self.world
-        p = np.array(pos_m, dtype=np.float64)
-        hit, clr = world.check(p, attitude) if checked is None else checked  # validates the pose
-        if clr.in_slab and (self.min_clearance_m is None or clr.clearance_m < self.min_clearance_m):
-            self.min_clearance_m, self.min_clearance_time_s = clr.clearance_m, t
+        return t
+
+    def _add(
+        self, t: float, p: np.ndarray, n: float, hit: Obstacle | None, clearance_m: float, in_slab: bool
+    ) -> Crossing | None:
+        if in_slab and (self.min_clearance_m is None or clearance_m < self.min_clearance_m):
+            self.min_clearance_m, self.min_clearance_time_s = clearance_m, t
         if hit is not None and self.first_collision is None:
             self.first_collision = CollisionEvent(t, hit)
-        n = float((world.gap_coords(p) if checked is None else world.gap_coords_unchecked(p))[1])
         crossing = None
-        if self._prev is not None:
-            t0, p0, n0 = self._prev
+        prev = self._prev
+        if prev is not None:
+            t0, p0, n0 = prev
             if (n0 < 0) != (n < 0):
+                world = self.world
                 alpha = -n0 / (n - n0)
                 point = p0 + alpha * (p - p0)
                 u, _, v = world.gap_coords(point)
@@ -91,6 +111,11 @@ class CrossingTracker:
         self._prev = (t, p, n)
         self.samples += 1
         return crossing
+
+    @property
+    def crossing_count(self) -> int:
+        """How many crossings so far (``len(crossings)`` without building the tuple)."""
+        return len(self._crossings)
 
     @property
     def crossings(self) -> tuple[Crossing, ...]:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import binascii
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 HEADER = 0x55
@@ -93,6 +94,9 @@ def encode_frame(frame: NodeFrame) -> bytes:
     """The bytes of ``frame``, checksum included. Raises FrameError when a field is out of range."""
     if len(frame.nodes) > MAX_NODES:
         raise FrameError(f"a frame holds at most {MAX_NODES} nodes, got {len(frame.nodes)}")
+    if len(frame.nodes) == 1:
+        node = frame.nodes[0]
+        return encode_node_frame(node.data, frame.role, frame.module_id, node.role, node.node_id)
     body = bytearray()
     for node in frame.nodes:
         if len(node.data) > MAX_NODE_DATA:
@@ -107,6 +111,32 @@ def encode_frame(frame: NodeFrame) -> bytes:
     out += body
     out.append(sum8(out))
     return bytes(out)
+
+
+#: (data length, role, module id, node role, node id) -> (the bytes before a one-node frame's data, their sum)
+_ONE_NODE_HEADS: dict[tuple[int, int, int, int, int], tuple[bytes, int]] = {}
+_BYTE = tuple(bytes((b,)) for b in range(256))
+
+
+def encode_node_frame(
+    data: bytes, role: int = ROLE_TAG, module_id: int = 0, node_role: int = ROLE_ANCHOR, node_id: int = 0
+) -> bytes:
+    """The bytes of a frame holding one node with ``data`` (<= 224 bytes): what `encode_frame` makes of
+    ``NodeFrame(role, module_id, (Node(node_role, node_id, data),))``, without building the objects.
+    Raises FrameError when a field is out of range."""
+    key = (len(data), role, module_id, node_role, node_id)
+    head = _ONE_NODE_HEADS.get(key)
+    if head is None or not (role.__class__ is module_id.__class__ is node_role.__class__
+                            is node_id.__class__ is int):  # 1.0 == 1 as a key, but is no byte
+        if len(_ONE_NODE_HEADS) > 256:
+            _ONE_NODE_HEADS.clear()
+        if len(data) > MAX_NODE_DATA:
+            raise FrameError(f"node {node_id}: data is {len(data)} bytes, limit {MAX_NODE_DATA}")
+        raw = struct.pack("<BBHBB", HEADER, FUNCTION_NODE_FRAME0, FIXED_LEN + NODE_HEADER_LEN + len(data) + 1,
+                          _u8("role", role), _u8("module id", module_id)) + bytes(4) + bytes((1,)) + \
+            struct.pack("<BBH", _u8("node role", node_role), _u8("node id", node_id), len(data))
+        head = _ONE_NODE_HEADS[key] = (raw, sum(raw))
+    return b"".join((head[0], data, _BYTE[(head[1] + sum(data)) & 0xFF]))
 
 
 def _parse_frame(buf: bytes | bytearray | memoryview) -> NodeFrame:
@@ -277,22 +307,35 @@ class MocapPacket:
 
 def encode_mocap_payload(packet: MocapPacket) -> bytes:
     """The node data for ``packet`` (<= 224 bytes, <= 5 bodies). Timestamps are sent in whole us."""
-    if len(packet.bodies) > MAX_BODIES:
-        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {len(packet.bodies)}")
-    if not 0 <= packet.frame_no <= 0xFFFFFFFF:
-        raise FrameError(f"frame_no must fit in 32 bits, got {packet.frame_no}")
-    head = _PAYLOAD_HEAD.pack(PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, packet.frame_no, len(packet.bodies))
-    out = bytearray(head)
-    for b in packet.bodies:
-        values = (*b.pos_m, *b.quat_wxyz)
-        if len(values) != 7 or not all(math.isfinite(v) for v in values):
-            raise FrameError(f"body {b.body_id}: position and quaternion must be 3 + 4 finite numbers")
-        if not 0 <= b.stamp_s < 1.8e13:
-            raise FrameError(f"body {b.body_id}: stamp_s must be >= 0, got {b.stamp_s}")
-        stamp_us = round(b.stamp_s * 1e6)
-        out += _BODY.pack(_u8("body id", b.body_id), FLAG_VALID if b.valid else 0, stamp_us, *values)
-    out += struct.pack("<H", crc16_ccitt(bytes(out)))
-    return bytes(out)
+    return encode_mocap_rows(
+        packet.frame_no, [(b.body_id, b.valid, b.stamp_s, (*b.pos_m, *b.quat_wxyz)) for b in packet.bodies]
+    )
+
+
+#: the payload's fields before the CRC, by body count: one pack call per payload
+_PAYLOAD_BODIES = tuple(struct.Struct("<BBIB" + "BBQ3f4f" * n) for n in range(MAX_BODIES + 1))
+_CRC = struct.Struct("<H")
+
+
+def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
+    """`encode_mocap_payload` of rows (body id, valid, stamp_s, 7 values: pos (m) then quat (w, x, y,
+    z)), without building the packet: the same bytes and the same FrameErrors."""
+    if len(rows) > MAX_BODIES:
+        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {len(rows)}")
+    if not 0 <= frame_no <= 0xFFFFFFFF:
+        raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
+    fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, len(rows)]
+    for body_id, valid, stamp_s, values in rows:
+        # a finite sum means every value is finite (inf and NaN propagate); else look closer
+        if len(values) != 7 or not (math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)):
+            raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
+        if not 0 <= stamp_s < 1.8e13:
+            raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
+        if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
+            _u8("body id", body_id)
+        fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
+    out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
+    return out + _CRC.pack(binascii.crc_hqx(out, 0xFFFF))
 
 
 def decode_mocap_payload(data: bytes) -> MocapPacket:
@@ -319,8 +362,7 @@ def decode_mocap_payload(data: bytes) -> MocapPacket:
 
 def encode_mocap_frame(packet: MocapPacket, module_id: int = 0, node_id: int = 0) -> bytes:
     """A whole frame carrying ``packet`` as the data of one anchor node (the mocap station's radio)."""
-    node = Node(role=ROLE_ANCHOR, node_id=node_id, data=encode_mocap_payload(packet))
-    return encode_frame(NodeFrame(role=ROLE_TAG, module_id=module_id, nodes=(node,)))
+    return encode_node_frame(encode_mocap_payload(packet), ROLE_TAG, module_id, ROLE_ANCHOR, node_id)
 
 
 def mocap_frame_len(n_bodies: int) -> int:

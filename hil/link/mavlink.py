@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import binascii
 import math
+import operator
 import struct
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
@@ -209,9 +210,9 @@ class MavlinkCodec:
 
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
-        not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, unsigned links only)
-        are decoded here, others go through pymavlink one by one, all in stream order. Returns the
-        rest (from the first byte that is not such a frame on), for pymavlink."""
+        not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, `DECODE_ONLY_IDS`;
+        unsigned links only) are decoded here, others go through pymavlink one by one, all in stream
+        order. Returns the rest (from the first byte that is not such a frame on), for pymavlink."""
         accept, n, i = self._accept, len(data), 0
         fast = not self.signing
         recorder = self.recorder
@@ -229,7 +230,7 @@ class MavlinkCodec:
                 self.stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
-            elif fast and msg_id in FAST_DECODE_IDS:
+            elif fast and msg_id in _DECODED_HERE:
                 frame = bytes(data[i:end])
                 good.append(decode_frame(frame))
                 self.stats.frames_received += 1
@@ -289,6 +290,9 @@ FAST_DECODE_IDS: frozenset[int] = frozenset(
         mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
     }
 )
+#: per-tick messages decoded here but packed by pymavlink (a string field): the lockstep tick's count
+DECODE_ONLY_IDS: frozenset[int] = frozenset({mavlink2.MAVLINK_MSG_ID_NAMED_VALUE_INT})
+_DECODED_HERE = FAST_DECODE_IDS | DECODE_ONLY_IDS
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 
 
@@ -315,8 +319,21 @@ def _field_plan(cls: Any) -> tuple[tuple[int, int], ...]:
     return plan
 
 
+#: per message class: a getter of the wire-order values (None when a field is an array)
+_PAYLOAD_GETTERS: dict[type, Callable[[Any], tuple[Any, ...]] | None] = {}
+
+
 def payload_of(msg: MAVLinkMessage) -> bytes:
     """The full payload of ``msg`` (fields in wire order, arrays spread), as pymavlink packs it."""
+    cls = msg.__class__
+    try:
+        getter = _PAYLOAD_GETTERS[cls]
+    except KeyError:
+        names = msg.ordered_fieldnames
+        scalar = len(names) > 1 and all(count == 1 for count in msg.lengths)  # one name: no tuple
+        getter = _PAYLOAD_GETTERS[cls] = operator.attrgetter(*names) if scalar else None
+    if getter is not None:
+        return msg.unpacker.pack(*getter(msg))
     values: list[Any] = []
     for name, count in zip(msg.ordered_fieldnames, msg.lengths, strict=True):
         v = getattr(msg, name)
@@ -327,6 +344,24 @@ def payload_of(msg: MAVLinkMessage) -> bytes:
     return msg.unpacker.pack(*values)
 
 
+#: per message id: (getter of the declaration-order values from the unpacked tuple, positions of the
+#: array fields, positions of the char fields)
+_DECODE_PLANS: dict[int, tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]] = {}
+
+
+def _decode_plan(cls: Any) -> tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]:
+    plan = _DECODE_PLANS.get(cls.id)
+    if plan is None:
+        fields = _field_plan(cls)
+        items = [slice(tip, tip + count) if count > 1 else tip for tip, count in fields]
+        getter = operator.itemgetter(*items) if len(items) > 1 else (lambda t, i=items[0]: (t[i],))
+        zeros = cls.unpacker.unpack(bytes(cls.unpacker.size))  # strings unpack as bytes
+        arrays = tuple(k for k, (_, count) in enumerate(fields) if count > 1)
+        chars = tuple(k for k, (tip, n) in enumerate(fields) if n == 1 and isinstance(zeros[tip], bytes))
+        plan = _DECODE_PLANS[cls.id] = (getter, arrays, chars)
+    return plan
+
+
 def message_from_payload(msg_id: int, payload: bytes) -> MAVLinkMessage:
     """The pymavlink message of ``payload`` (zero-padded or cut to the message's size, as pymavlink
     does); KeyError for an unknown id."""
@@ -335,15 +370,14 @@ def message_from_payload(msg_id: int, payload: bytes) -> MAVLinkMessage:
     size = unpacker.size
     if len(payload) != size:
         payload = bytes(payload[:size]).ljust(size, b"\x00")
-    t = unpacker.unpack(payload)
-    values = []
-    for tip, count in _field_plan(cls):
-        v = t[tip]
-        if isinstance(v, bytes):
-            v = v.rstrip(b"\x00")
-        elif count > 1:
-            v = list(t[tip : tip + count])
-        values.append(v)
+    getter, arrays, chars = _decode_plan(cls)
+    values = getter(unpacker.unpack(payload))
+    if arrays or chars:
+        values = list(values)
+        for k in arrays:
+            values[k] = list(values[k])
+        for k in chars:
+            values[k] = values[k].rstrip(b"\x00")
     return cls(*values)
 
 

@@ -7,6 +7,7 @@ Sampled every 10 ms of sim time, every 1 ms while the body is within reach of th
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +54,7 @@ COLUMNS = (
 #: mocap frames written, command frames lost, mocap packets lost
 _Sample = tuple[float, VehicleState, AttitudeThrustTarget | None, str, int, int, int, int]
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
+_OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
 
 
@@ -77,14 +79,16 @@ class Recorder:
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
         self._data = np.full((cap, len(COLUMNS)), np.nan)
-        self._n = 0
+        self._n = 0  # rows recorded, the last ``len(self._rows)`` of them not yet in ``_data``
+        self._rows: list[tuple[float, ...]] = []
         self._collision: Collision | None = None
         self._max_outside_lab_m = 0.0
         self._attitude_error_deg_at_crossing: float | None = None
         self._crossings_seen = 0
         #: samples taken and not yet checked and recorded (see `sample`)
         self._pending: list[_Sample] = []
-        self._rate_hist: list[tuple[float, int, int]] = []  # (t, setpoints applied, mocap frames written)
+        #: (t, setpoints applied, mocap frames written)
+        self._rate_hist: deque[tuple[float, int, int]] = deque()
         self._gap_axes = world.gap.axes()
         self._gap_centre = np.asarray(world.gap.centre_m)
         self._lab_min = np.asarray(world.lab.min_m)
@@ -94,6 +98,7 @@ class Recorder:
         self._gap_centre_t = tuple(float(v) for v in world.gap.centre_m)
         self._gap_e1_t = tuple(float(v) for v in self._gap_axes[1])
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
+        self._full_thrust_n = profile.n3_full_thrust_n
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -147,66 +152,79 @@ class Recorder:
             for p in pending:
                 self._record(*p)
             pending.clear()
+            rows = self._rows
+            if rows:  # into the table in one assignment
+                self._data[self._n - len(rows) : self._n] = rows
+                rows.clear()
 
     def _record(self, t: float, state: VehicleState, tg: AttitudeThrustTarget | None, fc_state: str,
                 applied: int, frames: int, command_lost: int, mocap_lost: int) -> None:
         pos, quat = state.pos_m, state.quat_wxyz
-        checked = self.world.check_state(pos, quat)  # the simulated state is finite: no validation
-        hit, clr = checked
+        # the simulated state is finite: no validation
+        code, clr_m, in_slab, _ = self.world.check_state_values(pos, quat)
+        hit = _OBSTACLES[code]
         if t > 0:
-            crossing = self._tracker.update(t, pos, quat, checked)
+            tracker = self._tracker
+            crossing = tracker.add_checked(t, pos, hit, clr_m, in_slab)
             if crossing is not None and self._crossings_seen == 0:
                 self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat)
-            self._crossings_seen = len(self._tracker.crossings)
+            self._crossings_seen = tracker.crossing_count
+        px, py, pz = pos.tolist()
         if hit is not None and self._collision is None:
             speed = float(np.linalg.norm(state.vel_m_s))
             if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
-                self._collision = Collision(str(hit), t, (float(pos[0]), float(pos[1]), float(pos[2])), speed)
-        px, py, pz = pos.tolist()
+                self._collision = Collision(str(hit), t, (px, py, pz), speed)
         lo, hi = self._lab_min_t, self._lab_max_t
         outside = max(lo[0] - px, lo[1] - py, lo[2] - pz, px - hi[0], py - hi[1], pz - hi[2], 0.0)
-        self._max_outside_lab_m = max(self._max_outside_lab_m, outside)
+        if outside > self._max_outside_lab_m:
+            self._max_outside_lab_m = outside
         if self._n >= self._cap:
             return
         hist = self._rate_hist
         hist.append((t, applied, frames))
         while len(hist) > 1 and hist[0][0] < t - RATE_WINDOW_S:
-            hist.pop(0)
-        span = max(t - hist[0][0], 1e-9)
-        cmd_rate = (applied - hist[0][1]) / span if t > 0 else 0.0
-        mocap_rate = (frames - hist[0][2]) / span if t > 0 else 0.0
-        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*quat.tolist()))
+            hist.popleft()
+        h0 = hist[0]
+        span = max(t - h0[0], 1e-9)
+        cmd_rate = (applied - h0[1]) / span if t > 0 else 0.0
+        mocap_rate = (frames - h0[2]) / span if t > 0 else 0.0
+        qw, qx, qy, qz = quat.tolist()
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(qw, qx, qy, qz))
+        degrees = math.degrees
         if tg is not None:
             cmd = (
-                math.degrees(tg.roll_rad),
-                math.degrees(tg.pitch_rad),
-                math.degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan,
-                100.0 * tg.thrust_n / self.profile.n3_full_thrust_n,
+                degrees(tg.roll_rad),
+                degrees(tg.pitch_rad),
+                degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan,
+                100.0 * tg.thrust_n / self._full_thrust_n,
             )
         else:
             cmd = _NO_COMMAND
         kf = self._thrust_coeff
         wx, wy, wz = state.omega_rad_s.tolist()
-        # one assignment of the whole row (columns as in COLUMNS)
-        self._data[self._n] = (
+        vx, vy, vz = state.vel_m_s.tolist()
+        # one row (columns as in COLUMNS), written to the table by `flush`
+        self._rows.append((
             t,
             px,
             py,
             pz,
-            *state.vel_m_s.tolist(),
-            math.degrees(roll),
-            math.degrees(pitch),
-            math.degrees(yaw),
+            vx,
+            vy,
+            vz,
+            degrees(roll),
+            degrees(pitch),
+            degrees(yaw),
             *cmd,
-            clr.clearance_m if clr.in_slab else math.nan,
+            clr_m if in_slab else math.nan,
             cmd_rate,
             mocap_rate,
             command_lost,
             mocap_lost,
             FC_STATE_CODES.get(fc_state, -1),
-            sum(kf * (w * w) for w in state.rotor_speed_rad_s.tolist()),
+            sum([kf * (w * w) for w in state.rotor_speed_rad_s.tolist()]),
             math.sqrt(wx * wx + wy * wy + wz * wz),
-        )
+        ))
         self._n += 1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:
