@@ -520,3 +520,23 @@ def test_open_link_refuses_bad_roles_and_an_onboard_pty() -> None:
         open_link("memory", "ground")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="serial:/dev/pts"):
         open_link("pty", "onboard")
+
+
+@pytest.mark.parametrize("spin_s", [0.0, 0.05])
+def test_wait_readable_sees_bytes_from_another_process_and_times_out(spin_s):
+    from hil.link.transport import wait_readable
+
+    master, slave = os.openpty()
+    try:
+        assert not wait_readable([master], 0.02, spin_s)  # nothing written: False after the timeout
+        pid = os.fork()
+        if pid == 0:  # another process writes 10 ms later, while the parent spins or sleeps
+            time.sleep(0.01)
+            os.write(slave, b"tick")
+            os._exit(0)
+        assert wait_readable([master], 2.0, spin_s)
+        assert os.read(master, 16) == b"tick"
+        os.waitpid(pid, 0)
+    finally:
+        os.close(master)
+        os.close(slave)

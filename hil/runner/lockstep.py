@@ -34,6 +34,9 @@ _TIMESYNC = mav.MAVLink_timesync_message.unpacker
 _NAMED_INT = mav.MAVLink_named_value_int_message.unpacker
 MOCAP_COUNT_NAME = b"mocap_n"  # NAMED_VALUE_INT of a tick: mocap bytes written in all, mod 2^31
 MOCAP_COUNT_MASK = 0x7FFFFFFF
+#: wall time the loop polls for an answer before it sleeps: the answer usually comes within it, and a
+#: sleeping CPU of a virtual machine takes tens to hundreds of microseconds to wake
+SPIN_S = 1e-3
 RESEND_FILLER = bytes(280)  # longer than any MAVLink frame; zeros are never a frame start
 #: a tick not answered within this wall time is sent again (lost on a fresh port, or in the program's
 #: parser behind a frame with a corrupt length): a repeat is only answered, so a spurious one costs nothing
@@ -115,6 +118,7 @@ def run_lockstep(
     first = True
     wire = emu.wire
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
+    wire.spin_s = SPIN_S
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
     mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
     pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import heapq
 import math
-import select
 from collections import deque
 from dataclasses import dataclass, fields
 
 import numpy as np
 
 from hil.link.clock import SimClock
-from hil.link.transport import Transport
+from hil.link.transport import Transport, wait_readable
 from hil.runner.faults import FaultSchedule, corrupt
 from hil.scenario.schema import LinkSpec
 
@@ -176,6 +175,8 @@ class CommandWire(Transport):
         self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
         self.answers: list[int] = []  # lockstep answers (tick ns) seen by `read_onboard`
         self._backlog: deque[bytes] = deque()  # onboard frames read, not yet handed to the link
+        #: wall time `read_raw` polls before it sleeps (lockstep: the answer is expected within it)
+        self.spin_s = 0.0
         self._unanswered: list[bytes] = []  # frames taken from the backlog whose answer has not come
         self._answered_later: dict[int, list[bytes]] = {}  # tick ns -> its frames, answered out of turn
         #: hold pumped FC frames until the next `send_sync` / `flush` (lockstep: one write per tick)
@@ -232,7 +233,7 @@ class CommandWire(Transport):
         fd = self._fd
         if timeout_s > 0 and fd is not None and not self.raw.closed:
             # the bytes are not there yet when this is called: wait first, then read once
-            if not select.select([fd], [], [], timeout_s)[0]:
+            if not wait_readable([fd], timeout_s, self.spin_s):
                 return False
             timeout_s = 0.0
         data = self.raw.recv(timeout_s)

@@ -59,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="hover at the end point this long before handing back to the FC (s, default 2)")
     p.add_argument("--lockstep", action="store_true",
                    help="take time from the FC's TIMESYNC ticks and answer each one (simulated time)")
+    p.add_argument("--lockstep-spin-us", type=float, default=d.lockstep_spin_s * 1e6, metavar="US",
+                   help="with --lockstep: poll this long for the next tick before sleeping (us, default "
+                        f"{d.lockstep_spin_s * 1e6:g}; 0: sleep at once)")
     p.add_argument("--max-duration", type=float, default=None, metavar="S",
                    help="give up after S seconds of wall time (real-time mode)")
     p.add_argument("--log-json", default=None, metavar="PATH", help="also write the JSON event lines to PATH")
@@ -74,6 +77,7 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
         gap_width_m=args.gap_size[0], gap_height_m=args.gap_size[1], lab_min_m=args.lab_min,
         lab_max_m=args.lab_max, takeoff_height_m=args.takeoff_height, hover_s=args.hover_time,
         estimator=EstimatorConfig(latency_s=args.mocap_latency_ms / 1e3),
+        lockstep_spin_s=args.lockstep_spin_us * 1e-6,
     )
 
 

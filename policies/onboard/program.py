@@ -37,7 +37,7 @@ import numpy as np
 
 from hil.link.clock import WallClock
 from hil.link.mavlink import mav
-from hil.link.transport import LinkError, Transport
+from hil.link.transport import LinkError, Transport, wait_readable
 from policies.controller import AttitudeThrustCommand, ExpertController
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
@@ -111,9 +111,13 @@ class ProgramConfig:
     heartbeat_period_s: float = 1.0
     max_catch_up_steps: int = 3  # control steps run at once after a stall; later ones are skipped
     control_lead_s: float = 0.06  # state and reference taken this far ahead (the FC's attitude lag)
+    #: lockstep: wall time (s) to poll for the next tick before sleeping (it usually comes within it)
+    lockstep_spin_s: float = 1e-3
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.lockstep_spin_s) and 0.0 <= self.lockstep_spin_s <= 0.1):
+            raise ValueError(f"lockstep spin must be 0..100000 us, got {self.lockstep_spin_s * 1e6:g}")
         if not (math.isfinite(self.rate_hz) and self.rate_hz >= MIN_RATE_HZ):
             raise ValueError(f"rate_hz must be >= {MIN_RATE_HZ:g} Hz (the N3's minimum), got {self.rate_hz}")
         if not (math.isfinite(self.approach_speed_m_s) and 0 < self.approach_speed_m_s <= 6):
@@ -608,7 +612,7 @@ class OnboardProgram:
                 # it rather than reading the link again at once
                 last_tick_wall = time.monotonic()
                 if fds and not self.finished:
-                    select.select(fds, [], [], 0.05)
+                    wait_readable(fds, 0.05, self.config.lockstep_spin_s)
                 continue
             if time.monotonic() - last_tick_wall > tick_timeout_s:
                 self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"no tick for {tick_timeout_s} s")
