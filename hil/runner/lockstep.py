@@ -142,7 +142,7 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                emu.wire.send_sync(tick_frames(t, mocap_total))
+                wire.send_sync(tick_frames(t, mocap_total))
                 onboard.service()
                 emu.recorder.flush()  # the tick's checks and time-series rows, while the onboard works
                 if first:  # wait for the new process, then the loop proper starts
