@@ -582,7 +582,11 @@ class OnboardProgram:
                     # a repeat (sent again while this program started) or a tick sent again after a
                     # later one was done (the first copy lost to corrupt bytes): answer, do not act, as
                     # time never goes back
-                    self._read_tick_mocap()
+                    try:
+                        self._read_tick_mocap()
+                    except LinkError as exc:
+                        self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
+                        break
                     self.link.answer_tick(tick)
                     continue
                 self._last_tick_s = tick
