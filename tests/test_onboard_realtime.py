@@ -62,7 +62,7 @@ def test_onboard_process_flies_the_mission_over_ptys(tmp_path):
     assert runner.error is None
     events = [json.loads(line) for line in log.read_text().splitlines()]
     names = [e["event"] for e in events]
-    assert proc.returncode == 0, (proc.stderr[-2000:], names)
+    assert proc.returncode == 0, (proc.stderr[-2000:], names, events[-3:])  # the last ones say why
     assert names[:4] == ["start", "mocap_ok", "authority", "armed"]
     assert [e["segment"] for e in events if e["event"] == "segment"] == ["approach", "traverse", "recovery",
                                                                           "hover"]
