@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from emulator.mocap import FrameRows, MocapConfig, MocapFrame, MocapStats, MocapSystem
+from emulator.mocap import FrameRows, MocapConfig, MocapStats, MocapSystem
 from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
@@ -21,8 +21,6 @@ from hil.link.linktrack import (
     MAX_BODIES,
     ROLE_ANCHOR,
     ROLE_TAG,
-    BodySample,
-    MocapPacket,
     encode_mocap_rows,
     encode_node_frame,
 )
@@ -148,19 +146,3 @@ class MocapLinkServer:
             bytes_written=self._bytes_written,
             bytes_refused=self._bytes_refused,
         )
-
-
-def to_packet(frame: MocapFrame) -> MocapPacket:
-    """The wire form of a mocap frame (at most MAX_BODIES bodies; ids past that are dropped)."""
-    bodies = tuple(
-        BodySample(
-            body_id=b.body_id,
-            stamp_s=frame.stamp_s,
-            pos_m=tuple(b.pos_m.tolist()),
-            quat_wxyz=tuple(b.quat_wxyz.tolist()),
-            valid=b.valid,
-        )
-        for b in frame.bodies[:MAX_BODIES]
-    )
-    return MocapPacket(frame_no=frame.frame_no & 0xFFFFFFFF, bodies=bodies)
-
