@@ -173,7 +173,6 @@ class CommandWire(Transport):
         self.to_onboard = DirectionStats()
         self.to_fc = DirectionStats()
         self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
-        self.answers: list[int] = []  # lockstep answers (tick ns) seen by `read_onboard`
         self._backlog: deque[bytes] = deque()  # onboard frames read, not yet handed to the link
         #: wall time `read_raw` polls before it sleeps (lockstep: the answer is expected within it)
         self.spin_s = 0.0
@@ -244,16 +243,14 @@ class CommandWire(Transport):
 
     def read_onboard(self, timeout_s: float = 0.0) -> bool:
         """Read what the onboard program wrote and queue all of it for the FC, handed to the link now
-        (real time); lockstep answers are noted in ``answers``. False when nothing came in time."""
+        (real time; a lockstep answer is the harness's, not the FC's: dropped). False when nothing
+        came in time."""
         got = self.read_raw(timeout_s)
         now = self.clock.now_s()
         backlog = self._backlog
         while backlog:
             frame = backlog.popleft()
-            tick_ns = timesync_answer_ns(frame)
-            if tick_ns is not None:
-                self.answers.append(tick_ns)
-            else:
+            if timesync_answer_ns(frame) is None:
                 self._queue_for_fc(frame, now)
         return got
 
