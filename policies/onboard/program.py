@@ -464,14 +464,21 @@ class OnboardProgram:
             self.events.emit("mission_done", now_s, pos_m=est.pos_m, hover_error_m=round(err, 3))
             self._go(Phase.HANDBACK, now_s)
 
-    def _handback(self, now_s: float) -> None:
+    def _hold_request(self, now_s: float) -> bool | None:
+        """Ask the FC for HOLD (again, until it confirms or the tries run out): True once it holds,
+        False when it never confirmed, None while waiting."""
         if self._request is None:
             self._request = self._new_request(mav.MAV_CMD_DO_SET_MODE, self.link.request_hold, now_s,
                                               lambda: self._fc("holding"))
         done = self._request.update(self.link, now_s)
+        if done is not None:
+            self._request = None
+        return done
+
+    def _handback(self, now_s: float) -> None:
+        done = self._hold_request(now_s)
         if done is None:
             return
-        self._request = None
         est = self.estimator.estimate(now_s)
         self._finish(Phase.DONE, EXIT_DONE, "done", hold=bool(done), pos_m=est.pos_m,
                      in_lab=self.lab.contains(est.pos_m))
@@ -491,13 +498,9 @@ class OnboardProgram:
         self._next_control_s = now_s + self.config.period_s
 
     def _aborting(self, now_s: float) -> None:
-        if self._request is None:
-            self._request = self._new_request(mav.MAV_CMD_DO_SET_MODE, self.link.request_hold, now_s,
-                                              lambda: self._fc("holding"))
-        done = self._request.update(self.link, now_s)
+        done = self._hold_request(now_s)
         if done is None:
             return
-        self._request = None
         self._finish(Phase.ABORTED, EXIT_ABORTED, "hold" if done else "error",
                      **({} if done else {"reason": "FC did not confirm HOLD"}))
 
