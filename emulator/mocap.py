@@ -14,6 +14,7 @@ import numpy as np
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
+_BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
 
 
@@ -189,6 +190,29 @@ class MocapSystem:
         self.stats = MocapStats()
         self._period_s = config.period_s
         self._latency_s = config.camera_latency_s
+        self._normal_block: list[float] = []
+        self._normal_next = 0
+        self._exp_block: list[float] = []
+        self._exp_next = 0
+
+    def _normals(self, n: int) -> list[float]:
+        """``n`` standard normal draws, taken from blocks drawn ahead (without occlusion the noise is
+        the generator's only use besides `_exponential`: one call per block, not per frame)."""
+        k, block = self._normal_next, self._normal_block
+        if k + n > len(block):
+            block = self._normal_block = self._rng.standard_normal(max(_BLOCK, n)).tolist()
+            k = 0
+        self._normal_next = k + n
+        return block[k : k + n]
+
+    def _exponential(self, mean: float) -> float:
+        """One exponential draw of ``mean``, from a block of standard ones drawn ahead."""
+        k, block = self._exp_next, self._exp_block
+        if k >= len(block):
+            block = self._exp_block = self._rng.standard_exponential(_BLOCK).tolist()
+            k = 0
+        self._exp_next = k + 1
+        return mean * block[k]
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
@@ -218,7 +242,8 @@ class MocapSystem:
         return out
 
     def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
-        """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads);
+        """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads, or
+        a tuple of plain floats (x, y, z (m), qw, qx, qy, qz));
         return the frames ready by then, oldest first."""
         return [frame_of(r) for r in self.update_rows(now_s, truth)]
 
@@ -246,9 +271,13 @@ class MocapSystem:
         seen = []
         noise: list[float] = []
         for body_id in sorted(truth):
-            pos, quat = _pose_arrays(truth[body_id])
-            px, py, pz = pos.tolist()
-            qw, qx, qy, qz = quat.tolist()
+            obj = truth[body_id]
+            if obj.__class__ is tuple:  # plain values: (x, y, z (m), qw, qx, qy, qz)
+                px, py, pz, qw, qx, qy, qz = obj
+            else:
+                pos, quat = _pose_arrays(obj)
+                px, py, pz = pos.tolist()
+                qw, qx, qy, qz = quat.tolist()
             sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
             # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
             valid = math.isfinite(sq) and sq > 0.25 and (
@@ -265,7 +294,7 @@ class MocapSystem:
         if occlusion <= 0 and n_noise:
             n_valid = sum(1 for b in seen if b[1])
             if n_valid:
-                noise = rng.standard_normal(n_valid * n_noise).tolist()
+                noise = self._normals(n_valid * n_noise)
         rows = []
         i = 0
         for body_id, valid, px, py, pz, qw, qx, qy, qz, sq in seen:
@@ -298,6 +327,11 @@ class MocapSystem:
             else:
                 self.stats.bodies_occluded += 1
                 rows.append((body_id, False, t_s, [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
-        extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
+        if cfg.processing_s <= 0:
+            extra = 0.0
+        elif occlusion > 0:
+            extra = rng.exponential(cfg.processing_s)
+        else:
+            extra = self._exponential(cfg.processing_s)
         self.stats.frames += 1
         return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)

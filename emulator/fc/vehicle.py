@@ -52,6 +52,28 @@ class EmulatedVehicle:
             st = self._state = self.backend.state
         return st
 
+    def pose_values(self) -> tuple[float, ...]:
+        """(x, y, z (m), qw, qx, qy, qz) now as plain floats: what a tracker needs, without building
+        a state when none is built yet."""
+        st = self._state
+        if st is None:
+            fast = getattr(self.backend, "pose_values", None)
+            if fast is not None:
+                return fast()
+            st = self.state
+        return (*st.pos_m.tolist(), *st.quat_wxyz.tolist())
+
+    def state_vector(self) -> np.ndarray:
+        """The state now as one flat float64 copy (`VehicleState.to_vector` layout), cheaper than
+        ``state`` when none is built yet."""
+        st = self._state
+        if st is None:
+            fast = getattr(self.backend, "state_vector", None)
+            if fast is not None:
+                return fast()
+            st = self.state
+        return st.to_vector()
+
     @property
     def time_s(self) -> float:
         st = self._state

@@ -138,6 +138,11 @@ class NativeBackend:
         """A copy of the flat state (STATE_SIZE,), cheaper than ``state``."""
         return self._x.copy()
 
+    def pose_values(self) -> tuple[float, ...]:
+        """(x, y, z (m), qw, qx, qy, qz) now as plain floats, cheaper than ``state``."""
+        v = self._x.tolist()
+        return (v[0], v[1], v[2], v[6], v[7], v[8], v[9])
+
     def close(self) -> None:
         """Nothing to release; idempotent."""
 

@@ -155,7 +155,8 @@ class EmulatorSide:
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.gap = make_gap(scenario)
-        self._gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
+        gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
+        self._gap_pose = (*gap_pose.pos_m.tolist(), *gap_pose.quat_wxyz.tolist())
         self.world = World.for_profile(self.gap, LabVolume(scenario.lab.min_m, scenario.lab.max_m), profile)
         self.wire = CommandWire(
             command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
@@ -177,12 +178,12 @@ class EmulatorSide:
         self.mocap = MocapLinkServer(self.mocap_link, clock, mocap_rng, MocapConfig(rate_hz=m.rate_hz), uwb)
         self.recorder = Recorder(self.world, profile, duration_s)
         self.fast = FastStepper.for_vehicle(self.vehicle)
-        self._frozen_truth: VehicleState | None = None
+        self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
         #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)
         self.hold_mocap = False
         self._next_boundary_s = self.faults.next_boundary_s(-1.0)
-        self.recorder.sample(0.0, self.vehicle.state, self.vehicle.fc, self.server, self.mocap)
+        self.recorder.sample(0.0, self.vehicle.state_vector(), self.vehicle.fc, self.server, self.mocap)
 
     @property
     def time_s(self) -> float:
@@ -197,12 +198,20 @@ class EmulatorSide:
         # stop, each frame keeping its own times); with faults on the mocap link it stops at every
         # mocap event, as the faults act at the time a frame reaches the link
         exact = self.faults.has_mocap_faults
+        next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
+        next_arrival = wire.next_arrival_s
+        server, clock, fast = self.server, self.clock, self.fast
+        dt = vehicle.dt_s
         while t < t_end_s - 1e-12:
-            m_next = mocap.next_event_s() if exact else mocap.next_exposure_s()
-            t_next = min(t_end_s, m_next, wire.next_arrival_s(), rec.next_sample_s, self._next_boundary_s)
-            t_next = max(t_next, t + 1e-9)
-            self._step_physics_to(t_next)
-            self.clock.advance_to(t_next)
+            m_next = next_mocap()
+            arrival = next_arrival()
+            t_next = min(t_end_s, m_next, arrival, rec.next_sample_s, self._next_boundary_s)
+            if t_next < t + 1e-9:
+                t_next = t + 1e-9
+            n = math.floor((t_next - vehicle.time_s) / dt + 1e-6)  # physics steps up to t_next
+            if n > 0:
+                fast.step(n)
+            clock.advance_to(t_next)
             t = t_next
             if t >= self._next_boundary_s - 1e-12:
                 # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
@@ -210,25 +219,19 @@ class EmulatorSide:
                 self._switch_faults(max(t, self._next_boundary_s))
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
-                truth = self._frozen_truth if self._frozen_truth is not None else vehicle.state
+                truth = self._frozen_truth if self._frozen_truth is not None else vehicle.pose_values()
                 mocap.update(t, truth, self._gap_pose)
-            if t >= wire.next_arrival_s() - 1e-12:
-                self.server.poll(t)
+            if t >= arrival - 1e-12:
+                server.poll(t)
             if t >= rec.next_sample_s - 1e-12:
                 if not mocap_due:
                     mocap.deliver(t)
-                rec.sample(t, vehicle.state, vehicle.fc, self.server, mocap)
+                rec.sample(t, vehicle.state_vector(), vehicle.fc, server, mocap)
         mocap.deliver(t_end_s)
-        self.server.poll(t_end_s)
+        server.poll(t_end_s)
         if not self.hold_mocap:
             self.mocap_link.flush()
         wire.pump()
-
-    def _step_physics_to(self, t_s: float) -> None:
-        v = self.vehicle
-        n = math.floor((t_s - v.time_s) / v.dt_s + 1e-6)
-        if n > 0:
-            self.fast.step(n)
 
     def _switch_faults(self, t: float) -> None:
         faults = self.faults
@@ -236,7 +239,7 @@ class EmulatorSide:
         self.vehicle.backend.set_external_force(force)
         frozen = faults.any_active("mocap_frozen", t)
         if frozen and self._frozen_truth is None:
-            self._frozen_truth = self.vehicle.state
+            self._frozen_truth = self.vehicle.pose_values()
         elif not frozen:
             self._frozen_truth = None
         self._next_boundary_s = faults.next_boundary_s(t)

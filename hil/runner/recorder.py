@@ -15,7 +15,7 @@ import numpy as np
 from emulator.fc import FlightController, MavlinkServer
 from emulator.fc.n3 import AttitudeThrustTarget
 from emulator.mocap_link import MocapLinkServer
-from emulator.physics.state import VehicleState
+from emulator.physics.state import POS, QUAT
 from emulator.profile import VehicleProfile
 from emulator.world import CrossingTracker, Obstacle, World
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple
@@ -50,9 +50,9 @@ COLUMNS = (
     "thrust_n",
     "body_rate_rad_s",
 )
-#: what `Recorder.sample` keeps for `Recorder.flush`: t, state, FC target, FC state, setpoints applied,
-#: mocap frames written, command frames lost, mocap packets lost
-_Sample = tuple[float, VehicleState, AttitudeThrustTarget | None, str, int, int, int, int]
+#: what `Recorder.sample` keeps for `Recorder.flush`: t, state, offset along the gap normal (m), FC
+#: target, FC state, setpoints applied, mocap frames written, command frames lost, mocap packets lost
+_Sample = tuple[float, np.ndarray, float, AttitudeThrustTarget | None, str, int, int, int, int]
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
@@ -128,20 +128,21 @@ class Recorder:
     def sample(
         self,
         t: float,
-        state: VehicleState,
+        x: np.ndarray,
         fc: FlightController,
         server: MavlinkServer,
         mocap: MocapLinkServer,
     ) -> None:
-        """Take the sample at sim time ``t`` (s): what the row needs is copied now and ``next_sample_s``
-        set; the world checks and the row itself wait for `flush` (the lockstep loop calls it while
-        the onboard program works on a tick; results and `columns` call it first)."""
-        px, py, pz = state.pos_m.tolist()
+        """Take the sample at sim time ``t`` (s) of the state ``x`` (a flat `VehicleState.to_vector`
+        copy, kept): what the row needs is copied now and ``next_sample_s`` set; the world checks and
+        the row itself wait for `flush` (the lockstep loop calls it while the onboard program works on
+        a tick; results and `columns` call it first)."""
+        px, py, pz = x[POS].tolist()
         c, e1 = self._gap_centre_t, self._gap_e1_t
         n_wall = (px - c[0]) * e1[0] + (py - c[1]) * e1[1] + (pz - c[2]) * e1[2]
         self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
         to_fc = server.codec.transport.to_fc
-        self._pending.append((t, state, fc.target, fc.state.value, server.stats.setpoints_applied,
+        self._pending.append((t, x, n_wall, fc.target, fc.state.value, server.stats.setpoints_applied,
                               mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
                               mocap.radio.stats.lost))
 
@@ -157,21 +158,21 @@ class Recorder:
                 self._data[self._n - len(rows) : self._n] = rows
                 rows.clear()
 
-    def _record(self, t: float, state: VehicleState, tg: AttitudeThrustTarget | None, fc_state: str,
-                applied: int, frames: int, command_lost: int, mocap_lost: int) -> None:
-        pos, quat = state.pos_m, state.quat_wxyz
+    def _record(self, t: float, x: np.ndarray, n_wall: float, tg: AttitudeThrustTarget | None,
+                fc_state: str, applied: int, frames: int, command_lost: int, mocap_lost: int) -> None:
+        pos, quat = x[POS], x[QUAT]
         # the simulated state is finite: no validation
         code, clr_m, in_slab, _ = self.world.check_state_values(pos, quat)
         hit = _OBSTACLES[code]
         if t > 0:
             tracker = self._tracker
-            crossing = tracker.add_checked(t, pos, hit, clr_m, in_slab)
+            crossing = tracker.add_checked(t, pos, hit, clr_m, in_slab, n_wall)
             if crossing is not None and self._crossings_seen == 0:
                 self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat)
             self._crossings_seen = tracker.crossing_count
-        px, py, pz = pos.tolist()
+        (px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, *rotors) = x.tolist()
         if hit is not None and self._collision is None:
-            speed = float(np.linalg.norm(state.vel_m_s))
+            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
             if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
                 self._collision = Collision(str(hit), t, (px, py, pz), speed)
         lo, hi = self._lab_min_t, self._lab_max_t
@@ -188,7 +189,6 @@ class Recorder:
         span = max(t - h0[0], 1e-9)
         cmd_rate = (applied - h0[1]) / span if t > 0 else 0.0
         mocap_rate = (frames - h0[2]) / span if t > 0 else 0.0
-        qw, qx, qy, qz = quat.tolist()
         roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(qw, qx, qy, qz))
         degrees = math.degrees
         if tg is not None:
@@ -201,8 +201,6 @@ class Recorder:
         else:
             cmd = _NO_COMMAND
         kf = self._thrust_coeff
-        wx, wy, wz = state.omega_rad_s.tolist()
-        vx, vy, vz = state.vel_m_s.tolist()
         # one row (columns as in COLUMNS), written to the table by `flush`
         self._rows.append((
             t,
@@ -222,7 +220,7 @@ class Recorder:
             command_lost,
             mocap_lost,
             FC_STATE_CODES.get(fc_state, -1),
-            sum([kf * (w * w) for w in state.rotor_speed_rad_s.tolist()]),
+            sum([kf * (w * w) for w in rotors]),
             math.sqrt(wx * wx + wy * wy + wz * wz),
         ))
         self._n += 1
