@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, N3Setpoint, SetpointRejected
@@ -90,6 +91,9 @@ class MavlinkServer:
         self._next_due: dict[int, float] = {}
         self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
         self._events_seen = 0
+        self._timed_transport: object | None = None  # what `_input_due` last looked up
+        self._arrival: Callable[[], float] | None = None
+        self._arrival_clock: Any = None
         self._last_text_s: dict[str, float] = {}
         #: called with (message, now_s) after a setpoint is applied (for latency measurements)
         self.on_setpoint: Callable[[MAVLinkMessage, float], None] | None = None
@@ -138,11 +142,15 @@ class MavlinkServer:
     def _input_due(self) -> bool:
         """False only when the transport says nothing can be read now (see `poll`)."""
         transport = self.codec.transport
-        next_arrival = getattr(transport, "next_arrival_s", None)
-        clock = getattr(transport, "clock", None)
-        if next_arrival is None or clock is None or transport.closed:
+        if transport is not self._timed_transport:  # (looked up once per transport)
+            self._timed_transport = transport
+            clock = getattr(transport, "clock", None)
+            self._arrival = getattr(transport, "next_arrival_s", None) if clock is not None else None
+            self._arrival_clock = clock
+        next_arrival = self._arrival
+        if next_arrival is None or transport.closed:
             return True
-        return next_arrival() <= clock.now_s() + 1e-12
+        return next_arrival() <= self._arrival_clock.now_s() + 1e-12
 
     def handle(self, msg: MAVLinkMessage, now_s: float) -> None:
         """Act on one received message (never raises)."""

@@ -69,7 +69,7 @@ class TelemetryEncoder:
 
     def track_battery(self, now_s: float) -> None:
         """Count armed time for the battery model."""
-        if self._last_t is not None and self.vehicle.fc.state.armed:
+        if self._last_t is not None and self.vehicle.fc.state is not FcState.DISARMED:
             self.armed_time_s += max(0.0, now_s - self._last_t)
         self._last_t = now_s
 

@@ -126,7 +126,8 @@ def run_lockstep(
         t = k * tick_s
         # the outputs of a pending tick act from its time + compute on: read them before running past it
         while pending and pending[0] + compute < t - 1e-12:
-            emu.advance_to(pending[0] + compute)
+            if pending[0] + compute > emu.time_s + 1e-12:  # (with one tick of compute: there already)
+                emu.advance_to(pending[0] + compute)
             tick = pending.popleft()
             _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
         emu.advance_to(t)

@@ -230,12 +230,17 @@ class CommandWire(Transport):
         """Read what the onboard program wrote into the backlog of frames not yet handed to the link;
         False when nothing came within ``timeout_s`` (wall s)."""
         fd = self._fd
+        data = b""
         if timeout_s > 0 and fd is not None and not self.raw.closed:
-            # the bytes are not there yet when this is called: wait first, then read once
-            if not wait_readable([fd], timeout_s, self.spin_s):
-                return False
-            timeout_s = 0.0
-        data = self.raw.recv(timeout_s)
+            # one read first (the bytes are often there already: no poll for them), else wait for
+            # them and read once
+            data = self.raw.recv(0.0)
+            if not data:
+                if not wait_readable([fd], timeout_s, self.spin_s):
+                    return False
+                timeout_s = 0.0
+        if not data:
+            data = self.raw.recv(timeout_s)
         if not data:
             return False
         self._backlog.extend(self.splitter.feed(data))
