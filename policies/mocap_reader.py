@@ -25,11 +25,13 @@ from hil.link.endpoint import open_link
 from hil.link.linktrack import (
     BODY_IDS,
     BODY_NAMES,
+    BODY_VALUES,
     FIXED_LEN,
+    FLAG_VALID,
     NODE_HEADER_LEN,
     FrameDecoder,
     FrameError,
-    decode_mocap_payload,
+    unpack_mocap_payload,
 )
 from hil.link.transport import LinkError, Transport
 
@@ -39,6 +41,10 @@ READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
 LOCKSTEP_COUNT_MASK = 0x7FFFFFFF  # the lockstep harness counts the mocap bytes it wrote mod 2^31
+_Vec3 = tuple[float, float, float]
+_Quat = tuple[float, float, float, float]
+#: a valid pose not yet made a PoseSample: position, unit quaternion, stamp_s, received_s, frame_no
+_Pose = tuple[_Vec3, _Quat, float, float, int]
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,9 @@ class MocapReader:
 
     ``stale_after_s``: a body whose latest valid pose arrived longer ago than this is stale.
     ``on_sample``: called with every valid PoseSample as it is parsed (for logs, estimators).
+    ``on_pose``: called with the numbers of every valid pose as it is parsed (then, with ``on_sample``
+    unset, a PoseSample is made only when `latest` asks for it): body id, mocap time ``stamp_s``,
+    position (m), unit quaternion (w, x, y, z) and arrival time (s), as the PoseSample would hold them.
     """
 
     def __init__(
@@ -93,6 +102,7 @@ class MocapReader:
         clock: Clock | None = None,
         stale_after_s: float = DEFAULT_STALE_AFTER_S,
         on_sample: Callable[[PoseSample], None] | None = None,
+        on_pose: Callable[[int, float, _Vec3, _Quat, float], None] | None = None,
     ) -> None:
         if not (math.isfinite(stale_after_s) and stale_after_s > 0):
             raise ValueError(f"stale_after_s must be > 0, got {stale_after_s}")
@@ -100,12 +110,14 @@ class MocapReader:
         self.clock: Clock = clock if clock is not None else WallClock()
         self.stale_after_s = stale_after_s
         self.on_sample = on_sample
+        self.on_pose = on_pose
         self._decoder = FrameDecoder()
         self._bad_payload = 0
         self._bytes_bad_payload = 0
         self._bodies_invalid = 0
         self._frames_ok = 0
-        self._latest: dict[int, PoseSample] = {}
+        #: body id -> its latest valid pose: a PoseSample, or the `_Pose` to make it from when asked for
+        self._latest: dict[int, PoseSample | _Pose] = {}
         self.lockstep_short_reads = 0  # `poll_to` calls that got fewer bytes than announced
         self._lockstep_read = 0  # bytes read by `poll_to` (mod 2^31)
 
@@ -150,46 +162,59 @@ class MocapReader:
         """Decode bytes read from the link; returns the mocap frames accepted."""
         accepted = 0
         now = self.clock.now_s()
-        for frame in self._decoder.feed(data):
-            taken = sum(self._take(node.data, now) for node in frame.nodes)
+        for nodes in self._decoder.feed_node_data(data):
+            taken = 0
+            for node_data in nodes:
+                taken += self._take(node_data, now)
             if not taken:
-                self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(n.data)
-                                                               for n in frame.nodes)
+                self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(d) for d in nodes)
             accepted += taken
         return accepted
 
     def _take(self, payload: bytes, now_s: float) -> int:
         try:
-            packet = decode_mocap_payload(payload)
+            values = unpack_mocap_payload(payload)
         except FrameError:
             self._bad_payload += 1
             return 0
         self._frames_ok += 1
-        latest, on_sample, frame_no = self._latest, self.on_sample, packet.frame_no
-        for body in packet.bodies:
-            qw, qx, qy, qz = body.quat_wxyz
+        latest, on_sample, on_pose, frame_no = self._latest, self.on_sample, self.on_pose, values[2]
+        for k in range(4, len(values), BODY_VALUES):
+            body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
             norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            if not body.valid or not 0.5 < norm < 1.5:
+            if not flags & FLAG_VALID or not 0.5 < norm < 1.5:
                 self._bodies_invalid += 1
                 continue
-            body_id = body.body_id
-            sample = _new_sample(_body_name(body_id), body_id, np.array(body.pos_m),
-                                 np.array((qw / norm, qx / norm, qy / norm, qz / norm)), body.stamp_s, now_s,
-                                 frame_no)
-            latest[body_id] = sample
-            if on_sample is not None:
+            pos, quat, stamp_s = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm), stamp_us * 1e-6
+            if on_sample is None:
+                latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)
+            else:
+                sample = _new_sample(_body_name(body_id), body_id, np.array(pos), np.array(quat), stamp_s,
+                                     now_s, frame_no)
+                latest[body_id] = sample
                 on_sample(sample)
+            if on_pose is not None:
+                on_pose(body_id, stamp_s, pos, quat, now_s)
         return 1
 
     # --- what pilots ask -----------------------------------------------------------------------
     def latest(self, body: str | int = "vehicle") -> PoseSample | None:
         """The latest valid pose of ``body`` ("vehicle", "gap" or a body id), None if none yet."""
-        return self._latest.get(_body_id(body))
+        body_id = _body_id(body)
+        sample = self._latest.get(body_id)
+        if isinstance(sample, tuple):  # a pose kept as numbers: made a PoseSample now, once
+            pos, quat, stamp_s, received_s, frame_no = sample
+            sample = self._latest[body_id] = _new_sample(_body_name(body_id), body_id, np.array(pos),
+                                                         np.array(quat), stamp_s, received_s, frame_no)
+        return sample
 
     def age_s(self, body: str | int = "vehicle") -> float:
         """Seconds since ``body``'s latest valid pose arrived (inf if none yet)."""
         sample = self._latest.get(_body_id(body))
-        return math.inf if sample is None else self.clock.now_s() - sample.received_s
+        if sample is None:
+            return math.inf
+        received_s = sample[3] if isinstance(sample, tuple) else sample.received_s
+        return self.clock.now_s() - received_s
 
     def is_stale(self, body: str | int = "vehicle") -> bool:
         """True when ``body`` has no valid pose younger than ``stale_after_s``."""

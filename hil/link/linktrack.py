@@ -21,8 +21,10 @@ from __future__ import annotations
 import binascii
 import math
 import struct
-from collections.abc import Sequence
+import zlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 HEADER = 0x55
 FUNCTION_NODE_FRAME0 = 0x02
@@ -50,13 +52,21 @@ BODY_IDS: dict[str, int] = {"vehicle": 1, "gap": 2}
 BODY_NAMES: dict[int, str] = {v: k for k, v in BODY_IDS.items()}
 
 
+_Parsed = TypeVar("_Parsed")
+
+
 class FrameError(ValueError):
     """A frame or payload cannot be encoded or decoded (out of range, malformed, bad CRC)."""
 
 
 # --- checksums -----------------------------------------------------------------------------------
 def sum8(data: bytes) -> int:
-    """The frame checksum: 8-bit sum of ``data``."""
+    """The frame checksum: 8-bit sum of ``data``.
+
+    Up to 256 bytes the sum is below Adler-32's modulus (65521), so the C Adler-32's low half is 1 +
+    the plain sum."""
+    if len(data) <= 256:
+        return ((zlib.adler32(data) & 0xFFFF) - 1) & 0xFF
     return sum(data) & 0xFF
 
 
@@ -139,6 +149,21 @@ def encode_node_frame(
     return b"".join((head[0], data, _BYTE[(head[1] + sum(data)) & 0xFF]))
 
 
+def _node_data(buf: bytes | bytearray | memoryview) -> tuple[bytes, ...]:
+    """The data of each node of a complete, checksum-verified frame (`_parse_frame` without the
+    objects)."""
+    n_nodes = buf[10]
+    if n_nodes == 1:  # header at 11 (role, id, data length at 13), data from 15
+        return (bytes(buf[15 : 15 + (buf[13] | buf[14] << 8)]),)
+    pos, out = FIXED_LEN, []
+    for _ in range(n_nodes):
+        dlen = buf[pos + 2] | buf[pos + 3] << 8
+        pos += NODE_HEADER_LEN
+        out.append(bytes(buf[pos:pos + dlen]))
+        pos += dlen
+    return tuple(out)
+
+
 def _parse_frame(buf: bytes | bytearray | memoryview) -> NodeFrame:
     """Split a complete, checksum-verified frame into nodes (structure already checked)."""
     n_nodes = buf[10]
@@ -196,14 +221,26 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[NodeFrame]:
         """Add ``data``; return the frames completed by it, in order."""
-        self.stats.bytes_in += len(data)
-        self._buf += data
-        out: list[NodeFrame] = []
+        return self._decode(data, _parse_frame)
+
+    def feed_node_data(self, data: bytes) -> list[tuple[bytes, ...]]:
+        """`feed`, giving only the data of each node (in order) of each frame completed, without
+        building the frame objects; the same counters."""
+        return self._decode(data, _node_data)
+
+    def _decode(self, data: bytes, parse: Callable[[memoryview], _Parsed]) -> list[_Parsed]:
+        """Add ``data``; return ``parse`` of each frame completed by it (a view of its bytes), in order."""
+        stats = self.stats
+        stats.bytes_in += len(data)
         buf = self._buf
+        buf += data
+        out: list[_Parsed] = []
+        n = len(buf)
         start = 0
         while True:
-            start = self._find_header(buf, start)
-            avail = len(buf) - start
+            if not (start + 1 < n and buf[start] == HEADER and buf[start + 1] == FUNCTION_NODE_FRAME0):
+                start = self._find_header(buf, start)  # (a frame starting right here skips nothing)
+            avail = n - start
             if avail < FIXED_LEN:
                 break
             verdict = self._check(buf, start, avail)
@@ -211,16 +248,16 @@ class FrameDecoder:
                 break
             if verdict == "ok":
                 length = buf[start + 2] | (buf[start + 3] << 8)
-                out.append(_parse_frame(memoryview(buf)[start:start + length]))
-                self.stats.frames_ok += 1
-                self.stats.bytes_ok += length
+                out.append(parse(memoryview(buf)[start:start + length]))
+                stats.frames_ok += 1
+                stats.bytes_ok += length
                 self._hunting = False
                 start += length
                 continue
             if verdict == "checksum":
-                self.stats.bad_checksum += 1
+                stats.bad_checksum += 1
             else:
-                self.stats.bad_structure += 1
+                stats.bad_structure += 1
             self._skip(1)
             start += 1
         del buf[:start]
@@ -338,26 +375,43 @@ def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequ
     return out + _CRC.pack(binascii.crc_hqx(out, 0xFFFF))
 
 
-def decode_mocap_payload(data: bytes) -> MocapPacket:
-    """Parse node data written by ``encode_mocap_payload``; raises FrameError if it is not one."""
-    if len(data) < _PAYLOAD_HEAD.size + 2:
-        raise FrameError(f"mocap payload too short ({len(data)} bytes)")
+#: values `unpack_mocap_payload` gives per body: id, flags, stamp (us), position (3), quaternion (4)
+BODY_VALUES = 10
+
+
+def unpack_mocap_payload(data: bytes) -> tuple[Any, ...]:
+    """The fields of node data written by ``encode_mocap_payload``, flat: type, version, frame_no,
+    body count, then `BODY_VALUES` per body (body_id, flags, stamp_us, x, y, z, qw, qx, qy, qz), for
+    readers that need numbers only. Raises FrameError as `decode_mocap_payload` does."""
+    size = len(data)
+    if size < _PAYLOAD_HEAD.size + 2:
+        raise FrameError(f"mocap payload too short ({size} bytes)")
     kind, version, frame_no, count = _PAYLOAD_HEAD.unpack_from(data, 0)
     if kind != PAYLOAD_TYPE_MOCAP:
         raise FrameError(f"not a mocap payload (type 0x{kind:02X})")
     if version != PAYLOAD_VERSION:
         raise FrameError(f"mocap payload version {version} not supported (want {PAYLOAD_VERSION})")
-    if len(data) != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
-        raise FrameError(f"mocap payload of {len(data)} bytes does not hold {count} bodies")
-    (crc,) = struct.unpack_from("<H", data, len(data) - 2)
-    if crc16_ccitt(data[:-2]) != crc:
+    if size != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
+        raise FrameError(f"mocap payload of {size} bytes does not hold {count} bodies")
+    if binascii.crc_hqx(memoryview(data)[:-2], 0xFFFF) != data[-2] | data[-1] << 8:
         raise FrameError("mocap payload CRC mismatch")
-    bodies = []
+    if count <= MAX_BODIES:
+        return _PAYLOAD_BODIES[count].unpack_from(data)
+    values = [kind, version, frame_no, count]
     for k in range(count):
-        body_id, flags, stamp_us, *vals = _BODY.unpack_from(data, _PAYLOAD_HEAD.size + k * BODY_LEN)
+        values += _BODY.unpack_from(data, _PAYLOAD_HEAD.size + k * BODY_LEN)
+    return tuple(values)
+
+
+def decode_mocap_payload(data: bytes) -> MocapPacket:
+    """Parse node data written by ``encode_mocap_payload``; raises FrameError if it is not one."""
+    values = unpack_mocap_payload(data)
+    bodies = []
+    for k in range(4, len(values), BODY_VALUES):
+        body_id, flags, stamp_us, *vals = values[k:k + BODY_VALUES]
         bodies.append(BodySample(body_id=body_id, stamp_s=stamp_us * 1e-6, pos_m=tuple(vals[:3]),
                                  quat_wxyz=tuple(vals[3:]), valid=bool(flags & FLAG_VALID)))
-    return MocapPacket(frame_no=frame_no, bodies=tuple(bodies))
+    return MocapPacket(frame_no=values[2], bodies=tuple(bodies))
 
 
 def encode_mocap_frame(packet: MocapPacket, module_id: int = 0, node_id: int = 0) -> bytes:

@@ -94,9 +94,14 @@ class MavlinkCodec:
         signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
         recorder: FrameRecorder | None = None,
         accept_ids: Collection[int] | None = None,
+        raw_ids: Collection[int] = (),
     ) -> None:
         """``accept_ids``: the message ids the caller uses; other well-formed frames are CRC-checked
-        and dropped without being decoded (counted in ``stats.frames_ignored``). None decodes all."""
+        and dropped without being decoded (counted in ``stats.frames_ignored``). None decodes all.
+        ``raw_ids``: ids the caller decodes itself: a good frame of one of them that the unsigned fast
+        path takes is handed back as the frame's bytes (counted and recorded as a decoded one), not as
+        a message; `decode_frame` of those bytes is the message it stands for. Frames pymavlink's
+        parser takes (after bad bytes, split frames) still come as messages."""
         if not (0 <= system_id <= 255 and 0 <= component_id <= 255):
             raise ValueError(f"MAVLink ids must be 0..255, got system {system_id}, component {component_id}")
         self.transport = transport
@@ -109,6 +114,7 @@ class MavlinkCodec:
         self._signed_only = frozenset(signed_only)
         self._signing_epoch_unix_s = signing_epoch_unix_s
         self._accept = None if accept_ids is None else frozenset(accept_ids)
+        self._raw = frozenset(raw_ids)
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
@@ -171,14 +177,16 @@ class MavlinkCodec:
             self.recorder.record(frame, self.clock.now_s())
         return frame
 
-    def receive(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
-        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes); good messages only."""
+    def receive(self, timeout_s: float = 0.0) -> list[Any]:
+        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes); good messages only
+        (frames as bytes for ``raw_ids``, see `__init__`)."""
         data = self.transport.recv(timeout_s)
         return self.feed(data) if data else []
 
-    def feed(self, data: bytes) -> list[MAVLinkMessage]:
-        """Parse ``data`` as if it had arrived on the transport."""
-        good: list[MAVLinkMessage] = []
+    def feed(self, data: bytes) -> list[Any]:
+        """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
+        as bytes for ``raw_ids``, see `__init__`)."""
+        good: list[Any] = []
         if len(self._mav.buf) == self._mav.buf_index and (self._accept is not None or not self.signing):
             data = self._take_leading(data, good)
             if not data:
@@ -213,26 +221,32 @@ class MavlinkCodec:
         not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, `DECODE_ONLY_IDS`;
         unsigned links only) are decoded here, others go through pymavlink one by one, all in stream
         order. Returns the rest (from the first byte that is not such a frame on), for pymavlink."""
-        accept, n, i = self._accept, len(data), 0
+        accept, raw, n, i = self._accept, self._raw, len(data), 0
         fast = not self.signing
         recorder = self.recorder
+        extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
+        mirrored = b""  # ``data`` bit-reversed byte by byte (see `crc_x25`), made for the first frame
         while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
             end = i + 12 + data[i + 1]
             if end > n:
                 break
             msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
-            frame_cls = mavlink2.mavlink_map.get(msg_id)
-            if frame_cls is None:
-                break
-            if crc_x25(data[i + 1 : end - 2], frame_cls.crc_extra) != data[end - 2] | data[end - 1] << 8:
+            extra = extras.get(msg_id)
+            if extra is None:
+                break  # an unknown id: pymavlink counts it
+            if not mirrored:
+                mirrored = _mirrored(data)
+            # `crc_x25` of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
+            if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
+                    mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
             if accept is not None and msg_id not in accept:
                 self.stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
-            elif fast and msg_id in _DECODED_HERE:
+            elif fast and (msg_id in raw or msg_id in _DECODED_HERE):
                 frame = bytes(data[i:end])
-                good.append(decode_frame(frame))
+                good.append(frame if msg_id in raw else decode_frame(frame))
                 self.stats.frames_received += 1
                 if recorder is not None:
                     recorder.record(frame, self.clock.now_s())
@@ -264,6 +278,19 @@ class MavlinkCodec:
 
 
 _BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
+#: byte value -> the one byte of its bits reversed
+_MIRRORED_BYTE = tuple(bytes((r,)) for r in _BIT_REVERSED)
+#: message id -> its CRC_EXTRA byte bit-reversed (the ids pymavlink knows)
+_CRC_EXTRA_MIRRORED: dict[int, bytes] = {
+    msg_id: _MIRRORED_BYTE[cls.crc_extra] for msg_id, cls in mavlink2.mavlink_map.items()
+}
+
+
+def _mirrored(data: Any) -> bytes:
+    """``data`` with the bits of every byte reversed."""
+    if data.__class__ is not bytes and data.__class__ is not bytearray:
+        data = bytes(data)
+    return data.translate(_BIT_REVERSED)
 
 
 def crc_x25(data: bytes, extra: int | None = None) -> int:
@@ -272,9 +299,9 @@ def crc_x25(data: bytes, extra: int | None = None) -> int:
     Computed by the C CRC-CCITT of `binascii` on the bit-reversed bytes: the reflected CRC is the
     plain one of the mirrored input, mirrored back (init 0xFFFF is its own mirror image)."""
     rev = _BIT_REVERSED
+    crc = binascii.crc_hqx(_mirrored(data), 0xFFFF)
     if extra is not None:
-        data = bytes(data) + bytes((extra,))
-    crc = binascii.crc_hqx(bytes(data).translate(rev), 0xFFFF)
+        crc = binascii.crc_hqx(_MIRRORED_BYTE[extra], crc)
     return rev[crc & 0xFF] << 8 | rev[crc >> 8]
 
 
@@ -302,8 +329,11 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     body = payload.rstrip(b"\x00") or payload[:1]
     head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
                            msg_id & 0xFFFF, msg_id >> 16)
-    crc = crc_x25(head[1:] + body, mavlink2.mavlink_map[msg_id].crc_extra)
-    return head + body + bytes((crc & 0xFF, crc >> 8))
+    # `crc_x25` of header and payload, then CRC_EXTRA, on mirrored bytes; sent low byte first, mirrored back
+    rev = _BIT_REVERSED
+    crc = binascii.crc_hqx((head[1:] + body).translate(rev), 0xFFFF)
+    crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
+    return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
 _FIELD_PLANS: dict[int, tuple[tuple[int, int], ...]] = {}

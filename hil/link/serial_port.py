@@ -43,6 +43,9 @@ class SerialTransport(Transport):
             raise LinkError(f"cannot open serial device {device!r} at {baud} baud: {e}") from e
         self._fd = self._port.fileno()
         os.set_blocking(self._fd, False)
+        #: asks whether the device hung up, after an empty read (made once: a read per tick finds nothing)
+        self._poller = select.poll()
+        self._poller.register(self._fd, select.POLLIN | select.POLLHUP | select.POLLERR)
 
     def fileno(self) -> int:
         if self._closed:
@@ -64,9 +67,7 @@ class SerialTransport(Transport):
         return data  # b"": nothing waiting (pyserial sets VMIN=0, so 0 bytes alone is not end of file)
 
     def _hung_up(self) -> bool:
-        poller = select.poll()
-        poller.register(self._fd, select.POLLIN | select.POLLHUP | select.POLLERR)
-        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in poller.poll(0))
+        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in self._poller.poll(0))
 
     def _close_internal(self) -> None:
         with contextlib.suppress(serial.SerialException, OSError):

@@ -60,6 +60,13 @@ class Transport(ABC):
         """
         if self._closed:
             raise LinkError(f"{self.endpoint or type(self).__name__}: recv on a closed link")
+        if timeout_s is not None and timeout_s <= 0.0:  # one read, no deadline to keep
+            data = self._recv_internal(max_bytes)
+            if not data:
+                return b""
+            self.stats.recv_calls += 1
+            self.stats.bytes_received += len(data)
+            return data
         deadline = None if timeout_s is None else time.monotonic() + max(0.0, timeout_s)
         while True:
             data = self._recv_internal(max_bytes)

@@ -19,6 +19,7 @@ from hil.link.mavlink import (
     PX4_MAIN_OFFBOARD,
     MavlinkCodec,
     MAVLinkMessage,
+    decode_frame,
     mav,
     px4_mode_parts,
     quat_enu_flu_to_ned_frd_tuple,
@@ -36,12 +37,17 @@ USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMA
 #: NAMED_VALUE_INT a lockstep harness sends before a tick: the mocap bytes it has written in all (mod
 #: 2^31), which the program reads before acting on the tick
 MOCAP_COUNT_NAME = "mocap_n"
+#: the lockstep's own per-tick messages, which the codec hands over as frames and this client decodes
+#: straight from the payload (`CommandLink._handle_frame`): no pymavlink objects for them
+RAW_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_NAMED_VALUE_INT})
 READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
 #: payload layouts (wire order) of the per-tick messages, framed by `MavlinkCodec.pack_payload`
 _ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker
 _TIMESYNC = mav.MAVLink_timesync_message.unpacker
+_NAMED_VALUE_INT = mav.MAVLink_named_value_int_message.unpacker
+_MOCAP_COUNT_RAW = MOCAP_COUNT_NAME.encode("ascii")
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
@@ -86,7 +92,7 @@ class CommandLink:
 
     def __init__(self, transport: Transport, clock: Clock, target_system: int = 1) -> None:
         self.codec = MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID,
-                                  accept_ids=USED_MSG_IDS)
+                                  accept_ids=USED_MSG_IDS, raw_ids=RAW_MSG_IDS)
         self.clock = clock
         self.target_system = target_system
         self.status: FcStatus | None = None
@@ -100,8 +106,9 @@ class CommandLink:
         self.lockstep = False
         self._open_ticks = 0
         self._held: list[bytes] = []
-        #: lockstep: messages parsed but not yet acted on (those after a tick wait for it to be done)
-        self._backlog: deque[MAVLinkMessage] = deque()
+        #: lockstep: messages (or frames of `RAW_MSG_IDS`) parsed but not yet acted on (those after a
+        #: tick wait for it to be done)
+        self._backlog: deque[MAVLinkMessage | bytes] = deque()
         #: lockstep: the mocap bytes the harness has written in all, as of the last tick handled (mod
         #: 2^31; None: it never said)
         self.mocap_announced: int | None = None
@@ -112,7 +119,17 @@ class CommandLink:
 
     # --- input --------------------------------------------------------------------------------
     def poll(self, timeout_s: float = 0.0) -> list[MAVLinkMessage]:
-        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes) and return it."""
+        """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes), act on it and return
+        the messages acted on."""
+        return [decode_frame(m) if m.__class__ is bytes else m for m in self._poll(timeout_s)]
+
+    def read(self, timeout_s: float = 0.0) -> int:
+        """`poll` without handing the messages back (the per-tick path: the lockstep's own messages are
+        never built as pymavlink objects); returns how many were acted on."""
+        return len(self._poll(timeout_s))
+
+    def _poll(self, timeout_s: float) -> list[MAVLinkMessage | bytes]:
+        """`poll`, with the frames of `RAW_MSG_IDS` the codec passed undecoded left as bytes."""
         self.flush()
         transport, codec = self.codec.transport, self.codec
         data = transport.recv(timeout_s, READ_BYTES)
@@ -125,19 +142,44 @@ class CommandLink:
                 msgs.extend(codec.feed(data))
         if not self.lockstep:
             for m in msgs:
-                self._handle(m)
+                if m.__class__ is bytes:
+                    self._handle_frame(m)
+                else:
+                    self._handle(m)
             return msgs
         # lockstep: act on the messages up to the next tick only; what came after it (the FC's next
         # tick, already written when the harness keeps two ticks in flight) waits for that tick
         backlog = self._backlog
         backlog.extend(msgs)
         handled = []
-        ticks = len(self._ticks)
-        while backlog and len(self._ticks) == ticks:
+        tick_list = self._ticks
+        ticks = len(tick_list)
+        while backlog and len(tick_list) == ticks:
             m = backlog.popleft()
-            self._handle(m)
+            if m.__class__ is bytes:
+                self._handle_frame(m)
+            else:
+                self._handle(m)
             handled.append(m)
         return handled
+
+    def _handle_frame(self, frame: bytes) -> None:
+        """`_handle` of the message in ``frame`` (a good frame of one of `RAW_MSG_IDS`), read with
+        struct from its payload as pymavlink would decode it (zero-padded or cut to the full size)."""
+        payload = frame[10:-2]
+        if frame[7] == mav.MAVLINK_MSG_ID_TIMESYNC:  # both ids < 256: the id's upper bytes are 0
+            if len(payload) != _TIMESYNC.size:
+                payload = payload[: _TIMESYNC.size].ljust(_TIMESYNC.size, b"\x00")
+            tc1, ts1 = _TIMESYNC.unpack(payload)
+            if tc1 == 0:  # a request: in lockstep, the FC's tick (ts1 = simulated time, ns)
+                self._ticks.append(ts1 * 1e-9)
+        else:  # NAMED_VALUE_INT
+            if len(payload) != _NAMED_VALUE_INT.size:
+                payload = payload[: _NAMED_VALUE_INT.size].ljust(_NAMED_VALUE_INT.size, b"\x00")
+            _, value, name = _NAMED_VALUE_INT.unpack(payload)
+            # pymavlink's ``name``: the bytes up to the first NUL, as ASCII (other bytes never match)
+            if value >= 0 and name.split(b"\x00", 1)[0] == _MOCAP_COUNT_RAW:
+                self.mocap_announced = int(value)
 
     def _handle(self, m: MAVLinkMessage) -> None:
         kind = m.get_type()
