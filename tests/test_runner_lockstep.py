@@ -3,8 +3,10 @@ stepping, the lockstep wire's framing, and fault effects a user relies on."""
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +20,7 @@ from hil.link.mavlink import mav
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.wires import FrameSplitter, timesync_answer_ns
-from hil.scenario import loads_scenarios
+from hil.scenario import load_scenarios, loads_scenarios
 
 SHORT = """
 description: a level gap, cut short after the takeoff (determinism only)
@@ -221,3 +223,18 @@ def test_ticks_lost_to_corrupt_bytes_are_sent_again_and_the_run_stays_determinis
         assert r.summary["ticks_answered"] == r.summary["ticks"]  # every tick answered, none given up
         assert r.summary["links"]["command"]["to_onboard_bytes_corrupted"] > 0
     assert runs[0].tlog_path.read_bytes() == runs[1].tlog_path.read_bytes()
+
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def test_the_onboard_program_ends_on_a_silent_fc_naming_the_phase_it_was_in(tmp_path):
+    # the command link dies for good: the FC fails safe, and the onboard program, hearing no
+    # heartbeat, ends with an fc_lost event saying in which phase (in one process, a crash here would
+    # take the run down with it)
+    s = load_scenarios(SCENARIOS / "command_link_down.scenario.yaml")[0]
+    r = run_scenario(s, tmp_path, RunOptions(in_process=True))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    events = [json.loads(line) for line in (tmp_path / "onboard_events.jsonl").read_text().splitlines()]
+    lost = [e for e in events if e.get("event") == "fc_lost"]
+    assert len(lost) == 1 and lost[0]["phase"] and lost[0]["silence_s"] >= 3.0

@@ -36,18 +36,20 @@ from typing import IO, Any
 import numpy as np
 
 from hil.link.clock import WallClock
+from hil.link.linktrack import BODY_IDS
 from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
 from policies.controller import AttitudeThrustCommand, ExpertController
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
-from policies.mocap_reader import MocapReader, PoseSample
+from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
 from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
 from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
+VEHICLE_BODY_ID = BODY_IDS["vehicle"]  # the mocap body whose poses feed the estimator
 EXIT_DONE, EXIT_ERROR, EXIT_ABORTED = 0, 1, 3
 
 
@@ -226,7 +228,7 @@ class OnboardProgram:
         self.config = cfg = config or ProgramConfig()
         self.clock = ProgramClock()
         self.link = CommandLink(command_transport, self.clock)
-        self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_sample=self._on_pose)
+        self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
         self.estimator = PoseEstimator(cfg.estimator)
         self.pilot = pilot or make_pilot(cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n))
         self.expert = ExpertController(cfg.mass_kg)
@@ -259,7 +261,7 @@ class OnboardProgram:
         """Do everything due at ``now_s`` (s, the program's clock) without blocking."""
         self.clock.set(now_s)
         try:
-            self.link.poll()
+            self.link.read()
             self.link.take_ticks()  # only meaningful in lockstep (see `lockstep_tick`)
             self.mocap.poll()
         except LinkError as exc:
@@ -315,7 +317,7 @@ class OnboardProgram:
         self.phase = phase
         self._phase_since_s = now_s
 
-    def _finish(self, phase: Phase, code: int, event: str, **fields: Any) -> None:
+    def _finish(self, phase: Phase, code: int, event: str, /, **fields: Any) -> None:
         self.events.emit(event, self.clock.now_s(), **fields)
         self.phase = phase
         self.exit_code = code
@@ -543,9 +545,10 @@ class OnboardProgram:
         return Observation(t_s - self._mission_start_s, est.pos_m, est.vel_m_s, est.acc_m_s2, est.euler_rad,
                            self.gap, self.plan)
 
-    def _on_pose(self, sample: PoseSample) -> None:
-        if sample.name == "vehicle":
-            self.estimator.update(sample.stamp_s, sample.pos_m, sample.quat_wxyz, sample.received_s)
+    def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
+                 quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
+        if body_id == VEHICLE_BODY_ID:
+            self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
 
     # --- loops --------------------------------------------------------------------------------
     def run_realtime(self, max_duration_s: float | None = None) -> int:
@@ -571,7 +574,7 @@ class OnboardProgram:
         done: list[float] = []
         while not self.finished:
             try:
-                self.link.poll()  # in lockstep: the messages up to the next tick
+                self.link.read()  # in lockstep: the messages up to the next tick
                 ticks = self.link.take_ticks()
                 # the mocap link is read at the ticks only: bytes read between ticks would be stamped
                 # with the previous tick's time, and how many there are depends on process scheduling
