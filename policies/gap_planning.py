@@ -24,6 +24,7 @@ trajectory stays in the lab, beyond the gap plane, and passes the input-feasibil
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,7 +33,7 @@ from enum import StrEnum
 import numpy as np
 
 from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
-from policies.primitives import Feasibility, Trajectory, solve
+from policies.primitives import Feasibility, Plane, Trajectory, solve, solve_floats
 
 Vec3 = tuple[float, float, float]
 
@@ -46,6 +47,15 @@ class PlanningError(ValueError):
 
 
 def _vec3(name: str, value: object) -> Vec3:
+    if value.__class__ is tuple and len(value) == 3:  # the planner's own (x, y, z) floats: as they are
+        x, y, z = value
+        if (x.__class__ is float and y.__class__ is float and z.__class__ is float
+                and math.isfinite(x + y + z)):
+            return value  # type: ignore[return-value]
+    elif value.__class__ is np.ndarray and value.shape == (3,) and value.dtype == np.float64:
+        x, y, z = value.tolist()
+        if math.isfinite(x + y + z):
+            return (x, y, z)
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
@@ -117,7 +127,8 @@ class GapPose:
     @property
     def e2(self) -> np.ndarray:
         """e0 x e1 (= -R [0, 0, 1]); the traverse thrust is along +-e2."""
-        return np.cross(self.e0, self.e1)
+        (b0, a0, _), (b1, a1, _), (b2, a2, _) = self.rotation  # a = e0, b = e1
+        return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])  # np.cross's operations
 
 
 @dataclass(frozen=True)
@@ -206,6 +217,14 @@ class Traverse:
         return self.state(self.duration_s)
 
 
+@functools.lru_cache(maxsize=8)
+def _l_grid(l_max_m: float) -> np.ndarray:
+    """The traverse search's grid over l (m), read-only."""
+    grid = np.linspace(l_max_m / 1000, l_max_m, 1000)
+    grid.flags.writeable = False
+    return grid
+
+
 def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
                   direction_sign: float = 1.0, d_min_m: float = 0.1, exit_m: float = 0.3,
                   l_max_m: float = 0.5) -> Traverse:
@@ -236,7 +255,7 @@ def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: Vehicle
         disc = s * s - 2 * a_u * d_min_m
         t_c_all = np.array([2 * d_min_m / (s + math.sqrt(disc)) if disc >= 0 else d_min_m / s])
     else:  # grid over l plus the value where d = d_min exactly (the usual optimum)
-        l_grid = np.linspace(l_max_m / 1000, l_max_m, 1000)
+        l_grid = _l_grid(l_max_m)
         t_c_all = np.sqrt(2 * l_grid / g0)
         disc = s * s - 2 * a_u * d_min_m
         if disc >= 0:
@@ -244,7 +263,9 @@ def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: Vehicle
             if g0 * t_exact**2 / 2 <= l_max_m:
                 t_c_all = np.append(t_c_all, t_exact)
     d_all = s * t_c_all - a_u * t_c_all**2 / 2
-    v_start = np.linalg.norm(s * u[None, :] - a_tr[None, :] * t_c_all[:, None], axis=1)
+    # |v(-t_c)| per candidate: norm(s u - a_tr t_c, axis=1) of the (n, 3) layout, in the same order
+    vel = (s * u)[:, None] - a_tr[:, None] * t_c_all
+    v_start = np.sqrt((vel * vel).sum(axis=0))
     ok = (d_all >= d_min_m - 1e-12) & (v_start <= limits.max_speed_m_s)
     if not np.any(ok):
         raise PlanningError(f"no traverse length l in (0, {l_max_m}] m keeps d >= {d_min_m} m and the "
@@ -272,7 +293,7 @@ class RecoveryResult:
 
     trajectory: Trajectory
     duration_s: float
-    tried: int  # durations examined (the search is batched; this is the index of the first good + 1)
+    tried: int  # durations examined: the index of the first good one + 1
     search_time_s: float
 
 
@@ -295,19 +316,56 @@ def hover_point(gap: GapPose, direction: np.ndarray, distance_m: float = 2.5,
 def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: object, lab: LabVolume,
                     limits: VehicleLimits | None = None, wall: tuple[object, object] | None = None,
                     durations_s: np.ndarray = RECOVERY_DURATIONS_S, margin_m: float = 0.0) -> RecoveryResult:
-    """The paper's recovery search from the current state to hover at ``hover_m`` (all durations are
-    solved as one batch; the first that passes wins).
+    """The paper's recovery search from the current state to hover at ``hover_m``: the durations are
+    tried in order and the first that passes wins.
 
     A duration passes when its trajectory stays ``margin_m`` inside ``lab``, on the normal's side of
     ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. Raises PlanningError if none.
     """
     limits = limits or VehicleLimits()
     start = time.perf_counter()
-    hover = np.asarray(_vec3("hover_m", hover_m))
-    if not lab.contains(hover, margin_m):
-        raise PlanningError(f"hover point {hover.round(3).tolist()} is outside the lab")
-    traj = solve(_vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2),
-                 hover, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
+    hover = _vec3("hover_m", hover_m)
+    if not _inside(hover, lab, margin_m):
+        raise PlanningError(f"hover point {np.asarray(hover).round(3).tolist()} is outside the lab")
+    p0, v0, a0 = _vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2)
+    durations = np.asarray(durations_s, dtype=float)
+    if durations.ndim != 1:
+        return _search_recovery_batched(p0, v0, a0, hover, lab, limits, wall, durations_s, margin_m, start)
+    T_all = durations.tolist()
+    if not all(math.isfinite(T) and T > 0 for T in T_all):
+        raise ValueError("T must be finite and positive")
+    planes = list(_lab_planes(lab, float(margin_m) - 1e-9))
+    if wall is not None:
+        planes.append(Plane(_vec3("wall point", wall[0]), _vec3("wall normal", wall[1]), 0.0 - 1e-9))
+    zero = (0.0, 0.0, 0.0)
+    for i, cand in enumerate(solve_floats(p0, v0, a0, hover, zero, zero, T_all)):
+        if cand.planes_ok(planes) and cand.input_feasible(
+                limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
+                limits.min_dt_s) is Feasibility.FEASIBLE:
+            return RecoveryResult(cand.trajectory(), T_all[i], i + 1, time.perf_counter() - start)
+    raise PlanningError(f"no recovery duration in {np.asarray(durations_s).round(2).tolist()} s stays in "
+                        "the lab and within the thrust and body-rate limits")
+
+
+def _inside(p: Vec3, lab: LabVolume, margin_m: float) -> bool:
+    """``lab.contains(p, margin_m)`` for one point of plain floats."""
+    return all(lo + margin_m <= x <= hi - margin_m for x, lo, hi in zip(p, lab.min_m, lab.max_m, strict=True))
+
+
+@functools.lru_cache(maxsize=32)
+def _lab_planes(lab: LabVolume, threshold_m: float) -> tuple[Plane, ...]:
+    """The lab's six walls (``lab.half_spaces()``, in its order) as planes passed at ``threshold_m``."""
+    eye = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    return (tuple(Plane(lab.min_m, e, threshold_m) for e in eye)
+            + tuple(Plane(lab.max_m, (-e[0], -e[1], -e[2]), threshold_m) for e in eye))
+
+
+def _search_recovery_batched(p0: Vec3, v0: Vec3, a0: Vec3, hover: Vec3, lab: LabVolume, limits: VehicleLimits,
+                             wall: tuple[object, object] | None, durations_s: object, margin_m: float,
+                             start: float) -> RecoveryResult:
+    """`search_recovery` with every duration solved and tested as one numpy batch (for durations not 1-D)."""
+    hover_a = np.asarray(hover)
+    traj = solve(p0, v0, a0, hover_a, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
     # every plane in one batched call: rows are the lab's six walls (then the gap's wall), columns durations
     planes = lab.half_spaces()
     margins = np.array([margin_m] * len(planes) + [0.0] * (wall is not None))
@@ -318,7 +376,7 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
     ok = np.all(dist >= margins[:, None] - 1e-9, axis=0)
     candidates = np.flatnonzero(ok)
     if candidates.size:
-        sub = solve(traj.p0[candidates], traj.v0[candidates], traj.a0[candidates], hover, np.zeros(3),
+        sub = solve(traj.p0[candidates], traj.v0[candidates], traj.a0[candidates], hover_a, np.zeros(3),
                     np.zeros(3), traj.T[candidates])
         feas = sub.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
                                   limits.min_dt_s)
@@ -329,7 +387,7 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
         raise PlanningError(f"no recovery duration in {np.asarray(durations_s).round(2).tolist()} s stays in "
                             "the lab and within the thrust and body-rate limits")
     i = int(good[0])
-    best = solve(traj.p0[i], traj.v0[i], traj.a0[i], hover, np.zeros(3), np.zeros(3), traj.T[i])
+    best = solve(traj.p0[i], traj.v0[i], traj.a0[i], hover_a, np.zeros(3), np.zeros(3), traj.T[i])
     return RecoveryResult(best, float(traj.T[i]), i + 1, time.perf_counter() - start)
 
 
@@ -431,20 +489,19 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
     side = float((p_start - gap.centre) @ gap.e1)
     sign = -1.0 if side > 0 else 1.0
     trav = plan_traverse(gap, crossing_speed_m_s, limits, sign, d_min_m, exit_m)
-    p0, v0, a0 = trav.start_state
-    approach = solve(p_start, _vec3("start_vel_m_s", start_vel_m_s), _vec3("start_acc_m_s2", start_acc_m_s2),
-                     p0, v0, a0, approach_duration_s)
-    feas = Feasibility(int(approach.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2,
-                                                   limits.max_body_rate_rad_s, limits.min_dt_s)))
+    p0, v0, a0 = trav.state_tuples(0.0)
+    vel, acc = _vec3("start_vel_m_s", start_vel_m_s), _vec3("start_acc_m_s2", start_acc_m_s2)
+    (approach_f,) = solve_floats(tuple(p_start.tolist()), vel, acc, p0, v0, a0, [float(approach_duration_s)])
+    approach = approach_f.trajectory()
+    feas = approach_f.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
+                                     limits.min_dt_s)
     if strict and feas is Feasibility.INFEASIBLE:
         raise PlanningError(f"the approach in {approach_duration_s} s exceeds the thrust or body-rate limits")
-    planes = lab.half_spaces()
-    if strict and not np.all(approach.position_feasible(np.array([p for p, _ in planes]),
-                                                         np.array([n for _, n in planes]))):
+    if strict and not approach_f.planes_ok(list(_lab_planes(lab, 0.0 - 1e-9))):
         raise PlanningError(f"the approach in {approach_duration_s} s leaves the lab")
-    u = np.array(trav.direction)
-    hover = hover_point(gap, u, hover_distance_m, hover_height_m)
-    pe, ve, ae = trav.end_state
-    recovery = search_recovery(pe, ve, ae, hover, lab, limits, wall=(gap.centre, u))
+    u = trav.direction
+    hover = hover_point(gap, np.array(u), hover_distance_m, hover_height_m)
+    pe, ve, ae = trav.state_tuples(trav.duration_s)
+    recovery = search_recovery(pe, ve, ae, hover, lab, limits, wall=(gap.centre_m, u))
     yaw = math.atan2(u[1], u[0])
     return MissionPlan(gap, approach, trav, recovery, _vec3("hover", hover), yaw, feas)

@@ -18,10 +18,17 @@ Feasibility tests after the same paper:
   (found as companion-matrix eigenvalues, batched).
 
 Shapes: positions, velocities and accelerations are (..., 3), durations (...); they broadcast.
+
+A few trajectories at a time (the gap planner's) are cheaper in plain floats than in numpy, where every
+call on a 3-vector costs microseconds: ``solve_floats`` / ``FloatTrajectory`` and the small-batch path of
+``input_feasible`` repeat the numpy code's operations in its order (the same numbers and verdicts);
+``FloatTrajectory.planes_ok`` decides most half-space tests from Bernstein bounds and leaves the rest to
+the exact ``min_plane_distance``.
 """
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 
 import numpy as np
@@ -166,6 +173,17 @@ class Trajectory:
         """
         if not (0 < f_min_m_s2 < f_max_m_s2 and w_max_rad_s > 0 and min_dt > 0):
             raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
+        if self.T.size <= FLOAT_PATH_MAX_BATCH:
+            axes = _axis_floats(self)
+            if axes is not None:  # a few trajectories: the same recursion in plain floats, one at a time
+                codes = [_feasibility_floats(a, t, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
+                         for a, t in axes]
+                return np.array(codes, dtype=np.int8).reshape(self.batch_shape)
+        return self._input_feasible_numpy(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
+
+    def _input_feasible_numpy(self, f_min_m_s2: float, f_max_m_s2: float, w_max_rad_s: float,
+                              min_dt: float) -> np.ndarray:
+        """`input_feasible` vectorised over the batch (every trajectory's intervals of one depth at once)."""
         flat = _FlatCoeffs(self)
         n = flat.T.shape[0]
         result = np.full(n, Feasibility.FEASIBLE, dtype=np.int8)
@@ -343,3 +361,303 @@ def solve(p0: object, v0: object, a0: object, pf: object | None, vf: object | No
     beta = 24 * x[..., 1] / Tc**4
     gamma = 6 * x[..., 2] / Tc**3
     return Trajectory(np.array(p0a), np.array(v0a), np.array(a0a), alpha, beta, gamma, np.array(Ta))
+
+
+# --- plain-float paths for a few trajectories ------------------------------------------------------
+# The planner solves and tests a handful of single trajectories, where each numpy call on a 3-vector
+# costs microseconds. The functions below repeat the numpy code's operations in plain floats, in the same
+# order, so they give the same numbers and the same verdicts. Two operations are left to numpy because
+# plain floats cannot repeat them bit for bit: the array power (numpy's SIMD pow can differ from C's pow
+# in the last bit) and the gain product (einsum's summation order); both are taken from numpy, batched
+# (`_cubes`, `solve_floats`). The sums over the three axes are numpy's left-to-right ((x + y) + z).
+
+#: batches up to this many trajectories take the float recursion in `Trajectory.input_feasible`
+FLOAT_PATH_MAX_BATCH = 12
+_FLOAT_PATH_MAX_ABS = 1e30  # larger coefficients take the numpy path (no overflow in the float path)
+_GRAVITY = tuple(GRAVITY_VEC_M_S2.tolist())
+_GAIN_ALL_FIXED = GAINS[(True, True, True)]
+
+Vec3 = tuple[float, float, float]
+AxisCoeffs = tuple[float, float, float, float]  # per axis: a0 - g (m/s^2), alpha, beta, gamma
+
+
+def _cubes(times: list[float]) -> list[float]:
+    """``t**3`` for each time as numpy computes ``array**3`` (batched: one call)."""
+    return np.power(np.array(times, dtype=float), 3.0).tolist()
+
+
+def _axis_floats(traj: Trajectory) -> list[tuple[tuple[AxisCoeffs, ...], float]] | None:
+    """Per trajectory of the batch: (a0 - g, alpha, beta, gamma) per axis and T, as plain floats.
+
+    None where the float path would not repeat the numpy code: arrays not float64, a duration not
+    positive, or values large enough to overflow (the batch then takes the numpy path)."""
+    shape = (*traj.batch_shape, 3)
+    cols = []
+    for c in (traj.a0, traj.alpha, traj.beta, traj.gamma):
+        if c.dtype != np.float64:
+            return None
+        c = c if c.shape == shape else np.broadcast_to(c, shape)
+        cols.append(c.reshape(-1, 3).tolist())
+    if traj.T.dtype != np.float64:
+        return None
+    T = traj.T.reshape(-1).tolist()
+    limit = _FLOAT_PATH_MAX_ABS
+    out = []
+    for a0, al, be, ga, t in zip(*cols, T, strict=True):
+        if not (sum(map(abs, a0 + al + be + ga)) <= limit and 0 < t <= limit):  # NaN fails too
+            return None
+        out.append((tuple((a0[k] - _GRAVITY[k], al[k], be[k], ga[k]) for k in range(3)), t))
+    return out
+
+
+def _feasibility_floats(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_max: float, w_max: float,
+                        min_dt: float) -> int:
+    """`Trajectory.input_feasible` for one trajectory in plain floats: the same verdict.
+
+    The interval tree is the numpy code's (halving at ``(lo + hi) / 2``); a trajectory's verdict does not
+    depend on the order its intervals are visited in (INFEASIBLE once any check fails, else
+    INDETERMINABLE once any interval is too small, else FEASIBLE), so one depth at a time, stopping at the
+    first failure, gives the batch's verdict. The bounds over an interval use the extrema of the
+    acceleration (roots of the jerk) and of the jerk (root of the snap); these roots are the same for
+    every interval, so their values are computed once, and the values at interval ends are cached.
+    """
+    fmax2, fmin2, w2 = f_max**2, f_min**2, w_max**2
+    # roots inside (0, T), as the numpy code's r1, r2 (acceleration) and r_snap (jerk); roots it zeroes
+    # (non-finite) or that fall outside an interval only repeat that interval's end values
+    acc_roots: list[list[float]] = []
+    snap_roots: list[float | None] = []
+    for _, al, be, ga in axes:
+        if al != 0:
+            q = be * be - 2 * al * ga
+            rs = []
+            if q >= 0:
+                disc = math.sqrt(q)
+                rs = [(-be + disc) / al, (-be - disc) / al]
+            rsnap = -be / al
+            snap_roots.append(rsnap if 0 < rsnap < T else None)
+        else:
+            rs = [-ga / be] if be != 0 else []
+            snap_roots.append(None)
+        acc_roots.append([r for r in rs if 0 < r < T])
+    roots = [r for rs in acc_roots for r in rs]
+    cubes = _cubes([0.0, T, *roots])
+    cube_of = dict(zip([0.0, T, *roots], cubes, strict=True))
+    # bound-formula values at the roots (the numpy code's `acc` at cand = r and `jer` at jc = r_snap)
+    acc_root_vals = [[((a0 + ga * r) + (be * (r * r)) / 2) + (al * cube_of[r]) / 6 for r in rs]
+                     for (a0, al, be, ga), rs in zip(axes, acc_roots, strict=True)]
+    acc_root_pairs = [list(zip(rs, vs, strict=True)) for rs, vs in zip(acc_roots, acc_root_vals, strict=True)]
+    snap_vals = [None if r is None else abs((ga + be * r) + (al * (r * r)) / 2)
+                 for (_, al, be, ga), r in zip(axes, snap_roots, strict=True)]
+
+    (x0, xl, xb, xg), (y0, yl, yb, yg), (z0, zl, zb, zg) = axes
+
+    def point_ok(t: float, t3: float) -> bool:
+        """_FlatCoeffs.point_ok at one time: thrust_acc and jerk as written there."""
+        fx = ((x0 + xg * t) + ((xb * t) * t) / 2) + (xl * t3) / 6
+        fy = ((y0 + yg * t) + ((yb * t) * t) / 2) + (yl * t3) / 6
+        fz = ((z0 + zg * t) + ((zb * t) * t) / 2) + (zl * t3) / 6
+        f = math.sqrt((fx * fx + fy * fy) + fz * fz)
+        if not (f >= f_min and f <= f_max):
+            return False
+        jx = (xg + xb * t) + ((xl * t) * t) / 2
+        jy = (yg + yb * t) + ((yl * t) * t) / 2
+        jz = (zg + zb * t) + ((zl * t) * t) / 2
+        zx, zy, zz = fx / f, fy / f, fz / f
+        dot = (jx * zx + jy * zy) + jz * zz
+        px, py, pz = jx - dot * zx, jy - dot * zy, jz - dot * zz
+        return math.sqrt((px * px + py * py) + pz * pz) / f <= w_max
+
+    def ends(t: float, t3: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Acceleration and |jerk| per axis at an interval end, as interval_bounds writes them."""
+        tt = t * t
+        return ((((x0 + xg * t) + (xb * tt) / 2) + (xl * t3) / 6,
+                 ((y0 + yg * t) + (yb * tt) / 2) + (yl * t3) / 6,
+                 ((z0 + zg * t) + (zb * tt) / 2) + (zl * t3) / 6),
+                (abs((xg + xb * t) + (xl * tt) / 2), abs((yg + yb * t) + (yl * tt) / 2),
+                 abs((zg + zb * t) + (zl * tt) / 2)))
+
+    c0, cT = cube_of[0.0], cube_of[T]
+    if not (point_ok(0.0, c0) and point_ok(T, cT)):
+        return Feasibility.INFEASIBLE
+    cache = {0.0: ends(0.0, c0), T: ends(T, cT)}
+    indeterminable = False
+    intervals = [(0.0, T)]
+    while intervals:
+        splits = []
+        for lo, hi in intervals:
+            (acc_lo, jer_lo), (acc_hi, jer_hi) = cache[lo], cache[hi]
+            fsq_lo = fsq_hi = jsq_hi = 0.0
+            for k in range(3):
+                a_lo, a_hi = acc_lo[k], acc_hi[k]
+                a_min, a_max = (a_lo, a_hi) if a_lo <= a_hi else (a_hi, a_lo)
+                for r, v in acc_root_pairs[k]:
+                    if lo < r < hi:
+                        if v < a_min:
+                            a_min = v
+                        if v > a_max:
+                            a_max = v
+                sq_min, sq_max = a_min * a_min, a_max * a_max
+                sq_hi, sq_lo = (sq_min, sq_max) if sq_min >= sq_max else (sq_max, sq_min)
+                if a_min <= 0 and a_max >= 0:
+                    sq_lo = 0.0
+                j = jer_lo[k] if jer_lo[k] >= jer_hi[k] else jer_hi[k]
+                r = snap_roots[k]
+                if r is not None and lo < r < hi and snap_vals[k] > j:
+                    j = snap_vals[k]
+                # the sums over axes in the numpy code's order: ((x + y) + z)
+                fsq_lo, fsq_hi, jsq_hi = (sq_lo, sq_hi, j * j) if k == 0 else (
+                    fsq_lo + sq_lo, fsq_hi + sq_hi, jsq_hi + j * j)
+            if fsq_lo > fmax2 or fsq_hi < fmin2:
+                return Feasibility.INFEASIBLE
+            if fsq_hi <= fmax2 and fsq_lo >= fmin2 and jsq_hi <= w2 * fsq_lo:
+                continue  # done
+            if (hi - lo) / 2 < min_dt:
+                indeterminable = True
+            else:
+                splits.append((lo, hi))
+        if not splits:
+            break
+        mids = [(lo + hi) / 2 for lo, hi in splits]
+        intervals = []
+        for (lo, hi), mid, m3 in zip(splits, mids, _cubes(mids), strict=True):
+            if not point_ok(mid, m3):
+                return Feasibility.INFEASIBLE
+            cache[mid] = ends(mid, m3)
+            intervals += [(lo, mid), (mid, hi)]
+    return Feasibility.INDETERMINABLE if indeterminable else Feasibility.FEASIBLE
+
+
+_EXPONENTS_345 = np.array([3.0, 4.0, 5.0])
+_PLANE_DEPTH = 6  # halvings of [0, T] the plane test tries before it asks the exact `min_plane_distance`
+
+
+class Plane:
+    """A half-space for `FloatTrajectory.planes_ok`: ``point`` and ``normal`` as given (m), the
+    trajectory passes where its smallest signed distance (m) over [0, T] is >= ``threshold_m``."""
+
+    __slots__ = ("axis", "normal", "point", "threshold_m", "unit")
+
+    def __init__(self, point: Vec3, normal: Vec3, threshold_m: float) -> None:
+        nx, ny, nz = normal
+        length = math.sqrt((nx * nx + ny * ny) + nz * nz)
+        if length < 1e-12:
+            raise ValueError("normal must be non-zero")
+        self.point, self.normal, self.threshold_m = point, normal, threshold_m
+        self.unit = (nx / length, ny / length, nz / length)
+        nonzero = [k for k in range(3) if normal[k] != 0]
+        self.axis = nonzero[0] if len(nonzero) == 1 else -1  # axis-aligned: +-1 along that axis
+
+
+def _bernstein_above(b: list[float], threshold: float, tol: float) -> bool | None:
+    """Whether the quintic with Bernstein coefficients ``b`` on [0, 1] stays >= ``threshold``: True when
+    its coefficients (of halves, recursively) are all >= threshold + tol, False when a value at a
+    (sub-)interval end is below threshold - tol, None when neither within `_PLANE_DEPTH` halvings."""
+    stack = [(b, 0)]
+    while stack:
+        b, depth = stack.pop()
+        if b[0] < threshold - tol or b[5] < threshold - tol:
+            return False
+        if min(b) >= threshold + tol:
+            continue
+        if depth == _PLANE_DEPTH:
+            return None
+        left, right, w = [b[0]], [b[5]], b
+        for _ in range(5):  # de Casteljau at 1/2
+            w = [(w[i] + w[i + 1]) / 2 for i in range(len(w) - 1)]
+            left.append(w[0])
+            right.append(w[-1])
+        right.reverse()
+        stack += [(right, depth + 1), (left, depth + 1)]
+    return True
+
+
+class FloatTrajectory:
+    """One minimum-jerk trajectory in plain floats (from `solve_floats`): ``axes`` holds per axis
+    (p0, v0, a0, alpha, beta, gamma), ``T`` the duration (s); `trajectory` gives the numpy `Trajectory`."""
+
+    __slots__ = ("T", "T3", "T4", "T5", "_traj", "axes")
+
+    def __init__(self, axes: tuple[tuple[float, ...], ...], T: float, T3: float, T4: float,
+                 T5: float) -> None:
+        self.axes, self.T, self.T3, self.T4, self.T5 = axes, T, T3, T4, T5
+        self._traj: Trajectory | None = None
+
+    def trajectory(self) -> Trajectory:
+        """The `Trajectory` (batch shape ()) `solve` gives for the same inputs."""
+        if self._traj is None:
+            p0, v0, a0, al, be, ga = (np.array(c) for c in zip(*self.axes, strict=True))
+            tr = Trajectory(p0, v0, a0, al, be, ga, np.array(self.T))
+            tr._floats = self.axes  # what `state_tuples` would cache: the same floats
+            self._traj = tr
+        return self._traj
+
+    def input_feasible(self, f_min_m_s2: float, f_max_m_s2: float, w_max_rad_s: float,
+                       min_dt: float = 0.02) -> Feasibility:
+        """`Trajectory.input_feasible` of this trajectory (the same verdict)."""
+        (_, _, x0, xl, xb, xg), (_, _, y0, yl, yb, yg), (_, _, z0, zl, zb, zg) = self.axes
+        gx, gy, gz = _GRAVITY
+        axes = ((x0 - gx, xl, xb, xg), (y0 - gy, yl, yb, yg), (z0 - gz, zl, zb, zg))
+        if sum(map(abs, (*axes[0], *axes[1], *axes[2], self.T))) <= _FLOAT_PATH_MAX_ABS:  # NaN fails too
+            if not (0 < f_min_m_s2 < f_max_m_s2 and w_max_rad_s > 0 and min_dt > 0):
+                raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
+            return Feasibility(_feasibility_floats(axes, self.T, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt))
+        return Feasibility(int(self.trajectory().input_feasible(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)))
+
+    def planes_ok(self, planes: list[Plane]) -> bool:
+        """Whether ``min_plane_distance(plane.point, plane.normal) >= plane.threshold_m`` for every plane
+        (the same verdicts).
+
+        Most planes are decided from Bernstein bounds of the distance quintic in normalised time (with a
+        tolerance far above round-off, so a bound decides only where the exact test must agree); the
+        rest go to the exact `Trajectory.min_plane_distance`.
+        """
+        T, T2 = self.T, self.T * self.T
+        bern = []
+        scale = 1.0
+        for p0, v0, a0, al, be, ga in self.axes:
+            c0, c1, c2, c3, c4, c5 = (p0, v0 * T, a0 * T2 / 2, ga * self.T3 / 6, be * self.T4 / 24,
+                                      al * self.T5 / 120)
+            scale += abs(c0) + abs(c1) + abs(c2) + abs(c3) + abs(c4) + abs(c5)
+            bern.append([c0, c0 + c1 / 5, c0 + (2 * c1) / 5 + c2 / 10,
+                         c0 + (3 * c1) / 5 + (3 * c2) / 10 + c3 / 10,
+                         c0 + (4 * c1) / 5 + (6 * c2) / 10 + (4 * c3) / 10 + c4 / 5,
+                         c0 + c1 + c2 + c3 + c4 + c5])
+        for plane in planes:
+            pt, n, thr = plane.point, plane.unit, plane.threshold_m
+            tol = 1e-9 * (scale + abs(pt[0]) + abs(pt[1]) + abs(pt[2]))
+            k = plane.axis
+            if k >= 0:  # axis-aligned: the distance is +-(x_k - point_k)
+                b = bern[k]
+                low = min(b) - pt[k] if n[k] > 0 else pt[k] - max(b)
+                if low >= thr + tol:
+                    continue
+            offset = (n[0] * pt[0] + n[1] * pt[1]) + n[2] * pt[2]
+            b = [(n[0] * x + n[1] * y) + n[2] * z - offset for x, y, z in zip(*bern, strict=True)]
+            verdict = _bernstein_above(b, thr, tol)
+            if verdict is None:
+                dist = self.trajectory().min_plane_distance(np.array(plane.point), np.array(plane.normal))
+                verdict = bool(dist >= thr)
+            if not verdict:
+                return False
+        return True
+
+
+def solve_floats(p0: Vec3, v0: Vec3, a0: Vec3, pf: Vec3, vf: Vec3, af: Vec3,
+                 durations_s: list[float]) -> list[FloatTrajectory]:
+    """`solve` with the whole end state fixed, from one start state to one end state in each of several
+    durations (s; finite, positive: not checked here), in plain floats: the same numbers as `solve`."""
+    if not durations_s:
+        return []
+    rhs = []
+    for T in durations_s:
+        T2 = T * T
+        rhs.append([(((pf[k] - p0[k]) - v0[k] * T) - a0[k] * T2 / 2, ((vf[k] - v0[k]) - a0[k] * T) * T,
+                     (af[k] - a0[k]) * T2) for k in range(3)])
+    x = np.einsum("ik,...ak->...ai", _GAIN_ALL_FIXED, np.array(rhs)).tolist()
+    powers = np.power(np.array(durations_s)[:, None], _EXPONENTS_345).tolist()
+    out = []
+    for T, (T3, T4, T5), xs in zip(durations_s, powers, x, strict=True):
+        axes = tuple((p0[k], v0[k], a0[k], 120 * xs[k][0] / T5, 24 * xs[k][1] / T4, 6 * xs[k][2] / T3)
+                     for k in range(3))
+        out.append(FloatTrajectory(axes, T, T3, T4, T5))
+    return out

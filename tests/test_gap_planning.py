@@ -4,21 +4,24 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from policies.gap_planning import (
+    RECOVERY_DURATIONS_S,
     GapPose,
     LabVolume,
     PlanningError,
+    RecoveryResult,
     Segment,
     VehicleLimits,
     plan_mission,
     plan_traverse,
     search_recovery,
 )
-from policies.primitives import Feasibility
+from policies.primitives import Feasibility, Trajectory, solve
 
 G = np.array([0.0, 0.0, -9.8])
 LAB = LabVolume((-4.0, -3.0, 0.0), (4.0, 4.0, 4.0))
@@ -157,3 +160,95 @@ def test_gap_pose_validation_and_quaternion() -> None:
     q = GapPose.from_quaternion((0, 0.5, 2.1), q_wxyz, width_m=0.8, height_m=0.3)
     np.testing.assert_allclose(q.R, paper_gap().R, atol=1e-12)
     np.testing.assert_allclose(q.e2, -q.R[:, 2], atol=1e-12)
+
+
+def _same_trajectory(a: Trajectory, b: Trajectory) -> None:
+    for name in ("p0", "v0", "a0", "alpha", "beta", "gamma", "T"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)  # equal here; other numpy builds may round
+
+
+def _outcome(search: Callable[[], RecoveryResult]) -> RecoveryResult | str:
+    try:
+        return search()
+    except PlanningError as exc:
+        return str(exc)
+
+
+def test_recovery_search_gives_the_batched_search_result() -> None:
+    """The one-duration-at-a-time search (plain floats) against the all-durations numpy batch."""
+    from policies.gap_planning import _search_recovery_batched
+
+    rng = np.random.default_rng(31)
+    durations = np.round(np.arange(0.5, 3.0 + 1e-9, 0.3), 10)
+    outcomes = set()
+    for i in range(150):
+        pos = tuple(rng.uniform([-2, -2, 0.5], [2, 2, 3]).tolist())
+        vel, acc = tuple(rng.normal(0, 2.0, 3).tolist()), tuple(rng.normal(0, 4.0, 3).tolist())
+        lab = LabVolume(tuple(rng.uniform([-5, -5, 0], [-3.5, -3.5, 0.3]).tolist()),
+                        tuple(rng.uniform([3.5, 3.5, 3], [5, 5, 5]).tolist()))
+        hover = tuple(rng.uniform([-3, -3, 0.5], [3, 3, 2]).tolist())
+        wall = None
+        if i % 2:
+            n = rng.normal(size=3) * rng.choice([1.0, 2.5])
+            wall = (tuple((np.array(pos) - 0.3 * n / np.linalg.norm(n)).tolist()), tuple(n.tolist()))
+        margin = float(rng.uniform(0, 0.3)) if i % 5 == 0 else 0.0
+        limits = VehicleLimits(f_max_m_s2=float(rng.uniform(14, 30)),
+                               max_body_rate_rad_s=float(rng.uniform(5, 20)))
+        args = (pos, vel, acc, hover, lab, limits, wall)
+        got = _outcome(lambda a=args, m=margin: search_recovery(*a, durations, m))
+        want = _outcome(lambda a=args, m=margin: _search_recovery_batched(*a, durations, m, 0.0))
+        if isinstance(want, str):
+            assert got == want
+            outcomes.add("none")
+        else:
+            assert not isinstance(got, str)
+            assert (got.duration_s, got.tried) == (want.duration_s, want.tried)
+            _same_trajectory(got.trajectory, want.trajectory)
+            outcomes.add(got.tried)
+    assert "none" in outcomes and len(outcomes) >= 4
+
+
+@pytest.mark.parametrize("roll_deg", [-60.0, -20.0, 0.0, 35.0, 60.0])
+def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The plan is the one the numpy pipeline (solve, batched feasibility, exact plane distances, batched
+    recovery search) gives, and the usual case never needs the numpy fallbacks."""
+    from policies.gap_planning import _search_recovery_batched, hover_point
+
+    gap = GapPose.from_deg((0.0, 0.5, 2.1), roll_deg, width_m=0.8, height_m=0.45)
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    start, vel = np.array([-2.0, -1.0, 0.5]), np.array([0.05, -0.02, 0.01])
+    calls: list[str] = []
+
+    def counted(name: str) -> Callable[..., object]:
+        original = getattr(Trajectory, name)
+
+        def method(self: Trajectory, *a: object, **k: object) -> object:
+            calls.append(name)
+            return original(self, *a, **k)
+        return method
+
+    for name in ("min_plane_distance", "_input_feasible_numpy"):
+        monkeypatch.setattr(Trajectory, name, counted(name))
+    plan = plan_mission(start, gap, lab, start_vel_m_s=vel, approach_duration_s=2.6, crossing_speed_m_s=2.5,
+                        d_min_m=0.25)
+    assert calls == []  # plain floats throughout
+    monkeypatch.undo()
+    lim = VehicleLimits()
+    trav = plan_traverse(gap, 2.5, lim, 1.0, 0.25, 0.3)
+    assert plan.traverse == trav
+    approach = solve(start, vel, np.zeros(3), *trav.start_state, 2.6)
+    _same_trajectory(plan.approach, approach)
+    assert plan.approach_feasibility == approach._input_feasible_numpy(lim.f_min_m_s2, lim.f_max_m_s2,
+                                                                       lim.max_body_rate_rad_s, lim.min_dt_s)
+    planes = lab.half_spaces()
+    points, normals = np.array([p for p, _ in planes]), np.array([n for _, n in planes])
+    assert np.all(approach.position_feasible(points, normals))
+    u = np.array(trav.direction)
+    hover = hover_point(gap, u, 2.5, 1.0)
+    rec = _search_recovery_batched(*trav.end_state, tuple(hover.tolist()), lab, lim, (gap.centre, u),
+                                   RECOVERY_DURATIONS_S, 0.0, 0.0)
+    assert (plan.recovery.duration_s, plan.recovery.tried) == (rec.duration_s, rec.tried)
+    _same_trajectory(plan.recovery.trajectory, rec.trajectory)
+    assert plan.hover_m == tuple(hover.tolist()) and plan.yaw_rad == math.atan2(u[1], u[0])

@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from policies.primitives import Feasibility, solve
+from policies.primitives import Feasibility, Trajectory, solve
 
 COMBOS = list(itertools.product((True, False), repeat=3))
 
@@ -167,3 +167,118 @@ def test_position_feasibility_catches_floor_dip() -> None:
     np.testing.assert_allclose(exact, sampled, atol=1e-5)
     with pytest.raises(ValueError):
         tr.position_feasible([0, 0, 0], [0, 0, 0])
+
+
+# --- the plain-float paths repeat the numpy code -----------------------------------------------------
+def _feasibility_cases(rng: np.random.Generator, n: int) -> list[tuple[Trajectory, tuple[float, ...]]]:
+    """(trajectory batch of 1..12, limits): random ones, straight lines, and limits set right at a
+    trajectory's own thrust or body-rate extreme (deep recursion, INDETERMINABLE verdicts)."""
+    out = []
+    up = np.array([0.0, 0.0, 9.8])
+    for i in range(n):
+        b = int(rng.choice([1, 2, 5, 12]))
+        c = _random_case(rng, b)
+        vf, af = (c["vf"], c["af"]) if i % 3 else (np.zeros((b, 3)), np.zeros((b, 3)))
+        if i % 11 == 0:  # straight lines: alpha = beta = gamma = 0 on every axis
+            c["a0"] = af = np.zeros((b, 3))
+            vf = c["v0"]
+            c["pf"] = c["p0"] + c["v0"] * c["T"][:, None]
+        tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], vf, af, c["T"])
+        limits = (float(rng.uniform(0.5, 5)), float(rng.uniform(10, 35)), float(rng.uniform(1, 25)),
+                  float(rng.choice([0.002, 0.01, 0.02, 0.05])))
+        if i % 2:  # at the first trajectory's extreme
+            ts = np.linspace(0, float(tr.T[0]), 2001)
+            a = tr.state(ts[None, :])[0][0]
+            f = np.linalg.norm(a + up, axis=-1)
+            j = tr.jerk(ts[None, :])[0]
+            z = (a + up) / f[:, None]
+            w = np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1) / f
+            scale = 1 + float(rng.choice([-1e-3, -1e-6, 0.0, 1e-6, 1e-3]))
+            f_min, f_max, w_max, min_dt = 0.5, 60.0, 200.0, limits[3]
+            if i % 4 == 1:
+                f_max = max(float(f.max()) * scale, 1.0)
+            else:
+                w_max = max(float(w.max()) * scale, 1e-3)
+            limits = (f_min, f_max, w_max, min_dt)
+        out.append((tr, limits))
+    return out
+
+
+def test_input_feasibility_float_path_gives_the_numpy_verdicts() -> None:
+    from policies.primitives import FLOAT_PATH_MAX_BATCH, solve_floats
+
+    seen = set()
+    for tr, limits in _feasibility_cases(np.random.default_rng(21), 400):
+        assert tr.T.size <= FLOAT_PATH_MAX_BATCH
+        got = tr.input_feasible(*limits)
+        want = tr._input_feasible_numpy(*limits)
+        assert got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(got, want)
+        seen.update(want.tolist())
+        one = solve_floats(tuple(tr.p0[0].tolist()), tuple(tr.v0[0].tolist()), tuple(tr.a0[0].tolist()),
+                           tuple(tr.state(tr.T[0])[0][0].tolist()), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+                           [float(tr.T[0])])[0]
+        assert one.input_feasible(*limits) == one.trajectory()._input_feasible_numpy(*limits)
+    assert seen == {Feasibility.FEASIBLE, Feasibility.INFEASIBLE, Feasibility.INDETERMINABLE}
+    # a batch shape of more than one dimension, and one too large for the float path
+    c = _random_case(np.random.default_rng(22), 40)
+    tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], c["vf"], c["af"], c["T"])
+    np.testing.assert_array_equal(tr.input_feasible(2.0, 25.0, 10.0),
+                                  tr._input_feasible_numpy(2.0, 25.0, 10.0, 0.02))
+    sub = solve(c["p0"][:6].reshape(2, 3, 3), c["v0"][:6].reshape(2, 3, 3), c["a0"][:6].reshape(2, 3, 3),
+                c["pf"][:6].reshape(2, 3, 3), None, None, c["T"][:6].reshape(2, 3))
+    assert sub.input_feasible(2.0, 25.0, 10.0).shape == (2, 3)
+    np.testing.assert_array_equal(sub.input_feasible(2.0, 25.0, 10.0),
+                                  sub._input_feasible_numpy(2.0, 25.0, 10.0, 0.02))
+
+
+def test_solve_floats_gives_the_numbers_of_solve() -> None:
+    from policies.primitives import solve_floats
+
+    rng = np.random.default_rng(23)
+    for _ in range(200):
+        scale = 10.0 ** rng.uniform(-2, 2)
+        p0, v0, a0, pf, vf, af = (tuple(rng.normal(0, scale, 3).tolist()) for _ in range(6))
+        durations = rng.uniform(0.05, 6.0, int(rng.integers(1, 10))).tolist()
+        batch = solve(p0, v0, a0, pf, vf, af, np.array(durations))
+        for i, fl in enumerate(solve_floats(p0, v0, a0, pf, vf, af, durations)):
+            got, one = fl.trajectory(), solve(p0, v0, a0, pf, vf, af, durations[i])
+            assert got.batch_shape == one.batch_shape == ()
+            for name in ("p0", "v0", "a0", "alpha", "beta", "gamma", "T"):
+                a, b = getattr(got, name), getattr(one, name)
+                assert a.shape == b.shape and a.dtype == b.dtype
+                # the same operations in the same order: equal to the last bit on this machine; a tight
+                # tolerance keeps the check meaningful where numpy's SIMD paths round differently
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+                np.testing.assert_allclose(a, getattr(batch, name)[i], rtol=1e-12, atol=1e-12)
+            t = 0.37 * durations[i]
+            for x, y in zip(got.state_tuples(t), one.state_tuples(t), strict=True):
+                np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+    assert solve_floats((0.0,) * 3, (0.0,) * 3, (0.0,) * 3, (1.0,) * 3, (0.0,) * 3, (0.0,) * 3, []) == []
+
+
+def test_planes_ok_gives_the_verdicts_of_min_plane_distance() -> None:
+    from policies.primitives import Plane, solve_floats
+
+    rng = np.random.default_rng(24)
+    zero = (0.0, 0.0, 0.0)
+    for i in range(150):
+        p0, v0, a0, pf = (tuple(rng.normal(0, 1.5, 3).tolist()) for _ in range(4))
+        fl = solve_floats(p0, v0, a0, pf, zero, zero, [float(rng.uniform(0.2, 4.0))])[0]
+        tr = fl.trajectory()
+        for k in range(4):
+            if k < 2:  # axis-aligned, as the lab's walls
+                normal = [0.0, 0.0, 0.0]
+                normal[int(rng.integers(3))] = float(rng.choice([1.0, -1.0]))
+            else:
+                normal = (rng.normal(size=3) * rng.choice([0.2, 1.0, 3.0])).tolist()
+            point = rng.normal(0, 1.5, 3).tolist()
+            exact = float(tr.min_plane_distance(point, normal))
+            # thresholds around the exact minimum down to round-off: there the exact test decides
+            for thr in (float(rng.normal(0, 1.0)), exact, exact - 1e-12, exact + 1e-12, exact - 1e-9,
+                        exact + 1e-9, exact - 1e-4, exact + 1e-4, -1e-9):
+                want = bool(tr.min_plane_distance(point, normal) >= thr)
+                assert fl.planes_ok([Plane(tuple(point), tuple(normal), thr)]) == want, (i, k, thr - exact)
+        if i == 0:
+            with pytest.raises(ValueError, match="non-zero"):
+                Plane((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
