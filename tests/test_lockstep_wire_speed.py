@@ -110,6 +110,36 @@ def test_codec_pack_of_per_tick_messages_is_pymavlinks_bytes():
         ref.seq = (ref.seq + 1) % 256
 
 
+def test_everything_the_fc_sends_is_framed_as_pymavlink_frames_it():
+    # the FC's codec frames every message itself on an unsigned link: each kind it can send, from a
+    # vehicle in flight, must be pymavlink's bytes
+    from emulator.fc import EmulatedVehicle, MavlinkServer
+    from emulator.physics.native import hover_state
+    from emulator.profile import load_profile
+
+    profile = load_profile("n3_tx2")
+    vehicle = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.5, -1.0, 1.5)))
+    vehicle.fc.arm(0.0)
+    vehicle.step(20)
+    a, _ = MemoryTransport.pair()
+    codec = MavlinkCodec(a, SimClock(), 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    server = MavlinkServer(vehicle, codec)
+    ref = mav.MAVLink(None, srcSystem=1, srcComponent=mav.MAV_COMP_ID_AUTOPILOT1)
+    ref.seq = codec.mav.seq
+    m = codec.mav
+    msgs = [sender(0.02) for sender in server._senders.values()] + [
+        m.statustext_encode(mav.MAV_SEVERITY_CRITICAL, b"Failsafe: setpoint stream lost"),
+        m.command_ack_encode(mav.MAV_CMD_DO_SET_MODE, mav.MAV_RESULT_ACCEPTED, 0, 0, 1, 191),
+        m.timesync_encode(123_000_000, 456),
+        m.ping_encode(1_000, 7, 1, 191),
+    ]
+    assert len({msg.get_msgId() for msg in msgs}) == len(msgs) >= 14
+    for msg in msgs:
+        assert codec.pack(msg) == bytes(msg.pack(ref)), msg.get_type()
+        ref.seq = (ref.seq + 1) % 256
+    assert codec.stats.frames_sent == len(msgs)
+
+
 def test_signed_codec_packs_payloads_through_pymavlink():
     clock = SimClock()
     a, b = MemoryTransport.pair()

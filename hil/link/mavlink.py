@@ -150,8 +150,13 @@ class MavlinkCodec:
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
         msg_id = msg.get_msgId()  # not ``msg.id``: some messages have a field of that name
-        if msg_id in FAST_DECODE_IDS and not self.signing:  # the per-tick ids: framed here
-            return self.pack_payload(msg_id, payload_of(msg))
+        if not self.signing:  # framed here: the same bytes as pymavlink's, without its generic code
+            try:
+                payload = payload_of(msg)
+            except (struct.error, TypeError):  # a field pymavlink converts itself (text as str): let it
+                payload = None
+            if payload is not None:
+                return self.pack_payload(msg_id, payload)
         if self.signing:
             self._refresh_signing_time()
         self._mav.send(msg)
