@@ -267,6 +267,41 @@ def test_backward_crossing_and_bad_times() -> None:
         tracker.update(0.1, (-0.2, 0.0, 1.5), np.eye(3))
 
 
+def test_a_batch_of_samples_tracks_like_the_samples_one_by_one() -> None:
+    # a weaving path through and back past a 45 deg gap, hitting the wall on the way: the batch API (what
+    # the run recorder uses) must give the crossings, clearance and first collision of one-by-one calls
+    w = world(roll_deg=45, height_m=0.3)
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.001, 0.01, 300))
+    pos = np.stack([0.4 * np.sin(12 * t), 0.25 * np.sin(7 * t), 1.5 + 0.1 * np.cos(5 * t)], axis=1)
+    q = rng.normal(size=(300, 4)) * 0.05 + [1, 0, 0, 0]
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    codes, clr, in_slab = w.check_states_values(pos, q)
+    hits = [World.obstacle(int(c)) for c in codes]
+    n = (pos - w.gap.centre_m) @ w.gap.axes()[1]
+    one = CrossingTracker(w)
+    for i in range(300):
+        one.add_checked(t[i], pos[i], hits[i], clr[i], bool(in_slab[i]))
+    batch = CrossingTracker(w)
+    done = []
+    for lo, hi in ((0, 1), (1, 49), (49, 50), (50, 300)):  # batches of every size, a crossing across two
+        got = batch.add_checked_batch(t[lo:hi], pos[lo:hi], hits[lo:hi], clr[lo:hi], in_slab[lo:hi], n[lo:hi])
+        done += [(lo + i, c) for i, c in got]
+    assert len(one.crossings) >= 4 and one.first_collision is not None and one.min_clearance_m is not None
+    assert [c for _, c in done] == list(batch.crossings)
+    assert [(c.direction, c.through_opening) for c in batch.crossings] == \
+        [(c.direction, c.through_opening) for c in one.crossings]
+    for a, b in zip(batch.crossings, one.crossings, strict=True):
+        assert a.time_s == pytest.approx(b.time_s, abs=1e-12)
+        np.testing.assert_allclose(a.point_m, b.point_m, atol=1e-12)
+    assert all(t[i - 1] < c.time_s <= t[i] for i, c in done)
+    assert batch.min_clearance_m == one.min_clearance_m
+    assert batch.min_clearance_time_s == one.min_clearance_time_s
+    assert batch.first_collision == one.first_collision and batch.samples == one.samples == 300
+    with pytest.raises(ValueError, match="increase"):
+        batch.add_checked_batch(t[-2:], pos[-2:], hits[-2:], clr[-2:], in_slab[-2:], n[-2:])
+
+
 # --- bad input ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("pos", "att", "match"),

@@ -151,3 +151,16 @@ def check_state_pose(p: np.ndarray, q: np.ndarray, world: np.ndarray) -> tuple:
         world[_P_HALF:_P_WALL], world[_P_WALL:_P_HW], world[_P_HW], world[_P_HH], world[_P_MIN:_P_MAX],
         world[_P_MAX:_P_TOL], world[_P_TOL],
     )
+
+
+@njit(cache=True)
+def check_states(
+    p: np.ndarray, q: np.ndarray, world: np.ndarray, codes: np.ndarray, clr: np.ndarray, in_slab: np.ndarray
+) -> None:
+    """`check_state_pose` of each row of positions ``p`` (N, 3) and quaternions ``q`` (N, 4), written to
+    ``codes``, ``clr`` and ``in_slab`` (N,): one compiled call for a batch of samples."""
+    for i in range(p.shape[0]):
+        c, cl, s, _ = check_state_pose(p[i], q[i], world)
+        codes[i] = c
+        clr[i] = cl
+        in_slab[i] = s

@@ -30,7 +30,7 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
-from emulator.world.box_kernel import check_pose, check_state_pose, pack_world, quat_to_rot
+from emulator.world.box_kernel import check_pose, check_state_pose, check_states, pack_world, quat_to_rot
 from emulator.world.geometry import Gap, LabVolume, quat_to_matrix
 
 EDGE_NAMES: tuple[str, ...] = ("+e0", "-e0", "+e2", "-e2")
@@ -163,6 +163,19 @@ class World:
         """`check_state` as plain values: (`ObstacleCode`, clearance_m, in_slab, limiting edge index into
         `EDGE_NAMES`), for per-sample loops."""
         return check_state_pose(pos_m, quat_wxyz, self._packed)
+
+    def check_states_values(
+        self, pos_m: np.ndarray, quat_wxyz: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`check_state_values` of N simulated states at once: positions (N, 3) and non-zero quaternions
+        (N, 4), float64 and finite (not validated); returns (`ObstacleCode` (N,), clearance_m (N,),
+        in_slab (N,))."""
+        p = np.ascontiguousarray(pos_m, dtype=np.float64)
+        q = np.ascontiguousarray(quat_wxyz, dtype=np.float64)
+        n = len(p)
+        codes, clr, in_slab = np.empty(n, np.int64), np.empty(n), np.empty(n, np.bool_)
+        check_states(p, q, self._packed, codes, clr, in_slab)
+        return codes, clr, in_slab
 
     def collision(self, pos_m: np.ndarray, attitude: np.ndarray) -> Obstacle | None:
         """What the box hits at this pose, or None. Order when several: wall, ground, lab boundary."""

@@ -83,6 +83,49 @@ class CrossingTracker:
         n = float(self.world.gap_coords_unchecked(p)[1]) if n_m is None else n_m
         return self._add(t, p, n, hit, clearance_m, in_slab)
 
+    def add_checked_batch(
+        self,
+        time_s: np.ndarray,
+        pos_m: np.ndarray,
+        hits: list[Obstacle | None],
+        clearance_m: np.ndarray,
+        in_slab: np.ndarray,
+        n_m: np.ndarray,
+    ) -> list[tuple[int, Crossing]]:
+        """`add_checked` for N samples at once, times (N,) increasing, positions (N, 3), what each hit,
+        clearances (N,) (m), in_slab (N,) and offsets along e1 (N,) (m); the same bookkeeping as N
+        calls. Returns the crossings completed, each with the index of the sample that completed it."""
+        t = np.asarray(time_s, dtype=np.float64)
+        if len(t) == 0:
+            return []
+        if not np.all(np.isfinite(t)):
+            raise ValueError("time_s must be finite")
+        if (self._prev is not None and t[0] <= self._prev[0]) or np.any(np.diff(t) <= 0):
+            raise ValueError("time_s must increase")
+        p = np.array(pos_m, dtype=np.float64)
+        if np.any(in_slab):
+            idx = np.flatnonzero(in_slab)
+            j = int(idx[np.argmin(clearance_m[idx])])  # the first of equal minima, as one by one
+            if self.min_clearance_m is None or clearance_m[j] < self.min_clearance_m:
+                self.min_clearance_m, self.min_clearance_time_s = float(clearance_m[j]), float(t[j])
+        if self.first_collision is None:
+            j = next((i for i, hit in enumerate(hits) if hit is not None), None)
+            if j is not None:
+                self.first_collision = CollisionEvent(float(t[j]), hits[j])  # type: ignore[arg-type]
+        n = np.asarray(n_m, dtype=np.float64)
+        out = []
+        prev = self._prev
+        neg = n < 0
+        for i in np.flatnonzero(neg[1:] != neg[:-1]) + 1:  # sign changes inside the batch
+            out.append((int(i), self._crossing(float(t[i - 1]), p[i - 1], float(n[i - 1]), float(t[i]), p[i],
+                                               float(n[i]))))
+        if prev is not None and (prev[2] < 0) != neg[0]:  # ... and across from the last batch
+            out.insert(0, (0, self._crossing(prev[0], prev[1], prev[2], float(t[0]), p[0], float(n[0]))))
+        self._crossings.extend(c for _, c in out)
+        self._prev = (float(t[-1]), p[-1], float(n[-1]))
+        self.samples += len(t)
+        return out
+
     def _check_time(self, time_s: float) -> float:
         t = float(time_s)
         if not math.isfinite(t):
@@ -103,22 +146,26 @@ class CrossingTracker:
         if prev is not None:
             t0, p0, n0 = prev
             if (n0 < 0) != (n < 0):
-                world = self.world
-                alpha = -n0 / (n - n0)
-                point = p0 + alpha * (p - p0)
-                u, _, v = world.gap_coords(point)
-                gap = world.gap
-                crossing = Crossing(
-                    time_s=t0 + alpha * (t - t0),
-                    direction=1 if n > n0 else -1,
-                    point_m=(float(point[0]), float(point[1]), float(point[2])),
-                    offset_m=(float(u), float(v)),
-                    through_opening=bool(abs(u) <= gap.width_m / 2 and abs(v) <= gap.height_m / 2),
-                )
+                crossing = self._crossing(t0, p0, n0, t, p, n)
                 self._crossings.append(crossing)
         self._prev = (t, p, n)
         self.samples += 1
         return crossing
+
+    def _crossing(self, t0: float, p0: np.ndarray, n0: float, t: float, p: np.ndarray, n: float) -> Crossing:
+        """The crossing between samples (t0, p0, n0) and (t, p, n) on either side of the plane."""
+        world = self.world
+        alpha = -n0 / (n - n0)
+        point = p0 + alpha * (p - p0)
+        u, _, v = world.gap_coords(point)
+        gap = world.gap
+        return Crossing(
+            time_s=t0 + alpha * (t - t0),
+            direction=1 if n > n0 else -1,
+            point_m=(float(point[0]), float(point[1]), float(point[2])),
+            offset_m=(float(u), float(v)),
+            through_opening=bool(abs(u) <= gap.width_m / 2 and abs(v) <= gap.height_m / 2),
+        )
 
     @property
     def crossing_count(self) -> int:

@@ -37,6 +37,8 @@ MOCAP_COUNT_MASK = 0x7FFFFFFF
 #: wall time the loop polls for an answer before it sleeps: the answer usually comes within it, and a
 #: sleeping CPU of a virtual machine takes tens to hundreds of microseconds to wake
 SPIN_S = 1e-3
+#: samples the recorder gathers before it checks and records them together (about half a second)
+RECORD_BATCH = 64
 RESEND_FILLER = bytes(280)  # longer than any MAVLink frame; zeros are never a frame start
 #: a tick not answered within this wall time is sent again (lost on a fresh port, or in the program's
 #: parser behind a frame with a corrupt length): a repeat is only answered, so a spurious one costs nothing
@@ -145,7 +147,7 @@ def run_lockstep(
             else:
                 wire.send_sync(tick_frames(t, mocap_total))
                 onboard.service()
-                emu.recorder.flush()  # the tick's checks and time-series rows, while the onboard works
+                emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
                 if first:  # wait for the new process, then the loop proper starts
                     startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
                     _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)

@@ -7,7 +7,6 @@ Sampled every 10 ms of sim time, every 1 ms while the body is within reach of th
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,10 +14,9 @@ import numpy as np
 from emulator.fc import FlightController, MavlinkServer
 from emulator.fc.n3 import AttitudeThrustTarget
 from emulator.mocap_link import MocapLinkServer
-from emulator.physics.state import POS, QUAT
+from emulator.physics.state import OMEGA, POS, QUAT, ROTOR, VEL
 from emulator.profile import VehicleProfile
 from emulator.world import CrossingTracker, Obstacle, World
-from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple
 
 SAMPLE_S = 0.01  # away from the wall (s)
 NEAR_WALL_SAMPLE_S = 0.001  # within NEAR_WALL_M of the gap plane (s)
@@ -58,6 +56,30 @@ _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCod
 FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
 
 
+def _command(tg: AttitudeThrustTarget | None, full_thrust_n: float) -> tuple[float, float, float, float]:
+    """The FC target's columns: roll, pitch, yaw (deg; NaN when it flies a yaw rate), thrust (%)."""
+    if tg is None:
+        return _NO_COMMAND
+    degrees = math.degrees
+    yaw = degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan
+    return degrees(tg.roll_rad), degrees(tg.pitch_rad), yaw, 100.0 * tg.thrust_n / full_thrust_n
+
+
+def _euler_ned_frd(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Roll, pitch, yaw (rad) of body FLU -> world ENU quaternions (N, 4) (w, x, y, z) seen as body FRD
+    -> world NED: `euler_from_quat` of `quat_enu_flu_to_ned_frd_tuple`, row by row."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    s = math.sqrt(0.5)
+    qw, qx, qy, qz = -(s * w + s * z), -(s * x) - s * y, s * y - s * x, -(s * w - s * z)
+    n = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    n = np.where(qw < 0, -n, n)
+    qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n
+    roll = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy))
+    pitch = np.arcsin(np.clip(2 * (qw * qy - qz * qx), -1.0, 1.0))
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    return roll, pitch, yaw
+
+
 @dataclass(frozen=True)
 class Collision:
     """The first collision that counts: what, when (sim s), where (m) and how fast (m/s)."""
@@ -79,16 +101,15 @@ class Recorder:
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
         self._data = np.full((cap, len(COLUMNS)), np.nan)
-        self._n = 0  # rows recorded, the last ``len(self._rows)`` of them not yet in ``_data``
-        self._rows: list[tuple[float, ...]] = []
+        self._n = 0  # rows recorded
+        #: per recorded row: time (s), setpoints applied, mocap frames written (for the rates)
+        self._hist_t, self._hist_applied, self._hist_frames = np.empty(cap), np.empty(cap), np.empty(cap)
         self._collision: Collision | None = None
         self._max_outside_lab_m = 0.0
         self._attitude_error_deg_at_crossing: float | None = None
         self._crossings_seen = 0
         #: samples taken and not yet checked and recorded (see `sample`)
         self._pending: list[_Sample] = []
-        #: (t, setpoints applied, mocap frames written)
-        self._rate_hist: deque[tuple[float, int, int]] = deque()
         self._gap_axes = world.gap.axes()
         self._gap_centre = np.asarray(world.gap.centre_m)
         self._lab_min = np.asarray(world.lab.min_m)
@@ -146,84 +167,75 @@ class Recorder:
                               mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
                               mocap.radio.stats.lost))
 
-    def flush(self) -> None:
-        """Check and record the samples taken since the last call."""
+    def flush(self, at_least: int = 1) -> None:
+        """Check and record the samples taken since the last call, if there are ``at_least`` of them
+        (the lockstep loop gathers a batch: the checks and rows are computed for all at once)."""
         pending = self._pending
-        if pending:
-            for p in pending:
-                self._record(*p)
+        if len(pending) >= at_least and pending:
+            self._record(pending)
             pending.clear()
-            rows = self._rows
-            if rows:  # into the table in one assignment
-                self._data[self._n - len(rows) : self._n] = rows
-                rows.clear()
 
-    def _record(self, t: float, x: np.ndarray, n_wall: float, tg: AttitudeThrustTarget | None,
-                fc_state: str, applied: int, frames: int, command_lost: int, mocap_lost: int) -> None:
-        pos, quat = x[POS], x[QUAT]
-        # the simulated state is finite: no validation
-        code, clr_m, in_slab, _ = self.world.check_state_values(pos, quat)
-        hit = _OBSTACLES[code]
-        if t > 0:
+    def _record(self, batch: list[_Sample]) -> None:
+        """World checks, the crossing tracker and the time-series rows of a batch of samples, as the
+        samples would have been taken one by one."""
+        ts, xs, n_wall, targets, fc_states, applied, frames, cmd_lost, mocap_lost = zip(*batch, strict=True)
+        t = np.array(ts)
+        x = np.array(xs)  # (N, STATE_SIZE)
+        pos, quat = x[:, POS], x[:, QUAT]
+        # the simulated states are finite: no validation
+        codes, clr, in_slab = self.world.check_states_values(pos, quat)
+        hits = [_OBSTACLES[c] for c in codes.tolist()]
+        k0 = 1 if ts[0] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
+        if k0 < len(ts):
             tracker = self._tracker
-            crossing = tracker.add_checked(t, pos, hit, clr_m, in_slab, n_wall)
-            if crossing is not None and self._crossings_seen == 0:
-                self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat)
+            done = tracker.add_checked_batch(t[k0:], pos[k0:], hits[k0:], clr[k0:], in_slab[k0:],
+                                             np.array(n_wall[k0:]))
+            if done and self._crossings_seen == 0:
+                self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat[k0 + done[0][0]])
             self._crossings_seen = tracker.crossing_count
-        (px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, *rotors) = x.tolist()
-        if hit is not None and self._collision is None:
-            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-            if hit is not Obstacle.GROUND or speed >= GROUND_HIT_SPEED_M_S:
-                self._collision = Collision(str(hit), t, (px, py, pz), speed)
-        lo, hi = self._lab_min_t, self._lab_max_t
-        outside = max(lo[0] - px, lo[1] - py, lo[2] - pz, px - hi[0], py - hi[1], pz - hi[2], 0.0)
+        vel = x[:, VEL]
+        if self._collision is None and any(h is not None for h in hits):
+            speed = np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1] + vel[:, 2] * vel[:, 2])
+            for i, hit in enumerate(hits):
+                if hit is not None and (hit is not Obstacle.GROUND or speed[i] >= GROUND_HIT_SPEED_M_S):
+                    px, py, pz = pos[i].tolist()
+                    self._collision = Collision(str(hit), ts[i], (px, py, pz), float(speed[i]))
+                    break
+        outside = max(float(np.max(self._lab_min - pos)), float(np.max(pos - self._lab_max)), 0.0)
         if outside > self._max_outside_lab_m:
             self._max_outside_lab_m = outside
-        if self._n >= self._cap:
+        m = min(len(ts), self._cap - self._n)  # rows that still fit
+        if m <= 0:
             return
-        hist = self._rate_hist
-        hist.append((t, applied, frames))
-        while len(hist) > 1 and hist[0][0] < t - RATE_WINDOW_S:
-            hist.popleft()
-        h0 = hist[0]
-        span = max(t - h0[0], 1e-9)
-        cmd_rate = (applied - h0[1]) / span if t > 0 else 0.0
-        mocap_rate = (frames - h0[2]) / span if t > 0 else 0.0
-        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(qw, qx, qy, qz))
-        degrees = math.degrees
-        if tg is not None:
-            cmd = (
-                degrees(tg.roll_rad),
-                degrees(tg.pitch_rad),
-                degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan,
-                100.0 * tg.thrust_n / self._full_thrust_n,
-            )
-        else:
-            cmd = _NO_COMMAND
+        n0, n1 = self._n, self._n + m
+        t, x, pos, quat, vel = t[:m], x[:m], pos[:m], quat[:m], vel[:m]
+        # rates over the last RATE_WINDOW_S: from the oldest recorded sample inside the window
+        ht, ha, hf = self._hist_t, self._hist_applied, self._hist_frames
+        ht[n0:n1], ha[n0:n1], hf[n0:n1] = t, applied[:m], frames[:m]
+        h0 = np.minimum(np.searchsorted(ht[:n1], t - RATE_WINDOW_S, side="left"), np.arange(n0, n1))
+        span = np.maximum(t - ht[h0], 1e-9)
+        moving = t > 0
+        cmd_rate = np.where(moving, (ha[n0:n1] - ha[h0]) / span, 0.0)
+        mocap_rate = np.where(moving, (hf[n0:n1] - hf[h0]) / span, 0.0)
+        roll, pitch, yaw = _euler_ned_frd(quat)
+        cmd = np.array([_command(tg, self._full_thrust_n) for tg in targets[:m]]).reshape(m, 4)
+        w = x[:, ROTOR]
         kf = self._thrust_coeff
-        # one row (columns as in COLUMNS), written to the table by `flush`
-        self._rows.append((
-            t,
-            px,
-            py,
-            pz,
-            vx,
-            vy,
-            vz,
-            degrees(roll),
-            degrees(pitch),
-            degrees(yaw),
-            *cmd,
-            clr_m if in_slab else math.nan,
-            cmd_rate,
-            mocap_rate,
-            command_lost,
-            mocap_lost,
-            FC_STATE_CODES.get(fc_state, -1),
-            sum([kf * (w * w) for w in rotors]),
-            math.sqrt(wx * wx + wy * wy + wz * wz),
-        ))
-        self._n += 1
+        om = x[:, OMEGA]
+        block = self._data[n0:n1]
+        block[:, 0] = t
+        block[:, 1:4] = pos
+        block[:, 4:7] = vel
+        block[:, 7], block[:, 8], block[:, 9] = np.degrees(roll), np.degrees(pitch), np.degrees(yaw)
+        block[:, 10:14] = cmd
+        block[:, 14] = np.where(in_slab[:m], clr[:m], np.nan)
+        block[:, 15], block[:, 16] = cmd_rate, mocap_rate
+        block[:, 17], block[:, 18] = cmd_lost[:m], mocap_lost[:m]
+        block[:, 19] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
+        block[:, 20] = (kf * (w[:, 0] * w[:, 0]) + kf * (w[:, 1] * w[:, 1])) + kf * (w[:, 2] * w[:, 2]) + \
+            kf * (w[:, 3] * w[:, 3])
+        block[:, 21] = np.sqrt(om[:, 0] * om[:, 0] + om[:, 1] * om[:, 1] + om[:, 2] * om[:, 2])
+        self._n = n1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:
         """Angle between the body's z axis and the gap's short-side axis e2, either sign (deg)."""
