@@ -102,11 +102,11 @@ class MocapLinkServer:
 
     def _forward(self, now: float, frames: list[FrameRows]) -> int:
         radio, uart = self.radio, self.uart
-        for frame in frames:
-            radio.send(frame.ready_s, encode_mocap_rows(frame.frame_no & 0xFFFFFFFF, frame.rows[:MAX_BODIES]))
-        for delivery in radio.update(now):
-            uart.write(delivery.arrival_s, encode_node_frame(
-                delivery.data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))
+        for frame_no, _, ready_s, rows in frames:
+            radio.send(ready_s, encode_mocap_rows(frame_no & 0xFFFFFFFF, rows[:MAX_BODIES]))
+        for arrival_s, data in radio.update_data(now):
+            uart.write(arrival_s, encode_node_frame(
+                data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))
         chunks = uart.update(now)
         if not chunks:
             return 0  # nothing off the wire yet (most calls)

@@ -101,7 +101,8 @@ class UwbRadio:
         self._air_busy_until_s = -math.inf
         self._air_ends: list[float] = []  # when the packets queued or on the air will have left
         self._last_arrival_s = -math.inf
-        self._in_flight: list[tuple[float, int, Delivery]] = []
+        #: (arrival_s, sequence number, data, sent_s) of the packets on their way, a heap
+        self._in_flight: list[tuple[float, int, bytes, float]] = []
         self._seq = 0
         self._bad = False
         self.stats = UwbStats()
@@ -140,7 +141,9 @@ class UwbRadio:
             arrival = self._last_arrival_s  # the radio keeps order
         self._last_arrival_s = arrival
         self._seq += 1
-        heapq.heappush(self._in_flight, (arrival, self._seq, Delivery(bytes(data), now_s, arrival)))
+        heapq.heappush(
+            self._in_flight, (arrival, self._seq, data if data.__class__ is bytes else bytes(data), now_s)
+        )
         return True
 
     def _jitter(self, jitter_s: float) -> float:
@@ -176,17 +179,29 @@ class UwbRadio:
 
     def update(self, now_s: float) -> list[Delivery]:
         """Packets that have arrived by ``now_s``."""
+        return [Delivery(data, sent_s, arrival_s) for arrival_s, data, sent_s in self._arrived(now_s)]
+
+    def update_data(self, now_s: float) -> list[tuple[float, bytes]]:
+        """`update` as (arrival_s, data) pairs, without a Delivery per packet (the mocap link's)."""
+        q = self._in_flight
+        if not q or q[0][0] > now_s + 1e-12:
+            return []  # nothing arrived yet (most calls)
+        return [(arrival_s, data) for arrival_s, data, _ in self._arrived(now_s)]
+
+    def _arrived(self, now_s: float) -> list[tuple[float, bytes, float]]:
+        """(arrival_s, data, sent_s) of the packets that have arrived by ``now_s``, counted."""
         q = self._in_flight
         if not q or q[0][0] > now_s + 1e-12:
             return []  # nothing arrived yet (most calls)
         out = []
         stats, late_after = self.stats, self.config.late_after_s
+        pop = heapq.heappop
         while q and q[0][0] <= now_s + 1e-12:
-            d = heapq.heappop(q)[2]
+            arrival_s, _, data, sent_s = pop(q)
             stats.delivered += 1
-            if d.arrival_s - d.sent_s > late_after:
+            if arrival_s - sent_s > late_after:
                 stats.late += 1
-            out.append(d)
+            out.append((arrival_s, data, sent_s))
         return out
 
 
@@ -210,9 +225,11 @@ class UartWire:
 
     def write(self, now_s: float, data: bytes) -> float:
         """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
-        done = max(now_s, self._busy_until_s) + self.wire_time_s(len(data))
+        busy = self._busy_until_s
+        # max(now_s, busy) + wire_time_s(len(data)), as plain arithmetic
+        done = (busy if busy > now_s else now_s) + len(data) * self.bits_per_byte / self.baud
         self._busy_until_s = done
-        self._queue.append((done, bytes(data)))
+        self._queue.append((done, data if data.__class__ is bytes else bytes(data)))
         return done
 
     def next_event_s(self) -> float:
@@ -221,11 +238,16 @@ class UartWire:
     def update(self, now_s: float) -> list[tuple[float, bytes]]:
         """(done_s, bytes) of the chunks whose wire time has passed by ``now_s``."""
         q = self._queue
-        if not q or q[0][0] > now_s + 1e-12:
+        limit = now_s + 1e-12
+        if not q or q[0][0] > limit:
             return []  # nothing done yet (most calls)
-        n = 0
-        while n < len(self._queue) and self._queue[n][0] <= now_s + 1e-12:
+        if len(q) == 1:  # one chunk, done: the queue empties
+            self._queue = []
+            self.bytes_written += len(q[0][1])
+            return q
+        n = 1
+        while n < len(q) and q[n][0] <= limit:
             n += 1
-        out, self._queue = self._queue[:n], self._queue[n:]
+        out, self._queue = q[:n], q[n:]
         self.bytes_written += sum(len(d) for _, d in out)
         return out

@@ -114,12 +114,17 @@ class FastStepper:
         v = self.vehicle
         fc = v.fc
         tg = fc.target
-        if not self.native or fc.state is not FcState.OFFBOARD or tg is None or tg.yaw_rate_rad_s is not None:
+        if (
+            not self.native
+            or fc.machine.state is not FcState.OFFBOARD
+            or tg is None
+            or tg.yaw_rate_rad_s is not None
+        ):
             return 0
         # the FC checks the timeout before each step at the step's start time
         room = fc.last_setpoint_s + fc.config.failsafe_timeout_s - v.time_s
-        n_ok = int(room / v.dt_s) if room > 0 else 0
-        return min(n_steps, n_ok)
+        n_ok = int(room / v.backend.dt_s) if room > 0 else 0
+        return n_steps if n_steps < n_ok else n_ok
 
     def _hold_steps(self, n_steps: int) -> int:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
@@ -174,7 +179,7 @@ class FastStepper:
 
     def _after_batch(self, n: int, detect_landed: bool = True) -> None:
         v = self.vehicle
-        fc, be, inner = v.fc, v.backend, v.fc.inner
+        fc, be = v.fc, v.backend
         assert isinstance(be, NativeBackend)
         be._steps += n
         v.steps += n
@@ -182,9 +187,9 @@ class FastStepper:
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
         x = be._x
         # the FC's bookkeeping as its own per-step update would have left it
-        t_last = be.time_s - v.dt_s
+        t_last = be.time_s - be.dt_s
         fc._last_t = t_last
         fc._quat = x[6:10].copy()
         if detect_landed:
-            fc.detect_landed(x[2], x[5], t_last)
-        fc.motor_cmd = inner._out
+            fc.detect_landed(x.item(2), x.item(5), t_last)  # (plain floats: the same comparisons)
+        fc.motor_cmd = fc.inner._out

@@ -15,7 +15,14 @@ import numpy as np
 
 from emulator.fc.inner_loop import InnerLoop, InnerLoopGains
 from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
-from emulator.fc.n3 import AttitudeThrustTarget, N3Setpoint, to_target, wrap_pi
+from emulator.fc.n3 import (
+    AttitudeThrustTarget,
+    N3Setpoint,
+    check_flag,
+    target_from_values,
+    to_target,
+    wrap_pi,
+)
 from emulator.physics.state import VehicleState
 from emulator.profile import GRAVITY_M_S2, VehicleProfile
 
@@ -96,10 +103,23 @@ class FlightController:
     # --- inputs ----------------------------------------------------------------------------
     def set_setpoint(self, sp: N3Setpoint, time_s: float) -> AttitudeThrustTarget:
         """Take a setpoint that arrived at ``time_s``; raises SetpointRejected with the reason."""
-        target = to_target(sp, self.profile)
-        was_rate = self.target is not None and self.target.yaw_rate_rad_s is not None
-        if target.yaw_rate_rad_s is not None and not was_rate:
-            self._yaw_sp_fresh = True
+        return self._take(to_target(sp, self.profile), time_s)
+
+    def set_setpoint_values(
+        self, flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float, time_s: float
+    ) -> AttitudeThrustTarget:
+        """`set_setpoint` of the N3Setpoint with these fields (degrees, percent), without building it."""
+        check_flag(flag)
+        return self._take(
+            target_from_values(flag, roll_deg, pitch_deg, thrust_percent, yaw, self.profile), time_s
+        )
+
+    def _take(self, target: AttitudeThrustTarget, time_s: float) -> AttitudeThrustTarget:
+        """Make a validated ``target`` that arrived at ``time_s`` (s) the one flown."""
+        if target.yaw_rate_rad_s is not None:
+            old = self.target
+            if old is None or old.yaw_rate_rad_s is None:  # a yaw-rate stream starts: from the heading
+                self._yaw_sp_fresh = True
         self.target = target
         self.last_setpoint_s = time_s
         self._arrivals.append(time_s)

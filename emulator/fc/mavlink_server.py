@@ -25,6 +25,7 @@ from hil.link.mavlink import (
     PX4_MAIN_OFFBOARD,
     MavlinkCodec,
     MAVLinkMessage,
+    decode_frame,
     euler_from_quat,
     mav,
 )
@@ -44,6 +45,12 @@ DEFAULT_INTERVALS_S: dict[int, float] = {
     mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
 }
 ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+#: ids the server can take as undecoded frames: a codec built with these as its ``raw_ids`` hands the
+#: setpoints over as bytes, and `handle` reads them without a message object
+RAW_MSG_IDS: frozenset[int] = frozenset({mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET})
+_SET_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker  # its payload, in wire order
+#: streamed messages read from the vehicle's state (`TelemetryEncoder.state_values`, read once per send)
+_STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
 
 
 @dataclass(frozen=True)
@@ -120,6 +127,21 @@ class MavlinkServer:
             "PING": self._on_ping,
             "TIMESYNC": self._on_timesync,
         }
+        #: the same by message class (a class's messages all have its type name): one lookup per message
+        self._class_handlers: dict[type, Callable[[MAVLinkMessage, float], None]] = {
+            mav.mavlink_map[getattr(mav, f"MAVLINK_MSG_ID_{name}")]: handler
+            for name, handler in self._handlers.items()
+        }
+        #: streams sent as payloads built without message objects (the same bytes as `_senders`')
+        t = self.telemetry
+        self._payloads: dict[int, Callable[[float, list[float] | None], bytes]] = {
+            mav.MAVLINK_MSG_ID_HEARTBEAT: lambda now_s, x: t.heartbeat_payload(),
+            mav.MAVLINK_MSG_ID_ATTITUDE: t.attitude_payload,
+            mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: t.local_position_ned_payload,
+            mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda now_s, x: t.extended_sys_state_payload(),
+        }
+        self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
+        self._recorder_tick: Callable[[], None] | None = None
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -136,8 +158,11 @@ class MavlinkServer:
         if now_s >= self._streams_due_s:
             self._send_streams(now_s)
         recorder = self.codec.recorder
-        if recorder is not None and hasattr(recorder, "tick"):
-            recorder.tick()
+        if recorder is not self._recorder:  # (looked up once per recorder)
+            self._recorder = recorder
+            self._recorder_tick = getattr(recorder, "tick", None) if recorder is not None else None
+        if self._recorder_tick is not None:
+            self._recorder_tick()
 
     def _input_due(self) -> bool:
         """False only when the transport says nothing can be read now (see `poll`)."""
@@ -152,16 +177,26 @@ class MavlinkServer:
             return True
         return next_arrival() <= self._arrival_clock.now_s() + 1e-12
 
-    def handle(self, msg: MAVLinkMessage, now_s: float) -> None:
-        """Act on one received message (never raises)."""
-        handler = self._handlers.get(msg.get_type())
+    def handle(self, msg: MAVLinkMessage | bytes, now_s: float) -> None:
+        """Act on one received message, or on the frame of one a codec hands over undecoded
+        (`RAW_MSG_IDS`); never raises."""
+        if msg.__class__ is bytes:
+            frame: bytes = msg  # type: ignore[assignment]
+            if frame[7] | frame[8] << 8 | frame[9] << 16 == mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET:
+                handler = self._on_set_attitude_target_frame
+            else:
+                msg = decode_frame(frame)
+                handler = self._handlers.get(msg.get_type())
+        else:
+            handler = self._class_handlers.get(msg.__class__) or self._handlers.get(msg.get_type())
         if handler is None:
             return
         try:
             handler(msg, now_s)
         except Exception as exc:  # a message the handlers did not foresee: count and tell, don't die
             self.stats.handler_errors += 1
-            self.statustext(mav.MAV_SEVERITY_ERROR, f"{msg.get_type()} ignored: {type(exc).__name__}", now_s)
+            name = "SET_ATTITUDE_TARGET" if msg.__class__ is bytes else msg.get_type()
+            self.statustext(mav.MAV_SEVERITY_ERROR, f"{name} ignored: {type(exc).__name__}", now_s)
 
     def send(self, msg: MAVLinkMessage) -> None:
         self.codec.send(msg)
@@ -182,13 +217,23 @@ class MavlinkServer:
         if now_s < self._streams_due_s:
             return  # nothing due yet (most polls)
         due_min = math.inf
+        next_due, payloads = self._next_due, self._payloads
+        x = None  # the vehicle's state values, read once for all the streams due now
         for msg_id, interval in self._intervals.items():
-            due = self._next_due.get(msg_id, now_s)
+            due = next_due.get(msg_id, now_s)
             if now_s >= due:
-                self.send(self._senders[msg_id](now_s))
+                make = payloads.get(msg_id)
+                if make is None:
+                    self.send(self._senders[msg_id](now_s))
+                else:
+                    if x is None and msg_id in _STATE_STREAMS:
+                        x = self.telemetry.state_values()
+                    codec = self.codec
+                    codec.transport.send(codec.pack_payload(msg_id, make(now_s, x)))
                 nxt = due + interval
-                due = self._next_due[msg_id] = nxt if nxt > now_s else now_s + interval
-            due_min = min(due_min, due)
+                due = next_due[msg_id] = nxt if nxt > now_s else now_s + interval
+            if due < due_min:
+                due_min = due
         self._streams_due_s = due_min
 
     def _report_events(self, now_s: float) -> None:
@@ -217,18 +262,39 @@ class MavlinkServer:
     def _on_set_attitude_target(self, msg: MAVLinkMessage, now_s: float) -> None:
         if not self._for_me(msg.target_system, msg.target_component):
             return
+        applied = self._apply_attitude_target(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate, now_s)
+        if applied and self.on_setpoint is not None:
+            self.on_setpoint(msg, now_s)
+
+    def _on_set_attitude_target_frame(self, frame: bytes, now_s: float) -> None:
+        """`_on_set_attitude_target` of the message in ``frame`` (unsigned, CRC checked), read from
+        its payload (zero-padded or cut to the message's size, as pymavlink does)."""
+        size = _SET_ATTITUDE_TARGET.size
+        if frame[1] == size:  # (the usual case: no trailing zeros trimmed)
+            values = _SET_ATTITUDE_TARGET.unpack_from(frame, 10)
+        else:
+            values = _SET_ATTITUDE_TARGET.unpack(frame[10 : 10 + frame[1]][:size].ljust(size, b"\x00"))
+        _, q0, q1, q2, q3, _, _, yaw_rate, thrust, target_system, target_component, type_mask = values
+        if not self._for_me(target_system, target_component):
+            return
+        applied = self._apply_attitude_target(type_mask, [q0, q1, q2, q3], thrust, yaw_rate, now_s)
+        if applied and self.on_setpoint is not None:
+            self.on_setpoint(decode_frame(frame), now_s)
+
+    def _apply_attitude_target(
+        self, type_mask: int, q: Any, thrust: Any, body_yaw_rate: Any, now_s: float
+    ) -> bool:
+        """Hand a SET_ATTITUDE_TARGET's setpoint to the FC; False (counted, told) when rejected."""
         try:
-            sp = setpoint_from_attitude_target(msg)
-            self.fc.set_setpoint(sp, now_s)
+            self.fc.set_setpoint_values(*attitude_target_values(type_mask, q, thrust, body_yaw_rate), now_s)
         except SetpointRejected as exc:
             self.stats.setpoints_rejected += 1
             self.statustext(
                 mav.MAV_SEVERITY_WARNING, f"Setpoint rejected: {exc.reason}", now_s, key="setpoint"
             )
-            return
+            return False
         self.stats.setpoints_applied += 1
-        if self.on_setpoint is not None:
-            self.on_setpoint(msg, now_s)
+        return True
 
     # --- commands --------------------------------------------------------------------------
     def _on_command_long(self, msg: MAVLinkMessage, now_s: float) -> None:
@@ -364,34 +430,69 @@ def _mav_result(res: CommandResult) -> int:
 
 def setpoint_from_attitude_target(msg: MAVLinkMessage) -> N3Setpoint:
     """SET_ATTITUDE_TARGET -> N3Setpoint; raises SetpointRejected with the reason."""
-    mask = msg.type_mask
-    if mask & mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
+    return N3Setpoint(*attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate))
+
+
+def attitude_target_values(
+    type_mask: int, q: Any, thrust: Any, body_yaw_rate: Any
+) -> tuple[int, float, float, float, float]:
+    """The N3Setpoint fields (flag, roll, pitch (deg), thrust (%), yaw (deg or deg/s)) of a
+    SET_ATTITUDE_TARGET with these fields (quaternion NED -> FRD, thrust 0..1, yaw rate rad/s);
+    raises SetpointRejected with the reason."""
+    mask = type_mask
+    if mask & _ATTITUDE_IGNORE:
         raise SetpointRejected("attitude ignored: N3 flies roll/pitch angles")
-    if mask & mav.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE:
+    if mask & _THROTTLE_IGNORE:
         raise SetpointRejected("thrust ignored: N3 needs vertical thrust")
-    q = [float(x) for x in msg.q]
-    thrust = float(msg.thrust)
-    # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
-    if not (math.isfinite(sum(q)) or all(math.isfinite(x) for x in q)):
-        raise SetpointRejected("non-finite attitude quaternion")
-    if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
-        raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    if len(q) == 4:  # the message's own size: in plain floats
-        w, x, y, z = q
+    if q.__class__ is list and len(q) == 4:  # a decoded message's (any other sequence: below)
+        w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+        thrust = float(thrust)
+        # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
+        if not (math.isfinite(w + x + y + z) or all(map(math.isfinite, (w, x, y, z)))):
+            raise SetpointRejected("non-finite attitude quaternion")
+        if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+            raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
         norm = math.sqrt(w * w + x * x + y * y + z * z)
         if abs(norm - 1.0) > 0.1:
             raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat((w / norm, x / norm, y / norm, z / norm))
-    else:
-        norm = math.sqrt(sum(x * x for x in q))
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat([x / norm for x in q])
-    if mask & mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE:
-        flag, yaw_value = ATTITUDE_THRUST_YAW_ANGLE, math.degrees(yaw)
-    else:
-        rate = float(msg.body_yaw_rate)
-        if not math.isfinite(rate):
-            raise SetpointRejected("non-finite yaw rate")
-        flag, yaw_value = ATTITUDE_THRUST_YAW_RATE, math.degrees(rate)
-    return N3Setpoint(flag, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, yaw_value)
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        # `euler_from_quat`, its yaw only when it is used
+        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        s = 2 * (w * y - z * x)
+        s = s if s < 1.0 else 1.0  # max(-1.0, min(1.0, s)), NaN included
+        pitch = math.asin(s if s > -1.0 else -1.0)
+        if mask & _YAW_RATE_IGNORE:
+            yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+            roll_deg, pitch_deg = math.degrees(roll), math.degrees(pitch)
+            return ATTITUDE_THRUST_YAW_ANGLE, roll_deg, pitch_deg, 100.0 * thrust, math.degrees(yaw)
+    else:  # any other sequence
+        qs = [float(v) for v in q]
+        thrust = float(thrust)
+        if not (math.isfinite(sum(qs)) or all(math.isfinite(v) for v in qs)):
+            raise SetpointRejected("non-finite attitude quaternion")
+        if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+            raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
+        if len(qs) == 4:
+            w, x, y, z = qs
+            norm = math.sqrt(w * w + x * x + y * y + z * z)
+            if abs(norm - 1.0) > 0.1:
+                raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+            roll, pitch, yaw = euler_from_quat((w / norm, x / norm, y / norm, z / norm))
+        else:
+            norm = math.sqrt(sum(v * v for v in qs))
+            if abs(norm - 1.0) > 0.1:
+                raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+            roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
+        if mask & _YAW_RATE_IGNORE:
+            roll_deg, pitch_deg = math.degrees(roll), math.degrees(pitch)
+            return ATTITUDE_THRUST_YAW_ANGLE, roll_deg, pitch_deg, 100.0 * thrust, math.degrees(yaw)
+    rate = float(body_yaw_rate)
+    if not math.isfinite(rate):
+        raise SetpointRejected("non-finite yaw rate")
+    roll_deg, pitch_deg = math.degrees(roll), math.degrees(pitch)
+    return ATTITUDE_THRUST_YAW_RATE, roll_deg, pitch_deg, 100.0 * thrust, math.degrees(rate)
+
+
+_ATTITUDE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
+_THROTTLE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
+_YAW_RATE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE

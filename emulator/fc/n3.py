@@ -34,6 +34,12 @@ _VERTICAL_NAMES = {0x00: "VELOCITY", 0x10: "POSITION", 0x20: "THRUST", 0x30: "RE
 #: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle, ground frame
 ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
 ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
+#: every control flag `check_flag` lets through (either yaw mode, stable mode on or off)
+_FLOWN_FLAGS = frozenset(
+    flag | stable
+    for flag in (ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE)
+    for stable in (STABLE_DISABLE, STABLE_ENABLE)
+)
 
 
 class SetpointRejected(ValueError):
@@ -80,6 +86,8 @@ def describe_flag(flag: int) -> str:
 
 def check_flag(flag: int) -> None:
     """Raise SetpointRejected unless the flag selects a mode this N3 emulator flies."""
+    if flag.__class__ is int and flag in _FLOWN_FLAGS:
+        return  # (the per-setpoint case)
     if not isinstance(flag, int) or not 0 <= flag <= 0xFF:
         raise SetpointRejected(f"control flag must be a byte, got {flag!r}")
     if flag & 0xC0 != HORIZONTAL_ANGLE:
@@ -121,23 +129,36 @@ def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget:
     roll/pitch outside +-90 deg.
     """
     check_flag(sp.flag)
-    values = (sp.roll_deg, sp.pitch_deg, sp.thrust_percent, sp.yaw)
+    return target_from_values(sp.flag, sp.roll_deg, sp.pitch_deg, sp.thrust_percent, sp.yaw, profile)
+
+
+def target_from_values(
+    flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float, profile: VehicleProfile
+) -> AttitudeThrustTarget:
+    """`to_target` of the setpoint with these fields (degrees, percent, see `N3Setpoint`), its ``flag``
+    already accepted by `check_flag`: no setpoint object on the per-tick path."""
     # plain floats with a finite sum are finite (inf and NaN propagate); anything else: look closer
     if not (
-        values[0].__class__ is values[1].__class__ is values[2].__class__ is values[3].__class__ is float
-        and math.isfinite(sum(values))
-    ) and not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
-        raise SetpointRejected(f"non-finite setpoint {values}")
-    if not 0.0 <= sp.thrust_percent <= 100.0:
-        raise SetpointRejected(f"thrust {sp.thrust_percent:.1f} % outside 0..100 %")
-    if abs(sp.roll_deg) > 90.0 or abs(sp.pitch_deg) > 90.0:
-        raise SetpointRejected(f"roll/pitch {sp.roll_deg:.0f}/{sp.pitch_deg:.0f} deg beyond 90")
-    roll, pitch = limit_tilt(
-        math.radians(sp.roll_deg), math.radians(sp.pitch_deg), math.radians(profile.max_tilt_deg)
-    )
-    thrust_n = profile.thrust_percent_to_force_n(sp.thrust_percent)
-    if sp.flag & YAW_RATE:
+        roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
+        and math.isfinite(roll_deg + pitch_deg + thrust_percent + yaw)
+    ) and not all(
+        isinstance(v, int | float) and math.isfinite(v) for v in (roll_deg, pitch_deg, thrust_percent, yaw)
+    ):
+        raise SetpointRejected(f"non-finite setpoint {(roll_deg, pitch_deg, thrust_percent, yaw)}")
+    if not 0.0 <= thrust_percent <= 100.0:
+        raise SetpointRejected(f"thrust {thrust_percent:.1f} % outside 0..100 %")
+    if abs(roll_deg) > 90.0 or abs(pitch_deg) > 90.0:
+        raise SetpointRejected(f"roll/pitch {roll_deg:.0f}/{pitch_deg:.0f} deg beyond 90")
+    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
+    max_tilt = math.radians(profile.max_tilt_deg)
+    # `limit_tilt`: its bisection only when the tilt (`tilt_of`, its clamps written out) is over the limit
+    c = math.cos(roll) * math.cos(pitch)
+    c = c if c < 1.0 else 1.0
+    if not math.acos(c if c > -1.0 else -1.0) <= max_tilt:
+        roll, pitch = limit_tilt(roll, pitch, max_tilt)
+    thrust_n = profile.thrust_percent_to_force_n(thrust_percent)
+    if flag & YAW_RATE:
         limit = math.radians(profile.max_yaw_rate_deg_s)
-        rate = max(-limit, min(limit, math.radians(sp.yaw)))
+        rate = max(-limit, min(limit, math.radians(yaw)))
         return AttitudeThrustTarget(roll, pitch, 0.0, rate, thrust_n)
-    return AttitudeThrustTarget(roll, pitch, wrap_pi(math.radians(sp.yaw)), None, thrust_n)
+    return AttitudeThrustTarget(roll, pitch, wrap_pi(math.radians(yaw)), None, thrust_n)

@@ -75,6 +75,10 @@ class TelemetryEncoder:
 
     # --- one method per message ------------------------------------------------------------
     def heartbeat(self) -> MAVLinkMessage:
+        return self.mav.heartbeat_encode(*self._heartbeat_fields())
+
+    def _heartbeat_fields(self) -> tuple[int, int, int, int, int]:
+        """HEARTBEAT's fields, declaration order: type, autopilot, base_mode, custom_mode, system_status."""
         st = self.vehicle.fc.state
         custom = CUSTOM_MODE[st]
         if st is FcState.DISARMED and self.vehicle.fc.offboard_selected:
@@ -88,14 +92,13 @@ class TelemetryEncoder:
             status = mav.MAV_STATE_CRITICAL
         else:
             status = mav.MAV_STATE_ACTIVE if st.armed else mav.MAV_STATE_STANDBY
-        return self.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, custom, status)
+        return mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, custom, status
 
     # the per-tick messages work in plain floats (FLU -> FRD and ENU -> NED are sign flips and swaps)
     def attitude(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
-        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*s.quat_wxyz.tolist()))
-        p, q, r = s.omega_rad_s.tolist()
-        return self.mav.attitude_encode(_ms(now_s), roll, pitch, yaw, p, -q, -r)
+        fields = _attitude_fields(now_s, s.quat_wxyz.tolist(), s.omega_rad_s.tolist())
+        return self.mav.attitude_encode(*fields)
 
     def attitude_quaternion(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
@@ -105,9 +108,9 @@ class TelemetryEncoder:
 
     def local_position_ned(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
-        e, n, u = s.pos_m.tolist()
-        ve, vn, vu = s.vel_m_s.tolist()
-        return self.mav.local_position_ned_encode(_ms(now_s), n, e, -u, vn, ve, -vu)
+        return self.mav.local_position_ned_encode(
+            *_local_position_ned_fields(now_s, s.pos_m.tolist(), s.vel_m_s.tolist())
+        )
 
     def global_position_int(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
@@ -169,6 +172,30 @@ class TelemetryEncoder:
             mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value
         )
 
+    # --- payloads of the streamed messages, without message objects ----------------------------
+    # (the fields in wire order, packed by the message's own ``unpacker``: `MavlinkCodec.pack_payload`)
+    def state_values(self) -> list[float]:
+        """The vehicle's state now as plain floats (`VehicleState.to_vector` layout), read without
+        building a VehicleState (none is built between the batched steps of a lockstep run)."""
+        return self.vehicle.state_vector().tolist()
+
+    def heartbeat_payload(self) -> bytes:
+        """HEARTBEAT now (what `heartbeat` encodes)."""
+        kind, autopilot, base, custom, status = self._heartbeat_fields()
+        return _HEARTBEAT.pack(custom, kind, autopilot, base, status, _MAVLINK_VERSION)
+
+    def attitude_payload(self, now_s: float, x: list[float]) -> bytes:
+        """ATTITUDE at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
+        return _ATTITUDE.pack(*_attitude_fields(now_s, x[6:10], x[10:13]))
+
+    def local_position_ned_payload(self, now_s: float, x: list[float]) -> bytes:
+        """LOCAL_POSITION_NED at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
+        return _LOCAL_POSITION_NED.pack(*_local_position_ned_fields(now_s, x[0:3], x[3:6]))
+
+    def extended_sys_state_payload(self) -> bytes:
+        """EXTENDED_SYS_STATE now (what `extended_sys_state` encodes)."""
+        return _EXTENDED_SYS_STATE.pack(mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value)
+
     def home_position(self, now_s: float) -> MAVLinkMessage:
         h = self.home
         return self.mav.home_position_encode(
@@ -207,6 +234,29 @@ class TelemetryEncoder:
         frac = max(0.0, 1.0 - self.armed_time_s / BATTERY_ENDURANCE_S)
         volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
         return volts, round(100 * frac)
+
+
+def _attitude_fields(now_s: float, quat: list[float], omega: list[float]) -> tuple[int | float, ...]:
+    """ATTITUDE's fields (declaration order = wire order; FRD, NED) at ``now_s`` (s) of the attitude
+    ``quat`` (w, x, y, z; FLU -> ENU) and body rates ``omega`` (FLU, rad/s)."""
+    roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*quat))
+    p, q, r = omega
+    return _ms(now_s), roll, pitch, yaw, p, -q, -r
+
+
+def _local_position_ned_fields(now_s: float, pos: list[float], vel: list[float]) -> tuple[int | float, ...]:
+    """LOCAL_POSITION_NED's fields (declaration order = wire order; NED) at ``now_s`` (s) of the
+    position ``pos`` (m) and velocity ``vel`` (m/s), both world ENU."""
+    e, n, u = pos
+    ve, vn, vu = vel
+    return _ms(now_s), n, e, -u, vn, ve, -vu
+
+
+_HEARTBEAT = mav.MAVLink_heartbeat_message.unpacker  # wire order: custom_mode first
+_MAVLINK_VERSION = 3  # what ``heartbeat_encode`` puts in
+_ATTITUDE = mav.MAVLink_attitude_message.unpacker
+_LOCAL_POSITION_NED = mav.MAVLink_local_position_ned_message.unpacker
+_EXTENDED_SYS_STATE = mav.MAVLink_extended_sys_state_message.unpacker
 
 
 def _ms(t_s: float) -> int:

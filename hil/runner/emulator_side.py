@@ -18,6 +18,7 @@ import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
 from emulator.fc.batched_steps import FastStepper
+from emulator.fc.mavlink_server import RAW_MSG_IDS
 from emulator.mocap import MocapConfig, pose_of
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
@@ -161,7 +162,9 @@ class EmulatorSide:
         self.wire = CommandWire(
             command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
         )
-        self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog)
+        # setpoints reach the server as frames (it unpacks them itself; see RAW_MSG_IDS)
+        self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog,
+                                  raw_ids=RAW_MSG_IDS)
         streams = ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S))
         self.server = MavlinkServer(self.vehicle, self.codec, streams)
         m = scenario.links.mocap
