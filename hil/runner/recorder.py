@@ -97,6 +97,8 @@ class Recorder:
         self.world = world
         self.profile = profile
         self._tracker = CrossingTracker(world)
+        # the batch check is compiled (or loaded from numba's cache) now, not in the middle of a run
+        world.check_states_values(np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))
         self.next_sample_s = 0.0
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
