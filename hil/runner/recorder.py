@@ -10,11 +10,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from emulator.fc import FlightController, MavlinkServer
 from emulator.fc.n3 import AttitudeThrustTarget
 from emulator.mocap_link import MocapLinkServer
-from emulator.physics.state import OMEGA, POS, QUAT, ROTOR, VEL
+from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
 from emulator.profile import VehicleProfile
 from emulator.world import CrossingTracker, Obstacle, World
 
@@ -65,19 +66,33 @@ def _command(tg: AttitudeThrustTarget | None, full_thrust_n: float) -> tuple[flo
     return degrees(tg.roll_rad), degrees(tg.pitch_rad), yaw, 100.0 * tg.thrust_n / full_thrust_n
 
 
-def _euler_ned_frd(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Roll, pitch, yaw (rad) of body FLU -> world ENU quaternions (N, 4) (w, x, y, z) seen as body FRD
-    -> world NED: `euler_from_quat` of `quat_enu_flu_to_ned_frd_tuple`, row by row."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+@njit(cache=True)
+def _state_columns(t: np.ndarray, x: np.ndarray, clr: np.ndarray, in_slab: np.ndarray, kf: float,
+                   out: np.ndarray) -> None:
+    """Fill the columns of ``out`` (N, len(COLUMNS)) that come from the states ``x`` (N, STATE_SIZE) at
+    times ``t``: time, position, velocity, roll/pitch/yaw (deg, the body FRD -> world NED attitude, as
+    `euler_from_quat` of `quat_enu_flu_to_ned_frd_tuple`), clearance (m, NaN outside the slab), thrust
+    (N, kf * sum of squared rotor speeds) and body rate (rad/s)."""
     s = math.sqrt(0.5)
-    qw, qx, qy, qz = -(s * w + s * z), -(s * x) - s * y, s * y - s * x, -(s * w - s * z)
-    n = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    n = np.where(qw < 0, -n, n)
-    qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n
-    roll = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy))
-    pitch = np.arcsin(np.clip(2 * (qw * qy - qz * qx), -1.0, 1.0))
-    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-    return roll, pitch, yaw
+    r2d = 180.0 / math.pi
+    for i in range(x.shape[0]):
+        out[i, 0] = t[i]
+        for k in range(6):
+            out[i, 1 + k] = x[i, k]
+        w, qx0, qy0, qz0 = x[i, 6], x[i, 7], x[i, 8], x[i, 9]
+        qw, qx, qy, qz = -(s * w + s * qz0), -(s * qx0) - s * qy0, s * qy0 - s * qx0, -(s * w - s * qz0)
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if qw < 0:
+            n = -n
+        qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n
+        out[i, 7] = math.atan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy)) * r2d
+        out[i, 8] = math.asin(max(-1.0, min(1.0, 2 * (qw * qy - qz * qx)))) * r2d
+        out[i, 9] = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)) * r2d
+        out[i, 14] = clr[i] if in_slab[i] else np.nan
+        w0, w1, w2, w3 = x[i, 13], x[i, 14], x[i, 15], x[i, 16]
+        out[i, 20] = kf * (w0 * w0) + kf * (w1 * w1) + kf * (w2 * w2) + kf * (w3 * w3)
+        wx, wy, wz = x[i, 10], x[i, 11], x[i, 12]
+        out[i, 21] = math.sqrt(wx * wx + wy * wy + wz * wz)
 
 
 @dataclass(frozen=True)
@@ -99,6 +114,10 @@ class Recorder:
         self._tracker = CrossingTracker(world)
         # the batch check is compiled (or loaded from numba's cache) now, not in the middle of a run
         world.check_states_values(np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))
+        level = np.zeros((1, STATE_SIZE))
+        level[0, QUAT] = (1.0, 0.0, 0.0, 0.0)
+        no = np.zeros(1)
+        _state_columns(no, level, no, np.zeros(1, np.bool_), 1.0, np.empty((1, len(COLUMNS))))
         self.next_sample_s = 0.0
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
@@ -210,7 +229,7 @@ class Recorder:
         if m <= 0:
             return
         n0, n1 = self._n, self._n + m
-        t, x, pos, quat, vel = t[:m], x[:m], pos[:m], quat[:m], vel[:m]
+        t, x, clr, in_slab = t[:m], x[:m], clr[:m], in_slab[:m]
         # rates over the last RATE_WINDOW_S: from the oldest recorded sample inside the window
         ht, ha, hf = self._hist_t, self._hist_applied, self._hist_frames
         ht[n0:n1], ha[n0:n1], hf[n0:n1] = t, applied[:m], frames[:m]
@@ -219,24 +238,19 @@ class Recorder:
         moving = t > 0
         cmd_rate = np.where(moving, (ha[n0:n1] - ha[h0]) / span, 0.0)
         mocap_rate = np.where(moving, (hf[n0:n1] - hf[h0]) / span, 0.0)
-        roll, pitch, yaw = _euler_ned_frd(quat)
-        cmd = np.array([_command(tg, self._full_thrust_n) for tg in targets[:m]]).reshape(m, 4)
-        w = x[:, ROTOR]
-        kf = self._thrust_coeff
-        om = x[:, OMEGA]
         block = self._data[n0:n1]
-        block[:, 0] = t
-        block[:, 1:4] = pos
-        block[:, 4:7] = vel
-        block[:, 7], block[:, 8], block[:, 9] = np.degrees(roll), np.degrees(pitch), np.degrees(yaw)
+        _state_columns(t, x, clr, in_slab, self._thrust_coeff, block)
+        full = self._full_thrust_n
+        last, row = None, _NO_COMMAND
+        cmd = []
+        for tg in targets[:m]:  # the same target object for every sample until the next setpoint
+            if tg is not last:
+                last, row = tg, _command(tg, full)
+            cmd.append(row)
         block[:, 10:14] = cmd
-        block[:, 14] = np.where(in_slab[:m], clr[:m], np.nan)
         block[:, 15], block[:, 16] = cmd_rate, mocap_rate
         block[:, 17], block[:, 18] = cmd_lost[:m], mocap_lost[:m]
         block[:, 19] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
-        block[:, 20] = (kf * (w[:, 0] * w[:, 0]) + kf * (w[:, 1] * w[:, 1])) + kf * (w[:, 2] * w[:, 2]) + \
-            kf * (w[:, 3] * w[:, 3])
-        block[:, 21] = np.sqrt(om[:, 0] * om[:, 0] + om[:, 1] * om[:, 1] + om[:, 2] * om[:, 2])
         self._n = n1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:
