@@ -40,6 +40,9 @@ SPIN_S = 1e-3
 #: samples the recorder gathers before it checks and records them together (about half a second)
 RECORD_BATCH = 64
 RESEND_FILLER = bytes(280)  # longer than any MAVLink frame; zeros are never a frame start
+#: wall time the loop waits on a silent onboard program before asking whether it has exited (the spin,
+#: SPIN_S, is part of it)
+EXIT_POLL_S = 2e-3
 #: a tick not answered within this wall time is sent again (lost on a fresh port, or in the program's
 #: parser behind a frame with a corrupt length): a repeat is only answered, so a spurious one costs nothing
 RESEND_S = 0.1
@@ -235,8 +238,9 @@ def _await_answer(
             # frame the program's parser is still collecting on a corrupt length
             wire.send_sync(RESEND_FILLER + tick_frames(t, mocap_total))
             resend_at = now + resend_s
-        # the process is asked whether it has exited only when it has been silent for a while
-        wait = min(0.05, resend_s, max(0.0, deadline - now))
+        # the process is asked whether it has exited each time it has been silent for EXIT_POLL_S: a
+        # program that finished its mission while ticks were in flight leaves them unanswered
+        wait = min(EXIT_POLL_S, resend_s, max(0.0, deadline - now))
         if not wire.read_raw(wait) and onboard.exited():
             wire.read_raw(0.0)
             return wire.take_until_answer(ns, stamp_s)
