@@ -67,21 +67,13 @@ class CrossingTracker:
         return self._add(t, p, n, hit, clr.clearance_m, clr.in_slab)
 
     def add_checked(
-        self,
-        time_s: float,
-        pos_m: np.ndarray,
-        hit: Obstacle | None,
-        clearance_m: float,
-        in_slab: bool,
-        n_m: float | None = None,
+        self, time_s: float, pos_m: np.ndarray, hit: Obstacle | None, clearance_m: float, in_slab: bool
     ) -> Crossing | None:
         """`update` for a sample whose pose the caller has validated and checked already (``hit``,
-        ``clearance_m`` (m) and ``in_slab`` as ``world.check`` gives them); the same bookkeeping.
-        ``n_m``: the centre's offset along the gap normal e1 (m) when the caller has it already."""
+        ``clearance_m`` (m) and ``in_slab`` as ``world.check`` gives them); the same bookkeeping."""
         t = self._check_time(time_s)
         p = np.array(pos_m, dtype=np.float64)
-        n = float(self.world.gap_coords_unchecked(p)[1]) if n_m is None else n_m
-        return self._add(t, p, n, hit, clearance_m, in_slab)
+        return self._add(t, p, float(self.world.gap_coords_unchecked(p)[1]), hit, clearance_m, in_slab)
 
     def add_checked_batch(
         self,

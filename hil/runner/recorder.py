@@ -132,11 +132,8 @@ class Recorder:
         #: samples taken and not yet checked and recorded (see `sample`)
         self._pending: list[_Sample] = []
         self._gap_axes = world.gap.axes()
-        self._gap_centre = np.asarray(world.gap.centre_m)
         self._lab_min = np.asarray(world.lab.min_m)
         self._lab_max = np.asarray(world.lab.max_m)
-        self._lab_min_t = tuple(float(v) for v in world.lab.min_m)
-        self._lab_max_t = tuple(float(v) for v in world.lab.max_m)
         self._gap_centre_t = tuple(float(v) for v in world.gap.centre_m)
         self._gap_e1_t = tuple(float(v) for v in self._gap_axes[1])
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
