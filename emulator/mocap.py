@@ -14,6 +14,7 @@ import numpy as np
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
+TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
 _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
 
@@ -279,9 +280,11 @@ class MocapSystem:
                 px, py, pz = pos.tolist()
                 qw, qx, qy, qz = quat.tolist()
             sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
-            # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
+            # seen only inside the tracked volume (NaN fails every comparison): a body that left it, or
+            # a diverged simulation, is reported invalid, as an occluded body is
             valid = math.isfinite(sq) and sq > 0.25 and (
-                math.isfinite(px + py + pz) or all(map(math.isfinite, (px, py, pz))))
+                -TRACKED_LIMIT_M <= px <= TRACKED_LIMIT_M and -TRACKED_LIMIT_M <= py <= TRACKED_LIMIT_M
+                and -TRACKED_LIMIT_M <= pz <= TRACKED_LIMIT_M)
             if occlusion > 0:
                 until = self._occluded_until.get(body_id, -1.0)
                 if t_s >= until and rng.random() < occlusion:

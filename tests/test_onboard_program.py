@@ -10,7 +10,10 @@ import pytest
 from onboard_rig import fc_holding, run_mission
 
 from hil.cli import main as hil_main
-from policies.onboard import PoseEstimator, ProgramConfig, make_pilot, pilot_names
+from hil.link import MemoryTransport, SimClock
+from hil.link.mavlink import MavlinkCodec, mav
+from hil.runner.lockstep import tick_frames
+from policies.onboard import OnboardProgram, PoseEstimator, ProgramConfig, make_pilot, pilot_names
 from policies.onboard.pilots import UnknownPilot
 
 
@@ -87,3 +90,25 @@ def test_estimator_recovers_velocity_and_acceleration_from_poses():
     assert np.allclose(s.acc_m_s2, a, atol=0.5)
     assert not est.update(t, np.zeros(3), q, t)  # a repeated stamp is rejected
     assert not est.update(t + 1, np.array([math.nan, 0, 0]), q, t + 1)
+
+
+def test_a_tick_whose_announced_mocap_never_arrives_is_reported_as_lockstep_lost():
+    # the harness announces 500 mocap bytes with the tick at 10 ms, but only 120 arrive: the program
+    # reads what there is, says that lockstep was lost (the harness fails the run on it), and answers
+    cmd_fc, cmd_ob = MemoryTransport.pair()
+    moc_fc, moc_ob = MemoryTransport.pair()
+    program = OnboardProgram(cmd_ob, moc_ob, ProgramConfig())
+    program.link.lockstep = True
+    moc_fc.send(bytes(120))
+    cmd_fc.send(tick_frames(0.01, 500))
+    assert program.lockstep_poll() == [0.01]
+    lost = [e for e in program.events.events if e["event"] == "lockstep_lost"]
+    assert lost == [{"event": "lockstep_lost", "t_s": 0.01, "short_reads": 1}]
+    codec = MavlinkCodec(cmd_fc, SimClock(), 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    answers = [m for m in codec.receive() if m.get_type() == "TIMESYNC"]
+    assert [(m.tc1, m.ts1) for m in answers] == [(10_000_000, 10_000_000)]  # the tick is still answered
+    # the next tick announces what has been written by then in all: read in full, nothing more reported
+    moc_fc.send(bytes(400))
+    cmd_fc.send(tick_frames(0.02, 520))
+    assert program.lockstep_poll() == [0.02]
+    assert len([e for e in program.events.events if e["event"] == "lockstep_lost"]) == 1

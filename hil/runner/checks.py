@@ -52,6 +52,10 @@ class Observations:
     hover_point_m: tuple[float, float, float] | None  # the scenario's recovery point (run.recovery_point_m)
     columns: dict[str, np.ndarray]
     link: dict[str, float | None]  # delivered fractions and rates
+    nonfinite_state_s: float | None = None  # first sim time the simulated state was NaN or Inf
+    lockstep: bool = True  # the run was flown in lockstep (not on the wall clock)
+    lockstep_lost_s: float | None = None  # first tick whose announced mocap bytes did not arrive
+    lockstep_short_reads: int = 0  # how many tick reads came up short
 
 
 def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
@@ -64,15 +68,11 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
         checks.append(check_attitude(e.max_attitude_error_deg, obs))
     if e.recovery is not None and e.crosses_gap:
         checks.append(check_recovery(e.recovery.radius_m, e.recovery.time_s, obs))
+    checks.append(check_finite_state(obs))
+    if obs.lockstep:
+        checks.append(check_lockstep(obs))
     if e.stays_in_lab:
-        checks.append(
-            Check(
-                "stays_in_lab",
-                obs.max_outside_lab_m <= 0.0,
-                "inside the lab volume",
-                f"{obs.max_outside_lab_m:.3f} m outside at most",
-            )
-        )
+        checks.append(check_stays_in_lab(obs))
     checks.append(check_failsafe(e.failsafe_expected, obs))
     checks.append(check_abort(e.onboard_abort_expected, obs))
     lk = e.link
@@ -87,6 +87,30 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
             ok = value is not None and value >= limit
             checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
     return checks
+
+
+def check_finite_state(obs: Observations) -> Check:
+    """The simulated state stayed finite: a NaN state compares false against every bound, so without
+    this check a diverged simulation would pass as a flight that stayed in the lab."""
+    t = obs.nonfinite_state_s
+    observed = "finite throughout" if t is None else f"diverged (NaN, Inf or > 1e30) at t={t:.3f} s"
+    return Check("finite_state", t is None, "a finite simulated state", observed, t)
+
+
+def check_lockstep(obs: Observations) -> Check:
+    """Every tick's mocap bytes reached the onboard program before it acted: a run that lost lockstep
+    is not the scenario's deterministic run, whatever else it did."""
+    t, n = obs.lockstep_lost_s, obs.lockstep_short_reads
+    observed = "held on every tick" if t is None else f"lost: {n} tick read(s) short of the mocap announced"
+    return Check("lockstep", t is None, "every tick's mocap read in full", observed, t)
+
+
+def check_stays_in_lab(obs: Observations) -> Check:
+    outside = obs.max_outside_lab_m
+    if obs.nonfinite_state_s is not None:
+        return Check("stays_in_lab", False, "inside the lab volume", "position not finite",
+                     obs.nonfinite_state_s)
+    return Check("stays_in_lab", outside <= 0.0, "inside the lab volume", f"{outside:.3f} m outside at most")
 
 
 def check_crossing(expected: bool, obs: Observations) -> Check:

@@ -80,6 +80,10 @@ def initial_state(scenario: Scenario, profile: VehicleProfile) -> tuple[VehicleS
     ), ground
 
 
+#: a state component larger than this (or NaN) is no flight any more (float32 holds up to 3.4e38)
+DIVERGED_LIMIT = 1e30
+
+
 class _FaultyLink(Transport):
     """The emulator's sending end of the mocap link with mocap_dropped and corrupt_bytes applied.
 
@@ -186,15 +190,35 @@ class EmulatorSide:
         #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)
         self.hold_mocap = False
         self._next_boundary_s = self.faults.next_boundary_s(-1.0)
+        self._overflow_s: float | None = None  # when the state grew past what the wire formats hold
         self.recorder.sample(0.0, self.vehicle.state_vector(), self.vehicle.fc, self.server, self.mocap)
 
     @property
     def time_s(self) -> float:
         return self.clock.now_s()
 
+    @property
+    def diverged_s(self) -> float | None:
+        """Sim time (s) the simulated state stopped being a state (NaN, Inf, or too large for any wire
+        format), as far as seen; None while it is one. A run ends there: nothing after it means anything."""
+        return self._overflow_s if self._overflow_s is not None else self.recorder.nonfinite_seen_s
+
     def advance_to(self, t_end_s: float) -> None:
         """Run the emulator side from now to ``t_end_s`` (s), then let the FC answer and send what is
-        due at ``t_end_s`` and put the command-link bytes that have arrived on the wire."""
+        due at ``t_end_s`` and put the command-link bytes that have arrived on the wire. Once the state
+        has diverged (`diverged_s`) it does nothing."""
+        if self._overflow_s is not None:
+            return
+        try:
+            self._advance_to(t_end_s)
+        except OverflowError:
+            # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
+            # the physics diverged, which a run reports as such instead of crashing
+            if all(abs(v) < DIVERGED_LIMIT for v in self.vehicle.pose_values()):
+                raise
+            self._overflow_s = self.clock.now_s()
+
+    def _advance_to(self, t_end_s: float) -> None:
         t = self.clock.now_s()
         rec, mocap, wire, vehicle = self.recorder, self.mocap, self.wire, self.vehicle
         # the loop stops at mocap exposures only (the radio and the UART are caught up at the next

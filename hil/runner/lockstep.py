@@ -66,6 +66,7 @@ class LoopReport:
     onboard_exit_s: float | None = None
     startup_wall_s: float = 0.0
     loop_sim_s: float | None = None  # None: the whole run
+    ended_early: str | None = None  # why the loop stopped before the run's duration, None if it did not
 
 
 def apply_process_faults(
@@ -136,6 +137,9 @@ def run_lockstep(
             tick = pending.popleft()
             _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
         emu.advance_to(t)
+        if emu.diverged_s is not None:
+            note_divergence(rep, emu)
+            break
         rep.ticks += 1
         if pending and process_fault_due(onboard, faults, kill_s, t):
             while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
@@ -167,8 +171,15 @@ def run_lockstep(
         _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
     rep.startup_wall_s = loop0 - wall0
     rep.wall_loop_s = time.perf_counter() - loop0
-    rep.loop_sim_s = n_ticks * tick_s - t_loop0
+    rep.loop_sim_s = rep.ticks * tick_s - t_loop0
     return rep
+
+
+def note_divergence(rep: LoopReport, emu: EmulatorSide) -> None:
+    """End the run where the simulated state diverged, saying so."""
+    t = emu.diverged_s
+    rep.ended_early = f"the simulated state diverged at t={t:.3f} s"
+    rep.events.append({"time_s": t, "source": "runner", "text": rep.ended_early})
 
 
 def _note_exit(rep: LoopReport, onboard: OnboardSide, t: float) -> None:

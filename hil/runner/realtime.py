@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 
 from hil.runner.emulator_side import EmulatorSide
-from hil.runner.lockstep import LoopReport, apply_process_faults
+from hil.runner.lockstep import LoopReport, apply_process_faults, note_divergence
 from hil.runner.onboard_side import InProcessOnboard, OnboardSide
 
 POLL_S = 0.001  # the loop wakes at least this often (s)
@@ -30,6 +30,9 @@ def run_realtime(
         if t > duration_s:
             break
         emu.advance_to(t)
+        if emu.diverged_s is not None:
+            note_divergence(rep, emu)
+            break
         rep.ticks += 1
         apply_process_faults(rep, onboard, faults, kill_s, t)
         if isinstance(onboard, InProcessOnboard):
@@ -38,6 +41,7 @@ def run_realtime(
         if progress is not None and t >= next_progress:
             progress(t)
             next_progress = t + 0.5
-    emu.advance_to(duration_s)
+    if rep.ended_early is None:
+        emu.advance_to(duration_s)
     rep.wall_loop_s = time.perf_counter() - wall0
     return rep

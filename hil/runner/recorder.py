@@ -129,6 +129,9 @@ class Recorder:
         self._max_outside_lab_m = 0.0
         self._attitude_error_deg_at_crossing: float | None = None
         self._crossings_seen = 0
+        self._nonfinite_s: float | None = None  # sim time of the first non-finite state (s)
+        #: the same, as far as recorded (no flush): what a loop may read every tick
+        self.nonfinite_seen_s: float | None = None
         #: samples taken and not yet checked and recorded (see `sample`)
         self._pending: list[_Sample] = []
         self._gap_axes = world.gap.axes()
@@ -156,6 +159,13 @@ class Recorder:
         """How far the body went outside the lab volume at most (m)."""
         self.flush()
         return self._max_outside_lab_m
+
+    @property
+    def nonfinite_state_s(self) -> float | None:
+        """Sim time (s) of the first sample whose simulated state was not finite (NaN or Inf: the
+        physics diverged), None if every one was."""
+        self.flush()
+        return self._nonfinite_s
 
     @property
     def attitude_error_at_crossing_deg(self) -> float | None:
@@ -200,7 +210,9 @@ class Recorder:
         t = np.array(ts)
         x = np.array(xs)  # (N, STATE_SIZE)
         pos, quat = x[:, POS], x[:, QUAT]
-        # the simulated states are finite: no validation
+        if self._nonfinite_s is None and not np.isfinite(x).all():
+            # NaN compares false, so no check below would notice: note it for the `finite_state` check
+            self._nonfinite_s = self.nonfinite_seen_s = ts[int(np.argmin(np.isfinite(x).all(axis=1)))]
         codes, clr, in_slab = self.world.check_states_values(pos, quat)
         hits = [_OBSTACLES[c] for c in codes.tolist()]
         k0 = 1 if ts[0] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
@@ -213,7 +225,8 @@ class Recorder:
             self._crossings_seen = tracker.crossing_count
         vel = x[:, VEL]
         if self._collision is None and any(h is not None for h in hits):
-            speed = np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1] + vel[:, 2] * vel[:, 2])
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverged state is reported elsewhere
+                speed = np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1] + vel[:, 2] * vel[:, 2])
             for i, hit in enumerate(hits):
                 if hit is not None and (hit is not Obstacle.GROUND or speed[i] >= GROUND_HIT_SPEED_M_S):
                     px, py, pz = pos[i].tolist()

@@ -235,6 +235,8 @@ def _finish(
     hover = recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m), np.asarray(s.initial.pos_m))
     links = _link_stats(emu)
     sim_time = emu.time_s
+    lost = [ev for ev in onboard_events if ev.get("event") == "lockstep_lost"]
+    short_reads = max((int(ev.get("short_reads", 1)) for ev in lost), default=0)
     obs = Observations(
         sim_time_s=sim_time,
         crossed_gap=tracker.crossed_through_opening,
@@ -250,6 +252,10 @@ def _finish(
         hover_point_m=hover,
         columns=cols,
         link={k: links["summary"][k] for k in links["summary"]},
+        nonfinite_state_s=emu.diverged_s,  # (the recorder has been flushed by `columns`)
+        lockstep=not realtime,
+        lockstep_lost_s=float(lost[0]["t_s"]) if lost else None,
+        lockstep_short_reads=short_reads,
     )
     checks = tuple(evaluate(s, obs))
     passed = all(c.passed for c in checks)
@@ -279,7 +285,7 @@ def _finish(
     summary: dict[str, Any] = {
         "passed": passed,
         "scenario_id": s.id,
-        "end_reason": "duration reached",
+        "end_reason": loop.ended_early or "duration reached",
         "checks": [c.to_dict() for c in checks],
         "crossed_gap": obs.crossed_gap,
         "collision": obs.collision,
@@ -308,6 +314,10 @@ def _finish(
         },
         "ticks": loop.ticks,
         "ticks_answered": loop.answered,
+        "lockstep": None
+        if realtime
+        else {"held": not lost, "short_mocap_reads": short_reads, "lost_at_s": obs.lockstep_lost_s},
+        "nonfinite_state_s": obs.nonfinite_state_s,
         "links": links,
         "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
         "fc_final_state": emu.vehicle.fc.state.value,

@@ -608,8 +608,14 @@ class OnboardProgram:
         announced = self.link.mocap_announced
         if announced is None:
             self.mocap.poll()
-        else:
-            self.mocap.poll_to(announced)
+            return
+        mocap = self.mocap
+        short = mocap.lockstep_short_reads
+        mocap.poll_to(announced)
+        if mocap.lockstep_short_reads != short:
+            # the bytes the harness announced did not arrive: from here the run is not the scenario's
+            # deterministic run any more, which the harness must be told (it fails its lockstep check)
+            self.events.emit("lockstep_lost", self.clock.now_s(), short_reads=mocap.lockstep_short_reads)
 
     def run_lockstep(self, tick_timeout_s: float = 10.0) -> int:
         """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick

@@ -1,0 +1,78 @@
+"""The checks a run is judged by, on what a run observed: a diverged simulation fails its own check (and
+never passes as a flight that stayed in the lab), and a run that lost lockstep fails the lockstep check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from emulator.profile import load_profile
+from hil.link.clock import SimClock
+from hil.link.memory import MemoryTransport
+from hil.runner.checks import Observations, evaluate
+from hil.runner.emulator_side import EmulatorSide
+from hil.runner.lockstep import run_lockstep
+from hil.runner.onboard_side import InProcessOnboard, onboard_options, program_config
+from hil.scenario import loads_scenarios
+
+LEVEL = """
+description: a level gap, hovering at the start
+gap: {roll_deg: 0}
+initial: {pos_m: [-2, -1, 1.0]}
+duration_s: 2.0
+"""
+
+
+def _observations(emu: EmulatorSide, **overrides) -> Observations:
+    rec = emu.recorder
+    cols = rec.columns()
+    fields = dict(
+        sim_time_s=emu.time_s, crossed_gap=False, crossing_time_s=None, collision=None,
+        collision_time_s=None, min_clearance_m=None, min_clearance_time_s=None, attitude_error_deg=None,
+        max_outside_lab_m=rec.max_outside_lab_m, failsafe_states=(), onboard_abort_s=None,
+        hover_point_m=None, columns=cols, link={}, nonfinite_state_s=emu.diverged_s,
+    )
+    fields.update(overrides)
+    return Observations(**fields)
+
+
+@pytest.mark.parametrize("force_n", [1e300, 1e308], ids=["past_float32", "to_inf_and_nan"])
+def test_a_diverged_simulation_ends_the_run_and_fails_it(force_n):
+    # a force no airframe sees makes the physics diverge: the run must end there with a failed check,
+    # not crash while packing telemetry or mocap, and not pass `stays_in_lab` on NaN positions
+    s = loads_scenarios(LEVEL)[0]
+    profile = load_profile(s.vehicle)
+    cmd_fc, cmd_ob = MemoryTransport.pair()
+    moc_fc, moc_ob = MemoryTransport.pair()
+    emu = EmulatorSide(s, profile, np.random.default_rng(0), cmd_fc, moc_fc, clock=SimClock(),
+                       backend="native", tlog=None, duration_s=s.duration_s)
+    onboard = InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+    emu.vehicle.backend.set_external_force(np.array([force_n, 0.0, 0.0]))
+    loop = run_lockstep(emu, onboard, s.duration_s)
+    assert emu.diverged_s is not None and emu.diverged_s < 1.0
+    assert loop.ended_early is not None and "diverged" in loop.ended_early
+    assert loop.ticks < 100  # stopped, not flown on to 2 s
+    checks = {c.name: c for c in evaluate(s, _observations(emu))}
+    assert not checks["finite_state"].passed and "diverged" in checks["finite_state"].observed
+    assert checks["finite_state"].time_s == emu.diverged_s
+    assert not checks["stays_in_lab"].passed
+
+
+def test_a_calm_run_keeps_a_finite_state_and_lockstep():
+    s = loads_scenarios(LEVEL)[0]
+    profile = load_profile(s.vehicle)
+    cmd_fc, cmd_ob = MemoryTransport.pair()
+    moc_fc, moc_ob = MemoryTransport.pair()
+    emu = EmulatorSide(s, profile, np.random.default_rng(0), cmd_fc, moc_fc, clock=SimClock(),
+                       backend="native", tlog=None, duration_s=s.duration_s)
+    onboard = InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+    loop = run_lockstep(emu, onboard, s.duration_s)
+    assert loop.ended_early is None and loop.ticks == 200
+    checks = {c.name: c for c in evaluate(s, _observations(emu))}
+    assert checks["finite_state"].passed and checks["stays_in_lab"].passed
+    assert checks["lockstep"].passed
+    lost = {c.name: c for c in evaluate(s, _observations(emu, lockstep_lost_s=0.73, lockstep_short_reads=2))}
+    assert not lost["lockstep"].passed and lost["lockstep"].time_s == 0.73
+    assert "2 tick read(s) short" in lost["lockstep"].observed
+    realtime = {c.name for c in evaluate(s, _observations(emu, lockstep=False))}
+    assert "lockstep" not in realtime  # a real-time run has no lockstep to lose
