@@ -14,6 +14,7 @@ from hil.runner.emulator_side import EmulatorSide
 from hil.runner.lockstep import run_lockstep
 from hil.runner.onboard_side import InProcessOnboard, onboard_options, program_config
 from hil.scenario import loads_scenarios
+from hil.scenario.schema import Scenario
 
 LEVEL = """
 description: a level gap, hovering at the start
@@ -36,17 +37,22 @@ def _observations(emu: EmulatorSide, **overrides) -> Observations:
     return Observations(**fields)
 
 
-@pytest.mark.parametrize("force_n", [1e300, 1e308], ids=["past_float32", "to_inf_and_nan"])
-def test_a_diverged_simulation_ends_the_run_and_fails_it(force_n):
-    # a force no airframe sees makes the physics diverge: the run must end there with a failed check,
-    # not crash while packing telemetry or mocap, and not pass `stays_in_lab` on NaN positions
+def _rig() -> tuple[Scenario, EmulatorSide, InProcessOnboard]:
+    """The level scenario's emulator side and onboard program over in-memory links."""
     s = loads_scenarios(LEVEL)[0]
     profile = load_profile(s.vehicle)
     cmd_fc, cmd_ob = MemoryTransport.pair()
     moc_fc, moc_ob = MemoryTransport.pair()
     emu = EmulatorSide(s, profile, np.random.default_rng(0), cmd_fc, moc_fc, clock=SimClock(),
                        backend="native", tlog=None, duration_s=s.duration_s)
-    onboard = InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+    return s, emu, InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+
+
+@pytest.mark.parametrize("force_n", [1e300, 1e308], ids=["past_float32", "to_inf_and_nan"])
+def test_a_diverged_simulation_ends_the_run_and_fails_it(force_n):
+    # a force no airframe sees makes the physics diverge: the run must end there with a failed check,
+    # not crash while packing telemetry or mocap, and not pass `stays_in_lab` on NaN positions
+    s, emu, onboard = _rig()
     emu.vehicle.backend.set_external_force(np.array([force_n, 0.0, 0.0]))
     loop = run_lockstep(emu, onboard, s.duration_s)
     assert emu.diverged_s is not None and emu.diverged_s < 1.0
@@ -59,13 +65,7 @@ def test_a_diverged_simulation_ends_the_run_and_fails_it(force_n):
 
 
 def test_a_calm_run_keeps_a_finite_state_and_lockstep():
-    s = loads_scenarios(LEVEL)[0]
-    profile = load_profile(s.vehicle)
-    cmd_fc, cmd_ob = MemoryTransport.pair()
-    moc_fc, moc_ob = MemoryTransport.pair()
-    emu = EmulatorSide(s, profile, np.random.default_rng(0), cmd_fc, moc_fc, clock=SimClock(),
-                       backend="native", tlog=None, duration_s=s.duration_s)
-    onboard = InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+    s, emu, onboard = _rig()
     loop = run_lockstep(emu, onboard, s.duration_s)
     assert loop.ended_early is None and loop.ticks == 200
     checks = {c.name: c for c in evaluate(s, _observations(emu))}
