@@ -43,15 +43,15 @@ def test_exit_0_when_the_checks_pass_and_1_when_one_fails(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("text", "line", "field"),
+    ("text", "line", "what"),
     [
-        ("description: x\ngap: {roll_deg: 30\n", 2, ""),  # bad YAML
+        ("description: x\ngap: {roll_deg: 30\n", 2, "not valid YAML: expected ','"),  # the unclosed {
         ("description: x\ngap:\n  rol_deg: 30\n", 3, "gap.rol_deg"),  # unknown field
         ("description: x\nduration_s: 8\ngap:\n  roll_deg: 120\n", 4, "gap.roll_deg"),  # out of range
     ],
     ids=["bad_yaml", "unknown_field", "out_of_range"],
 )
-def test_broken_files_exit_2_naming_file_line_and_field(tmp_path, text, line, field):
+def test_broken_files_exit_2_naming_file_line_and_field(tmp_path, text, line, what):
     f = tmp_path / "broken.scenario.yaml"
     f.write_text(text)
     p = run(["run", str(f), "--in-process"], tmp_path)
@@ -59,7 +59,7 @@ def test_broken_files_exit_2_naming_file_line_and_field(tmp_path, text, line, fi
     assert f"broken.scenario.yaml:{line}" in p.stderr or f"broken.scenario.yaml:{line + 1}" in p.stderr, (
         p.stderr
     )
-    assert field in p.stderr
+    assert what in p.stderr
 
 
 def test_bad_options_exit_2(tmp_path):
