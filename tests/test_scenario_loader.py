@@ -316,6 +316,7 @@ def test_the_format_document_names_every_field() -> None:
         schema.LinksSpec,
         schema.CorruptBytesParams,
         schema.WindGustParams,
+        schema.EventTime,
         schema.RecoveryExpectation,
         schema.LinkExpectations,
         schema.Expectations,
@@ -323,6 +324,7 @@ def test_the_format_document_names_every_field() -> None:
     ):
         names.update(f.name for f in dataclasses.fields(cls))  # fmt: skip
     names -= set(Scenario.META_FIELDS)
-    names |= {"at_s", "no_collision", *schema.FAULT_KINDS}
+    names |= {"at_s", "start", "at", "duration_s", "phase", "no_collision", *schema.FAULT_KINDS,
+              *schema.MISSION_EVENTS, *schema.FLIGHT_PHASES}
     missing = sorted(n for n in names if not re.search(rf"`{re.escape(n)}`", doc))
     assert missing == []

@@ -4,12 +4,13 @@ each (name, passed, expected, observed, sim time)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from hil.scenario.schema import Scenario
+from hil.runner.mission import window_hits
+from hil.scenario.schema import Fault, Scenario
 
 RECOVERY_MAX_SPEED_M_S = 0.5  # "hovering": slower than this
 
@@ -56,6 +57,8 @@ class Observations:
     lockstep: bool = True  # the run was flown in lockstep (not on the wall clock)
     lockstep_lost_s: float | None = None  # first tick whose announced mocap bytes did not arrive
     lockstep_short_reads: int = 0  # how many tick reads came up short
+    faults: tuple[Fault, ...] = ()  # as flown: those timed after a mission event carry their times
+    phases: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # phase -> sim intervals
 
 
 def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
@@ -68,6 +71,8 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
         checks.append(check_attitude(e.max_attitude_error_deg, obs))
     if e.recovery is not None and e.crosses_gap:
         checks.append(check_recovery(e.recovery.radius_m, e.recovery.time_s, obs))
+    if any(f.target_phase is not None for f in obs.faults):
+        checks.append(check_fault_phases(obs))
     checks.append(check_finite_state(obs))
     if obs.lockstep:
         checks.append(check_lockstep(obs))
@@ -87,6 +92,32 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
             ok = value is not None and value >= limit
             checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
     return checks
+
+
+def check_fault_phases(obs: Observations) -> Check:
+    """Each fault that names a flight phase acted during it: a fault that missed its phase tested
+    something else than its scenario says (the flight's timing moved, or its event never came)."""
+    misses = []
+    first_t = None
+    for i, f in enumerate(obs.faults):
+        phase = f.target_phase
+        if phase is None:
+            continue
+        intervals = obs.phases.get(phase, [])
+        instant = f.kind == "onboard_killed"
+        if window_hits(f.start_s, f.end_s, intervals, instant):
+            continue
+        flown = ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in intervals) or "never flown"
+        if not math.isfinite(f.start_s):
+            assert f.after is not None
+            when = f"never started (no {f.after.after!r} event)"
+        else:
+            end = " s" if instant else (" s to the end" if f.end_s is None else f"-{f.end_s:.2f} s")
+            when = f"at {f.start_s:.2f}{end}"
+            first_t = f.start_s if first_t is None else first_t
+        misses.append(f"faults[{i}] {f.kind} {when}; {phase}: {flown}")
+    observed = "each fault acted in its phase" if not misses else "; ".join(misses)
+    return Check("fault_phases", not misses, "each fault acts during the phase it names", observed, first_t)
 
 
 def check_finite_state(obs: Observations) -> Check:

@@ -13,6 +13,7 @@ in another.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,7 @@ from hil.link.mavlink import MavlinkCodec, mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.runner.faults import FaultSchedule, corrupt
+from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, LinkModel
 from hil.scenario.schema import Scenario
@@ -259,6 +261,16 @@ class EmulatorSide:
         if not self.hold_mocap:
             self.mocap_link.flush()
         wire.pump()
+
+    def mission_events(self, events: list[dict[str, Any]]) -> None:
+        """The onboard program reported ``events``: time the faults that wait for one of them, from now
+        on (a fault never starts in the simulated past)."""
+        faults = self.faults
+        now = self.clock.now_s()
+        for ev in events:
+            name = event_name(ev)
+            if name is not None and faults.at_event(name, float(ev["t_s"]), now):
+                self._next_boundary_s = min(self._next_boundary_s, faults.next_boundary_s(now - 1e-9))
 
     def _switch_faults(self, t: float) -> None:
         faults = self.faults

@@ -23,7 +23,15 @@ class FaultSchedule:
     """The faults of one run, queried by sim time (s)."""
 
     def __init__(self, faults: Iterable[Fault]) -> None:
+        #: as given; a fault timed after a mission event is replaced by its timed form when the event
+        #: comes (`at_event`), and stays as given (never active) if it never does
         self.faults = tuple(faults)
+        #: mission event -> indices of the faults still waiting for it
+        self.waiting: dict[str, list[int]] = {}
+        for i, f in enumerate(self.faults):
+            if f.after is not None:
+                self.waiting.setdefault(f.after.after, []).append(i)
+        self.kill_s = self.killed_at_s()
         #: whether any fault acts on the mocap link / the command link (the per-frame paths skip the
         #: schedule when none does)
         self.has_mocap_faults = any(self._on_link(f, "mocap", "mocap_dropped") for f in self.faults)
@@ -36,6 +44,19 @@ class FaultSchedule:
         p = f.params
         return f.kind == "corrupt_bytes" and isinstance(p, CorruptBytesParams) and p.link == link
 
+    def at_event(self, name: str, event_s: float, now_s: float) -> bool:
+        """The mission event ``name`` happened at ``event_s`` (sim s), seen at ``now_s``: time the faults
+        waiting for it (the first time only); True if any was."""
+        waiting = self.waiting.pop(name, None)
+        if not waiting:
+            return False
+        faults = list(self.faults)
+        for i in waiting:
+            faults[i] = faults[i].at_event(event_s, now_s)
+        self.faults = tuple(faults)
+        self.kill_s = self.killed_at_s()
+        return True
+
     def active(self, kind: str, time_s: float) -> list[Fault]:
         """Faults of ``kind`` acting at ``time_s``."""
         return [f for f in self.faults if f.kind == kind and f.active(time_s)]
@@ -46,7 +67,7 @@ class FaultSchedule:
     def boundaries_s(self) -> list[float]:
         """Every start and end time, sorted (where the loop must stop to switch a fault)."""
         times = {f.start_s for f in self.faults} | {f.end_s for f in self.faults if f.end_s is not None}
-        return sorted(times)
+        return sorted(t for t in times if math.isfinite(t))
 
     def next_boundary_s(self, after_s: float) -> float:
         """The first start or end strictly after ``after_s`` (inf when none)."""
@@ -66,7 +87,7 @@ class FaultSchedule:
 
     def killed_at_s(self) -> float | None:
         """When the onboard program is killed (the earliest ``onboard_killed``), or None."""
-        times = [f.start_s for f in self.faults if f.kind == "onboard_killed"]
+        times = [f.start_s for f in self.faults if f.kind == "onboard_killed" and math.isfinite(f.start_s)]
         return min(times) if times else None
 
     def wind_force_n(self, time_s: float) -> np.ndarray:
@@ -80,6 +101,11 @@ class FaultSchedule:
         """The schedule as report events (start and end of each fault)."""
         out: list[dict[str, object]] = []
         for f in self.faults:
+            if not math.isfinite(f.start_s):
+                assert f.after is not None
+                text = f"{f.kind} never started: no {f.after.after!r} event came"
+                out.append({"time_s": None, "source": "fault", "text": text})
+                continue
             out.append({"time_s": f.start_s, "source": "fault", "text": f"{f.kind} starts"})
             if f.end_s is not None and f.kind != "onboard_killed":
                 out.append({"time_s": f.end_s, "source": "fault", "text": f"{f.kind} ends"})

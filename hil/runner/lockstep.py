@@ -69,10 +69,9 @@ class LoopReport:
     ended_early: str | None = None  # why the loop stopped before the run's duration, None if it did not
 
 
-def apply_process_faults(
-    rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, kill_s: float | None, t: float
-) -> None:
+def apply_process_faults(rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, t: float) -> None:
     """Kill, stall or resume the onboard program as the fault schedule says at ``t`` (s), noting it."""
+    kill_s = faults.kill_s
     if onboard.alive and kill_s is not None and t >= kill_s:
         onboard.kill()
         rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
@@ -85,8 +84,9 @@ def apply_process_faults(
         rep.events.append({"time_s": t, "source": "runner", "text": "onboard program resumed"})
 
 
-def process_fault_due(onboard: OnboardSide, faults: FaultSchedule, kill_s: float | None, t: float) -> bool:
+def process_fault_due(onboard: OnboardSide, faults: FaultSchedule, t: float) -> bool:
     """Whether `apply_process_faults` would kill, stall or resume the onboard program at ``t``."""
+    kill_s = faults.kill_s
     if onboard.alive and kill_s is not None and t >= kill_s:
         return True
     return faults.any_active("onboard_stalled", t) != onboard.paused
@@ -116,7 +116,6 @@ def run_lockstep(
         )
     rep = LoopReport()
     faults = emu.faults
-    kill_s = faults.killed_at_s()
     n_ticks = round(duration_s / tick_s)
     wall0 = loop0 = time.perf_counter()
     t_loop0 = 0.0
@@ -141,11 +140,11 @@ def run_lockstep(
             note_divergence(rep, emu)
             break
         rep.ticks += 1
-        if pending and process_fault_due(onboard, faults, kill_s, t):
+        if pending and process_fault_due(onboard, faults, t):
             while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
                 tick = pending.popleft()
                 _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
-        apply_process_faults(rep, onboard, faults, kill_s, t)
+        apply_process_faults(rep, onboard, faults, t)
         if not first:  # the first tick's mocap waits for a program that has opened its ports
             mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
@@ -217,6 +216,8 @@ def _collect(
         return  # killed or stalled since the tick was sent: no answer will come
     if _await_answer(emu, onboard, (t, stamp_s, mocap_total), guard_s, resend_s):
         rep.answered += 1
+        if emu.faults.waiting:  # faults timed after a mission event: the events up to this tick
+            emu.mission_events(onboard.new_events(t))
     elif onboard.exited():
         _note_exit(rep, onboard, t)
     else:

@@ -35,7 +35,29 @@ class OnboardSide(Protocol):
     def resume(self) -> None: ...
     def exited(self) -> bool: ...
     def events(self) -> list[dict[str, Any]]: ...
+    def new_events(self, up_to_s: float) -> list[dict[str, Any]]: ...
     def close(self) -> None: ...
+
+
+class _EventCursor:
+    """Hands out each event once, in order, up to a sim time; later ones wait for a later call."""
+
+    def __init__(self) -> None:
+        self._held: list[dict[str, Any]] = []
+
+    def take(self, fresh: list[dict[str, Any]], up_to_s: float) -> list[dict[str, Any]]:
+        held = self._held
+        held += fresh
+        n = 0
+        while n < len(held) and _event_time(held[n]) <= up_to_s + 1e-9:
+            n += 1
+        out, self._held = held[:n], held[n:]
+        return out
+
+
+def _event_time(ev: dict[str, Any]) -> float:
+    t = ev.get("t_s")
+    return float(t) if isinstance(t, int | float) else -1.0
 
 
 class InProcessOnboard:
@@ -55,6 +77,8 @@ class InProcessOnboard:
         self.program.link.lockstep = lockstep  # as `python -m policies.onboard --lockstep` runs
         self.alive = True
         self.paused = False
+        self._cursor = _EventCursor()
+        self._seen = 0
 
     def service(self) -> None:
         """Read what arrived; act on each lockstep tick in it (as `run_lockstep` does, without waiting)."""
@@ -81,6 +105,12 @@ class InProcessOnboard:
     def events(self) -> list[dict[str, Any]]:
         return list(self.program.events.events)
 
+    def new_events(self, up_to_s: float) -> list[dict[str, Any]]:
+        """The events not handed out before, stamped up to ``up_to_s`` (sim s)."""
+        log = self.program.events.events
+        fresh, self._seen = log[self._seen :], len(log)
+        return self._cursor.take(fresh, up_to_s)
+
     def close(self) -> None:
         self.program.events.close()
 
@@ -99,6 +129,8 @@ class ProcessOnboard:
         )
         self.alive = True
         self.paused = False
+        self._cursor = _EventCursor()
+        self._log_offset = 0  # bytes of the event log read by `new_events`
 
     def service(self) -> None:
         return  # it runs on its own
@@ -124,14 +156,21 @@ class ProcessOnboard:
         self.paused = False
 
     def events(self) -> list[dict[str, Any]]:
-        out = []
         with contextlib.suppress(OSError):
-            for line in self.log_path.read_text(encoding="utf-8").splitlines():
-                with contextlib.suppress(ValueError):
-                    ev = json.loads(line)
-                    if isinstance(ev, dict):
-                        out.append(ev)
-        return out
+            return _parse_events(self.log_path.read_bytes())
+        return []
+
+    def new_events(self, up_to_s: float) -> list[dict[str, Any]]:
+        """The events not handed out before, stamped up to ``up_to_s`` (sim s): the program writes each
+        line before it answers the tick it happened at, so the log holds every event up to a tick
+        answered; a line still being written waits for the next call."""
+        data = b""
+        with contextlib.suppress(OSError), open(self.log_path, "rb") as f:
+            f.seek(self._log_offset)
+            data = f.read()
+        whole = data[: data.rfind(b"\n") + 1]
+        self._log_offset += len(whole)
+        return self._cursor.take(_parse_events(whole), up_to_s)
 
     def close(self, timeout_s: float = 5.0) -> int | None:
         """End the process (SIGTERM, then SIGKILL) and return its exit code."""
@@ -145,6 +184,17 @@ class ProcessOnboard:
                 self.kill()
         self._stderr.close()
         return self.proc.returncode
+
+
+def _parse_events(data: bytes) -> list[dict[str, Any]]:
+    """The JSON-object lines of an event log; anything else is skipped."""
+    out = []
+    for line in data.decode("utf-8", errors="replace").splitlines():
+        with contextlib.suppress(ValueError):
+            ev = json.loads(line)
+            if isinstance(ev, dict):
+                out.append(ev)
+    return out
 
 
 def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:

@@ -22,7 +22,6 @@ def run_realtime(
     """Fly ``duration_s`` seconds of wall time; returns what the loop saw."""
     rep = LoopReport()
     faults = emu.faults
-    kill_s = faults.killed_at_s()
     wall0 = time.perf_counter()
     next_progress = 0.5
     while True:
@@ -34,7 +33,9 @@ def run_realtime(
             note_divergence(rep, emu)
             break
         rep.ticks += 1
-        apply_process_faults(rep, onboard, faults, kill_s, t)
+        if faults.waiting:  # faults timed after a mission event
+            emu.mission_events(onboard.new_events(t))
+        apply_process_faults(rep, onboard, faults, t)
         if isinstance(onboard, InProcessOnboard):
             onboard.step_realtime(t)
         emu.wire.read_onboard(POLL_S)

@@ -24,6 +24,7 @@ from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
 from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
+from hil.runner.mission import phase_intervals, window_hits
 from hil.runner.onboard_side import (
     InProcessOnboard,
     ProcessOnboard,
@@ -32,7 +33,7 @@ from hil.runner.onboard_side import (
     program_config,
 )
 from hil.runner.realtime import run_realtime
-from hil.scenario.schema import Scenario
+from hil.scenario.schema import Fault, Scenario
 from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
@@ -256,6 +257,8 @@ def _finish(
         lockstep=not realtime,
         lockstep_lost_s=float(lost[0]["t_s"]) if lost else None,
         lockstep_short_reads=short_reads,
+        faults=emu.faults.faults,
+        phases=phase_intervals(onboard_events, sim_time),
     )
     checks = tuple(evaluate(s, obs))
     passed = all(c.passed for c in checks)
@@ -320,6 +323,7 @@ def _finish(
         "nonfinite_state_s": obs.nonfinite_state_s,
         "links": links,
         "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
+        "faults": [_fault_as_flown(f, obs.phases) for f in emu.faults.faults],
         "fc_final_state": emu.vehicle.fc.state.value,
         "onboard_exit_code": exit_code,
         "onboard_abort_s": obs.onboard_abort_s,
@@ -334,6 +338,16 @@ def _finish(
     write_timeseries(out, cols)
     write_report_html(out, summary, cols, s)
     return RunResult(passed, checks, out, summary)
+
+
+def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> dict[str, Any]:
+    """A fault's times as flown (None: it never started) and whether it hit the phase it names."""
+    started = math.isfinite(f.start_s)
+    phase = f.target_phase
+    hit = None if phase is None else window_hits(f.start_s, f.end_s, phases.get(phase, []),
+                                                   f.kind == "onboard_killed")
+    return {"kind": f.kind, "start_s": f.start_s if started else None, "end_s": f.end_s if started else None,
+            "phase": phase, "hit_phase": hit}
 
 
 def _event_text(ev: dict[str, Any]) -> str:

@@ -24,7 +24,10 @@ from hil.scenario import schema
 from hil.scenario.schema import (
     FAULT_KINDS,
     FAULT_PARAMS,
+    FLIGHT_PHASES,
+    MISSION_EVENTS,
     SCENARIO_LIMITS,
+    EventTime,
     Expectations,
     Fault,
     NoParams,
@@ -428,38 +431,55 @@ class _Builder:
         return tuple(self.fault(n, f"{path}[{i}]") for i, n in enumerate(self.sequence(node, path)))
 
     def fault(self, node: Node, path: str) -> Fault:
-        items = self.mapping(node, path, ("kind", "start_s", "end_s", "at_s", "params"))
+        items = self.mapping(
+            node, path, ("kind", "start_s", "end_s", "at_s", "start", "at", "duration_s", "phase", "params")
+        )
         if "kind" not in items:
             raise self.error(node, f"{path}.kind", f"required field missing; one of {', '.join(FAULT_KINDS)}")
         kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": FAULT_KINDS})
         time_meta = {"lo": 0.0, "hi": 3600.0}
-        if kind == "onboard_killed":
-            for key in ("start_s", "end_s"):
-                if key in items:
-                    raise self.error(
-                        items[key], f"{path}.{key}", "onboard_killed is an instant: give at_s only"
-                    )
-            if "at_s" not in items:
-                raise self.error(
-                    node, f"{path}.at_s", "required field missing (when the onboard program is killed)"
-                )
-            start = self.convert(float, items["at_s"], f"{path}.at_s", time_meta)
-            end = None
+        # an instant (onboard_killed: at_s or at) or a window (start_s or start, then end_s or duration_s)
+        instant = kind == "onboard_killed"
+        abs_key, rel_key = ("at_s", "at") if instant else ("start_s", "start")
+        wrong = ("start_s", "start", "end_s", "duration_s") if instant else ("at_s", "at")
+        for key in wrong:
+            if key in items:
+                what = "onboard_killed is an instant: give at_s or at only" if instant else (
+                    "only onboard_killed takes at_s or at; use start_s or start")
+                raise self.error(items[key], f"{path}.{key}", what)
+        if (abs_key in items) == (rel_key in items):
+            raise self.error(
+                items.get(rel_key, node),
+                f"{path}.{abs_key}",
+                f"give exactly one of {abs_key} (sim s) and {rel_key} ({{after: EVENT, s: SECONDS}}, after a "
+                f"mission event: {', '.join(MISSION_EVENTS)})",
+            )
+        after: EventTime | None = None
+        end: float | None = None
+        duration: float | None = None
+        if rel_key in items:
+            after = self.convert(EventTime, items[rel_key], f"{path}.{rel_key}", {})
+            start = math.inf  # when the run sees the event
+            if "end_s" in items:
+                raise self.error(items["end_s"], f"{path}.end_s",
+                                 "a fault timed after an event ends with duration_s, not end_s")
         else:
-            if "at_s" in items:
-                raise self.error(
-                    items["at_s"], f"{path}.at_s", "only onboard_killed takes at_s; use start_s/end_s"
-                )
-            if "start_s" not in items:
-                raise self.error(
-                    node, f"{path}.start_s", "required field missing (when the fault begins, sim s)"
-                )
-            start = self.convert(float, items["start_s"], f"{path}.start_s", time_meta)
-            end = None
+            start = self.convert(float, items[abs_key], f"{path}.{abs_key}", time_meta)
+            if "end_s" in items and "duration_s" in items:
+                raise self.error(items["duration_s"], f"{path}.duration_s",
+                                 "give end_s or duration_s, not both")
             if "end_s" in items:
                 end = self.convert(
                     float | None, items["end_s"], f"{path}.end_s", {**time_meta, "lo": start, "lo_open": True}
                 )
+        if "duration_s" in items:
+            duration = self.convert(float, items["duration_s"], f"{path}.duration_s",
+                                    {"lo": 0.0, "hi": 3600.0, "lo_open": True})
+            if after is None:
+                end = start + duration
+        phase = None
+        if "phase" in items:
+            phase = self.convert(str, items["phase"], f"{path}.phase", {"choices": FLIGHT_PHASES})
         params_cls = FAULT_PARAMS[kind]
         params: Any = NoParams()
         if "params" in items:
@@ -476,7 +496,8 @@ class _Builder:
             raise self.error(node, f"{path}.params", f"required for {kind}")
         if isinstance(params, WindGustParams):
             params = self.wind(params, items["params"], f"{path}.params")
-        return Fault(kind=kind, start_s=start, end_s=end, params=params)
+        return Fault(kind=kind, start_s=start, end_s=end, params=params, after=after,
+                     duration_s=duration if after is not None else None, phase=phase)
 
     def wind(self, params: WindGustParams, node: Node, path: str) -> WindGustParams:
         if (params.force_n is None) == (params.speed_m_s is None):
@@ -537,7 +558,7 @@ class _Builder:
                 f"expected at most width_m ({_fmt(s.gap.width_m)}, the long side) got {_fmt(s.gap.height_m)}",
             )
         for i, fault in enumerate(s.faults):
-            if fault.start_s >= s.duration_s:
+            if fault.after is None and fault.start_s >= s.duration_s:
                 key = "at_s" if fault.kind == "onboard_killed" else "start_s"
                 raise self.error(
                     self.line_of(f"faults[{i}].{key}", doc_line),

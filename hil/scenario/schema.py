@@ -9,7 +9,7 @@ World frame ENU (z up), SI units.
 from __future__ import annotations
 
 import math
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 # `spec` wraps dataclasses.field (adding validation metadata), so calling it in defaults is intended.
@@ -30,6 +30,22 @@ FAULT_KINDS = (
     "wind_gust",
 )
 LINK_NAMES = ("command", "mocap")
+#: the mission events the onboard program reports (its takeoff, plan and each segment's start) that a
+#: fault's time may be given after: the phase a fault names holds wherever the flight's timing moves it
+MISSION_EVENTS = (
+    "mocap_ok",
+    "authority",
+    "armed",
+    "takeoff",
+    "plan",
+    "approach",
+    "traverse",
+    "recovery",
+    "hover",
+    "mission_done",
+)
+#: the phases of a flight a fault can be meant for: the takeoff, then the mission's segments
+FLIGHT_PHASES = ("takeoff", "approach", "traverse", "recovery", "hover")
 DEFAULT_VEHICLE = "n3_tx2"
 DEFAULT_PHYSICS = "native"
 
@@ -181,29 +197,69 @@ FAULT_PARAMS: dict[str, type] = {
 
 
 @dataclass(frozen=True)
+class EventTime:
+    """A time given after a mission event the onboard program reports: that event's sim time + ``s``."""
+
+    after: str = spec(MISSING, choices=MISSION_EVENTS, doc="the mission event")
+    s: float = spec(0.0, lo=0.0, hi=600.0, doc="seconds after it")
+
+
+@dataclass(frozen=True)
 class Fault:
     """One scheduled fault, active on sim time [start_s, end_s); end_s None: until the run ends.
 
     ``onboard_killed`` is written with ``at_s`` in files (an instant: start_s = at_s, end_s None).
+    A fault given ``after`` a mission event (``start: {after: approach, s: 0.5}``, ``at:`` for
+    onboard_killed) has ``start_s`` inf until the run sees the event (`at_event`); it then lasts
+    ``duration_s`` (None: to the end). ``phase`` names the flight phase the fault is meant to hit (by
+    default the event's, when the event starts a phase): the runner reports a window that missed it.
     """
 
     kind: str
     start_s: float
     end_s: float | None = None
     params: FaultParams = field(default_factory=NoParams)
+    after: EventTime | None = None
+    duration_s: float | None = None
+    phase: str | None = None
 
     def active(self, time_s: float) -> bool:
         """Whether the fault acts at sim time ``time_s`` (s)."""
         return time_s >= self.start_s and (self.end_s is None or time_s < self.end_s)
 
+    @property
+    def target_phase(self) -> str | None:
+        """The flight phase this fault is meant to hit, None when it names none."""
+        if self.phase is not None:
+            return self.phase
+        if self.after is not None and self.after.after in FLIGHT_PHASES:
+            return self.after.after
+        return None
+
+    def at_event(self, event_s: float, not_before_s: float = 0.0) -> Fault:
+        """This fault timed from its mission event, seen at ``event_s`` (sim s); it starts no earlier
+        than ``not_before_s`` (when the runner learnt of the event)."""
+        if self.after is None:
+            return self
+        start = max(round(event_s + self.after.s, 9), not_before_s)  # (to the ns: no 3.1399999 s)
+        instant = self.duration_s is None or self.kind == "onboard_killed"
+        end = None if instant else round(start + self.duration_s, 9)
+        return replace(self, start_s=start, end_s=end)
+
     def to_dict(self) -> dict[str, Any]:
         """The fault as written in a scenario file."""
         out: dict[str, Any] = {"kind": self.kind}
-        if self.kind == "onboard_killed":
+        if self.after is not None:
+            out["at" if self.kind == "onboard_killed" else "start"] = _plain(self.after)
+            if self.duration_s is not None:
+                out["duration_s"] = self.duration_s
+        elif self.kind == "onboard_killed":
             out["at_s"] = self.start_s
         else:
             out["start_s"] = self.start_s
             out["end_s"] = self.end_s
+        if self.phase is not None:
+            out["phase"] = self.phase
         params = _plain(self.params)
         if params:
             out["params"] = {k: v for k, v in params.items() if v is not None}
