@@ -6,16 +6,19 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hil.runner import RunOptions, run_scenario
+from hil.scenario import loads_scenarios
 from policies.controller import ExpertController
 from policies.frames import rot_z
 from policies.gap_planning import GapPose, LabVolume, plan_mission
 from policies.learning.onnx_runtime import load_shipped, shipped_path
 from policies.learning.pilots import approach_planner_inputs
-from policies.onboard.pilots import Observation, PilotContext, make_pilot, pilot_names
+from policies.onboard.pilots import EXPERT, SEGMENTS, Observation, PilotContext, make_pilot, pilot_names
 
 LAB = LabVolume((-4.0, -3.0, 0.0), (4.0, 4.0, 4.0))
 TIMES = np.linspace(0.0, 2.55, 12)
@@ -97,3 +100,42 @@ def test_learned_pilots_refuse_bad_input_and_options(tmp_path):
         make_pilot("e2e", PilotContext(options=(("onnx", str(tmp_path / "none.onnx")),)))
     custom = make_pilot("planner_net", PilotContext(options=(("onnx", str(shipped_path("planner"))),)))
     assert custom.command(obs) == make_pilot("planner_net").command(obs)
+
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_each_pilot_says_what_flies_each_segment_and_the_readme_says_the_same():
+    # the networks fly the approach only: a user reading the README or a run's summary must see that
+    rows = {}
+    for line in README.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 5 and cells[0].startswith("`") and cells[0].strip("`") in pilot_names():
+            rows[cells[0].strip("`")] = dict(zip(SEGMENTS, cells[1:], strict=True))
+    assert set(rows) == set(pilot_names())
+    for name in pilot_names():
+        assert make_pilot(name).flies == rows[name], name
+    assert make_pilot("e2e").flies["approach"] == "end-to-end network"
+    assert {make_pilot(n).flies["traverse"] for n in pilot_names()} == {EXPERT}
+
+
+def test_the_readme_gives_the_planners_held_out_errors_beside_the_paper_case():
+    metrics = json.loads((shipped_path("planner").parent / "metrics.json").read_text())["planner"]
+    text = README.read_text()
+    held, paper = metrics["holdout"], metrics["paper_case"]
+    for label, figures in (
+        ("paper's test case, worst", (paper["max_pos_m"], paper["max_vel_m_s"], paper["max_acc_m_s2"])),
+        ("held out (91 trajectories of the training ranges), mean",
+         (held["mean_pos_m"], held["mean_vel_m_s"], held["mean_acc_m_s2"])),
+        ("held out, worst", (held["max_pos_m"], held["max_vel_m_s"], held["max_acc_m_s2"])),
+    ):
+        assert f"| {label} | " + " | ".join(f"{v:.3f}" for v in figures) + " |" in text, label
+
+
+def test_a_run_reports_what_flew_each_segment(tmp_path):
+    s = loads_scenarios("description: e2e on a level gap\ngap: {roll_deg: 0}\npilot: e2e\nduration_s: 5\n"
+                        "expect: {crosses_gap: false, recovery: false}\n")[0]
+    r = run_scenario(s, tmp_path, RunOptions(in_process=True))
+    assert r.summary["mode"]["pilot_flies"] == make_pilot("e2e").flies
+    assert "approach: end-to-end network; traverse, recovery, hover: expert" in (
+        tmp_path / "report.html").read_text().replace("&#x27;", "'")

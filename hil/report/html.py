@@ -142,6 +142,7 @@ def _verdict(summary: dict[str, Any], scenario: Scenario) -> str:
     meta = [
         ("scenario", scenario.id),
         ("pilot", scenario.pilot),
+        ("flown by", _flown_by((summary.get("mode") or {}).get("pilot_flies"))),
         ("vehicle", scenario.vehicle),
         ("physics", scenario.physics),
         ("seed", scenario.seed),
@@ -160,6 +161,16 @@ def _verdict(summary: dict[str, Any], scenario: Scenario) -> str:
         f"{escape(scenario.description)}<br>{escape(tally)}</div></section>"
         f'<p class="meta">{meta_html}</p>'
     )
+
+
+def _flown_by(flies: Any) -> str | None:
+    """"approach: end-to-end network; traverse, recovery, hover: expert ..." from the pilot's report."""
+    if not isinstance(flies, dict) or not flies:
+        return None
+    groups: dict[str, list[str]] = {}
+    for segment, what in flies.items():
+        groups.setdefault(str(what), []).append(str(segment))
+    return "; ".join(f"{', '.join(segs)}: {what}" for what, segs in groups.items())
 
 
 def _seconds(value: Any) -> str | None:

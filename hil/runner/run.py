@@ -312,6 +312,8 @@ def _finish(
             "in_process": in_process,
             "realtime": realtime,
             "pilot": s.pilot,
+            # what computed each segment's commands, as the onboard program reported it
+            "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"), None),
             "seed": s.seed,
             "physics": s.physics,
         },

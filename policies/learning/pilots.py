@@ -22,6 +22,7 @@ from policies.frames import rot_z
 from policies.gap_planning import MissionPlan, Segment
 from policies.learning.features import CONTROLLER_MASS_KG, planner_inputs
 from policies.learning.onnx_runtime import OnnxModel, load_shipped
+from policies.onboard.pilots import flown_by
 
 
 def approach_planner_inputs(plan: MissionPlan, t_s: float,
@@ -43,6 +44,7 @@ class PlannerNetPilot:
     def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None) -> None:
         self.model = model or load_shipped("planner")
         self.controller = ExpertController(mass_kg)
+        self.flies = flown_by(approach="planner network's reference, expert controller")
 
     def reference(self, plan: MissionPlan, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position (m), velocity (m/s), acceleration (m/s^2) of the approach at ``t_s`` from the network."""
@@ -72,6 +74,7 @@ class EndToEndPilot:
         self.model = model or load_shipped("e2e")
         self.mass_kg, self.acc_input = mass_kg, acc_input
         self.expert = ExpertController(mass_kg)
+        self.flies = flown_by(approach="end-to-end network")
 
     def inputs(self, obs: object) -> np.ndarray:
         """The policy's 29 inputs for an observation (in the frame of the plan's yaw)."""

@@ -294,7 +294,7 @@ class OnboardProgram:
         if self._started_s is None:
             self._started_s = self._phase_since_s = now_s
             self.events.emit("start", now_s, pilot=self.config.pilot, rate_hz=self.config.rate_hz,
-                             approach_speed_m_s=self.config.approach_speed_m_s)
+                             approach_speed_m_s=self.config.approach_speed_m_s, flies=self.pilot.flies)
         if now_s >= self._next_heartbeat_s:
             self.link.send_heartbeat()
             self._next_heartbeat_s = now_s + self.config.heartbeat_period_s

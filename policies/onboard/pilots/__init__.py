@@ -52,9 +52,29 @@ class PilotContext:
     options: tuple[tuple[str, str], ...] = ()  # free-form name=value pairs, e.g. a weights path
 
 
+#: the mission's segments, in the order flown
+SEGMENTS = ("approach", "traverse", "recovery", "hover")
+#: what flies a segment the way the paper's conventional pipeline does
+EXPERT = "expert controller on the plan's reference"
+
+
+def flown_by(**learned: str) -> dict[str, str]:
+    """A pilot's `Pilot.flies`: the segments named here by what computes their commands, the others by
+    the expert controller on the plan's reference."""
+    unknown = set(learned) - set(SEGMENTS)
+    if unknown:
+        raise ValueError(f"unknown segments {sorted(unknown)}; segments: {', '.join(SEGMENTS)}")
+    return {seg: learned.get(seg, EXPERT) for seg in SEGMENTS}
+
+
 @runtime_checkable
 class Pilot(Protocol):
-    """Observation -> attitude-thrust command. Must not block (it runs inside the control loop)."""
+    """Observation -> attitude-thrust command. Must not block (it runs inside the control loop).
+
+    ``flies`` says, per segment (`SEGMENTS`), what computes the commands (see `flown_by`): the onboard
+    program reports it, so a run says which segments a network flew and which the expert did."""
+
+    flies: dict[str, str]
 
     def command(self, obs: Observation) -> AttitudeThrustCommand: ...
 

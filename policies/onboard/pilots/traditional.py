@@ -4,7 +4,7 @@ the expert geometric controller, as in the paper's conventional pipeline."""
 from __future__ import annotations
 
 from policies.controller import AttitudeThrustCommand, ExpertController
-from policies.onboard.pilots import Observation, PilotContext
+from policies.onboard.pilots import Observation, PilotContext, flown_by
 
 
 class TraditionalPilot:
@@ -12,6 +12,7 @@ class TraditionalPilot:
 
     def __init__(self, mass_kg: float = 0.9) -> None:
         self.controller = ExpertController(mass_kg)
+        self.flies = flown_by()
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
         p, v, a, yaw = obs.plan.reference_tuples(obs.t_s)  # `reference` in plain floats
