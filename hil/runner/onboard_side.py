@@ -17,7 +17,6 @@ import sys
 from pathlib import Path
 from typing import Any, Protocol
 
-from emulator.profile import VehicleProfile
 from hil.link.transport import Transport
 from hil.scenario.schema import Scenario
 from policies.onboard import EventLog, OnboardProgram, ProgramConfig
@@ -147,8 +146,19 @@ class ProcessOnboard:
         return self.proc.returncode
 
 
-def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:
-    """The onboard program's options for scenario ``s`` on vehicle ``profile`` (links not included)."""
+def onboard_vehicle(vehicle: str) -> str:
+    """The onboard configuration for the scenario's ``vehicle`` (a built-in profile name, or a profile
+    file): the built-in of the same name, or ``PROFILE.onboard.yaml`` beside the profile file."""
+    if vehicle.endswith((".yaml", ".yml")):
+        p = Path(vehicle)
+        return str(p.with_name(f"{p.stem}.onboard.yaml"))
+    return vehicle
+
+
+def onboard_options(s: Scenario) -> list[str]:
+    """The onboard program's options for scenario ``s`` (links not included): the vehicle's mass and
+    limits come from the onboard side's own configuration of it (`onboard_vehicle`), never from the
+    emulator's profile."""
     lab_min, lab_max = (",".join(repr(float(v)) for v in c) for c in (s.lab.min_m, s.lab.max_m))
     return [
         "--pilot",
@@ -157,10 +167,8 @@ def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:
         repr(s.approach.speed_m_s or DEFAULT_APPROACH_SPEED_M_S),
         "--approach-duration",
         repr(s.approach.duration_s),
-        "--mass",
-        repr(profile.mass_kg),
-        "--full-thrust",
-        repr(profile.n3_full_thrust_n),
+        "--vehicle",
+        onboard_vehicle(s.vehicle),
         "--gap-size",
         repr(s.gap.width_m),
         repr(s.gap.height_m),
