@@ -16,7 +16,7 @@ from hil.cli import main as hil_main
 from hil.runner import RunOptions, run_scenario
 from hil.runner.onboard_side import onboard_options
 from hil.runner.run import RunSetupError, for_vehicle
-from hil.scenario import loads_scenarios
+from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 
 F450 = load_profile("f450")
 
@@ -149,3 +149,20 @@ def test_a_profile_file_without_an_onboard_configuration_is_refused(tmp_path):
         run_scenario(s, tmp_path / "run", RunOptions(in_process=True))
 
 
+
+
+def test_a_scenario_file_naming_an_unflyable_vehicle_is_refused_when_it_loads(tmp_path):
+    sluggish = F450.with_changes(name="sluggish", motor_time_constant_s=0.12)
+    write_vehicle(tmp_path, sluggish, control_lead_s=0.2)
+    write_vehicle(tmp_path, F450.with_changes(name="lonely"), control_lead_s=0.1)
+    (tmp_path / "lonely.onboard.yaml").unlink()
+    write_vehicle(tmp_path, F450.with_changes(name="fine"), control_lead_s=0.09)
+    for name, words in (("sluggish", "cannot stabilise"), ("lonely", "no onboard configuration")):
+        f = tmp_path / f"{name}.scenario.yaml"
+        f.write_text(f"description: x\nvehicle: {name}.yaml\n")
+        with pytest.raises(ScenarioError, match=words) as info:
+            load_scenarios(f)
+        assert f"{f}:2: vehicle" in str(info.value)
+    f = tmp_path / "fine.scenario.yaml"
+    f.write_text("description: x\nvehicle: fine.yaml\n")
+    assert load_scenarios(f)[0].vehicle == str(tmp_path / "fine.yaml")

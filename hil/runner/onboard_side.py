@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hil.link.transport import Transport
+from hil.scenario.loader import onboard_vehicle
 from hil.scenario.schema import Scenario
 from policies.onboard import EventLog, OnboardProgram, ProgramConfig
 from policies.onboard.cli import add_arguments, config_from_args
@@ -144,15 +145,6 @@ class ProcessOnboard:
                 self.kill()
         self._stderr.close()
         return self.proc.returncode
-
-
-def onboard_vehicle(vehicle: str) -> str:
-    """The onboard configuration for the scenario's ``vehicle`` (a built-in profile name, or a profile
-    file): the built-in of the same name, or ``PROFILE.onboard.yaml`` beside the profile file."""
-    if vehicle.endswith((".yaml", ".yml")):
-        p = Path(vehicle)
-        return str(p.with_name(f"{p.stem}.onboard.yaml"))
-    return vehicle
 
 
 def onboard_options(s: Scenario) -> list[str]:
