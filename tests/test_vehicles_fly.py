@@ -55,8 +55,10 @@ def write_vehicle(folder: Path, profile: VehicleProfile, control_lead_s: float) 
 
 
 def fly(s, tmp_path: Path, **options):
+    """Run ``s`` in one process; the result and the attitude tracking (`attitude_tracking_deg`, plus the
+    run's attitude error at the crossing, deg)."""
     r = run_scenario(s, tmp_path / "run", RunOptions(in_process=True, **options))
-    return r, attitude_tracking_deg(r.out_dir)
+    return r, {**attitude_tracking_deg(r.out_dir), "at_crossing_deg": r.summary["attitude_error_deg"]}
 
 
 def crossing_offset_m(r, s) -> float:
