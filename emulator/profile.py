@@ -59,6 +59,10 @@ class VehicleProfile:
     max_body_rate_rad_s: float  # the inner loop's body-rate limit
     max_yaw_rate_deg_s: float = 150.0
     source_notes: str = ""  # where the numbers come from
+    # the FC's gains when a profile sets them (None: derived from the fields above, see emulator.fc.tuning)
+    fc_attitude_p_per_s: tuple[float, float, float] | None = None  # rate cmd (rad/s) per rad, x y z
+    fc_rate_p_per_s: tuple[float, float, float] | None = None  # angular accel (rad/s^2) per rad/s, x y z
+    fc_hold_p_per_s: tuple[float, float] | None = None  # velocity hold: horizontal, vertical (1/s)
 
     # --- derived quantities -------------------------------------------------------------
     @property
@@ -96,6 +100,9 @@ _VECTOR_FIELDS = {
     "linear_drag_n_s_m": 3,
     "angular_drag_nm_s_rad": 3,
     "body_box_m": 3,
+    "fc_attitude_p_per_s": 3,
+    "fc_rate_p_per_s": 3,
+    "fc_hold_p_per_s": 2,
 }
 _POSITIVE_FIELDS = {
     "mass_kg",
@@ -123,6 +130,8 @@ def _build(data: dict[str, Any], source: str) -> VehicleProfile:
                 continue
             raise ProfileError(source, f.name, "required field is missing")
         raw = data[f.name]
+        if raw is None and f.default is None:
+            continue
         if f.name in ("name", "source_notes"):
             if not isinstance(raw, str):
                 raise ProfileError(source, f.name, f"expected a string, got {raw!r}")

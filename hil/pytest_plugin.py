@@ -4,6 +4,7 @@ file of tests, one item per document; a bad file is a collection error naming th
     pytest scenarios/ -n 2                  # the whole suite, two workers
     pytest scenarios/ --pilot imitation     # the same suite flown by another pilot
     pytest scenarios/ --hil-out reports/    # where each run's report goes (default: pytest's tmp dir)
+    pytest scenarios/ --hil-vehicle f450    # the same suite flown by another vehicle profile
 
 A failed scenario shows its failed checks (expected, observed, sim time) and the report's path.
 """
@@ -32,6 +33,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="run both sides in the test process over memory links (default: ptys)",
     )
     group.addoption("--hil-backend", default=None, help="physics backend for every scenario")
+    group.addoption(
+        "--hil-vehicle",
+        default=None,
+        metavar="NAME|PATH",
+        help="vehicle profile for every scenario (an opening narrower than its body grows)",
+    )
 
 
 #: markers the shipped scenarios use (any other marker in a file works too, with pytest's warning)
@@ -113,6 +120,7 @@ class ScenarioItem(pytest.Item):
             pilot=cfg.getoption("--pilot"),
             in_process=True if cfg.getoption("--hil-in-process") else None,
             backend=cfg.getoption("--hil-backend"),
+            vehicle=cfg.getoption("--hil-vehicle"),
         )
         result = run_scenario(self.scenario, out, options)
         self.user_properties.append(("report", str(result.report_path)))

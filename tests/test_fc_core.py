@@ -201,7 +201,7 @@ def test_resting_vehicle_arms_to_idle_and_stays_on_the_ground():
     v.step(500)
     assert v.fc.state is FcState.HOLD and v.fc.landed
     assert abs(v.state.pos_m[2] - z0) < 1e-3
-    assert np.all(v.fc.motor_cmd == pytest.approx(v.fc.config.gains.idle_throttle))
+    assert np.all(v.fc.motor_cmd == pytest.approx(v.fc.gains.inner.idle_throttle))
 
 
 def test_config_rejects_nonsense():

@@ -45,7 +45,7 @@ def _rig() -> tuple[Scenario, EmulatorSide, InProcessOnboard]:
     moc_fc, moc_ob = MemoryTransport.pair()
     emu = EmulatorSide(s, profile, np.random.default_rng(0), cmd_fc, moc_fc, clock=SimClock(),
                        backend="native", tlog=None, duration_s=s.duration_s)
-    return s, emu, InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s, profile)))
+    return s, emu, InProcessOnboard(cmd_ob, moc_ob, program_config(onboard_options(s)))
 
 
 @pytest.mark.parametrize("force_n", [1e300, 1e308], ids=["past_float32", "to_inf_and_nan"])

@@ -11,16 +11,14 @@ backends, yaw-rate targets) takes the vehicle's own per-step path.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
 from emulator.fc import EmulatedVehicle, FcState
+from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import _control
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
-from emulator.profile import GRAVITY_M_S2
 
 #: FC states flown by the velocity controller while in the air, with their climb rate's sign
 _HOLD_STATES = {
@@ -39,33 +37,16 @@ def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_ste
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(x, aux, p, hold, gains, mix_inv, out, n_steps):  # pragma: no cover
+def _hold_batch(x, aux, p, hold, hold_params, gains, mix_inv, out, n_steps):  # pragma: no cover
     """Velocity-hold steps (`FlightController._velocity_hold` per step) until ``n_steps`` or the body
     would count as landed; returns the steps taken. ``hold``: climb rate (m/s, up), yaw (NED, rad),
-    mass (kg), tan of the tilt limit, max thrust (N), rest height (m), landed margin (m)."""
-    climb, yaw, m, tan_tilt = hold[0], hold[1], hold[2], hold[3]
-    max_thrust, rest_z, margin = hold[4], hold[5], hold[6]
-    cy, sy = math.cos(yaw), math.sin(yaw)
+    rest height (m), landed margin (m); ``hold_params``: the FC's `hold_params`."""
+    climb, yaw, rest_z, margin = hold[0], hold[1], hold[2], hold[3]
     for k in range(n_steps):
         if x[2] - rest_z <= margin and abs(x[5]) < 0.3:
             return k  # the FC would see the landing at this step: its own step takes over
-        ve, vn, vu = x[3], x[4], x[5]
-        ax, ay = -1.5 * vn, -1.5 * ve
-        norm = math.hypot(ax, ay)
-        if norm > 3.0:
-            ax, ay = ax * 3.0 / norm, ay * 3.0 / norm
-        az = max(-4.0, min(4.0, -3.0 * (climb - vu)))
-        fx, fy, fz = m * ax, m * ay, m * (az - GRAVITY_M_S2)
-        max_h = abs(fz) * tan_tilt
-        fh = math.hypot(fx, fy)
-        if fh > max_h:
-            fx, fy = fx * max_h / fh, fy * max_h / fh
-        thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
-        zx, zy, zz = -fx / thrust, -fy / thrust, -fz / thrust
-        hx, hy = cy * zx + sy * zy, -sy * zx + cy * zy
-        roll = math.asin(max(-1.0, min(1.0, -hy)))
-        pitch = math.atan2(hx, zz)
-        _control(x[6:10], x[10:13], roll, pitch, yaw, min(thrust, max_thrust), gains, mix_inv, out)
+        roll, pitch, thrust = hold_command(x[3], x[4], x[5], climb, yaw, hold_params)
+        _control(x[6:10], x[10:13], roll, pitch, yaw, thrust, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
     return n_steps
 
@@ -78,7 +59,7 @@ class FastStepper:
         self.native = native
         self.batched_steps = 0
         self.single_steps = 0
-        self._hold = np.zeros(7)
+        self._hold = np.zeros(4)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -87,9 +68,8 @@ class FastStepper:
             be, inner = vehicle.backend, vehicle.fc.inner
             _fly_batch(be._x, be._aux, be._params, 0.0, 0.0, 0.0, 0.0, inner._params, inner._mix_inv,
                        inner._out, 0)
-            _hold_batch(
-                be._x, be._aux, be._params, stepper._hold, inner._params, inner._mix_inv, inner._out, 0
-            )
+            _hold_batch(be._x, be._aux, be._params, stepper._hold, vehicle.fc.hold_params, inner._params,
+                        inner._mix_inv, inner._out, 0)
         return stepper
 
     def step(self, n_steps: int) -> None:
@@ -147,12 +127,10 @@ class FastStepper:
         h = self._hold
         h[0] = sign * cfg.land_speed_m_s
         h[1] = fc._hold_yaw_rad
-        h[2] = v.profile.mass_kg
-        h[3] = math.tan(math.radians(cfg.hover_max_tilt_deg))
-        h[4] = v.profile.max_total_thrust_n
-        h[5] = fc._rest_height_m
-        h[6] = cfg.landed_margin_m
-        n = _hold_batch(be._x, be._aux, be._params, h, inner._params, inner._mix_inv, inner._out, n_steps)
+        h[2] = fc._rest_height_m
+        h[3] = cfg.landed_margin_m
+        n = _hold_batch(be._x, be._aux, be._params, h, fc.hold_params, inner._params, inner._mix_inv,
+                        inner._out, n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
             self._after_batch(n, detect_landed=False)
         return n

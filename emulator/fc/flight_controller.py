@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-from emulator.fc.inner_loop import InnerLoop, InnerLoopGains
+from emulator.fc.hold import hold_command, pack_hold
+from emulator.fc.inner_loop import InnerLoop
 from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
 from emulator.fc.n3 import (
     AttitudeThrustTarget,
@@ -23,8 +24,9 @@ from emulator.fc.n3 import (
     to_target,
     wrap_pi,
 )
+from emulator.fc.tuning import FcGains, fc_gains
 from emulator.physics.state import VehicleState
-from emulator.profile import GRAVITY_M_S2, VehicleProfile
+from emulator.profile import VehicleProfile
 
 PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
 
@@ -41,7 +43,7 @@ class FcConfig:
     ground_z_m: float = 0.0  # ground height (world ENU z)
     landed_margin_m: float = 0.05  # body within this of its resting height counts as on the ground
     auto_disarm_s: float = 1.0  # on the ground this long in a landing state: disarm
-    gains: InnerLoopGains = field(default_factory=InnerLoopGains)
+    gains: FcGains | None = None  # None: tuned from the vehicle profile (emulator.fc.tuning)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -57,7 +59,11 @@ class FlightController:
         self.profile = profile
         self.config = config or FcConfig()
         self.machine = StateMachine()
-        self.inner = InnerLoop(profile, self.config.gains)
+        #: the FC's loop gains; ProfileError when the FC cannot stabilise ``profile``
+        self.gains = self.config.gains or fc_gains(profile)
+        self.inner = InnerLoop(profile, self.gains.inner)
+        #: the velocity hold's parameters as `emulator.fc.hold.hold_command` reads them
+        self.hold_params = pack_hold(self.gains.hold, profile, self.config.hover_max_tilt_deg)
         self.offboard_selected = False  # OFFBOARD chosen while disarmed: arming goes straight to it
         self.target: AttitudeThrustTarget | None = None
         self.last_setpoint_s = -math.inf
@@ -71,7 +77,7 @@ class FlightController:
         self._landed_since_s: float | None = 0.0
         self.landed = True
         self._off = np.zeros(4)
-        self._idle = np.full(4, self.config.gains.idle_throttle)
+        self._idle = np.full(4, self.gains.inner.idle_throttle)
         self.motor_cmd = self._off
 
     # --- read-outs -------------------------------------------------------------------------
@@ -255,23 +261,6 @@ class FlightController:
     def _velocity_hold(self, state: VehicleState, climb_m_s: float) -> np.ndarray:
         """The FC's own hover/land controller: hold horizontal velocity 0 and climb rate ``climb_m_s``."""
         ve, vn, vu = state.vel_m_s
-        ax, ay = -1.5 * vn, -1.5 * ve  # NED north, east (m/s^2)
-        norm = math.hypot(ax, ay)
-        if norm > 3.0:
-            ax, ay = ax * 3.0 / norm, ay * 3.0 / norm
-        az = max(-4.0, min(4.0, -3.0 * (climb_m_s - vu)))  # NED down
-        m, g = self.profile.mass_kg, GRAVITY_M_S2
-        fx, fy, fz = m * ax, m * ay, m * (az - g)
-        max_h = abs(fz) * math.tan(math.radians(self.config.hover_max_tilt_deg))
-        fh = math.hypot(fx, fy)
-        if fh > max_h:
-            fx, fy = fx * max_h / fh, fy * max_h / fh
-        thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
-        zx, zy, zz = -fx / thrust, -fy / thrust, -fz / thrust  # body z (down) in NED
         yaw = self._hold_yaw_rad
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        hx, hy = cy * zx + sy * zy, -sy * zx + cy * zy  # rotate into the heading frame
-        roll = math.asin(max(-1.0, min(1.0, -hy)))
-        pitch = math.atan2(hx, zz)
-        thrust = min(thrust, self.profile.max_total_thrust_n)
+        roll, pitch, thrust = hold_command(float(ve), float(vn), float(vu), climb_m_s, yaw, self.hold_params)
         return self.inner.update(state.quat_wxyz, state.omega_rad_s, roll, pitch, yaw, thrust)

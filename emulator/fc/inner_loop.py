@@ -21,10 +21,11 @@ _S = math.sqrt(0.5)
 
 @dataclass(frozen=True)
 class InnerLoopGains:
-    """Gains of the attitude and rate loops (per body axis x, y, z)."""
+    """Gains of the attitude and rate loops (per body axis x, y, z); a profile's own come from
+    `emulator.fc.tuning.fc_gains`."""
 
-    attitude_p_per_s: tuple[float, float, float] = (11.0, 11.0, 4.0)  # rate cmd (rad/s) per rad of error
-    rate_p_per_s: tuple[float, float, float] = (50.0, 50.0, 12.0)  # angular accel (rad/s^2) per rad/s error
+    attitude_p_per_s: tuple[float, float, float]  # rate cmd (rad/s) per rad of error
+    rate_p_per_s: tuple[float, float, float]  # angular accel (rad/s^2) per rad/s error
     idle_throttle: float = 0.05  # minimum throttle of each motor while armed (0..1)
 
 
@@ -41,8 +42,7 @@ def allocation_matrix(profile: VehicleProfile) -> np.ndarray:
 class InnerLoop:
     """Attitude and rate control plus mixing for one profile; `update` returns motor throttles (4,)."""
 
-    def __init__(self, profile: VehicleProfile, gains: InnerLoopGains | None = None) -> None:
-        gains = gains or InnerLoopGains()
+    def __init__(self, profile: VehicleProfile, gains: InnerLoopGains) -> None:
         if not 0.0 <= gains.idle_throttle < 1.0:
             raise ValueError(f"idle_throttle must be in [0, 1), got {gains.idle_throttle}")
         self.profile = profile

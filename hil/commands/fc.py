@@ -13,6 +13,7 @@ from types import FrameType
 import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics import backend_names
@@ -111,6 +112,7 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         profile = load_profile(args.profile)
+        fc_gains(profile)  # a vehicle the FC cannot stabilise is refused with the reason
         config = FcConfig(failsafe_timeout_s=args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
     except (ProfileError, ValueError) as exc:

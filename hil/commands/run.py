@@ -30,6 +30,12 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help="seed instead of the scenario's")
     p.add_argument("--backend", default=None, choices=backend_names(), help="physics backend")
     p.add_argument(
+        "--vehicle",
+        default=None,
+        metavar="NAME|PATH",
+        help="fly this vehicle profile instead of the scenario's (an opening narrower than its body grows)",
+    )
+    p.add_argument(
         "--in-process",
         action="store_true",
         default=None,
@@ -44,6 +50,7 @@ def options_from(args: argparse.Namespace) -> RunOptions:
         realtime=args.realtime,
         seed=args.seed,
         backend=args.backend,
+        vehicle=args.vehicle,
     )
 
 

@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any, Protocol
 
-from emulator.profile import VehicleProfile
 from hil.link.transport import Transport
+from hil.scenario.loader import onboard_vehicle
 from hil.scenario.schema import Scenario
 from policies.onboard import EventLog, OnboardProgram, ProgramConfig
 from policies.onboard.cli import add_arguments, config_from_args
@@ -197,8 +197,10 @@ def _parse_events(data: bytes) -> list[dict[str, Any]]:
     return out
 
 
-def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:
-    """The onboard program's options for scenario ``s`` on vehicle ``profile`` (links not included)."""
+def onboard_options(s: Scenario) -> list[str]:
+    """The onboard program's options for scenario ``s`` (links not included): the vehicle's mass and
+    limits come from the onboard side's own configuration of it (`onboard_vehicle`), never from the
+    emulator's profile."""
     lab_min, lab_max = (",".join(repr(float(v)) for v in c) for c in (s.lab.min_m, s.lab.max_m))
     return [
         "--pilot",
@@ -207,10 +209,8 @@ def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:
         repr(s.approach.speed_m_s or DEFAULT_APPROACH_SPEED_M_S),
         "--approach-duration",
         repr(s.approach.duration_s),
-        "--mass",
-        repr(profile.mass_kg),
-        "--full-thrust",
-        repr(profile.n3_full_thrust_n),
+        "--vehicle",
+        onboard_vehicle(s.vehicle),
         "--gap-size",
         repr(s.gap.width_m),
         repr(s.gap.height_m),

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from emulator.fc.tuning import fc_gains
 from emulator.physics import backend_names
 from emulator.profile import load_profile
 from hil.link.clock import SimClock
@@ -55,6 +56,7 @@ class RunOptions:
     realtime: bool | None = None
     seed: int | None = None
     backend: str | None = None
+    vehicle: str | None = None  # a profile name or file; the opening grows with its body box (`for_vehicle`)
     tick_s: float = DEFAULT_TICK_S
     guard_s: float = DEFAULT_GUARD_S
 
@@ -92,6 +94,8 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
         s = replace(s, seed=options.seed)
     if options.backend is not None:
         s = replace(s, physics=options.backend)
+    if options.vehicle is not None and options.vehicle != s.vehicle:
+        s = for_vehicle(s, options.vehicle)
     if s.pilot not in pilot_names():
         raise RunSetupError(f"unknown pilot {s.pilot!r}; known: {', '.join(pilot_names())}")
     if s.physics not in backend_names():
@@ -113,6 +117,25 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
     return s, in_process, realtime
 
 
+def for_vehicle(scenario: Scenario, vehicle: str) -> Scenario:
+    """``scenario`` flown by ``vehicle`` (a built-in profile name or a profile file) instead of its own:
+    where the new body box is larger, the opening grows by the difference (long side by the larger of
+    length and width, short side by the height), keeping the clearance the scenario was written with.
+    RunSetupError for an unknown vehicle."""
+    try:
+        old, new = load_profile(scenario.vehicle), load_profile(vehicle)
+    except ValueError as exc:
+        raise RunSetupError(str(exc)) from exc
+    grow_w = max(new.body_box_m[:2]) - max(old.body_box_m[:2])
+    grow_h = new.body_box_m[2] - old.body_box_m[2]
+    gap = replace(
+        scenario.gap,
+        width_m=scenario.gap.width_m + max(grow_w, 0.0),
+        height_m=scenario.gap.height_m + max(grow_h, 0.0),
+    )
+    return replace(scenario, vehicle=vehicle, gap=gap)
+
+
 def run_scenario(
     scenario: Scenario,
     out_dir: str | Path,
@@ -127,7 +150,8 @@ def run_scenario(
     s, in_process, realtime = resolve(scenario, options)
     try:
         profile = load_profile(s.vehicle)
-        ob_options = onboard_options(s, profile)
+        fc_gains(profile)  # a vehicle the FC cannot stabilise is refused here, with the reason
+        ob_options = onboard_options(s)
         config = program_config(ob_options)
     except ValueError as exc:
         raise RunSetupError(str(exc)) from exc
@@ -313,7 +337,8 @@ def _finish(
             "realtime": realtime,
             "pilot": s.pilot,
             # what computed each segment's commands, as the onboard program reported it
-            "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"), None),
+            "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"),
+                                None),
             "seed": s.seed,
             "physics": s.physics,
         },

@@ -375,6 +375,7 @@ class _Builder:
                 raise self.error(
                     node, path, f"expected a built-in profile name or a profile file, no file {p}"
                 )
+            self.flyable(node, path, str(p))
             return str(p)
         have = builtin_profiles()
         if value not in have:
@@ -384,6 +385,22 @@ class _Builder:
                 node, path, f"unknown vehicle profile {value!r}{hint}; built-in: {', '.join(have) or 'none'}"
             )
         return value
+
+    def flyable(self, node: Node, path: str, profile_path: str) -> None:
+        """A profile file the FC can fly, with the onboard configuration beside it (README, "Bringing
+        your own airframe"); the error says why not."""
+        from emulator.fc.tuning import fc_gains
+        from emulator.profile import ProfileError, load_profile
+
+        try:
+            fc_gains(load_profile(profile_path))
+        except ProfileError as exc:
+            raise self.error(node, path, str(exc)) from None
+        onboard = onboard_vehicle(profile_path)
+        if not Path(onboard).is_file():
+            raise self.error(
+                node, path, f"no onboard configuration {onboard} beside the profile (mass, tilt limit)"
+            )
 
     def physics(self, node: Node, path: str) -> str:
         from emulator.physics import backend_names
@@ -565,3 +582,12 @@ class _Builder:
                     f"faults[{i}].{key}",
                     f"expected a time before duration_s ({_fmt(s.duration_s)}), got {_fmt(fault.start_s)}",
                 )
+
+
+def onboard_vehicle(vehicle: str) -> str:
+    """The onboard configuration for the scenario's ``vehicle`` (a built-in profile name, or a profile
+    file): the built-in of the same name, or ``PROFILE.onboard.yaml`` beside the profile file."""
+    if vehicle.endswith((".yaml", ".yml")):
+        p = Path(vehicle)
+        return str(p.with_name(f"{p.stem}.onboard.yaml"))
+    return vehicle

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from policies.controller import AttitudeThrustCommand, ExpertController
+from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains
 from policies.frames import rot_z
 from policies.gap_planning import MissionPlan, Segment
 from policies.learning.features import CONTROLLER_MASS_KG, planner_inputs
@@ -41,9 +41,10 @@ def approach_planner_inputs(plan: MissionPlan, t_s: float,
 class PlannerNetPilot:
     """Approach reference from the planner network, tracked by the expert controller."""
 
-    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None) -> None:
+    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None,
+                 max_tilt_deg: float = 75.0) -> None:
         self.model = model or load_shipped("planner")
-        self.controller = ExpertController(mass_kg)
+        self.controller = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
         self.flies = flown_by(approach="planner network's reference, expert controller")
 
     def reference(self, plan: MissionPlan, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -66,14 +67,15 @@ class PlannerNetPilot:
 class EndToEndPilot:
     """The merged policy network on the approach; the expert on the plan's reference afterwards."""
 
-    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None, acc_input: str = "zero") -> None:
+    def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None, acc_input: str = "zero",
+                 max_tilt_deg: float = 75.0) -> None:
         if acc_input not in ("zero", "measured"):
             raise ValueError(f"acc_input must be 'zero' or 'measured', got {acc_input!r}")
         if not (math.isfinite(mass_kg) and mass_kg > 0):
             raise ValueError("mass_kg must be positive")
         self.model = model or load_shipped("e2e")
         self.mass_kg, self.acc_input = mass_kg, acc_input
-        self.expert = ExpertController(mass_kg)
+        self.expert = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
         self.flies = flown_by(approach="end-to-end network")
 
     def inputs(self, obs: object) -> np.ndarray:
@@ -109,15 +111,17 @@ def _options(options: tuple[tuple[str, str], ...]) -> dict[str, str]:
     return opts
 
 
-def make_planner_net(mass_kg: float, options: tuple[tuple[str, str], ...] = ()) -> PlannerNetPilot:
+def make_planner_net(mass_kg: float, options: tuple[tuple[str, str], ...] = (),
+                     max_tilt_deg: float = 75.0) -> PlannerNetPilot:
     """``planner_net`` pilot; option ``onnx=<path>`` replaces the shipped planner."""
     opts = _options(options)
     model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
-    return PlannerNetPilot(mass_kg, model)
+    return PlannerNetPilot(mass_kg, model, max_tilt_deg)
 
 
-def make_e2e(mass_kg: float, options: tuple[tuple[str, str], ...] = ()) -> EndToEndPilot:
+def make_e2e(mass_kg: float, options: tuple[tuple[str, str], ...] = (), max_tilt_deg: float = 75.0,
+             ) -> EndToEndPilot:
     """``e2e`` pilot; options ``onnx=<path>`` and ``acc_input=zero|measured``."""
     opts = _options(options)
     model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
-    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"))
+    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"), max_tilt_deg)

@@ -11,6 +11,7 @@ from hil.link.transport import LinkError
 from policies.onboard.estimator import EstimatorConfig
 from policies.onboard.pilots import UnknownPilot, pilot_names
 from policies.onboard.program import EXIT_ERROR, MIN_RATE_HZ, EventLog, OnboardProgram, ProgramConfig
+from policies.vehicle import DEFAULT_VEHICLE, load_vehicle, vehicle_names
 
 
 def _triple(text: str) -> tuple[float, float, float]:
@@ -44,9 +45,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"safe hover when the pose is older (ms, default {d.stale_mocap_s * 1e3:g})")
     p.add_argument("--mocap-latency-ms", type=float, default=EstimatorConfig().latency_s * 1e3, metavar="MS",
                    help="exposure-to-arrival latency the state estimate is predicted over (ms, default 25)")
-    p.add_argument("--mass", type=float, default=d.mass_kg, metavar="KG", help="mass (kg, default 0.9)")
-    p.add_argument("--full-thrust", type=float, default=d.full_thrust_n, metavar="N",
-                   help="total thrust at N3 100 %% (N, default 24)")
+    p.add_argument("--vehicle", default=DEFAULT_VEHICLE, metavar="NAME|PATH",
+                   help="the vehicle's onboard configuration: mass, full thrust, tilt limit, control lead "
+                        f"(built-in: {', '.join(vehicle_names())}, or a YAML file; "
+                        f"default {DEFAULT_VEHICLE})")
+    p.add_argument("--mass", type=float, default=None, metavar="KG",
+                   help="mass (kg), instead of the vehicle's")
+    p.add_argument("--full-thrust", type=float, default=None, metavar="N",
+                   help="total thrust at N3 100 %% (N), instead of the vehicle's")
+    p.add_argument("--max-tilt", type=float, default=None, metavar="DEG",
+                   help="the expert's tilt limit (deg), instead of the vehicle's")
+    p.add_argument("--control-lead-ms", type=float, default=None, metavar="MS",
+                   help="compute commands this far ahead, the FC's attitude lag (ms), instead of the "
+                        "vehicle's")
     p.add_argument("--gap-size", type=float, nargs=2, default=(d.gap_width_m, d.gap_height_m),
                    metavar=("WIDTH", "HEIGHT"), help="opening's long and short side (m, default 0.8 0.35)")
     p.add_argument("--lab-min", type=_triple, default=d.lab_min_m, metavar="X,Y,Z",
@@ -70,10 +81,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> ProgramConfig:
     """A ProgramConfig from parsed options; ValueError with the reason when one is out of range."""
+    v = load_vehicle(args.vehicle)
+    lead_s = v.control_lead_s if args.control_lead_ms is None else args.control_lead_ms / 1e3
     return ProgramConfig(
         pilot=args.pilot, rate_hz=args.rate_hz, approach_speed_m_s=args.approach_speed,
         approach_duration_s=args.approach_duration, traverse_lead_m=args.traverse_lead,
-        stale_mocap_s=args.stale_mocap_ms / 1e3, mass_kg=args.mass, full_thrust_n=args.full_thrust,
+        stale_mocap_s=args.stale_mocap_ms / 1e3,
+        mass_kg=v.mass_kg if args.mass is None else args.mass,
+        full_thrust_n=v.full_thrust_n if args.full_thrust is None else args.full_thrust,
+        max_tilt_deg=v.max_tilt_deg if args.max_tilt is None else args.max_tilt, control_lead_s=lead_s,
         gap_width_m=args.gap_size[0], gap_height_m=args.gap_size[1], lab_min_m=args.lab_min,
         lab_max_m=args.lab_max, takeoff_height_m=args.takeoff_height, hover_s=args.hover_time,
         estimator=EstimatorConfig(latency_s=args.mocap_latency_ms / 1e3),

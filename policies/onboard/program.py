@@ -39,7 +39,7 @@ from hil.link.clock import WallClock
 from hil.link.linktrack import BODY_IDS
 from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
-from policies.controller import AttitudeThrustCommand, ExpertController
+from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
 from policies.mocap_reader import MocapReader
@@ -95,8 +95,10 @@ class ProgramConfig:
     # FC finish most of the roll into the gap's tilt before the 0.52 m body reaches the wall
     traverse_lead_m: float = 0.25
     stale_mocap_s: float = 0.1  # vehicle pose older than this: abort to a safe hover
+    # the vehicle as the onboard side knows it (its own configuration, policies.vehicle; n3_tx2's here)
     mass_kg: float = 0.9
     full_thrust_n: float = 24.0  # thrust at N3 100 % (the vehicle's n3_full_thrust_n)
+    max_tilt_deg: float = 75.0  # the expert's tilt limit (takeoff, mission, hover)
     gap_width_m: float = 0.8  # the opening's size (mocap gives its pose only)
     gap_height_m: float = 0.45
     lab_min_m: tuple[float, float, float] = (-5.0, -5.0, 0.0)
@@ -136,6 +138,8 @@ class ProgramConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be >= 0, got {v!r}")
+        if not (math.isfinite(self.max_tilt_deg) and 0 < self.max_tilt_deg < 90):
+            raise ValueError(f"max_tilt_deg must be in (0, 90), got {self.max_tilt_deg!r}")
         if self.mass_kg * GRAVITY_M_S2 >= self.full_thrust_n:
             raise ValueError(f"full thrust {self.full_thrust_n} N cannot hold {self.mass_kg} kg")
         LabVolume(self.lab_min_m, self.lab_max_m)  # validates
@@ -230,8 +234,10 @@ class OnboardProgram:
         self.link = CommandLink(command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
         self.estimator = PoseEstimator(cfg.estimator)
-        self.pilot = pilot or make_pilot(cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n))
-        self.expert = ExpertController(cfg.mass_kg)
+        self.pilot = pilot or make_pilot(
+            cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n, max_tilt_deg=cfg.max_tilt_deg)
+        )
+        self.expert = ExpertController(cfg.mass_kg, ExpertGains(tilt_max_rad=math.radians(cfg.max_tilt_deg)))
         self.events = events or EventLog()
         self.lab = LabVolume(cfg.lab_min_m, cfg.lab_max_m)
         self.phase = Phase.WAIT

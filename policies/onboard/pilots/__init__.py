@@ -45,10 +45,12 @@ class Observation:
 
 @dataclass(frozen=True)
 class PilotContext:
-    """What a pilot may need to be built: the vehicle's mass (kg) and full thrust (N), and options."""
+    """What a pilot may need to be built: the vehicle's mass (kg), full thrust (N), tilt limit (deg)
+    and options."""
 
     mass_kg: float = 0.9
     full_thrust_n: float = 24.0
+    max_tilt_deg: float = 75.0
     options: tuple[tuple[str, str], ...] = ()  # free-form name=value pairs, e.g. a weights path
 
 

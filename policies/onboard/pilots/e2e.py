@@ -8,4 +8,4 @@ from policies.onboard.pilots import PilotContext
 
 
 def make_pilot(context: PilotContext) -> EndToEndPilot:
-    return make_e2e(context.mass_kg, context.options)
+    return make_e2e(context.mass_kg, context.options, context.max_tilt_deg)

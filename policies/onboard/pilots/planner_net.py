@@ -8,4 +8,4 @@ from policies.onboard.pilots import PilotContext
 
 
 def make_pilot(context: PilotContext) -> PlannerNetPilot:
-    return make_planner_net(context.mass_kg, context.options)
+    return make_planner_net(context.mass_kg, context.options, context.max_tilt_deg)

@@ -1,0 +1,85 @@
+"""The onboard program's vehicle configuration: what the onboard software is told about its airframe
+(mass, the N3's thrust scale, the tilt limit, the FC's attitude lag), read from its own YAML file.
+
+Built-in files are ``policies/vehicles/NAME.yaml``; any other is given by path. A new airframe needs
+one beside its emulator profile (the harness looks for ``PROFILE.onboard.yaml`` next to a profile
+file): the onboard side never reads the emulator's profile, as the real onboard computer cannot.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from importlib import resources
+from pathlib import Path
+
+import yaml
+
+from policies.frames import GRAVITY_M_S2
+
+DEFAULT_VEHICLE = "n3_tx2"
+
+
+@dataclass(frozen=True)
+class OnboardVehicle:
+    """The airframe as the onboard program knows it (SI units)."""
+
+    name: str
+    mass_kg: float
+    full_thrust_n: float  # total thrust at N3 vertical command 100 %
+    max_tilt_deg: float  # the expert's tilt limit (the FC's own limit or less)
+    control_lead_s: float  # commands are computed this far ahead: the FC's attitude lag
+
+    def __post_init__(self) -> None:
+        for name in ("mass_kg", "full_thrust_n", "max_tilt_deg"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"vehicle {self.name}: {name} must be a positive number, got {v!r}")
+        if not 0 < self.max_tilt_deg < 90:
+            raise ValueError(f"vehicle {self.name}: max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
+        lead = self.control_lead_s
+        if isinstance(lead, bool) or not isinstance(lead, int | float) or not (0 <= lead <= 0.2):
+            raise ValueError(f"vehicle {self.name}: control_lead_s must be in [0, 0.2] s, got {lead!r}")
+        if self.mass_kg * GRAVITY_M_S2 >= self.full_thrust_n:
+            raise ValueError(
+                f"vehicle {self.name}: full_thrust_n {self.full_thrust_n} N cannot hold {self.mass_kg} kg"
+            )
+
+
+def vehicle_names() -> list[str]:
+    """Names of the built-in onboard vehicle configurations."""
+    folder = resources.files("policies") / "vehicles"
+    return sorted(p.name[: -len(".yaml")] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def load_vehicle(name_or_path: str | Path) -> OnboardVehicle:
+    """A built-in configuration by name, or a YAML file by path; ValueError naming the file and field."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        f = resources.files("policies") / "vehicles" / f"{name_or_path}.yaml"
+        if not f.is_file():
+            have = ", ".join(vehicle_names())
+            raise ValueError(f"no onboard vehicle configuration {str(name_or_path)!r} (built-in: {have})")
+        text, source = f.read_text(), f"{name_or_path}.yaml"
+    else:
+        try:
+            text, source = path.read_text(), str(path)
+        except OSError as exc:
+            raise ValueError(f"onboard vehicle configuration {path}: cannot read: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{source}: not valid YAML: {exc}") from None
+    known = [f.name for f in fields(OnboardVehicle)]
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: expected a mapping of field: value ({', '.join(known)})")
+    unknown = sorted(set(data) - set(known))
+    missing = [k for k in known if k not in data]
+    if unknown or missing:
+        raise ValueError(
+            f"{source}: unknown fields {unknown}, missing fields {missing} (fields: {', '.join(known)})"
+        )
+    try:
+        return OnboardVehicle(**data)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{source}: {exc}") from None

@@ -1,0 +1,170 @@
+"""Every vehicle flies: scenarios flown with another vehicle profile through the whole harness (FC tuned
+from the profile, the onboard program configured for the vehicle from its own file), how well each
+profile's FC tracks the attitude it is asked for, and the refusal of a vehicle the FC cannot fly."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from emulator.profile import VehicleProfile, load_profile
+from hil.cli import main as hil_main
+from hil.runner import RunOptions, run_scenario
+from hil.runner.onboard_side import onboard_options
+from hil.runner.run import RunSetupError, for_vehicle
+from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
+
+F450 = load_profile("f450")
+
+
+def scenario(roll_deg: float, speed_m_s: float, vehicle: str = "n3_tx2",
+             size_m: tuple[float, float] | None = None, physics: str = "native"):
+    gap = f"roll_deg: {roll_deg}" + (f", width_m: {size_m[0]}, height_m: {size_m[1]}" if size_m else "")
+    doc = (f"description: roll {roll_deg} at {speed_m_s}\nvehicle: {vehicle}\nphysics: {physics}\n"
+           f"gap: {{{gap}}}\napproach: {{speed_m_s: {speed_m_s}}}\nduration_s: 11\n")
+    return loads_scenarios(doc, source="<test>")[0]
+
+
+def attitude_tracking_deg(out: Path) -> dict[str, float]:
+    """How the FC tracked the commanded roll and pitch (deg): RMS error over the mission (from the first
+    command to the end) and the largest error once hovering after it (the last 2 s)."""
+    ts = np.load(out / "timeseries.npz")
+    t = ts["t_s"]
+    cmd = np.stack([ts["roll_cmd_deg"], ts["pitch_cmd_deg"]])
+    err = np.stack([ts["roll_deg"], ts["pitch_deg"]]) - cmd
+    flying = np.isfinite(cmd).all(axis=0) & (t > t[np.argmax(np.isfinite(cmd).all(axis=0))])
+    tail = flying & (t > t[flying].max() - 2.0)
+    return {"rms_deg": float(np.sqrt(np.mean(err[:, flying] ** 2))),
+            "hover_max_deg": float(np.abs(err[:, tail]).max())}
+
+
+def write_vehicle(folder: Path, profile: VehicleProfile, control_lead_s: float) -> Path:
+    """The profile as a YAML file and, beside it, the onboard side's configuration of the vehicle."""
+    data = {f.name: getattr(profile, f.name) for f in dataclasses.fields(profile)}
+    data = {k: list(v) if isinstance(v, tuple) else v for k, v in data.items() if v is not None}
+    path = folder / f"{profile.name}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    (folder / f"{profile.name}.onboard.yaml").write_text(yaml.safe_dump({
+        "name": profile.name, "mass_kg": profile.mass_kg, "full_thrust_n": profile.n3_full_thrust_n,
+        "max_tilt_deg": profile.max_tilt_deg, "control_lead_s": control_lead_s}))
+    return path
+
+
+def fly(s, tmp_path: Path, **options):
+    """Run ``s`` in one process; the result and the attitude tracking (`attitude_tracking_deg`, plus the
+    run's attitude error at the crossing, deg)."""
+    r = run_scenario(s, tmp_path / "run", RunOptions(in_process=True, **options))
+    return r, {**attitude_tracking_deg(r.out_dir), "at_crossing_deg": r.summary["attitude_error_deg"]}
+
+
+def crossing_offset_m(r, s) -> float:
+    return float(np.linalg.norm(np.array(r.summary["crossing"]["point_m"]) - np.array(s.gap.centre_m)))
+
+
+F450_CASES = [(0.0, "native"), (30.0, "native"), (-45.0, "native"), (0.0, "jsbsim"), (30.0, "jsbsim"),
+              (-45.0, "jsbsim")]
+
+
+@pytest.mark.parametrize(("roll_deg", "physics"), F450_CASES,
+                         ids=[f"{p}-roll{r:+.0f}" for r, p in F450_CASES])
+def test_f450_crosses_a_0p95_by_0p5_m_opening_at_2p5_m_s(tmp_path, roll_deg, physics):
+    s = scenario(roll_deg, 2.5, "f450", (0.95, 0.5), physics)
+    r, tracking = fly(s, tmp_path)
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    assert crossing_offset_m(r, s) < 0.03
+    assert r.summary["min_clearance_m"] > 0.0
+    print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}")
+    assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
+
+
+@pytest.mark.parametrize("name", ["n3_tx2", "f450"])
+def test_attitude_tracking_of_each_profile_on_the_30_deg_scenario(tmp_path, name):
+    s = for_vehicle(scenario(30.0, 2.0), name)
+    r, tracking = fly(s, tmp_path)
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    print(f"{name}: attitude tracking {tracking}")
+    assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
+
+
+def test_another_vehicle_gets_an_opening_grown_by_its_larger_body():
+    s = scenario(30.0, 2.0)
+    f = for_vehicle(s, "f450")
+    assert f.vehicle == "f450"
+    assert f.gap.width_m == pytest.approx(s.gap.width_m + 0.569 - 0.52)
+    assert f.gap.height_m == pytest.approx(s.gap.height_m + 0.3048 - 0.18)
+    assert for_vehicle(f, "n3_tx2").gap == f.gap  # a smaller body: the opening stays as written
+    with pytest.raises(RunSetupError, match="no_such"):
+        for_vehicle(s, "no_such")
+
+
+def test_the_onboard_program_is_configured_for_the_vehicle_by_its_own_file():
+    opts = onboard_options(scenario(30.0, 2.0, "f450"))
+    assert opts[opts.index("--vehicle") + 1] == "f450"
+    assert "--mass" not in opts and "--full-thrust" not in opts  # nothing read from the emulator's profile
+
+
+def test_heavier_inertia_flies_the_30_deg_scenario(tmp_path):
+    heavy = F450.with_changes(name="f450_heavy", inertia_kgm2=tuple(1.5 * i for i in F450.inertia_kgm2))
+    path = write_vehicle(tmp_path, heavy, control_lead_s=0.10)
+    s = for_vehicle(scenario(30.0, 2.0), str(path))
+    r, _ = fly(s, tmp_path)
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    assert crossing_offset_m(r, s) < 0.03
+
+
+def test_heavier_inertia_and_a_0p08_s_motor_flies_the_30_deg_scenario(tmp_path):
+    """Slower motors give the FC a slower attitude loop (4.8 /s, not 7): the onboard side is told to
+    compute its commands further ahead (0.14 s), as its configuration for such an airframe would."""
+    slow = F450.with_changes(name="f450_slow", inertia_kgm2=tuple(1.5 * i for i in F450.inertia_kgm2),
+                             motor_time_constant_s=0.08)
+    path = write_vehicle(tmp_path, slow, control_lead_s=0.14)
+    s = for_vehicle(scenario(30.0, 2.0), str(path))
+    r, tracking = fly(s, tmp_path)
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    assert crossing_offset_m(r, s) < 0.05
+    print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}")
+
+
+def test_a_vehicle_the_fc_cannot_stabilise_is_refused_before_it_flies(tmp_path, capsys):
+    slow = F450.with_changes(name="f450_sluggish", motor_time_constant_s=0.12)
+    path = write_vehicle(tmp_path, slow, control_lead_s=0.2)
+    s = for_vehicle(scenario(30.0, 2.0), str(path))
+    with pytest.raises(RunSetupError, match=r"motor_time_constant_s.*cannot stabilise"):
+        run_scenario(s, tmp_path / "run", RunOptions(in_process=True))
+    assert not (tmp_path / "run").exists()
+    scen = tmp_path / "x.scenario.yaml"
+    scen.write_text("description: x\ngap: {roll_deg: 30}\n")
+    argv = ["run", str(scen), "--in-process", "--vehicle", str(path), "--out", str(tmp_path / "o")]
+    assert hil_main(argv) == 2
+    assert "cannot stabilise" in capsys.readouterr().err
+
+
+def test_a_profile_file_without_an_onboard_configuration_is_refused(tmp_path):
+    path = write_vehicle(tmp_path, F450.with_changes(name="lonely"), control_lead_s=0.1)
+    (tmp_path / "lonely.onboard.yaml").unlink()
+    s = for_vehicle(scenario(30.0, 2.0), str(path))
+    with pytest.raises(RunSetupError, match=r"lonely\.onboard\.yaml"):
+        run_scenario(s, tmp_path / "run", RunOptions(in_process=True))
+
+
+
+
+def test_a_scenario_file_naming_an_unflyable_vehicle_is_refused_when_it_loads(tmp_path):
+    sluggish = F450.with_changes(name="sluggish", motor_time_constant_s=0.12)
+    write_vehicle(tmp_path, sluggish, control_lead_s=0.2)
+    write_vehicle(tmp_path, F450.with_changes(name="lonely"), control_lead_s=0.1)
+    (tmp_path / "lonely.onboard.yaml").unlink()
+    write_vehicle(tmp_path, F450.with_changes(name="fine"), control_lead_s=0.09)
+    for name, words in (("sluggish", "cannot stabilise"), ("lonely", "no onboard configuration")):
+        f = tmp_path / f"{name}.scenario.yaml"
+        f.write_text(f"description: x\nvehicle: {name}.yaml\n")
+        with pytest.raises(ScenarioError, match=words) as info:
+            load_scenarios(f)
+        assert f"{f}:2: vehicle" in str(info.value)
+    f = tmp_path / "fine.scenario.yaml"
+    f.write_text("description: x\nvehicle: fine.yaml\n")
+    assert load_scenarios(f)[0].vehicle == str(tmp_path / "fine.yaml")
