@@ -160,3 +160,18 @@ def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[f
         payload += struct.pack("<H", crc16_ccitt(payload))
         out.append(encode_node_frame(payload, f.role, f.module_id, node.role, node.node_id))
     return b"".join(out)
+
+
+def rewrite_mocap_from(t0_s: float, frames: float = math.inf,
+                       **values: Any) -> Callable[[float, bytes], bytes]:
+    """A ``mocap_tamper``: the first ``frames`` writes at or after ``t0_s`` (s) get ``values`` (see
+    `rewrite_mocap`); the others pass as they are."""
+    left = [frames]
+
+    def tamper(t: float, data: bytes) -> bytes:
+        if t < t0_s or left[0] <= 0:
+            return data
+        left[0] -= 1
+        return rewrite_mocap(data, **values)
+
+    return tamper

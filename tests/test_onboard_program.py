@@ -5,11 +5,10 @@ refusing bad settings, bad commands and messages from anyone but the FC."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 import pytest
-from onboard_rig import fc_holding, rewrite_mocap, run_mission
+from onboard_rig import fc_holding, rewrite_mocap_from, run_mission
 
 from hil.cli import main as hil_main
 from hil.link import MemoryTransport, SimClock
@@ -95,25 +94,12 @@ def test_estimator_recovers_velocity_and_acceleration_from_poses():
     assert not est.update(t + 1, np.array([math.nan, 0, 0]), q, t + 1)
 
 
-def _from(t0_s: float, frames: float = math.inf, **values: object) -> Callable[[float, bytes], bytes]:
-    """A mocap tamper: ``frames`` writes from ``t0_s`` (s) on get ``values`` (see `rewrite_mocap`)."""
-    left = [frames]
-
-    def tamper(t: float, data: bytes) -> bytes:
-        if t < t0_s or left[0] <= 0:
-            return data
-        left[0] -= 1
-        return rewrite_mocap(data, **values)  # type: ignore[arg-type]
-
-    return tamper
-
-
 @pytest.mark.parametrize("bad", [{"pos_m": (math.nan, 0.0, 1.0)}, {"stamp_us": 2**62}],
                          ids=["nan_position", "stamp_2_62"])
 def test_vehicle_poses_the_estimator_cannot_take_are_stale_mocap(bad):
     # from 5 s on (mid-takeoff) every vehicle pose is unusable: the program must not fly on the frozen
     # estimate, but abort to a safe hover as when the stream stops
-    r = run_mission(0.0, 1.5, mocap_tamper=_from(5.0, body_ids=(1,), **bad))
+    r = run_mission(0.0, 1.5, mocap_tamper=rewrite_mocap_from(5.0, body_ids=(1,), **bad))
     abort = r.event("abort")
     assert abort["reason"] == "stale_mocap"
     assert 5.0 < abort["t_s"] < 5.0 + 0.1 + 0.04  # stale after 100 ms (+ the link's latency)
@@ -124,8 +110,8 @@ def test_vehicle_poses_the_estimator_cannot_take_are_stale_mocap(bad):
 
 def test_single_bad_mocap_frames_are_refused_and_the_mission_flies_on():
     # one frame stamped 2^62 us and one with NaN poses during the approach, one NaN gap pose before planning
-    tamper = [_from(5.0, 1, stamp_us=2**62), _from(5.5, 1, pos_m=(math.nan,) * 3),
-              _from(3.0, 1, pos_m=(math.nan,) * 3, body_ids=(2,))]
+    tamper = [rewrite_mocap_from(5.0, 1, stamp_us=2**62), rewrite_mocap_from(5.5, 1, pos_m=(math.nan,) * 3),
+              rewrite_mocap_from(3.0, 1, pos_m=(math.nan,) * 3, body_ids=(2,))]
 
     def all_of(t: float, data: bytes) -> bytes:
         for f in tamper:
@@ -142,7 +128,8 @@ def test_single_bad_mocap_frames_are_refused_and_the_mission_flies_on():
 
 def test_a_nan_gap_pose_is_refused_never_a_crash():
     # every gap pose NaN from the start: the program waits for a gap pose and says so when it gives up
-    r = run_mission(0.0, 1.5, mocap_tamper=_from(0.0, pos_m=(math.nan,) * 3, body_ids=(2,)), t_end_s=11.0)
+    nan_gap = rewrite_mocap_from(0.0, pos_m=(math.nan,) * 3, body_ids=(2,))
+    r = run_mission(0.0, 1.5, mocap_tamper=nan_gap, t_end_s=11.0)
     end = r.event("error")
     assert r.program.exit_code == 1 and end["reason"] == "timed out waiting for mocap and the FC"
     assert end["gap_mocap"] is False and end["vehicle_mocap"] is True
