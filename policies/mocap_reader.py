@@ -56,6 +56,7 @@ MAX_STAMP_LEAD_S = 0.5
 #: frames in a row that agree on a new mocap clock (refused until then) before it is believed
 CLOCK_JUMP_FRAMES = 10
 _NORM2_LO, _NORM2_HI = (1.0 - QUAT_NORM_TOL) ** 2, (1.0 + QUAT_NORM_TOL) ** 2
+_NEVER = -math.inf  # the stamp before a body's first
 _Vec3 = tuple[float, float, float]
 _Quat = tuple[float, float, float, float]
 #: a valid pose not yet made a PoseSample: position, unit quaternion, stamp_s, received_s, frame_no
@@ -210,16 +211,18 @@ class MocapReader:
         self._frames_ok += 1
         latest, on_sample, on_pose, frame_no = self._latest, self.on_sample, self.on_pose, values[2]
         last_stamps = self._last_stamp_s
+        newest_s = now_s - self._min_delay_s  # a later stamp is from the future or lowers the reference
         for k in range(4, len(values), BODY_VALUES):
             body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
-            total = px + py + pz + qw + qx + qy + qz  # NaN when any value is NaN or infinite
-            norm2 = qw * qw + qx * qx + qy * qy + qz * qz
+            pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
+            norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
             stamp_s = stamp_us * 1e-6
-            last = last_stamps.get(body_id)
-            if not (flags & FLAG_VALID and total - total == 0.0 and _NORM2_LO <= norm2 <= _NORM2_HI
-                    and now_s - stamp_s >= self._min_delay_s and (last is None or stamp_s > last)) \
-                    and self._refuse(body_id, flags, total, norm2, stamp_s, now_s, last):
-                continue
+            last = last_stamps.get(body_id, _NEVER)
+            if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and _NORM2_LO <= norm2 <= _NORM2_HI
+                    and last < stamp_s <= newest_s):
+                if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
+                    continue
+                newest_s = now_s - self._min_delay_s
             last_stamps[body_id] = stamp_s
             norm = math.sqrt(norm2)
             pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
@@ -234,21 +237,21 @@ class MocapReader:
                 on_pose(body_id, stamp_s, pos, quat, now_s)
         return 1
 
-    def _refuse(self, body_id: int, flags: int, total: float, norm2: float, stamp_s: float, now_s: float,
-                last: float | None) -> bool:
+    def _refuse(self, body_id: int, flags: int, pos_sum: float, norm2: float, stamp_s: float, now_s: float,
+                last: float) -> bool:
         """Whether a body record that failed the quick checks of `_take` is refused (counted by kind), or
         taken after all: a new lowest arrival-minus-stamp, or the frame that confirms a clock jump."""
         refused = self._refused
         if not flags & FLAG_VALID:
             kind = "bodies_invalid"
-        elif total - total != 0.0:
+        elif pos_sum - pos_sum != 0.0 or norm2 - norm2 != 0.0:
             kind = "bodies_non_finite"
         elif not _NORM2_LO <= norm2 <= _NORM2_HI:
             kind = "bodies_bad_quat"
         else:
             delay = now_s - stamp_s
             future = delay < self._min_delay_s - MAX_STAMP_LEAD_S < math.inf  # (none before a first pose)
-            if not future and (last is None or stamp_s > last):
+            if not future and stamp_s > last:
                 self._min_delay_s = delay  # a pose that came quicker than any before: the new reference
                 return False
             if self._clock_jumped(body_id, stamp_s, delay, now_s):
