@@ -4,8 +4,9 @@ vehicle and gap poses, with their mocap timestamps, arrival times, ages and a st
 A pose is taken only when it is plausible; each refusal is counted by kind in ``reader.counters``:
 flagged not valid (occluded), a position or quaternion that is not finite, a quaternion whose norm is
 off 1 by more than `QUAT_NORM_TOL`, a stamp more than `MAX_STAMP_LEAD_S` ahead of what the arrival
-times allow (the smallest arrival-minus-stamp seen so far is the reference: the two clocks need not
-agree, but they advance together), and a stamp not after the body's latest. A jump of the mocap clock
+times allow (the reference is the smallest arrival-minus-stamp seen so far, followed in steps of
+`REFERENCE_STEP_S`: the two clocks need not agree, but they advance together), and a stamp not after
+the body's latest. A jump of the mocap clock
 itself (or a bad first stamp that became the reference) is believed once `CLOCK_JUMP_FRAMES` frames
 in a row agree with it: stamps increasing, arrival-minus-stamp within `MAX_STAMP_LEAD_S` of each other.
 
@@ -53,6 +54,9 @@ LOCKSTEP_COUNT_MASK = 0x7FFFFFFF  # the lockstep harness counts the mocap bytes 
 QUAT_NORM_TOL = 0.01
 #: a stamp this much (s) ahead of the arrival times' reference is refused as from the future
 MAX_STAMP_LEAD_S = 0.5
+#: the reference arrival-minus-stamp is lowered when a pose comes this much (s) quicker than it (not
+#: at every new minimum: frames read together share one arrival time and would each set one)
+REFERENCE_STEP_S = 0.05
 #: frames in a row that agree on a new mocap clock (refused until then) before it is believed
 CLOCK_JUMP_FRAMES = 10
 _NORM2_LO, _NORM2_HI = (1.0 - QUAT_NORM_TOL) ** 2, (1.0 + QUAT_NORM_TOL) ** 2
@@ -211,7 +215,8 @@ class MocapReader:
         self._frames_ok += 1
         latest, on_sample, on_pose, frame_no = self._latest, self.on_sample, self.on_pose, values[2]
         last_stamps = self._last_stamp_s
-        newest_s = now_s - self._min_delay_s  # a later stamp is from the future or lowers the reference
+        # a later stamp is from the future or lowers the reference
+        newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
         for k in range(4, len(values), BODY_VALUES):
             body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
             pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
@@ -222,7 +227,7 @@ class MocapReader:
                     and last < stamp_s <= newest_s):
                 if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
                     continue
-                newest_s = now_s - self._min_delay_s
+                newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
             last_stamps[body_id] = stamp_s
             norm = math.sqrt(norm2)
             pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
@@ -252,7 +257,7 @@ class MocapReader:
             delay = now_s - stamp_s
             future = delay < self._min_delay_s - MAX_STAMP_LEAD_S < math.inf  # (none before a first pose)
             if not future and stamp_s > last:
-                self._min_delay_s = delay  # a pose that came quicker than any before: the new reference
+                self._min_delay_s = min(self._min_delay_s, delay)  # came quicker: the new reference
                 return False
             if self._clock_jumped(body_id, stamp_s, delay, now_s):
                 refused["clock_jumps"] += 1
