@@ -311,6 +311,11 @@ class MocapReader:
         return self.age_s(body) > self.stale_after_s
 
     @property
+    def clock_jumps(self) -> int:
+        """New mocap clocks followed so far (as in `counters`, without building them)."""
+        return self._refused["clock_jumps"]
+
+    @property
     def counters(self) -> ReaderCounters:
         s = self._decoder.stats
         return ReaderCounters(

@@ -135,11 +135,12 @@ def fc_holding(vehicle: EmulatedVehicle) -> bool:
 
 
 def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[float] | None = None,
-                  quat_wxyz: Sequence[float] | None = None, body_ids: Sequence[int] = (1, 2)) -> bytes:
+                  quat_wxyz: Sequence[float] | None = None, body_ids: Sequence[int] = (1, 2),
+                  stamp_shift_us: int = 0) -> bytes:
     """``data`` (whole LinkTrack mocap frames, as the emulator writes them) with the bodies of
-    ``body_ids`` given this stamp (us), position (m) or quaternion: values the emulator's encoder
-    refuses to write (NaN, a stamp of 2^62 us), framed with good checksums. Anything that is not whole
-    one-node frames passes as it is."""
+    ``body_ids`` given this stamp (us, or their own moved by ``stamp_shift_us``), position (m) or
+    quaternion: values the emulator's encoder refuses to write (NaN, a stamp of 2^62 us), framed with
+    good checksums. Anything that is not whole one-node frames passes as it is."""
     dec = FrameDecoder()
     frames = dec.feed(data)
     if not frames or dec.buffered or dec.stats.bytes_skipped or any(len(f.nodes) != 1 for f in frames):
@@ -152,6 +153,7 @@ def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[f
             if values[k] in body_ids:
                 if stamp_us is not None:
                     values[k + 2] = stamp_us
+                values[k + 2] += stamp_shift_us
                 if pos_m is not None:
                     values[k + 3:k + 6] = pos_m
                 if quat_wxyz is not None:

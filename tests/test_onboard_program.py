@@ -126,6 +126,16 @@ def test_single_bad_mocap_frames_are_refused_and_the_mission_flies_on():
     assert r.program.summary()["mocap"]["bodies_stamp_future"] == 2
 
 
+def test_a_mocap_clock_that_jumps_back_mid_flight_is_followed_without_an_abort():
+    # the mocap system restarts its clock during the approach (stamps 3 s lower from then on): the
+    # reader refuses the stamps until ten frames agree, the estimate follows, the mission goes on
+    r = run_mission(0.0, 1.5, mocap_tamper=rewrite_mocap_from(5.0, stamp_shift_us=-3_000_000))
+    assert r.program.exit_code == 0 and "abort" not in r.event_names
+    assert r.tracker.crossed_through_opening and r.tracker.first_collision is None
+    c = r.program.mocap.counters
+    assert c.clock_jumps == 1 and c.bodies_stamp_backwards == 2 * 9
+
+
 def test_a_nan_gap_pose_is_refused_never_a_crash():
     # every gap pose NaN from the start: the program waits for a gap pose and says so when it gives up
     nan_gap = rewrite_mocap_from(0.0, pos_m=(math.nan,) * 3, body_ids=(2,))

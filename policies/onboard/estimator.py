@@ -142,6 +142,15 @@ class PoseEstimator:
         self.updates += 1
         return True
 
+    def rebase(self, stamp_s: float, received_s: float) -> None:
+        """The mocap clock jumped (the reader followed it): read the pose of exposure ``stamp_s``,
+        arriving at ``received_s``, as one that came as late as the latest pose; the state is kept."""
+        if self._ready:
+            shift = (stamp_s - received_s) - (self._stamp_s - self._received_s)  # new clock - old clock (s)
+            self._stamp_s += shift
+            self._delay_s -= shift
+            self._mean_delay_s -= shift
+
     def estimate(self, now_s: float) -> StateEstimate:
         """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the
         configured mean latency, plus how much later than the average it arrived. ValueError if no

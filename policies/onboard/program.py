@@ -256,6 +256,7 @@ class OnboardProgram:
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
+        self._clock_jumps = 0  # the mocap reader's clock jumps the estimator has followed
 
     # --- the step ---------------------------------------------------------------------------
     @property
@@ -569,8 +570,12 @@ class OnboardProgram:
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
-        if body_id == VEHICLE_BODY_ID:
-            self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
+        if body_id == VEHICLE_BODY_ID and not self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s):
+            jumps = self.mocap.clock_jumps
+            if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
+                self._clock_jumps = jumps
+                self.estimator.rebase(stamp_s, received_s)
+                self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
 
     # --- loops --------------------------------------------------------------------------------
     def run_realtime(self, max_duration_s: float | None = None) -> int:
