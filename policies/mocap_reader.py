@@ -1,6 +1,15 @@
 """The onboard mocap reader: LinkTrack-style frames from a serial device, pty or UDP socket -> the latest
 vehicle and gap poses, with their mocap timestamps, arrival times, ages and a stale flag.
 
+A pose is taken only when it is plausible; each refusal is counted by kind in ``reader.counters``:
+flagged not valid (occluded), a position or quaternion that is not finite, a quaternion whose norm is
+off 1 by more than `QUAT_NORM_TOL`, a stamp more than `MAX_STAMP_LEAD_S` ahead of what the arrival
+times allow (the reference is the smallest arrival-minus-stamp seen so far, followed in steps of
+`REFERENCE_STEP_S`: the two clocks need not agree, but they advance together), and a stamp not after
+the body's latest. A jump of the mocap clock
+itself (or a bad first stamp that became the reference) is believed once `CLOCK_JUMP_FRAMES` frames
+in a row agree with it: stamps increasing, arrival-minus-stamp within `MAX_STAMP_LEAD_S` of each other.
+
     reader = MocapReader.open("/dev/pts/6")
     while True:
         reader.poll(timeout_s=0.01)
@@ -41,6 +50,17 @@ READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
 LOCKSTEP_COUNT_MASK = 0x7FFFFFFF  # the lockstep harness counts the mocap bytes it wrote mod 2^31
+#: a quaternion whose norm is further than this from 1 is refused (float32 on the wire: ~1e-7)
+QUAT_NORM_TOL = 0.01
+#: a stamp this much (s) ahead of the arrival times' reference is refused as from the future
+MAX_STAMP_LEAD_S = 0.5
+#: the reference arrival-minus-stamp is lowered when a pose comes this much (s) quicker than it (not
+#: at every new minimum: frames read together share one arrival time and would each set one)
+REFERENCE_STEP_S = 0.05
+#: frames in a row that agree on a new mocap clock (refused until then) before it is believed
+CLOCK_JUMP_FRAMES = 10
+_NORM2_LO, _NORM2_HI = (1.0 - QUAT_NORM_TOL) ** 2, (1.0 + QUAT_NORM_TOL) ** 2
+_NEVER = -math.inf  # the stamp before a body's first
 _Vec3 = tuple[float, float, float]
 _Quat = tuple[float, float, float, float]
 #: a valid pose not yet made a PoseSample: position, unit quaternion, stamp_s, received_s, frame_no
@@ -84,10 +104,16 @@ class ReaderCounters:
     bytes_skipped: int = 0
     bytes_in: int = 0
     bodies_invalid: int = 0  # body records flagged not valid (occluded)
+    bodies_non_finite: int = 0  # position or quaternion NaN or infinite
+    bodies_bad_quat: int = 0  # quaternion norm off 1 by more than QUAT_NORM_TOL
+    bodies_stamp_future: int = 0  # stamp more than MAX_STAMP_LEAD_S ahead of the arrival times
+    bodies_stamp_backwards: int = 0  # stamp not after the body's latest accepted one
+    clock_jumps: int = 0  # new mocap clocks believed (CLOCK_JUMP_FRAMES frames agreeing on it)
 
 
 class MocapReader:
-    """Reads mocap frames from ``transport``; keeps the latest valid pose of each body.
+    """Reads mocap frames from ``transport``; keeps the latest valid pose of each body (the checks a pose
+    passes are in the module docstring).
 
     ``stale_after_s``: a body whose latest valid pose arrived longer ago than this is stale.
     ``on_sample``: called with every valid PoseSample as it is parsed (for logs, estimators).
@@ -114,8 +140,17 @@ class MocapReader:
         self._decoder = FrameDecoder()
         self._bad_payload = 0
         self._bytes_bad_payload = 0
-        self._bodies_invalid = 0
         self._frames_ok = 0
+        #: refused body records by kind, as named in ReaderCounters
+        self._refused = dict.fromkeys(("bodies_invalid", "bodies_non_finite", "bodies_bad_quat",
+                                       "bodies_stamp_future", "bodies_stamp_backwards", "clock_jumps"), 0)
+        #: body id -> stamp (s) of its latest accepted pose
+        self._last_stamp_s: dict[int, float] = {}
+        #: the smallest arrival minus stamp (s) of an accepted pose: the reference for future stamps
+        self._min_delay_s = math.inf
+        #: body id -> the run of refused stamps agreeing on a new clock: frames, delay (s), last stamp
+        #: (s), arrival of the first (s)
+        self._jump: dict[int, tuple[int, float, float, float]] = {}
         #: body id -> its latest valid pose: a PoseSample, or the `_Pose` to make it from when asked for
         self._latest: dict[int, PoseSample | _Pose] = {}
         self.lockstep_short_reads = 0  # `poll_to` calls that got fewer bytes than announced
@@ -179,13 +214,23 @@ class MocapReader:
             return 0
         self._frames_ok += 1
         latest, on_sample, on_pose, frame_no = self._latest, self.on_sample, self.on_pose, values[2]
+        last_stamps = self._last_stamp_s
+        # a later stamp is from the future or lowers the reference
+        newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
         for k in range(4, len(values), BODY_VALUES):
             body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
-            norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            if not flags & FLAG_VALID or not 0.5 < norm < 1.5:
-                self._bodies_invalid += 1
-                continue
-            pos, quat, stamp_s = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm), stamp_us * 1e-6
+            pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
+            norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
+            stamp_s = stamp_us * 1e-6
+            last = last_stamps.get(body_id, _NEVER)
+            if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and _NORM2_LO <= norm2 <= _NORM2_HI
+                    and last < stamp_s <= newest_s):
+                if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
+                    continue
+                newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
+            last_stamps[body_id] = stamp_s
+            norm = math.sqrt(norm2)
+            pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
             if on_sample is None:
                 latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)
             else:
@@ -196,6 +241,51 @@ class MocapReader:
             if on_pose is not None:
                 on_pose(body_id, stamp_s, pos, quat, now_s)
         return 1
+
+    def _refuse(self, body_id: int, flags: int, pos_sum: float, norm2: float, stamp_s: float, now_s: float,
+                last: float) -> bool:
+        """Whether a body record that failed the quick checks of `_take` is refused (counted by kind), or
+        taken after all: a new lowest arrival-minus-stamp, or the frame that confirms a clock jump."""
+        refused = self._refused
+        if not flags & FLAG_VALID:
+            kind = "bodies_invalid"
+        elif pos_sum - pos_sum != 0.0 or norm2 - norm2 != 0.0:
+            kind = "bodies_non_finite"
+        elif not _NORM2_LO <= norm2 <= _NORM2_HI:
+            kind = "bodies_bad_quat"
+        else:
+            delay = now_s - stamp_s
+            future = delay < self._min_delay_s - MAX_STAMP_LEAD_S < math.inf  # (none before a first pose)
+            if not future and stamp_s > last:
+                self._min_delay_s = min(self._min_delay_s, delay)  # came quicker: the new reference
+                return False
+            if self._clock_jumped(body_id, stamp_s, delay, now_s):
+                refused["clock_jumps"] += 1
+                self._min_delay_s = delay
+                self._last_stamp_s.clear()
+                self._jump.clear()
+                return False
+            kind = "bodies_stamp_future" if future else "bodies_stamp_backwards"
+        refused[kind] += 1
+        return True
+
+    def _clock_jumped(self, body_id: int, stamp_s: float, delay_s: float, now_s: float) -> bool:
+        """Note a refused stamp of ``body_id``; True when it completes `CLOCK_JUMP_FRAMES` in a row that
+        agree on a new clock (increasing stamps, delays within `MAX_STAMP_LEAD_S`, no pose of the body
+        accepted in between)."""
+        run = self._jump.get(body_id)
+        if run is not None:
+            frames, delay0, stamp0, since_s = run
+            entry = self._latest.get(body_id)
+            received = None if entry is None else entry[3] if isinstance(entry, tuple) else entry.received_s
+            if (stamp_s > stamp0 and abs(delay_s - delay0) <= MAX_STAMP_LEAD_S
+                    and (received is None or received < since_s)):
+                if frames + 1 >= CLOCK_JUMP_FRAMES:
+                    return True
+                self._jump[body_id] = (frames + 1, delay0, stamp_s, since_s)
+                return False
+        self._jump[body_id] = (1, delay_s, stamp_s, now_s)
+        return False
 
     # --- what pilots ask -----------------------------------------------------------------------
     def latest(self, body: str | int = "vehicle") -> PoseSample | None:
@@ -221,13 +311,18 @@ class MocapReader:
         return self.age_s(body) > self.stale_after_s
 
     @property
+    def clock_jumps(self) -> int:
+        """New mocap clocks followed so far (as in `counters`, without building them)."""
+        return self._refused["clock_jumps"]
+
+    @property
     def counters(self) -> ReaderCounters:
         s = self._decoder.stats
         return ReaderCounters(
             frames_ok=self._frames_ok, bad_checksum=s.bad_checksum, bad_structure=s.bad_structure,
             bad_payload=self._bad_payload, bytes_bad_payload=self._bytes_bad_payload,
             resyncs=s.resyncs, bytes_skipped=s.bytes_skipped,
-            bytes_in=s.bytes_in, bodies_invalid=self._bodies_invalid,
+            bytes_in=s.bytes_in, **self._refused,
         )
 
     def close(self) -> None:

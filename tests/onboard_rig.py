@@ -5,7 +5,8 @@ Simulated time advances in 1 ms steps; the program is stepped by time (or by TIM
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import struct
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,8 +17,11 @@ from emulator.mocap_link import MocapLinkServer
 from emulator.profile import load_profile
 from emulator.world import CrossingTracker, Gap, LabVolume, World
 from hil.link import MemoryTransport, SimClock
+from hil.link.linktrack import BODY_VALUES, FrameDecoder, crc16_ccitt, encode_node_frame, unpack_mocap_payload
 from hil.link.mavlink import MavlinkCodec, mav
+from hil.link.transport import Transport
 from policies.onboard import OnboardProgram, ProgramConfig
+from policies.onboard.pilots import Pilot
 
 #: the test gap: the program's (and the scenario files') default opening, 0.8 m x 0.45 m
 TEST_GAP_SIZE_M = (ProgramConfig.gap_width_m, ProgramConfig.gap_height_m)
@@ -44,15 +48,36 @@ class RigResult:
         return next(e for e in self.program.events.events if e["event"] == name)
 
 
+class TamperedLink(Transport):
+    """The sending end of a link whose bytes pass through ``tamper(time_s, data) -> data`` first."""
+
+    def __init__(self, inner: Transport, clock: SimClock, tamper: Callable[[float, bytes], bytes]) -> None:
+        super().__init__()
+        self.inner, self.clock, self.tamper = inner, clock, tamper
+
+    def _send_internal(self, data: bytes) -> int:
+        self.inner.send(self.tamper(self.clock.now_s(), data))
+        return len(data)
+
+    def _recv_internal(self, max_bytes: int) -> bytes:
+        return b""
+
+    def _close_internal(self) -> None:
+        self.inner.close()
+
+
 def run_mission(roll_deg: float = 0.0, speed_m_s: float = 2.0, *, t_end_s: float = 20.0,
                 gap_size_m: tuple[float, float] = TEST_GAP_SIZE_M, lockstep_period_s: float | None = None,
                 mocap_cut_s: float | None = None, seed: int = 1, after_s: float = 0.0,
                 probe: Callable[[float, EmulatedVehicle, OnboardProgram], None] | None = None,
+                mocap_tamper: Callable[[float, bytes], bytes] | None = None, pilot: Pilot | None = None,
                 **config: Any) -> RigResult:
     """Fly one mission; ``mocap_cut_s``: stop the mocap stream at that simulated time (s);
     ``lockstep_period_s``: drive the program by TIMESYNC ticks at that period instead of `step`;
     ``after_s``: keep the emulator running this long after the program ends (the FC on its own);
-    ``probe(t, vehicle, program)``: called every 10 ms of simulated time while the program runs."""
+    ``probe(t, vehicle, program)``: called every 10 ms of simulated time while the program runs;
+    ``mocap_tamper(t, data) -> data``: rewrites the mocap bytes sent at ``t`` (s); ``pilot``: flies the
+    mission instead of the configured one."""
     profile = load_profile("n3_tx2")
     gap = Gap(centre_m=GAP_CENTRE_M, roll_rad=math.radians(roll_deg), width_m=gap_size_m[0],
               height_m=gap_size_m[1])
@@ -63,11 +88,12 @@ def run_mission(roll_deg: float = 0.0, speed_m_s: float = 2.0, *, t_end_s: float
     vehicle = EmulatedVehicle(profile, initial_state=resting_state(profile, *START_XY_M))
     fc_codec = MavlinkCodec(fc_cmd, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
     server = MavlinkServer(vehicle, fc_codec)
-    mocap = MocapLinkServer(fc_moc, clock, np.random.default_rng(seed))
+    mocap_out = fc_moc if mocap_tamper is None else TamperedLink(fc_moc, clock, mocap_tamper)
+    mocap = MocapLinkServer(mocap_out, clock, np.random.default_rng(seed))
     tracker = CrossingTracker(World.for_profile(gap, lab, profile))
     cfg = ProgramConfig(approach_speed_m_s=speed_m_s, gap_width_m=gap_size_m[0], gap_height_m=gap_size_m[1],
                         **config)
-    program = OnboardProgram(ob_cmd, ob_moc, cfg)
+    program = OnboardProgram(ob_cmd, ob_moc, cfg, pilot=pilot)
     answers: list[tuple[int, int]] = []
     t, k = 0.0, 0
     next_tick = lockstep_period_s or 0.0
@@ -106,3 +132,48 @@ def run_mission(roll_deg: float = 0.0, speed_m_s: float = 2.0, *, t_end_s: float
 
 def fc_holding(vehicle: EmulatedVehicle) -> bool:
     return vehicle.fc.state is FcState.HOLD
+
+
+def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[float] | None = None,
+                  quat_wxyz: Sequence[float] | None = None, body_ids: Sequence[int] = (1, 2),
+                  stamp_shift_us: int = 0) -> bytes:
+    """``data`` (whole LinkTrack mocap frames, as the emulator writes them) with the bodies of
+    ``body_ids`` given this stamp (us, or their own moved by ``stamp_shift_us``), position (m) or
+    quaternion: values the emulator's encoder refuses to write (NaN, a stamp of 2^62 us), framed with
+    good checksums. Anything that is not whole one-node frames passes as it is."""
+    dec = FrameDecoder()
+    frames = dec.feed(data)
+    if not frames or dec.buffered or dec.stats.bytes_skipped or any(len(f.nodes) != 1 for f in frames):
+        return data
+    out = []
+    for f in frames:
+        node = f.nodes[0]
+        values = list(unpack_mocap_payload(node.data))
+        for k in range(4, len(values), BODY_VALUES):
+            if values[k] in body_ids:
+                if stamp_us is not None:
+                    values[k + 2] = stamp_us
+                values[k + 2] += stamp_shift_us
+                if pos_m is not None:
+                    values[k + 3:k + 6] = pos_m
+                if quat_wxyz is not None:
+                    values[k + 6:k + 10] = quat_wxyz
+        payload = struct.pack("<BBIB" + "BBQ3f4f" * values[3], *values)
+        payload += struct.pack("<H", crc16_ccitt(payload))
+        out.append(encode_node_frame(payload, f.role, f.module_id, node.role, node.node_id))
+    return b"".join(out)
+
+
+def rewrite_mocap_from(t0_s: float, frames: float = math.inf,
+                       **values: Any) -> Callable[[float, bytes], bytes]:
+    """A ``mocap_tamper``: the first ``frames`` writes at or after ``t0_s`` (s) get ``values`` (see
+    `rewrite_mocap`); the others pass as they are."""
+    left = [frames]
+
+    def tamper(t: float, data: bytes) -> bytes:
+        if t < t0_s or left[0] <= 0:
+            return data
+        left[0] -= 1
+        return rewrite_mocap(data, **values)
+
+    return tamper

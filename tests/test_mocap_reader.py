@@ -1,5 +1,6 @@
 """The onboard reader as a pilot uses it: `python -m policies.mocap_reader DEVICE` printing live poses
-from a pty fed in real time, and clear errors for devices that are not there."""
+from a pty fed in real time, clear errors for devices that are not there, and implausible poses refused
+and counted by kind (never taken as the latest pose)."""
 
 from __future__ import annotations
 
@@ -10,15 +11,18 @@ import time
 
 import numpy as np
 import pytest
+from onboard_rig import rewrite_mocap
 
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.uwb import UwbConfig
 from emulator.world.geometry import Gap
-from hil.link.clock import WallClock
+from hil.link.clock import SimClock, WallClock
+from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
+from hil.link.memory import MemoryTransport
 from hil.link.pty import PtyTransport
-from policies.mocap_reader import main
+from policies.mocap_reader import CLOCK_JUMP_FRAMES, MocapReader, main
 
 
 def test_module_prints_vehicle_and_gap_poses_live():
@@ -45,9 +49,13 @@ def test_module_prints_vehicle_and_gap_poses_live():
     vehicle = [ln for ln in lines if ln.strip().startswith("vehicle")]
     gap_lines = [ln for ln in lines if ln.strip().startswith("gap")]
     assert len(vehicle) == 3 and len(gap_lines) == 3
-    # the last lines show the poses (m, deg) once frames have arrived (mocap noise: 0.2 mm, 1 mrad)
-    assert _numbers(vehicle[-1]) == pytest.approx([-2.0, -1.0, 0.5, 0.0, 0.0, 0.0], abs=0.2)
-    assert _numbers(gap_lines[-1]) == pytest.approx([0.0, 0.5, 2.1, -60.0, 0.0, 0.0], abs=0.2)
+    # the last lines show the poses once frames have arrived, to the noise (0.2 mm, 1 mrad = 0.06 deg)
+    # and the printed digits (1 mm, 0.1 deg)
+    for line, want in ((vehicle[-1], [-2.0, -1.0, 0.5, 0.0, 0.0, 0.0]),
+                       (gap_lines[-1], [0.0, 0.5, 2.1, -60.0, 0.0, 0.0])):
+        got = _numbers(line)
+        assert got[:3] == pytest.approx(want[:3], abs=0.002), line
+        assert got[3:] == pytest.approx(want[3:], abs=0.35), line
 
 
 def _numbers(line: str) -> list[float]:
@@ -61,3 +69,100 @@ def test_missing_device_is_a_clear_error(capsys):
     assert "cannot open" in capsys.readouterr().err
     assert main(["udp:127.0.0.1:notaport"]) == 1
     assert "bad link spec" in capsys.readouterr().err
+
+
+GAP_Q = (0.8660254, -0.5, 0.0, 0.0)  # rolled -60 deg
+
+
+def _frame(k: int, t0_s: float = 0.0) -> bytes:
+    """Mocap frame ``k`` at 120 Hz (stamps from ``t0_s``), vehicle moving along x and the gap."""
+    t = t0_s + k / 120
+    vehicle = BodySample(1, t, (-2.0 + 0.01 * k, -1.0, 0.5), (1.0, 0.0, 0.0, 0.0))
+    return encode_mocap_frame(MocapPacket(k, (vehicle, BodySample(2, t, (0.0, 0.5, 2.1), GAP_Q))))
+
+
+class _Feed:
+    """A reader on an in-memory link, on a simulated clock: `send(data, t)` delivers at ``t`` (s)."""
+
+    def __init__(self) -> None:
+        self.clock = SimClock()
+        self.out, end = MemoryTransport.pair()
+        self.reader = MocapReader(end, self.clock, stale_after_s=0.1)
+
+    def send(self, data: bytes, t_s: float) -> None:
+        self.clock.advance_to(t_s)
+        self.out.send(data)
+        self.reader.poll()
+
+
+def test_implausible_poses_are_refused_counted_by_kind_and_the_next_good_one_is_taken():
+    f = _Feed()
+    reader = f.reader
+    k = 0
+
+    def good() -> None:  # the next good frame, 20 ms after its exposure: taken at once
+        nonlocal k
+        k += 1
+        f.send(_frame(k), k / 120 + 0.02)
+        pose = reader.latest("vehicle")
+        assert pose.frame_no == k and pose.stamp_s == pytest.approx(k / 120, abs=1e-6)
+        assert not reader.is_stale("vehicle") and reader.latest("gap").frame_no == k
+
+    def bad(data: bytes, bodies: tuple[str, ...] = ("vehicle", "gap")) -> None:
+        """``data`` arrives 4 ms after the last good frame; the poses of ``bodies`` stay as they were."""
+        before = [reader.latest(b) for b in bodies]
+        f.send(data, k / 120 + 0.024)
+        assert all(reader.latest(b) is p for b, p in zip(bodies, before, strict=True))
+
+    for _ in range(10):
+        good()
+    nan = float("nan")
+    bad(rewrite_mocap(_frame(k + 1), pos_m=(nan, -1.0, 0.5), body_ids=(1,)), ("vehicle",))
+    good()
+    bad(rewrite_mocap(_frame(k + 1), quat_wxyz=(float("inf"), 0.0, 0.0, 0.0), body_ids=(2,)), ("gap",))
+    good()
+    bad(rewrite_mocap(_frame(k + 1), quat_wxyz=(1.1, 0.0, 0.0, 0.0)))  # a norm 10 % off
+    good()
+    bad(rewrite_mocap(_frame(k + 1), stamp_us=2**62))  # 146,000 years ahead
+    good()
+    bad(rewrite_mocap(_frame(k + 1), stamp_us=round((k + 1) / 120 * 1e6) + 600_000))  # 0.6 s ahead
+    good()
+    bad(_frame(k - 5))  # an old frame again: its stamps go backwards
+    bad(_frame(k))  # the latest again: its stamps do not advance
+    good()
+    c = reader.counters
+    refused = c.bodies_non_finite, c.bodies_bad_quat, c.bodies_stamp_future, c.bodies_stamp_backwards
+    # backwards: the two replayed frames, and the good body of each frame with one bad body, sent again
+    # in the good frame after it
+    assert refused == (2, 2, 4, 6)
+    assert c.bodies_invalid == 0 and c.clock_jumps == 0 and c.frames_ok == k + 7
+    # a quaternion a little off unit length (float32 rounding, 0.5 %) is taken, normalised
+    f.send(rewrite_mocap(_frame(k + 1), quat_wxyz=(1.005, 0.0, 0.0, 0.0)), (k + 1) / 120 + 0.02)
+    assert reader.latest("vehicle").frame_no == k + 1
+    assert reader.latest("vehicle").quat_wxyz == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-12)
+
+
+def test_a_bad_first_stamp_or_a_new_mocap_clock_is_followed_once_frames_agree_on_it():
+    f = _Feed()
+    reader = f.reader
+    f.send(rewrite_mocap(_frame(0), stamp_us=2**62), 0.02)  # the first pose: nothing to compare it with
+    assert reader.latest("vehicle").frame_no == 0
+    for k in range(1, CLOCK_JUMP_FRAMES):  # the good frames after it go "backwards" from it ...
+        f.send(_frame(k), k / 120 + 0.02)
+        assert reader.latest("vehicle").frame_no == 0
+    f.send(_frame(CLOCK_JUMP_FRAMES), CLOCK_JUMP_FRAMES / 120 + 0.02)  # ... until enough agree
+    assert reader.latest("vehicle").frame_no == CLOCK_JUMP_FRAMES and reader.counters.clock_jumps == 1
+    assert reader.counters.bodies_stamp_backwards == 2 * (CLOCK_JUMP_FRAMES - 1)
+    # frames with stamps all over the place never agree on a clock
+    rng = np.random.default_rng(5)
+    t = 1.0
+    for k in range(100, 140):
+        t += 1 / 120
+        f.send(rewrite_mocap(_frame(k), stamp_us=int(rng.integers(0, 2**62))), t)
+        f.send(_frame(k, t0_s=t - k / 120 - 0.02), t)  # and good ones in between
+    assert reader.counters.clock_jumps == 1 and reader.latest("vehicle").frame_no == 139
+    # the mocap system restarted: its clock starts at 0 again, and is followed after as many frames
+    for k in range(CLOCK_JUMP_FRAMES):
+        t += 1 / 120
+        f.send(_frame(k), t)
+    assert reader.counters.clock_jumps == 2 and reader.latest("vehicle").frame_no == CLOCK_JUMP_FRAMES - 1

@@ -128,7 +128,7 @@ def test_reader_samples_are_ordinary_pose_samples():
     a, _b = MemoryTransport.pair()
     got: list[PoseSample] = []
     reader = MocapReader(a, on_sample=got.append)
-    packet = MocapPacket(42, (BodySample(1, 1.5, (1.0, 2.0, 3.0), (1.25, 0.0, 0.0, 0.0)),
+    packet = MocapPacket(42, (BodySample(1, 1.5, (1.0, 2.0, 3.0), (1.004, 0.0, 0.0, 0.0)),
                               BodySample(7, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
                               BodySample(2, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), valid=False),
                               BodySample(3, 1.5, (0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0))))
@@ -140,6 +140,7 @@ def test_reader_samples_are_ordinary_pose_samples():
     with pytest.raises(AttributeError):
         s.stamp_s = 0.0  # type: ignore[misc]
     assert reader.latest("vehicle") is s and reader.latest(7) is got[1] and reader.latest("body7") is got[1]
-    assert reader.latest("gap") is None and reader.counters.bodies_invalid == 2
+    assert reader.latest("gap") is None and reader.counters.bodies_invalid == 1
+    assert reader.counters.bodies_bad_quat == 1  # body 3's quaternion of norm 2
     with pytest.raises(KeyError, match="unknown body"):
         reader.latest("wing")

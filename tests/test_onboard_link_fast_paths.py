@@ -197,11 +197,19 @@ def _decode_mocap_payload_reference(data: bytes) -> MocapPacket:
     return MocapPacket(frame_no=frame_no, bodies=tuple(bodies))
 
 
-def _random_packet(rng: np.random.Generator, frame_no: int) -> MocapPacket:
+def _random_packet(rng: np.random.Generator, frame_no: int, plausible: bool = False) -> MocapPacket:
+    """Random bodies; ``plausible``: most of them as a reader takes them (unit quaternions, stamps
+    increasing with the frame number at 120 Hz), from the tenth frame on some with a random stamp (most
+    of them far in the future) or a quaternion of norm 0.3 or 2."""
     bodies = []
     for _ in range(int(rng.integers(0, MAX_BODIES + 1))):
         q = rng.normal(size=4) * float(rng.choice([1.0, 0.3, 2.0]))
-        bodies.append(BodySample(int(rng.integers(0, 6)), float(rng.uniform(0, 1e4)),
+        stamp_s = float(rng.uniform(0, 1e4))
+        if plausible:  # one in ten with a random stamp, one in ten with a random quaternion
+            r = 1.0 if frame_no < 10 else rng.random()  # (the first ones set the reference)
+            q = q if r < 0.1 else q / np.linalg.norm(q)
+            stamp_s = stamp_s if 0.1 <= r < 0.2 else frame_no / 120
+        bodies.append(BodySample(int(rng.integers(0, 6)), stamp_s,
                                  tuple(float(x) for x in rng.normal(0, 3, 3)), tuple(float(x) for x in q),
                                  bool(rng.random() < 0.9)))
     return MocapPacket(frame_no, tuple(bodies))
@@ -240,16 +248,17 @@ def test_flat_unpacking_gives_the_packet_and_the_errors_of_the_body_by_body_deco
             assert flat[2] == want.frame_no and flat[3] == len(want.bodies) == (len(flat) - 4) // 10
 
 
-def _random_frames(rng: np.random.Generator) -> bytes:
-    """Mocap frames and other node frames (none, one, several nodes), some corrupted or cut."""
+def _random_frames(rng: np.random.Generator, plausible: bool = False) -> bytes:
+    """Mocap frames and other node frames (none, one, several nodes), some corrupted or cut;
+    ``plausible``: as `_random_packet`."""
     stream = bytearray()
     for k in range(300):
         r = rng.random()
         if r < 0.7:
-            raw = encode_mocap_frame(_random_packet(rng, k))
+            raw = encode_mocap_frame(_random_packet(rng, k, plausible))
         else:
             nodes = tuple(Node(1, int(rng.integers(0, 256)),
-                               encode_mocap_payload(_random_packet(rng, k)) if rng.random() < 0.5
+                               encode_mocap_payload(_random_packet(rng, k, plausible)) if rng.random() < 0.5
                                else rng.integers(0, 256, int(rng.integers(0, 60)), dtype=np.uint8).tobytes())
                           for _ in range(int(rng.integers(0, 4))))
             raw = encode_frame(NodeFrame(2, 0, nodes))
@@ -278,7 +287,7 @@ def test_node_data_decoding_matches_the_frame_objects_on_corrupt_streams(chunk: 
 
 
 def test_reader_poses_without_samples_are_the_samples():
-    stream = _random_frames(np.random.default_rng(RNG_SEED))
+    stream = _random_frames(np.random.default_rng(RNG_SEED), plausible=True)
     clock = SimClock()
     samples: list[PoseSample] = []
     poses: list[tuple] = []
@@ -300,6 +309,8 @@ def test_reader_poses_without_samples_are_the_samples():
                      for s in samples]
     assert all(type(x) is float for p in poses for x in (p[1], *p[2], *p[3], p[4]))
     assert lazy.counters == eager.counters == both.counters
-    assert eager.counters.bad_payload and eager.counters.bodies_invalid and len(samples) > 100
+    c = eager.counters
+    assert c.bad_payload and c.bodies_invalid and c.bodies_bad_quat and c.bodies_stamp_future
+    assert c.bodies_stamp_backwards and len(samples) > 100  # (a body id twice in a frame: its second)
     for body in range(6):
         assert repr(lazy.latest(body)) == repr(eager.latest(body))

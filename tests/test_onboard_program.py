@@ -1,5 +1,6 @@
 """The onboard program against the real FC emulator, mocap link and world, joined by in-memory links:
-the mission sequence, the safe hover on stale mocap, lockstep ticks, and refusing bad settings."""
+the mission sequence, the safe hover on stale mocap (poses it cannot use included), lockstep ticks,
+refusing bad settings, bad commands and messages from anyone but the FC."""
 
 from __future__ import annotations
 
@@ -7,14 +8,16 @@ import math
 
 import numpy as np
 import pytest
-from onboard_rig import fc_holding, run_mission
+from onboard_rig import fc_holding, rewrite_mocap_from, run_mission
 
 from hil.cli import main as hil_main
 from hil.link import MemoryTransport, SimClock
-from hil.link.mavlink import MavlinkCodec, mav
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav
 from hil.runner.lockstep import tick_frames
+from policies.controller import AttitudeThrustCommand
 from policies.onboard import OnboardProgram, PoseEstimator, ProgramConfig, make_pilot, pilot_names
-from policies.onboard.pilots import UnknownPilot
+from policies.onboard.command_link import CommandLink
+from policies.onboard.pilots import Observation, UnknownPilot
 
 
 def test_mission_runs_its_phases_in_order_and_hands_back_to_hold():
@@ -112,3 +115,111 @@ def test_a_tick_whose_announced_mocap_never_arrives_is_reported_as_lockstep_lost
     cmd_fc.send(tick_frames(0.02, 520))
     assert program.lockstep_poll() == [0.02]
     assert len([e for e in program.events.events if e["event"] == "lockstep_lost"]) == 1
+
+
+@pytest.mark.parametrize("bad", [{"pos_m": (math.nan, 0.0, 1.0)}, {"stamp_us": 2**62}],
+                         ids=["nan_position", "stamp_2_62"])
+def test_vehicle_poses_the_estimator_cannot_take_are_stale_mocap(bad):
+    # from 5 s on (mid-takeoff) every vehicle pose is unusable: the program must not fly on the frozen
+    # estimate, but abort to a safe hover as when the stream stops
+    r = run_mission(0.0, 1.5, mocap_tamper=rewrite_mocap_from(5.0, body_ids=(1,), **bad))
+    abort = r.event("abort")
+    assert abort["reason"] == "stale_mocap"
+    assert 5.0 < abort["t_s"] < 5.0 + 0.1 + 0.04  # stale after 100 ms (+ the link's latency)
+    assert r.program.exit_code == 3 and fc_holding(r.vehicle) and r.vehicle.state.pos_m[2] > 0.2
+    c = r.program.mocap.counters
+    assert (c.bodies_non_finite if "pos_m" in bad else c.bodies_stamp_future) > 10
+
+
+def test_single_bad_mocap_frames_are_refused_and_the_mission_flies_on():
+    # one frame stamped 2^62 us and one with NaN poses during the approach, one NaN gap pose before planning
+    tamper = [rewrite_mocap_from(5.0, 1, stamp_us=2**62), rewrite_mocap_from(5.5, 1, pos_m=(math.nan,) * 3),
+              rewrite_mocap_from(3.0, 1, pos_m=(math.nan,) * 3, body_ids=(2,))]
+
+    def all_of(t: float, data: bytes) -> bytes:
+        for f in tamper:
+            data = f(t, data)
+        return data
+
+    r = run_mission(0.0, 1.5, mocap_tamper=all_of)
+    assert r.program.exit_code == 0 and "abort" not in r.event_names
+    assert r.tracker.crossed_through_opening and r.tracker.first_collision is None
+    c = r.program.mocap.counters
+    assert (c.bodies_stamp_future, c.bodies_non_finite) == (2, 3)
+    assert r.program.summary()["mocap"]["bodies_stamp_future"] == 2
+
+
+def test_a_mocap_clock_that_jumps_back_mid_flight_is_followed_without_an_abort():
+    # the mocap system restarts its clock during the approach (stamps 3 s lower from then on): the
+    # reader refuses the stamps until ten frames agree, the estimate follows, the mission goes on
+    r = run_mission(0.0, 1.5, mocap_tamper=rewrite_mocap_from(5.0, stamp_shift_us=-3_000_000))
+    assert r.program.exit_code == 0 and "abort" not in r.event_names
+    assert r.tracker.crossed_through_opening and r.tracker.first_collision is None
+    c = r.program.mocap.counters
+    assert c.clock_jumps == 1 and c.bodies_stamp_backwards == 2 * 9
+
+
+def test_a_nan_gap_pose_is_refused_never_a_crash():
+    # every gap pose NaN from the start: the program waits for a gap pose and says so when it gives up
+    nan_gap = rewrite_mocap_from(0.0, pos_m=(math.nan,) * 3, body_ids=(2,))
+    r = run_mission(0.0, 1.5, mocap_tamper=nan_gap, t_end_s=11.0)
+    end = r.event("error")
+    assert r.program.exit_code == 1 and end["reason"] == "timed out waiting for mocap and the FC"
+    assert end["gap_mocap"] is False and end["vehicle_mocap"] is True
+    assert r.program.mocap.counters.bodies_non_finite > 1000
+
+
+def test_a_non_finite_command_is_refused_and_aborts_to_a_safe_hover():
+    class NanThrust:
+        def command(self, obs: Observation) -> AttitudeThrustCommand:
+            return AttitudeThrustCommand(0.0, 0.0, 0.0, math.nan)
+
+    r = run_mission(0.0, 1.5, pilot=NanThrust())
+    abort = r.event("abort")
+    assert abort["reason"] == "bad_command" and "thrust nan" in abort["detail"]
+    assert r.program.commands_refused == 1 and r.program.exit_code == 3
+    assert fc_holding(r.vehicle) and r.vehicle.state.pos_m[2] > 0.2  # held by the FC, no fall
+    link = CommandLink(MemoryTransport.pair()[0], SimClock())
+    with pytest.raises(ValueError, match="not finite"):
+        link.send_attitude_target(0.0, 0.0, 0.0, math.nan)
+    assert link.setpoints_sent == 0
+
+
+def test_heartbeats_acks_and_ticks_from_other_systems_are_ignored_and_counted():
+    clock = SimClock()
+    ob_end, fc_end = MemoryTransport.pair()
+    link = CommandLink(ob_end, clock)
+    link.lockstep = True
+    armed_offboard = (mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, mav.MAV_MODE_FLAG_SAFETY_ARMED,
+                      PX4_MAIN_OFFBOARD << 16, mav.MAV_STATE_ACTIVE)
+    for sysid, compid in ((2, mav.MAV_COMP_ID_AUTOPILOT1), (1, mav.MAV_COMP_ID_CAMERA), (255, 190)):
+        other = MavlinkCodec(fc_end, clock, sysid, compid)
+        other.send(other.mav.heartbeat_encode(*armed_offboard))
+        other.send(other.mav.command_ack_encode(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+        other.send(other.mav.named_value_int_encode(0, b"mocap_n", 999))
+        other.send(other.mav.timesync_encode(0, 10_000_000))
+    link.read()
+    assert link.status is None and link.acks == {} and link.take_ticks() == []
+    assert link.mocap_announced is None
+    assert link.foreign == {"heartbeats": 3, "acks": 3, "ticks": 6}
+    fc = MavlinkCodec(fc_end, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)  # the FC's own are taken
+    fc.send(fc.mav.heartbeat_encode(*armed_offboard))
+    fc.send(fc.mav.command_ack_encode(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_ACCEPTED))
+    fc.send(fc.mav.named_value_int_encode(0, b"mocap_n", 999))
+    fc.send(fc.mav.timesync_encode(0, 10_000_000))
+    link.read()
+    assert link.status is not None and link.status.armed and link.status.offboard
+    assert link.acks[mav.MAV_CMD_COMPONENT_ARM_DISARM].accepted
+    assert link.take_ticks() == [0.01] and link.mocap_announced == 999
+    assert link.foreign == {"heartbeats": 3, "acks": 3, "ticks": 6}
+
+
+def test_estimator_follows_a_mocap_clock_that_went_back_once_it_has_taken_nothing_for_the_reset_time():
+    est = PoseEstimator()
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    assert est.update(1e9, np.zeros(3), q, 0.0)  # a bad stamp taken as the first
+    for k in range(1, 60):  # good poses after it: refused while the estimate is younger than 0.5 s
+        t = k / 120
+        assert est.update(t, np.array([t, 0.0, 0.0]), q, t + 0.02) is (t + 0.02 > est.config.reset_after_s)
+    now = 59 / 120 + 0.02
+    assert est.age_s(now) == 0.0 and est.estimate(now).pos_m[0] == pytest.approx(59 / 120, abs=0.05)

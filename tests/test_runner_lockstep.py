@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from onboard_rig import rewrite_mocap_from
 
 from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.batched_steps import FastStepper
@@ -19,6 +20,7 @@ from emulator.profile import load_profile
 from hil.link.mavlink import mav
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.runner.emulator_side import _FaultyLink
 from hil.runner.wires import FrameSplitter, timesync_answer_ns
 from hil.scenario import load_scenarios, loads_scenarios
 
@@ -67,6 +69,10 @@ def test_same_scenario_and_seed_give_the_same_tlog(tmp_path, in_process):
     assert c.tlog_path.read_bytes() != ta  # the seed reaches the link models
     # the program flies on past 2 s: every tick is answered, none lost or given up
     assert a.summary["ticks"] == 200 and a.summary["ticks_answered"] == 200
+    # a program still flying when the run ends (a process: ended by SIGTERM) leaves its counters too
+    onboard = a.summary["onboard"]
+    assert onboard["phase"] == "takeoff" and onboard["mocap"]["frames_ok"] > 100
+    assert a.summary["onboard_exit_code"] == (None if in_process else 143)
 
 
 def test_batched_offboard_flight_equals_per_step_flight():
@@ -258,3 +264,59 @@ def test_the_onboard_program_ends_on_a_silent_fc_naming_the_phase_it_was_in(tmp_
     events = [json.loads(line) for line in (tmp_path / "onboard_events.jsonl").read_text().splitlines()]
     lost = [e for e in events if e.get("event") == "fc_lost"]
     assert len(lost) == 1 and lost[0]["phase"] and lost[0]["silence_s"] >= 3.0
+
+
+BAD_MOCAP_SINGLE = """
+description: one mocap frame stamped 2^62 us and one with NaN poses during the approach
+gap: {roll_deg: 30}
+duration_s: 11
+"""
+BAD_MOCAP_STREAM = """
+description: every vehicle pose NaN (or stamped 2^62 us) from 5 s on; the program must abort
+gap: {roll_deg: 30}
+duration_s: 7
+expect:
+  crosses_gap: false
+  recovery: false
+  onboard_abort_expected: true
+"""
+
+
+def _tamper_mocap_link(monkeypatch, tamper) -> None:
+    """Rewrite the mocap bytes the emulator side writes to the real link, by sim time (s)."""
+    send = _FaultyLink._send_internal
+    monkeypatch.setattr(_FaultyLink, "_send_internal",
+                        lambda link, data: send(link, tamper(link.clock.now_s(), data)))
+
+
+def test_single_bad_mocap_frames_on_the_pty_are_refused_and_the_crossing_flies_on(tmp_path, monkeypatch):
+    tampers = [rewrite_mocap_from(5.0, 1, stamp_us=2**62), rewrite_mocap_from(5.3, 1, pos_m=(math.nan,) * 3)]
+
+    def both(t: float, data: bytes) -> bytes:
+        for tamper in tampers:
+            data = tamper(t, data)
+        return data
+
+    _tamper_mocap_link(monkeypatch, both)
+    r = run_scenario(loads_scenarios(BAD_MOCAP_SINGLE)[0], tmp_path, RunOptions(in_process=False))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["onboard_exit_code"] == 0 and s["onboard_abort_s"] is None
+    mocap = s["onboard"]["mocap"]  # the onboard program's own counters, from its closing summary
+    assert (mocap["bodies_stamp_future"], mocap["bodies_non_finite"]) == (2, 2)
+    assert mocap["bodies_stamp_backwards"] == mocap["clock_jumps"] == 0
+
+
+@pytest.mark.parametrize("bad", [{"pos_m": (math.nan, 0.0, 1.0)}, {"stamp_us": 2**62}],
+                         ids=["nan_position", "stamp_2_62"])
+def test_a_stream_of_bad_mocap_frames_on_the_pty_aborts_with_stale_mocap(tmp_path, monkeypatch, bad):
+    _tamper_mocap_link(monkeypatch, rewrite_mocap_from(5.0, body_ids=(1,), **bad))
+    r = run_scenario(loads_scenarios(BAD_MOCAP_STREAM)[0], tmp_path, RunOptions(in_process=False))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    s = r.summary
+    assert 5.0 < s["onboard_abort_s"] < 5.0 + 0.1 + 0.04  # 100 ms stale (+ the mocap chain's latency)
+    events = [json.loads(line) for line in (tmp_path / "onboard_events.jsonl").read_text().splitlines()]
+    assert next(e for e in events if e["event"] == "abort")["reason"] == "stale_mocap"
+    assert s["onboard_exit_code"] == 3 and s["fc_final_state"] == "hold"
+    kind = "bodies_non_finite" if "pos_m" in bad else "bodies_stamp_future"
+    assert s["onboard"]["mocap"][kind] > 10 and s["onboard"]["estimator_rejected"] == 0

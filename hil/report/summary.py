@@ -7,6 +7,8 @@ The runner fills the dict; the keys the report page reads (all optional except `
 - ``crossing``: {``time_s``, ``point_m`` [x, y, z] world ENU, ``through_opening`` bool} or null
 - ``links``: {link name: {statistic name: number}}, e.g. ``{"mocap": {"delivered_fraction": 0.98}}``
 - ``events``: list of {``time_s``, ``source``, ``text``} (FC state changes, faults, aborts)
+- ``onboard``: the onboard program's closing summary (its counters: ``mocap`` refusals by kind,
+  ``foreign`` messages, ``commands_refused``, ...) or null when it wrote none (killed)
 - ``scenario``: `Scenario.to_dict()`
 """
 

@@ -2,7 +2,8 @@
 its own link) or as a separate process on the other ends of two pseudo-terminals (the real path).
 
 Both present the same small interface to the runner: `service()` (let it act on what was sent), `kill()`,
-`pause()` / `resume()`, `alive`, `events()` (its mission events as dicts), `close()`.
+`pause()` / `resume()`, `alive`, `events()` (its mission events as dicts, the program's closing "summary"
+of counters last once `close()` has run), `close()` (returns the program's exit code).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ class OnboardSide(Protocol):
     def exited(self) -> bool: ...
     def events(self) -> list[dict[str, Any]]: ...
     def new_events(self, up_to_s: float) -> list[dict[str, Any]]: ...
-    def close(self) -> None: ...
+    def close(self) -> int | None: ...
 
 
 class _EventCursor:
@@ -111,8 +112,13 @@ class InProcessOnboard:
         fresh, self._seen = log[self._seen :], len(log)
         return self._cursor.take(fresh, up_to_s)
 
-    def close(self) -> None:
+    def close(self) -> int | None:
+        """Log the program's summary (unless killed: a killed process writes none) and close its log;
+        returns its exit code."""
+        if self.alive:
+            self.program.log_summary()
         self.program.events.close()
+        return self.program.exit_code
 
 
 class ProcessOnboard:

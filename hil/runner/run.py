@@ -39,6 +39,7 @@ from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
 ONBOARD_LOG_NAME = "onboard_events.jsonl"
+ONBOARD_SUMMARY_EVENT = "summary"  # the onboard program's closing event: its counters
 MEMORY_CAPACITY_BYTES = 1 << 20
 SEGMENT_PHASES = {"approach": 1, "traverse": 2, "recovery": 3, "hover": 0}
 
@@ -222,7 +223,7 @@ def run_scenario(
                 guard_s=options.guard_s,
                 progress=tell,
             )
-        exit_code = onboard.close() if isinstance(onboard, ProcessOnboard) else onboard.program.exit_code
+        exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
         return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime)
@@ -296,8 +297,12 @@ def _finish(
         for e in fc_events
     ]
     events += [
-        {"time_s": ev.get("t_s"), "source": "onboard", "text": _event_text(ev)} for ev in onboard_events
+        {"time_s": ev.get("t_s"), "source": "onboard", "text": _event_text(ev)}
+        for ev in onboard_events
+        if ev.get("event") != ONBOARD_SUMMARY_EVENT
     ]
+    summaries = [ev for ev in onboard_events if ev.get("event") == ONBOARD_SUMMARY_EVENT]
+    onboard_summary = summaries[-1] if summaries else None
     events += emu.faults.events() + loop.events
     if rec.collision is not None:
         events.append(
@@ -353,6 +358,11 @@ def _finish(
         "faults": [_fault_as_flown(f, obs.phases) for f in emu.faults.faults],
         "fc_final_state": emu.vehicle.fc.state.value,
         "onboard_exit_code": exit_code,
+        # the program's own counters (mocap poses refused by kind, messages not from the FC, commands
+        # refused, ...), from its closing "summary" event; None when it wrote none (killed)
+        "onboard": None
+        if onboard_summary is None
+        else {k: v for k, v in onboard_summary.items() if k not in ("event", "t_s")},
         "onboard_abort_s": obs.onboard_abort_s,
         "recovery_point_m": obs.hover_point_m,
         "onboard_hover_point_m": reported,

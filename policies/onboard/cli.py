@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
+import signal
 import sys
+from types import FrameType
 
 from hil.link.endpoint import open_link
 from hil.link.transport import LinkError
@@ -98,8 +100,8 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
 
 
 def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
-    """Open the links, run the program, print a summary line; returns the exit code (0 done, 1 error,
-    2 bad options, 3 aborted to a safe hover)."""
+    """Open the links, run the program (its last event line is the "summary" of its counters); returns
+    the exit code (0 done, 1 error, 2 bad options, 3 aborted to a safe hover, 143 ended by SIGTERM)."""
     try:
         config = config_from_args(args)
         if config.pilot not in pilot_names():
@@ -121,19 +123,40 @@ def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
     events = EventLog(None if args.quiet else sys.stdout, args.log_json)
     program = OnboardProgram(command, mocap, config, events=events)
     program.link.lockstep = bool(args.lockstep)  # a tick's frames go out with its answer, in one write
+    previous = _on_sigterm(_terminate)  # a harness ending the run gets the closing summary too
     try:
         code = program.run_lockstep() if args.lockstep else program.run_realtime(args.max_duration)
     except KeyboardInterrupt:
         code = 130
+    except _Terminated:
+        code = EXIT_TERMINATED
     except LinkError as exc:
         print(f"{prog_name}: link lost: {exc}", file=sys.stderr)
         code = EXIT_ERROR
     finally:
-        summary = program.summary()
-        program.close()
-    if not args.quiet:
-        print(json.dumps({"summary": summary}), flush=True)
+        _on_sigterm(signal.SIG_DFL)  # a second SIGTERM while closing ends the process at once
+        program.close()  # logs the summary event
+        _on_sigterm(previous)
     return code
+
+
+EXIT_TERMINATED = 128 + signal.SIGTERM  # the shell's code for a process ended by SIGTERM
+
+
+class _Terminated(Exception):
+    """SIGTERM arrived: the program stops, closes its links and logs its summary."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise _Terminated
+
+
+def _on_sigterm(handler: object) -> object:
+    """Install ``handler`` for SIGTERM; returns the one it replaces (None outside the main thread, where
+    Python cannot install handlers: SIGTERM then keeps its effect)."""
+    with contextlib.suppress(ValueError, TypeError):
+        return signal.signal(signal.SIGTERM, handler)  # type: ignore[arg-type]
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,6 +3,10 @@ tracking from the FC's HEARTBEAT, attitude-thrust setpoints, and lockstep TIMESY
 
 World ENU / body FLU inside; the conversion to NED/FRD happens here, through `hil.link.mavlink`.
 Nothing here blocks: `poll()` parses what has arrived, the senders write one frame each.
+
+Only the FC (system ``target_system``, component autopilot 1) sets the program's view of the FC, answers
+its commands and ticks its clock: heartbeats, ACKs and lockstep ticks (TIMESYNC requests and the mocap
+byte count) from anyone else on the link are ignored and counted in ``foreign``.
 """
 
 from __future__ import annotations
@@ -112,6 +116,9 @@ class CommandLink:
         #: lockstep: the mocap bytes the harness has written in all, as of the last tick handled (mod
         #: 2^31; None: it never said)
         self.mocap_announced: int | None = None
+        #: messages ignored for not coming from the FC: heartbeats, acks, ticks (TIMESYNC requests and
+        #: mocap byte counts)
+        self.foreign = {"heartbeats": 0, "acks": 0, "ticks": 0}
 
     @property
     def transport(self) -> Transport:
@@ -166,6 +173,9 @@ class CommandLink:
     def _handle_frame(self, frame: bytes) -> None:
         """`_handle` of the message in ``frame`` (a good frame of one of `RAW_MSG_IDS`), read with
         struct from its payload as pymavlink would decode it (zero-padded or cut to the full size)."""
+        if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
+            self.foreign["ticks"] += 1
+            return
         payload = frame[10:-2]
         if frame[7] == mav.MAVLINK_MSG_ID_TIMESYNC:  # both ids < 256: the id's upper bytes are 0
             if len(payload) != _TIMESYNC.size:
@@ -184,8 +194,14 @@ class CommandLink:
     def _handle(self, m: MAVLinkMessage) -> None:
         kind = m.get_type()
         now = self.clock.now_s()
+        if kind != "STATUSTEXT" and (m.get_srcSystem() != self.target_system
+                                     or m.get_srcComponent() != FC_COMPONENT_ID):
+            key = "heartbeats" if kind == "HEARTBEAT" else "acks" if kind == "COMMAND_ACK" else "ticks"
+            self.foreign[key] += 1
+            return
         if kind == "HEARTBEAT":
-            if m.get_srcComponent() != FC_COMPONENT_ID or m.autopilot == mav.MAV_AUTOPILOT_INVALID:
+            if m.autopilot == mav.MAV_AUTOPILOT_INVALID:
+                self.foreign["heartbeats"] += 1
                 return
             main, sub = px4_mode_parts(m.custom_mode)
             armed = bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -240,9 +256,14 @@ class CommandLink:
     def send_attitude_target(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
                              thrust_fraction: float) -> None:
         """One attitude-thrust setpoint: ZYX Euler angles of body FLU -> world ENU (rad), thrust 0..1 of
-        the N3's full thrust (clipped). Sent as SET_ATTITUDE_TARGET, NED -> FRD quaternion."""
+        the N3's full thrust (clipped). Sent as SET_ATTITUDE_TARGET, NED -> FRD quaternion. ValueError,
+        nothing sent, when a value is not finite (a NaN thrust is no zero thrust)."""
+        thrust = float(thrust_fraction)
+        if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
+            raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
+                             f"yaw {yaw_rad} rad, thrust {thrust}")
         q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
-        thrust = min(1.0, max(0.0, float(thrust_fraction)))
+        thrust = min(1.0, max(0.0, thrust))
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
         payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
                                         FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK)

@@ -27,7 +27,9 @@ class EstimatorConfig:
 
     pos_noise_m: float = 0.003
     jerk_psd: float = 2000.0
-    reset_after_s: float = 0.5  # a silence longer than this restarts the filter at rest
+    #: a silence longer than this restarts the filter at rest: between two stamps, or between two
+    #: accepted arrivals (then whatever the new stamp: a mocap clock that jumped back is followed)
+    reset_after_s: float = 0.5
     # exposure -> arrival with the default links: camera 5.6 ms + processing 0.5 ms + UWB radio 20 ms
     # + air and UART time ~1 ms + reading ~1 ms (measured mean 28.3 ms, std 4.4 ms)
     latency_s: float = 0.028
@@ -79,6 +81,10 @@ class PoseEstimator:
     def ready(self) -> bool:
         return self._ready
 
+    def age_s(self, now_s: float) -> float:
+        """Time (s) from the arrival of the latest accepted pose to ``now_s`` (inf before the first)."""
+        return now_s - self._received_s
+
     def update(self, stamp_s: float, pos_m: np.ndarray, quat_wxyz: np.ndarray, received_s: float) -> bool:
         """Take one pose (exposure time ``stamp_s``, arrival ``received_s``, s); False if rejected."""
         try:
@@ -89,14 +95,15 @@ class PoseEstimator:
             self.rejected += 1
             return False
         qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if (not math.isfinite(px + py + pz + qn + stamp_s) or qn == 0.0 or stamp_s <= self._stamp_s):
+        cfg = self.config
+        if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
+                stamp_s <= self._stamp_s and received_s - self._received_s <= cfg.reset_after_s):
             self.rejected += 1
             return False
-        cfg = self.config
         dt = stamp_s - self._stamp_s
         delay = received_s - stamp_s
         r2 = cfg.pos_noise_m * cfg.pos_noise_m
-        if not self._ready or dt > cfg.reset_after_s:
+        if not self._ready or not 0.0 < dt <= cfg.reset_after_s:
             self._x = [px, 0.0, 0.0, py, 0.0, 0.0, pz, 0.0, 0.0]
             self._P = (r2, 0.0, 0.0, 1.0, 0.0, 10.0)
             self._mean_delay_s = delay
@@ -134,6 +141,15 @@ class PoseEstimator:
         self._euler = None  # from the quaternion when first asked for
         self.updates += 1
         return True
+
+    def rebase(self, stamp_s: float, received_s: float) -> None:
+        """The mocap clock jumped (the reader followed it): read the pose of exposure ``stamp_s``,
+        arriving at ``received_s``, as one that came as late as the latest pose; the state is kept."""
+        if self._ready:
+            shift = (stamp_s - received_s) - (self._stamp_s - self._received_s)  # new clock - old clock (s)
+            self._stamp_s += shift
+            self._delay_s -= shift
+            self._mean_delay_s -= shift
 
     def estimate(self, now_s: float) -> StateEstimate:
         """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the

@@ -8,7 +8,10 @@ Driven by time, not by sleeping: `step(now_s)` does everything due at ``now_s`` 
 `run_realtime()` calls it on the wall clock, waiting on the links' fds; `run_lockstep()` takes its
 clock from the FC's TIMESYNC ticks and answers each tick once its outputs are sent.
 
-Safe hover on stale mocap (the vehicle's pose older than ``stale_mocap_s``): one level-attitude setpoint
+Safe hover on stale mocap (no vehicle pose taken by the state estimator for ``stale_mocap_s``: poses the
+mocap reader or the estimator refuse, non-finite, from the future, out of order, do not count as fresh;
+see `policies.mocap_reader`), on a gap pose that cannot be used, or on a command that is not finite
+(refused, never sent): one level-attitude setpoint
 at hover thrust (m g) is sent at once and repeated every control period, and DO_SET_MODE AUTO.LOITER
 (PX4 Hold) is sent until the FC's heartbeat shows it; from then the FC holds the vehicle on its own and
 the program stops ("abort" then "hold" events, exit code 3).
@@ -247,6 +250,7 @@ class OnboardProgram:
         self.segment: Segment | None = None
         self.control_steps = 0
         self.skipped_steps = 0
+        self.commands_refused = 0  # setpoints not sent for not being finite
         self._started_s: float | None = None
         self._phase_since_s = 0.0
         self._next_control_s: float | None = None
@@ -257,6 +261,8 @@ class OnboardProgram:
         self._abort_yaw = 0.0
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
+        self._summary_logged = False
+        self._clock_jumps = 0  # the mocap reader's clock jumps the estimator has followed
 
     # --- the step ---------------------------------------------------------------------------
     @property
@@ -328,8 +334,9 @@ class OnboardProgram:
         self.phase = phase
         self.exit_code = code
 
-    def _mocap_fresh(self) -> bool:
-        return not self.mocap.is_stale("vehicle") and self.estimator.ready
+    def _mocap_fresh(self, now_s: float) -> bool:
+        """Whether the estimator has taken a vehicle pose within ``stale_mocap_s`` of ``now_s``."""
+        return self.estimator.age_s(now_s) <= self.config.stale_mocap_s
 
     def _transitions(self, now_s: float) -> None:
         cfg, ph = self.config, self.phase
@@ -338,8 +345,8 @@ class OnboardProgram:
                          silence_s=round(self.link.heartbeat_age_s(now_s), 3))
             return
         if ph in (Phase.AUTHORITY, Phase.ARMING, Phase.TAKEOFF, Phase.MISSION, Phase.HANDBACK) \
-                and not self._mocap_fresh():
-            self._abort(now_s, "stale_mocap", age_s=round(self.mocap.age_s("vehicle"), 4))
+                and not self._mocap_fresh(now_s):
+            self._abort(now_s, "stale_mocap", age_s=round(self.estimator.age_s(now_s), 4))
             return
         handler = _PHASE_HANDLERS.get(ph)
         if handler is not None:  # the final phases have none
@@ -349,7 +356,7 @@ class OnboardProgram:
         cfg = self.config
         gap_ok = not self.mocap.is_stale("gap")
         fc_ok = self.link.status is not None
-        if self._mocap_fresh() and gap_ok and fc_ok:
+        if self._mocap_fresh(now_s) and gap_ok and fc_ok:
             est = self.estimator.estimate(now_s)
             gap = self.mocap.latest("gap")
             assert gap is not None
@@ -412,18 +419,25 @@ class OnboardProgram:
         u = gap.e1 * (-1.0 if side > 0 else 1.0)
         return math.atan2(float(u[1]), float(u[0]))
 
-    def _gap_pose(self) -> GapPose | None:
+    def _gap_pose(self, now_s: float) -> GapPose | None:
+        """The gap from its latest mocap pose; None, after an abort naming why, when there is none or it
+        cannot be used."""
         g = self.mocap.latest("gap")
-        if g is None:
+        try:
+            if g is None:
+                raise ValueError("no gap pose received")
+            return GapPose.from_quaternion(g.pos_m, g.quat_wxyz, width_m=self.config.gap_width_m,
+                                           height_m=self.config.gap_height_m)
+        except ValueError as exc:
+            self._abort(now_s, "bad_gap_pose", detail=str(exc))
             return None
-        return GapPose.from_quaternion(g.pos_m, g.quat_wxyz, width_m=self.config.gap_width_m,
-                                       height_m=self.config.gap_height_m)
 
     def _start_takeoff(self, now_s: float) -> None:
         cfg = self.config
         est = self.estimator.estimate(now_s)
-        gap = self._gap_pose()
-        assert gap is not None
+        gap = self._gap_pose(now_s)
+        if gap is None:
+            return
         target = est.pos_m.copy()
         target[2] = max(target[2], cfg.takeoff_height_m)
         traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
@@ -439,8 +453,9 @@ class OnboardProgram:
         if now_s - self._phase_since_s < cfg.takeoff_duration_s + cfg.settle_s:
             return
         est = self.estimator.estimate(now_s)
-        gap = self._gap_pose()
-        assert gap is not None
+        gap = self._gap_pose(now_s)
+        if gap is None:
+            return
         try:
             plan = plan_mission(est.pos_m, gap, self.lab, start_vel_m_s=est.vel_m_s,
                                 approach_duration_s=cfg.approach_duration_s,
@@ -514,9 +529,17 @@ class OnboardProgram:
 
     # --- control ------------------------------------------------------------------------------
     def _send(self, cmd: AttitudeThrustCommand) -> None:
+        """Send ``cmd``; one that is not finite is refused (counted in ``commands_refused``) and, unless
+        the program is aborting already, aborts to the safe hover."""
+        try:
+            self.link.send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
+                                           cmd.thrust_n / self.config.full_thrust_n)
+        except ValueError as exc:
+            self.commands_refused += 1
+            if self.phase is not Phase.ABORTING:
+                self._abort(self.clock.now_s(), "bad_command", detail=str(exc))
+            return
         self._last_cmd = cmd
-        self.link.send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
-                                       cmd.thrust_n / self.config.full_thrust_n)
         self.control_steps += 1
 
     def _send_safe_hover(self) -> None:
@@ -553,8 +576,12 @@ class OnboardProgram:
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
-        if body_id == VEHICLE_BODY_ID:
-            self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
+        if body_id == VEHICLE_BODY_ID and not self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s):
+            jumps = self.mocap.clock_jumps
+            if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
+                self._clock_jumps = jumps
+                self.estimator.rebase(stamp_s, received_s)
+                self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
 
     # --- loops --------------------------------------------------------------------------------
     def run_realtime(self, max_duration_s: float | None = None) -> int:
@@ -645,7 +672,14 @@ class OnboardProgram:
                 time.sleep(0.001)
         return self.exit_code if self.exit_code is not None else EXIT_ERROR
 
+    def log_summary(self) -> None:
+        """Write the `summary` counters to the event log as a "summary" event (once; `close` does it)."""
+        if not self._summary_logged:
+            self._summary_logged = True
+            self.events.emit("summary", self.clock.now_s(), **self.summary())
+
     def close(self) -> None:
+        self.log_summary()
         self.link.close()
         self.mocap.close()
         self.events.close()
@@ -653,8 +687,10 @@ class OnboardProgram:
     def summary(self) -> dict[str, Any]:
         """Counters for the end of a run."""
         return {"phase": str(self.phase), "exit_code": self.exit_code, "control_steps": self.control_steps,
-                "skipped_steps": self.skipped_steps, "mavlink": self.link.codec.stats.as_dict(),
-                "mocap": asdict(self.mocap.counters), "estimator_updates": self.estimator.updates}
+                "skipped_steps": self.skipped_steps, "commands_refused": self.commands_refused,
+                "mavlink": self.link.codec.stats.as_dict(), "foreign": dict(self.link.foreign),
+                "mocap": asdict(self.mocap.counters), "estimator_updates": self.estimator.updates,
+                "estimator_rejected": self.estimator.rejected}
 
 
 def _fds(*transports: Transport) -> list[int]:
