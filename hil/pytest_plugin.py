@@ -34,6 +34,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
     group.addoption("--hil-backend", default=None, help="physics backend for every scenario")
     group.addoption(
+        "--hil-realtime",
+        action="store_true",
+        default=False,
+        help="fly every scenario on the wall clock (a pilot's dry run) instead of in lockstep",
+    )
+    group.addoption(
         "--hil-vehicle",
         default=None,
         metavar="NAME|PATH",
@@ -120,6 +126,7 @@ class ScenarioItem(pytest.Item):
             pilot=cfg.getoption("--pilot"),
             in_process=True if cfg.getoption("--hil-in-process") else None,
             backend=cfg.getoption("--hil-backend"),
+            realtime=True if cfg.getoption("--hil-realtime") else None,
             vehicle=cfg.getoption("--hil-vehicle"),
         )
         result = run_scenario(self.scenario, out, options)

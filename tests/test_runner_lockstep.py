@@ -320,3 +320,16 @@ def test_a_stream_of_bad_mocap_frames_on_the_pty_aborts_with_stale_mocap(tmp_pat
     assert s["onboard_exit_code"] == 3 and s["fc_final_state"] == "hold"
     kind = "bodies_non_finite" if "pos_m" in bad else "bodies_stamp_future"
     assert s["onboard"]["mocap"][kind] > 10 and s["onboard"]["estimator_rejected"] == 0
+
+
+@pytest.mark.parametrize("realtime", [False, True], ids=["lockstep", "realtime"])
+def test_a_run_goes_on_while_the_recovery_window_is_open(tmp_path, realtime):
+    # crossing at about 6.6 s, the recovery check 4 s later: a 9 s run goes on to close the window,
+    # on either clock, and says so in its sim time (by up to 3 s past its duration)
+    s = replace(load_scenarios(SCENARIOS / "gap_roll30_2ms.scenario.yaml")[0], duration_s=9.0)
+    r = run_scenario(s, tmp_path, RunOptions(in_process=True, realtime=realtime))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    crossing = r.summary["crossing"]["time_s"]
+    start = r.summary["realtime"]["contact_s"] if realtime else 0.0
+    assert crossing + 4.0 <= r.summary["sim_time_s"] <= crossing + 4.0 + 0.1
+    assert r.summary["sim_time_s"] - start > 9.0

@@ -1,7 +1,13 @@
 """Real-time mode, as a pilot watching or a real TX2 on a USB-serial adapter uses it: simulated time
-follows the wall clock, and the onboard program still takes control over its ptys."""
+follows the wall clock, the onboard program still takes control over its ptys, the run lasts its
+duration from the program's first frame, and the loop's health is measured: a CPU hog beside the run
+makes the loop late, and the `realtime` check says so instead of passing on wrong physics."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
 
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
@@ -20,9 +26,58 @@ def test_realtime_run_follows_the_wall_clock_and_the_onboard_takes_control(tmp_p
     sm = r.summary
     assert sm["mode"]["realtime"] is True and sm["mode"]["in_process"] is False
     assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
-    assert abs(sm["sim_time_s"] - 3.0) < 0.02
+    health = sm["realtime"]
+    contact = health["contact_s"]
+    assert 0.0 < contact < 5.0  # a cold program's start-up
+    assert abs(sm["sim_time_s"] - contact - 3.0) < 0.02  # the duration counts from its first frame
     # paced by the wall clock: neither faster nor much slower than real time
     assert 0.8 <= sm["real_time_factor"] <= 1.05, sm["real_time_factor"]
     texts = [e["text"] for e in sm["events"] if e["source"] == "onboard"]
     assert "authority" in texts and "takeoff" in texts, texts
     assert sm["fc_final_state"] == "offboard"
+    check = next(c for c in r.checks if c.name == "realtime")
+    assert check.passed and health["loop"]["late_worst_ms"] <= 20.0
+    assert health["loop"]["iterations"] > 1000 and health["loop"]["skipped_steps"] == 0
+    assert 90 <= health["setpoints_at_fc"]["rate_hz"] <= 110  # the onboard's 100 Hz, as the FC saw it
+    assert 110 <= health["mocap_frames_written"]["rate_hz"] <= 130  # the mocap's 120 Hz
+    assert "lockstep" not in {c.name for c in r.checks}
+
+
+HOG = "import os\ntry:\n    os.nice(-10)\nexcept OSError:\n    pass\nwhile True:\n    pass\n"
+
+
+class CpuHog:
+    """Busy processes at a higher priority than the run, all on CPU 0, started from the run's progress
+    callback (the onboard program is running by then, on whichever CPU it likes) with the emulator's
+    loop moved to CPU 0 beside them; the other CPUs stay free for anything else running."""
+
+    def __init__(self, n: int = 3) -> None:
+        self.n, self.hogs, self.before = n, [], os.sched_getaffinity(0)
+
+    def __call__(self, sim_s: float, duration_s: float) -> None:
+        if not self.hogs and sim_s > 1.0:
+            os.sched_setaffinity(0, {0})
+            self.hogs = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(self.n)]
+            for h in self.hogs:
+                os.sched_setaffinity(h.pid, {0})
+
+    def stop(self) -> None:
+        for h in self.hogs:
+            h.kill()
+            h.wait()
+        os.sched_setaffinity(0, self.before)
+
+
+def test_a_cpu_hog_beside_a_realtime_run_fails_its_realtime_check(tmp_path):
+    s = loads_scenarios(SHORT)[0]
+    hog = CpuHog()
+    try:
+        r = run_scenario(s, tmp_path, RunOptions(realtime=True, in_process=False), progress=hog)
+    finally:
+        hog.stop()
+    assert hog.hogs, "the run ended before the hog started"
+    check = next(c for c in r.checks if c.name == "realtime")
+    loop = r.summary["realtime"]["loop"]
+    assert not check.passed and not r.passed, (check, loop)
+    assert loop["late_worst_ms"] > 20.0 and loop["caught_up_steps"] > 0
+    assert "ms late" in check.observed and check.time_s is not None

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import Protocol
 
 from emulator.fc.vehicle import EmulatedVehicle
-from hil.link.clock import Clock, WallClock
+from hil.link.clock import Clock, PacingStats, WallClock
 
 POLL_PERIOD_S = 0.001  # the loop wakes at least this often, and at once when a link has data
 
@@ -44,11 +44,14 @@ class RealtimeRunner:
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.lock = threading.Lock()  # held while stepping and polling: take it to read a consistent state
+        #: how well the loop kept the wall clock (lateness, physics caught up), for the exit summary
+        self.pacing = PacingStats(POLL_PERIOD_S, vehicle.dt_s)
 
     def run(self) -> None:
-        clock, vehicle = self.clock, self.vehicle
+        clock, vehicle, pacing = self.clock, self.vehicle, self.pacing
         while not self._stop.is_set():
             now = clock.now_s()
+            pacing.wake(now)
             if self.duration_s is not None and now >= self.duration_s:
                 break
             with self.lock:

@@ -20,7 +20,7 @@ from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
 from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, LabVolume, World
-from hil.link.clock import WallClock
+from hil.link.clock import GapStats, WallClock
 from hil.link.endpoint import open_link
 from hil.link.mavlink import MavlinkCodec, mav, parse_signing_key
 from hil.link.tlog import TlogWriter
@@ -77,6 +77,30 @@ class MocapPoll:
     def poll(self, now_s: float) -> None:
         if now_s >= self.server.next_event_s():
             self.server.update(now_s, self.vehicle.state, self.gap)
+
+
+class WireWatch:
+    """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
+
+    def __init__(self, server: MavlinkServer, mocap: MocapLinkServer | None) -> None:
+        self.server, self.mocap = server, mocap
+        self.setpoints, self.mocap_frames = GapStats(), GapStats()
+
+    def poll(self, now_s: float) -> None:
+        self.setpoints.update(now_s, self.server.stats.setpoints_applied)
+        if self.mocap is not None:
+            self.mocap_frames.update(now_s, self.mocap.frames_written)
+
+    def as_dict(self) -> dict[str, object]:
+        return {"setpoints_at_fc": self.setpoints.as_dict(),
+                "mocap_frames_written": self.mocap_frames.as_dict()}
+
+
+def _serial_stats(link: object) -> dict[str, int] | None:
+    """A serial link's unplugs and replugs (None for other links)."""
+    if not hasattr(link, "disconnects"):
+        return None
+    return {"disconnects": link.disconnects, "reconnects": link.reconnects}  # type: ignore[attr-defined]
 
 
 class GapWatch:
@@ -183,6 +207,8 @@ def main(args: argparse.Namespace) -> int:
             links.append(MocapPoll(vehicle, mocap, gap))
             endpoints["mocap_link"] = mocap_link.endpoint
         fds = [link.fileno()] if _has_fileno(link) else []
+        wire = WireWatch(server, mocap)
+        links.append(wire)
         runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
         _stop_on_signals(runner)
         print(json.dumps(endpoints), flush=True)
@@ -196,6 +222,7 @@ def main(args: argparse.Namespace) -> int:
             ],
             "link": codec.stats.as_dict(),
             "server": server.stats.as_dict(),
+            "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
         }
         if mocap is not None:
             st = mocap.stats

@@ -3,7 +3,8 @@
 Specs, for either side of the cable (``role`` "fc" is the flight-controller side, "onboard" the
 companion computer):
     pty[:BAUD]              new pseudo-terminal, fc side only; peers open its slave path
-    serial:DEVICE[:BAUD]    a serial device through pyserial (also a pty slave path)
+    serial:DEVICE[:BAUD]    a serial device through pyserial (also a pty slave path); on the fc side
+                            it survives the device vanishing (an adapter unplugged) and reopens it
     udp:HOST:PORT           bind and reply to the last sender (autopilot style)
     udpout:HOST:PORT        send to a fixed peer from an ephemeral port
     tcp:HOST:PORT           listen, one client at a time
@@ -26,6 +27,7 @@ Role = Literal["fc", "onboard"]
 ROLES: tuple[str, ...] = ("fc", "onboard")
 KINDS: tuple[str, ...] = ("pty", "serial", "udp", "udpout", "tcp", "tcpout", "memory")
 DEFAULT_BAUD = 921600
+SERIAL_RECONNECT_S = 0.25  # how often the fc side of a serial link tries a vanished device again (s)
 SPEC_HELP = (
     "expected one of: 'pty', 'pty:BAUD', 'serial:DEVICE:BAUD', 'udp:HOST:PORT', 'udpout:HOST:PORT', "
     "'tcp:HOST:PORT', 'tcpout:HOST:PORT', 'memory', 'memory:NAME'"
@@ -135,7 +137,10 @@ def open_link(
     elif ep.kind == "serial":
         from hil.link.serial_port import SerialTransport
 
-        link = SerialTransport(ep.device, ep.baud or DEFAULT_BAUD)
+        # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
+        # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
+        link = SerialTransport(ep.device, ep.baud or DEFAULT_BAUD,
+                               reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
     elif ep.kind in ("udp", "udpout"):
         from hil.link.udp import UdpTransport
 

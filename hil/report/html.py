@@ -108,6 +108,7 @@ def render_report_html(
         _charts(cols, scenario, crossing),
         "<h2>Link statistics</h2>",
         _links(summary),
+        _realtime(summary),
         _events(summary),
         "<h2>Scenario</h2>",
         f"<pre>{escape(yaml.safe_dump(scenario.to_dict(include_meta=False), sort_keys=False))}</pre>",
@@ -346,6 +347,24 @@ def _links(summary: dict[str, Any]) -> str:
     links = summary.get("links")
     if not isinstance(links, dict) or not links:
         return '<p class="note">No link statistics recorded.</p>'
+    return _stat_table(links)
+
+
+def _realtime(summary: dict[str, Any]) -> str:
+    """A real-time run's health: how late the emulator loop woke, the streams' rates and gaps."""
+    rt = summary.get("realtime")
+    if not isinstance(rt, dict):
+        return ""
+    contact = rt.get("contact_s")
+    first = "no frame from the onboard program" if contact is None else (
+        f"the onboard program's first frame at {_fmt(contact)} s; the run's duration counts from there")
+    return (f"<h2>Real time</h2><p class=\"note\">{escape(first)}.</p>"
+            + _stat_table({k: v for k, v in rt.items() if isinstance(v, dict)}))
+
+
+def _stat_table(groups: dict[str, Any]) -> str:
+    """Named groups of statistics as one table, a column per group."""
+    links = groups
     names = [n for n, v in links.items() if isinstance(v, dict)]
     stats: list[str] = []
     for n in names:

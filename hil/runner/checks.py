@@ -57,6 +57,7 @@ class Observations:
     lockstep: bool = True  # the run was flown in lockstep (not on the wall clock)
     lockstep_lost_s: float | None = None  # first tick whose announced mocap bytes did not arrive
     lockstep_short_reads: int = 0  # how many tick reads came up short
+    realtime: dict[str, Any] | None = None  # a real-time run's loop health (`hil.runner.realtime`)
     faults: tuple[Fault, ...] = ()  # as flown: those timed after a mission event carry their times
     phases: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # phase -> sim intervals
 
@@ -76,6 +77,8 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
     checks.append(check_finite_state(obs))
     if obs.lockstep:
         checks.append(check_lockstep(obs))
+    elif obs.realtime is not None:
+        checks.append(check_realtime(e.realtime_max_late_ms, obs.realtime))
     if e.stays_in_lab:
         checks.append(check_stays_in_lab(obs))
     checks.append(check_failsafe(e.failsafe_expected, obs))
@@ -134,6 +137,20 @@ def check_lockstep(obs: Observations) -> Check:
     t, n = obs.lockstep_lost_s, obs.lockstep_short_reads
     observed = "held on every tick" if t is None else f"lost: {n} tick read(s) short of the mocap announced"
     return Check("lockstep", t is None, "every tick's mocap read in full", observed, t)
+
+
+def check_realtime(limit_ms: float, health: dict[str, Any]) -> Check:
+    """The emulator kept real time: its loop never woke more than ``limit_ms`` late (a late loop runs
+    the physics in a burst and holds the links meanwhile: the onboard program flew against wrong
+    physics), and the onboard program made contact at all."""
+    loop = health.get("loop") or {}
+    worst = float(loop.get("late_worst_ms") or 0.0)
+    expected = f"the emulator loop at most {limit_ms:g} ms late"
+    if health.get("contact_s") is None:
+        return Check("realtime", False, expected, "no frame from the onboard program")
+    observed = (f"worst {worst:g} ms late (median {loop.get('late_median_ms')} ms, p99 "
+                f"{loop.get('late_p99_ms')} ms), {loop.get('caught_up_steps')} physics steps caught up")
+    return Check("realtime", worst <= limit_ms, expected, observed, loop.get("late_worst_at_s"))
 
 
 def check_stays_in_lab(obs: Observations) -> Check:

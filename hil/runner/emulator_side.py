@@ -82,6 +82,9 @@ def initial_state(scenario: Scenario, profile: VehicleProfile) -> tuple[VehicleS
     ), ground
 
 
+#: a run goes on past its duration while a check's window is open, by up to this (s)
+CHECK_OVERRUN_S = 3.0
+CHECK_WINDOW_MARGIN_S = 0.05  # past the window's end (s): the check reads the sample at its end
 #: a state component larger than this (or NaN) is no flight any more (float32 holds up to 3.4e38)
 DIVERGED_LIMIT = 1e30
 
@@ -261,6 +264,16 @@ class EmulatorSide:
         if not self.hold_mocap:
             self.mocap_link.flush()
         wire.pump()
+
+    def checks_open_until_s(self) -> float | None:
+        """Until when (sim s) a check's window is still open, as far as recorded: the recovery check
+        looks ``recovery.time_s`` after the first crossing. None when no window is open or known; a
+        loop ends a run no earlier than this (by up to `CHECK_OVERRUN_S` past its duration)."""
+        e = self.scenario.expect
+        crossed = self.recorder.first_crossing_seen_s
+        if e.recovery is None or not e.crosses_gap or crossed is None:
+            return None
+        return crossed + e.recovery.time_s + CHECK_WINDOW_MARGIN_S
 
     def mission_events(self, events: list[dict[str, Any]]) -> None:
         """The onboard program reported ``events``: time the faults that wait for one of them, from now

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 
-from hil.scenario.schema import CorruptBytesParams, Fault, WindGustParams
+from hil.scenario.schema import CorruptBytesParams, EventTime, Fault, WindGustParams
 
 AIR_DENSITY_KG_M3 = 1.225
 #: drag area Cd * A of the airframe seen by a wind (m^2): a 0.45 m quad with props, about 0.05
@@ -43,6 +44,19 @@ class FaultSchedule:
             return True
         p = f.params
         return f.kind == "corrupt_bytes" and isinstance(p, CorruptBytesParams) and p.link == link
+
+    def count_from(self, name: str) -> None:
+        """Make every fault given in sim seconds count from the event ``name`` instead (real time: from
+        the onboard program's first contact, as its start-up takes wall time that lockstep does not)."""
+        faults = list(self.faults)
+        for i, f in enumerate(faults):
+            if f.after is None:
+                duration = None if f.end_s is None else f.end_s - f.start_s
+                faults[i] = replace(f, start_s=math.inf, end_s=None, after=EventTime(name, f.start_s),
+                                    duration_s=duration)
+                self.waiting.setdefault(name, []).append(i)
+        self.faults = tuple(faults)
+        self.kill_s = self.killed_at_s()
 
     def at_event(self, name: str, event_s: float, now_s: float) -> bool:
         """The mission event ``name`` happened at ``event_s`` (sim s), seen at ``now_s``: time the faults
@@ -103,7 +117,7 @@ class FaultSchedule:
         for f in self.faults:
             if not math.isfinite(f.start_s):
                 assert f.after is not None
-                text = f"{f.kind} never started: no {f.after.after!r} event came"
+                text = f"{f.kind} never started: no {f.after.after!r} event came"  # (or no contact)
                 out.append({"time_s": None, "source": "fault", "text": text})
                 continue
             out.append({"time_s": f.start_s, "source": "fault", "text": f"{f.kind} starts"})

@@ -17,13 +17,14 @@ process first imports its libraries and opens its ports (`LoopReport.startup_wal
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from hil.link.mavlink import encode_frame, mav
-from hil.runner.emulator_side import FC_SYSTEM_ID, EmulatorSide
+from hil.runner.emulator_side import CHECK_OVERRUN_S, FC_SYSTEM_ID, EmulatorSide
 from hil.runner.faults import FaultSchedule
 from hil.runner.onboard_side import OnboardSide
 
@@ -67,6 +68,7 @@ class LoopReport:
     startup_wall_s: float = 0.0
     loop_sim_s: float | None = None  # None: the whole run
     ended_early: str | None = None  # why the loop stopped before the run's duration, None if it did not
+    realtime: dict[str, object] | None = None  # a real-time loop's health (see `hil.runner.realtime`)
 
 
 def apply_process_faults(rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, t: float) -> None:
@@ -127,7 +129,13 @@ def run_lockstep(
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
     mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
     pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first
-    for k in range(1, n_ticks + 1):  # no tick at 0: its answer TIMESYNC(0, 0) would read as a request
+    k = 0  # no tick at 0: its answer TIMESYNC(0, 0) would read as a request
+    while True:
+        k += 1
+        if k > n_ticks:  # the run's duration is flown: on while a check's window is still open
+            n_ticks = extend_ticks(emu, n_ticks, duration_s, tick_s)
+            if k > n_ticks:
+                break
         t = k * tick_s
         # the outputs of a pending tick act from its time + compute on: read them before running past it
         while pending and pending[0] + compute < t - 1e-12:
@@ -172,6 +180,16 @@ def run_lockstep(
     rep.wall_loop_s = time.perf_counter() - loop0
     rep.loop_sim_s = rep.ticks * tick_s - t_loop0
     return rep
+
+
+def extend_ticks(emu: EmulatorSide, n_ticks: int, duration_s: float, tick_s: float) -> int:
+    """The ticks to fly in all: ``n_ticks``, or more while a check's window is still open
+    (`EmulatorSide.checks_open_until_s`), by up to `CHECK_OVERRUN_S` past ``duration_s``."""
+    emu.recorder.flush()
+    until = emu.checks_open_until_s()
+    if until is None:
+        return n_ticks
+    return max(n_ticks, math.ceil(min(until, duration_s + CHECK_OVERRUN_S) / tick_s - 1e-9))
 
 
 def note_divergence(rep: LoopReport, emu: EmulatorSide) -> None:

@@ -14,16 +14,20 @@ from typing import Any
 
 from hil.scenario.schema import FLIGHT_PHASES, MISSION_EVENTS
 
+#: the harness's own event: the onboard program's first frame on the command link (what real-time runs
+#: count the faults given in sim seconds from; see `hil.runner.realtime`)
+CONTACT_EVENT = "contact"
 #: events that end whatever phase is under way
 _ENDS = ("mission_done", "abort", "done", "error", "fc_lost")
 
 
 def event_name(ev: dict[str, Any]) -> str | None:
-    """The mission event an onboard event is (one of `MISSION_EVENTS`), None for any other."""
+    """The mission event an onboard event is (one of `MISSION_EVENTS`, or `CONTACT_EVENT`), None for
+    any other."""
     name = ev.get("event")
     if name == "segment":
         name = ev.get("segment")
-    return name if name in MISSION_EVENTS else None
+    return name if name in MISSION_EVENTS or name == CONTACT_EVENT else None
 
 
 def phase_intervals(events: list[dict[str, Any]], end_s: float) -> dict[str, list[tuple[float, float]]]:

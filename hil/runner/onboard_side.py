@@ -137,6 +137,10 @@ class ProcessOnboard:
         self.paused = False
         self._cursor = _EventCursor()
         self._log_offset = 0  # bytes of the event log read by `new_events`
+        #: real time: the harness's time zero on the monotonic clock (s); the program's events, stamped
+        #: on its own clock, are put on the harness's time line with it (see `_on_harness_time`)
+        self.harness_zero_monotonic_s: float | None = None
+        self._offset_s: float | None = None  # program clock -> harness clock (s), once known
 
     def service(self) -> None:
         return  # it runs on its own
@@ -163,8 +167,25 @@ class ProcessOnboard:
 
     def events(self) -> list[dict[str, Any]]:
         with contextlib.suppress(OSError):
-            return _parse_events(self.log_path.read_bytes())
+            return self._on_harness_time(_parse_events(self.log_path.read_bytes()))
         return []
+
+    def _on_harness_time(self, events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """``events`` with their times moved from the program's clock to the harness's, in real time
+        (the program's clock starts with it, the harness's before it); as they are in lockstep."""
+        zero = self.harness_zero_monotonic_s
+        if zero is None:
+            return events
+        if self._offset_s is None:
+            start = next((e for e in events if e.get("event") == "start"), None)
+            own = None if start is None else start.get("clock_zero_monotonic_s")
+            if not isinstance(own, int | float):
+                return events  # (not known yet: a later call has the start event)
+            self._offset_s = float(own) - zero
+        for ev in events:
+            if isinstance(ev.get("t_s"), int | float):
+                ev["t_s"] = round(ev["t_s"] + self._offset_s, 4)
+        return events
 
     def new_events(self, up_to_s: float) -> list[dict[str, Any]]:
         """The events not handed out before, stamped up to ``up_to_s`` (sim s): the program writes each
@@ -176,7 +197,7 @@ class ProcessOnboard:
             data = f.read()
         whole = data[: data.rfind(b"\n") + 1]
         self._log_offset += len(whole)
-        return self._cursor.take(_parse_events(whole), up_to_s)
+        return self._cursor.take(self._on_harness_time(_parse_events(whole)), up_to_s)
 
     def close(self, timeout_s: float = 5.0) -> int | None:
         """End the process (SIGTERM, then SIGKILL) and return its exit code."""

@@ -1,16 +1,28 @@
 """The real-time loop: the emulator side follows the wall clock, the onboard program runs on its own
-(a real TX2 on a USB-serial adapter, or a pilot watching); faults act at their wall-clock times."""
+(a real TX2 on a USB-serial adapter, or a pilot watching).
+
+One verdict whatever the clock: a program started cold takes wall time to start (about 0.7 s to its
+first frame) that lockstep does not see, so in real time the run lasts ``duration_s`` from the onboard
+program's first frame on the command link, and the faults given in sim seconds count from there too
+(in lockstep the first frame comes with the first tick, 10 ms in). The loop also measures how well it
+kept real time (`PacingStats`: its lateness, the steps it ran late to catch up) and the setpoint and
+mocap streams as the wire saw them (rates, longest gaps): `LoopReport.realtime`.
+"""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 
-from hil.runner.emulator_side import EmulatorSide
-from hil.runner.lockstep import LoopReport, apply_process_faults, note_divergence
-from hil.runner.onboard_side import InProcessOnboard, OnboardSide
+from hil.link.clock import GapStats, PacingStats
+from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
+from hil.runner.lockstep import RECORD_BATCH, LoopReport, apply_process_faults, note_divergence
+from hil.runner.mission import CONTACT_EVENT
+from hil.runner.onboard_side import InProcessOnboard, OnboardSide, ProcessOnboard
 
 POLL_S = 0.001  # the loop wakes at least this often (s)
+#: the longest the loop waits for the onboard program's first frame before flying ``duration_s`` anyway
+CONTACT_WAIT_S = 10.0
 
 
 def run_realtime(
@@ -19,15 +31,31 @@ def run_realtime(
     duration_s: float,
     progress: Callable[[float], None] | None = None,
 ) -> LoopReport:
-    """Fly ``duration_s`` seconds of wall time; returns what the loop saw."""
+    """Fly ``duration_s`` seconds of wall time from the onboard program's first frame; returns what the
+    loop saw, its real-time health in ``realtime``."""
     rep = LoopReport()
     faults = emu.faults
-    wall0 = time.perf_counter()
+    faults.count_from(CONTACT_EVENT)
+    pacing = PacingStats(POLL_S, emu.vehicle.dt_s)
+    setpoints, mocap = GapStats(), GapStats()
+    server_stats, mocap_link = emu.server.stats, emu.mocap
+    wire = emu.wire
+    contact_s: float | None = None
+    end_s = CONTACT_WAIT_S + duration_s  # until the first frame
+    wall0 = time.monotonic()  # (the clock the onboard program stamps its events with, too)
+    if isinstance(onboard, ProcessOnboard):
+        onboard.harness_zero_monotonic_s = wall0
     next_progress = 0.5
     while True:
-        t = time.perf_counter() - wall0
-        if t > duration_s:
+        t = time.monotonic() - wall0
+        if contact_s is not None:  # (a process starting beside the loop slows it: that is no flight)
+            pacing.wake(t)
+        if contact_s is None and t > CONTACT_WAIT_S:
             break
+        if t > end_s:  # the run's duration is flown: on while a check's window is still open
+            until = emu.checks_open_until_s()
+            if until is None or t > min(until, end_s + CHECK_OVERRUN_S):
+                break
         emu.advance_to(t)
         if emu.diverged_s is not None:
             note_divergence(rep, emu)
@@ -38,11 +66,27 @@ def run_realtime(
         apply_process_faults(rep, onboard, faults, t)
         if isinstance(onboard, InProcessOnboard):
             onboard.step_realtime(t)
-        emu.wire.read_onboard(POLL_S)
+        if wire.read_onboard(POLL_S) and contact_s is None:
+            contact_s, end_s = t, t + duration_s
+            rep.events.append({"time_s": t, "source": "runner", "text": "onboard program's first frame"})
+            emu.mission_events([{"event": CONTACT_EVENT, "t_s": t}])
+        emu.recorder.flush(RECORD_BATCH)  # (checks and rows in batches, as in lockstep)
+        setpoints.update(t, server_stats.setpoints_applied)
+        mocap.update(t, mocap_link.frames_written)
         if progress is not None and t >= next_progress:
             progress(t)
             next_progress = t + 0.5
-    if rep.ended_early is None:
-        emu.advance_to(duration_s)
-    rep.wall_loop_s = time.perf_counter() - wall0
+    if contact_s is None:
+        rep.events.append({"time_s": t, "source": "runner",
+                           "text": f"no frame from the onboard program in {CONTACT_WAIT_S:g} s (wall)"})
+        rep.ended_early = rep.ended_early or "the onboard program never sent a frame"
+    elif rep.ended_early is None:
+        emu.advance_to(max(end_s, emu.time_s))
+    rep.wall_loop_s = time.monotonic() - wall0
+    rep.realtime = {
+        "contact_s": None if contact_s is None else round(contact_s, 4),
+        "loop": pacing.as_dict(),
+        "setpoints_at_fc": setpoints.as_dict(),
+        "mocap_frames_written": mocap.as_dict(),
+    }
     return rep

@@ -132,6 +132,8 @@ class Recorder:
         self._nonfinite_s: float | None = None  # sim time of the first non-finite state (s)
         #: the same, as far as recorded (no flush): what a loop may read every tick
         self.nonfinite_seen_s: float | None = None
+        #: sim time of the first crossing of the gap plane as far as recorded (no flush), None before
+        self.first_crossing_seen_s: float | None = None
         #: samples taken and not yet checked and recorded (see `sample`)
         self._pending: list[_Sample] = []
         self._gap_axes = world.gap.axes()
@@ -222,6 +224,7 @@ class Recorder:
                                              np.array(n_wall[k0:]))
             if done and self._crossings_seen == 0:
                 self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat[k0 + done[0][0]])
+                self.first_crossing_seen_s = tracker.crossings[0].time_s
             self._crossings_seen = tracker.crossing_count
         vel = x[:, VEL]
         if self._collision is None and any(h is not None for h in hits):

@@ -33,7 +33,7 @@ from hil.runner.onboard_side import (
     onboard_options,
     program_config,
 )
-from hil.runner.realtime import run_realtime
+from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.scenario.schema import Fault, Scenario
 from policies.onboard import pilot_names
 
@@ -185,7 +185,8 @@ def run_scenario(
                 clock=clock,
                 backend=s.physics,
                 tlog=tlog,
-                duration_s=s.duration_s,
+                # (in real time the run lasts duration_s from the program's first frame)
+                duration_s=s.duration_s + (CONTACT_WAIT_S if realtime else 0.0),
             )
         except ValueError as exc:
             raise RunSetupError(str(exc)) from exc
@@ -280,6 +281,7 @@ def _finish(
         link={k: links["summary"][k] for k in links["summary"]},
         nonfinite_state_s=emu.diverged_s,  # (the recorder has been flushed by `columns`)
         lockstep=not realtime,
+        realtime=loop.realtime,
         lockstep_lost_s=float(lost[0]["t_s"]) if lost else None,
         lockstep_short_reads=short_reads,
         faults=emu.faults.faults,
@@ -353,6 +355,7 @@ def _finish(
         if realtime
         else {"held": not lost, "short_mocap_reads": short_reads, "lost_at_s": obs.lockstep_lost_s},
         "nonfinite_state_s": obs.nonfinite_state_s,
+        "realtime": loop.realtime,
         "links": links,
         "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
         "faults": [_fault_as_flown(f, obs.phases) for f in emu.faults.faults],

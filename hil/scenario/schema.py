@@ -30,6 +30,9 @@ FAULT_KINDS = (
     "wind_gust",
 )
 LINK_NAMES = ("command", "mocap")
+#: how late the emulator loop of a real-time run may wake at worst (ms): two control periods (the onboard
+#: program's 100 Hz) without physics or links behind them, half the onboard's stale-mocap limit
+REALTIME_MAX_LATE_MS = 20.0
 #: the mission events the onboard program reports (its takeoff, plan and each segment's start) that a
 #: fault's time may be given after: the phase a fault names holds wherever the flight's timing moves it
 MISSION_EVENTS = (
@@ -303,6 +306,10 @@ class Expectations:
     )
     onboard_abort_expected: bool = spec(False, doc="the onboard program must abort the crossing")
     link: LinkExpectations = spec(factory=LinkExpectations, doc="link-statistics bounds")
+    realtime_max_late_ms: float = spec(
+        REALTIME_MAX_LATE_MS, lo=0.0, hi=10_000.0, lo_open=True,
+        doc="real-time runs: the emulator loop's worst lateness against the wall clock (ms)",
+    )
 
 
 @dataclass(frozen=True)

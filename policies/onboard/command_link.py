@@ -280,6 +280,11 @@ class CommandLink:
     def request_arm(self) -> None:
         self.send_command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
 
+    def request_heartbeat(self) -> None:
+        """MAV_CMD_REQUEST_MESSAGE for the FC's HEARTBEAT: sent while none has come, so the program need
+        not wait up to a second for the FC's own 1 Hz one."""
+        self.send_command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT)
+
     def request_offboard(self) -> None:
         """DO_SET_MODE to PX4 OFFBOARD (p1 = 129, p2 = 6)."""
         self.send_command(mav.MAV_CMD_DO_SET_MODE, PX4_BASE_MODE_CUSTOM, PX4_MAIN_OFFBOARD)

@@ -52,6 +52,7 @@ from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
+HEARTBEAT_REQUEST_S = 0.1  # how often the FC's heartbeat is asked for until one comes (s)
 VEHICLE_BODY_ID = BODY_IDS["vehicle"]  # the mocap body whose poses feed the estimator
 EXIT_DONE, EXIT_ERROR, EXIT_ABORTED = 0, 1, 3
 
@@ -255,6 +256,8 @@ class OnboardProgram:
         self._phase_since_s = 0.0
         self._next_control_s: float | None = None
         self._next_heartbeat_s = -math.inf
+        self._next_heartbeat_request_s = -math.inf  # (while waiting for the FC's first heartbeat)
+        self._clock_zero_monotonic_s: float | None = None  # on the wall clock only (`run_realtime`)
         self._request: _Request | None = None
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
@@ -306,7 +309,9 @@ class OnboardProgram:
         if self._started_s is None:
             self._started_s = self._phase_since_s = now_s
             self.events.emit("start", now_s, pilot=self.config.pilot, rate_hz=self.config.rate_hz,
-                             approach_speed_m_s=self.config.approach_speed_m_s, flies=self.pilot.flies)
+                             approach_speed_m_s=self.config.approach_speed_m_s,
+                             flies=getattr(self.pilot, "flies", None),  # (a pilot that says)
+                             clock_zero_monotonic_s=self._clock_zero_monotonic_s)
         if now_s >= self._next_heartbeat_s:
             self.link.send_heartbeat()
             self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
@@ -366,6 +371,9 @@ class OnboardProgram:
             self._next_control_s = now_s
             self._abort_yaw = float(est.euler_rad[2])
             return
+        if not fc_ok and now_s >= self._next_heartbeat_request_s:
+            self.link.request_heartbeat()
+            self._next_heartbeat_request_s = now_s + HEARTBEAT_REQUEST_S
         if now_s - self._phase_since_s > cfg.wait_timeout_s:
             self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="timed out waiting for mocap and the FC",
                          vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok)
@@ -587,6 +595,9 @@ class OnboardProgram:
     def run_realtime(self, max_duration_s: float | None = None) -> int:
         """Run on the wall clock until finished (or ``max_duration_s``); returns the exit code."""
         clock = WallClock()
+        # where this clock's zero lies on the machine's monotonic clock (s): a harness on the same
+        # machine puts the events' times on its own time line with it
+        self._clock_zero_monotonic_s = time.monotonic() - clock.now_s()
         fds = _fds(self.link.transport, self.mocap.transport)
         while not self.finished:
             now = clock.now_s()
