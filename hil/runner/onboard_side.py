@@ -166,6 +166,8 @@ def onboard_options(s: Scenario, profile: VehicleProfile) -> list[str]:
         repr(s.gap.height_m),
         f"--lab-min={lab_min}",
         f"--lab-max={lab_max}",
+        "--body-box",
+        *(repr(float(v)) for v in profile.body_box_m),
     ]
 
 
