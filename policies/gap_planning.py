@@ -612,13 +612,14 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
             for T in durations:
                 tried += 1
                 (cand,) = solve_floats(p_start, vel, acc, p0, v0, a0, [T])
+                if not cand.planes_ok(approach_planes):  # (the cheaper test first)
+                    if not why:  # (only the first reason is told)
+                        why.append(_approach_failure(cand, T, box_planes, clear))
+                    continue
                 feas = cand.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
                                            limits.min_dt_s)
                 if feas is Feasibility.INFEASIBLE:
                     why.append(f"the approach in {T:g} s exceeds the thrust or body-rate limits")
-                elif not cand.planes_ok(approach_planes):
-                    if not why:  # (only the first reason is told)
-                        why.append(_approach_failure(cand, T, box_planes, clear))
                 else:
                     yaw = math.atan2(u[1], u[0])
                     return MissionPlan(gap, cand.trajectory(), trav, recovery, _vec3("hover", hover), yaw,
