@@ -20,6 +20,11 @@ Approach: a motion primitive from the current state to the traverse start state,
 Recovery: the paper's search over 0.5-3.0 s in 0.3 s steps to the hover point (1 m above ground, 2.5 m
 past the centre along the crossing direction projected horizontally), taking the first duration whose
 trajectory stays in the lab, beyond the gap plane, and passes the input-feasibility test.
+
+The mission (`plan_mission`) is searched the same way: crossing speed, then the traverse's l, then the
+approach duration, each starting from what was asked for, the first candidate whose three segments keep
+the vehicle's body box (`BodyClearance`: its half diagonal plus a margin) off the floor, the lab's faces
+and the wall wins. Every test is a `FloatTrajectory.planes_ok` plane test or the input-feasibility test.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from enum import StrEnum
 import numpy as np
 
 from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
-from policies.primitives import Feasibility, Plane, Trajectory, solve, solve_floats
+from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, solve, solve_floats
 
 Vec3 = tuple[float, float, float]
 
@@ -165,7 +170,7 @@ class VehicleLimits:
     max_body_rate_rad_s: float = 15.0
     max_speed_m_s: float = 6.0
     max_tilt_rad: float = math.radians(75.0)
-    min_dt_s: float = 0.02  # smallest interval of the input-feasibility recursion
+    min_dt_s: float = 0.005  # smallest interval of the input-feasibility recursion (s)
 
     def __post_init__(self) -> None:
         if not (0 < self.f_min_m_s2 < self.f_max_m_s2 and self.max_body_rate_rad_s > 0
@@ -176,6 +181,40 @@ class VehicleLimits:
     def from_vehicle(cls, mass_kg: float, max_thrust_n: float, **kw: float) -> VehicleLimits:
         """Limits with f_max = max_thrust_n / mass_kg (other fields as keywords)."""
         return cls(f_max_m_s2=max_thrust_n / mass_kg, **kw)
+
+
+@dataclass(frozen=True)
+class BodyClearance:
+    """The room the planner keeps between the vehicle's centre point and the floor (z = 0), the lab's
+    faces and the wall: the body box's reach plus ``margin_m``.
+
+    The reach is the box's half diagonal, the farthest any corner gets from the centre along any
+    direction at any attitude (0.38 m for the 0.52 x 0.52 x 0.18 m box of the paper's vehicle).
+    """
+
+    body_box_m: Vec3 = (0.52, 0.52, 0.18)  # length x width x height in body FLU (m), centred
+    margin_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        box = _vec3("body_box_m", self.body_box_m)
+        if min(box) < 0 or not (math.isfinite(self.margin_m) and self.margin_m >= 0):
+            raise ValueError(f"body box {box} m and the margin {self.margin_m} m must be >= 0")
+        object.__setattr__(self, "body_box_m", box)
+
+    @property
+    def reach_m(self) -> float:
+        """The box's half diagonal (m)."""
+        x, y, z = self.body_box_m
+        return math.sqrt(x * x + y * y + z * z) / 2
+
+    @property
+    def clearance_m(self) -> float:
+        """Distance (m) the centre keeps from the floor, the lab's faces and the wall."""
+        return self.reach_m + self.margin_m
+
+
+#: the centre point alone, no room around it (the paper release's checks, for its test case)
+POINT_BODY = BodyClearance((0.0, 0.0, 0.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -212,6 +251,13 @@ class Traverse:
     def start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.state(0.0)
 
+    def float_trajectory(self) -> FloatTrajectory:
+        """The traverse as a `FloatTrajectory` (a quintic whose jerk is zero), for its plane tests."""
+        p, v, a = self.state_tuples(0.0)
+        T = self.duration_s
+        axes = tuple((p[k], v[k], a[k], 0.0, 0.0, 0.0) for k in range(3))
+        return FloatTrajectory(axes, T, T**3, T**4, T**5)
+
     @property
     def end_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.state(self.duration_s)
@@ -227,11 +273,11 @@ def _l_grid(l_max_m: float) -> np.ndarray:
 
 def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
                   direction_sign: float = 1.0, d_min_m: float = 0.1, exit_m: float = 0.3,
-                  l_max_m: float = 0.5) -> Traverse:
+                  l_max_m: float = 0.5, l_m: float | None = None) -> Traverse:
     """The traverse through ``gap`` at ``crossing_speed_m_s`` along ``direction_sign * e1``.
 
-    Searches l in (0, l_max_m] (see the module docstring). Raises PlanningError when the tilt,
-    thrust or speed limits cannot be met.
+    Searches l in (0, l_max_m] (see the module docstring), or takes ``l_m`` (m) as given. Raises
+    PlanningError when the tilt, thrust or speed limits, or d >= d_min_m, cannot be met.
     """
     limits = limits or VehicleLimits()
     s = float(crossing_speed_m_s)
@@ -254,6 +300,10 @@ def plan_traverse(gap: GapPose, crossing_speed_m_s: float = 2.0, limits: Vehicle
         # (a gap measured a few mrad off level would otherwise get an l = 0.5 m arc metres long)
         disc = s * s - 2 * a_u * d_min_m
         t_c_all = np.array([2 * d_min_m / (s + math.sqrt(disc)) if disc >= 0 else d_min_m / s])
+    elif l_m is not None:  # the one l asked for
+        if not (math.isfinite(l_m) and 0 < l_m <= l_max_m):
+            raise ValueError(f"l_m must be in (0, {l_max_m}] m, got {l_m!r}")
+        t_c_all = np.array([math.sqrt(2 * l_m / g0)])
     else:  # grid over l plus the value where d = d_min exactly (the usual optimum)
         l_grid = _l_grid(l_max_m)
         t_c_all = np.sqrt(2 * l_grid / g0)
@@ -315,12 +365,14 @@ def hover_point(gap: GapPose, direction: np.ndarray, distance_m: float = 2.5,
 
 def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: object, lab: LabVolume,
                     limits: VehicleLimits | None = None, wall: tuple[object, object] | None = None,
-                    durations_s: np.ndarray = RECOVERY_DURATIONS_S, margin_m: float = 0.0) -> RecoveryResult:
+                    durations_s: np.ndarray = RECOVERY_DURATIONS_S, margin_m: float = 0.0,
+                    wall_margin_m: float = 0.0) -> RecoveryResult:
     """The paper's recovery search from the current state to hover at ``hover_m``: the durations are
     tried in order and the first that passes wins.
 
-    A duration passes when its trajectory stays ``margin_m`` inside ``lab``, on the normal's side of
-    ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. Raises PlanningError if none.
+    A duration passes when its trajectory stays ``margin_m`` inside ``lab``, ``wall_margin_m`` on the
+    normal's side of ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. Raises
+    PlanningError if none.
     """
     limits = limits or VehicleLimits()
     start = time.perf_counter()
@@ -330,13 +382,15 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
     p0, v0, a0 = _vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2)
     durations = np.asarray(durations_s, dtype=float)
     if durations.ndim != 1:
-        return _search_recovery_batched(p0, v0, a0, hover, lab, limits, wall, durations_s, margin_m, start)
+        return _search_recovery_batched(p0, v0, a0, hover, lab, limits, wall, durations_s, margin_m, start,
+                                        wall_margin_m)
     T_all = durations.tolist()
     if not all(math.isfinite(T) and T > 0 for T in T_all):
         raise ValueError("T must be finite and positive")
     planes = list(_lab_planes(lab, float(margin_m) - 1e-9))
     if wall is not None:
-        planes.append(Plane(_vec3("wall point", wall[0]), _vec3("wall normal", wall[1]), 0.0 - 1e-9))
+        planes.append(Plane(_vec3("wall point", wall[0]), _vec3("wall normal", wall[1]),
+                            float(wall_margin_m) - 1e-9))
     zero = (0.0, 0.0, 0.0)
     for i, cand in enumerate(solve_floats(p0, v0, a0, hover, zero, zero, T_all)):
         if cand.planes_ok(planes) and cand.input_feasible(
@@ -362,13 +416,13 @@ def _lab_planes(lab: LabVolume, threshold_m: float) -> tuple[Plane, ...]:
 
 def _search_recovery_batched(p0: Vec3, v0: Vec3, a0: Vec3, hover: Vec3, lab: LabVolume, limits: VehicleLimits,
                              wall: tuple[object, object] | None, durations_s: object, margin_m: float,
-                             start: float) -> RecoveryResult:
+                             start: float, wall_margin_m: float = 0.0) -> RecoveryResult:
     """`search_recovery` with every duration solved and tested as one numpy batch (for durations not 1-D)."""
     hover_a = np.asarray(hover)
     traj = solve(p0, v0, a0, hover_a, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
     # every plane in one batched call: rows are the lab's six walls (then the gap's wall), columns durations
     planes = lab.half_spaces()
-    margins = np.array([margin_m] * len(planes) + [0.0] * (wall is not None))
+    margins = np.array([margin_m] * len(planes) + [wall_margin_m] * (wall is not None))
     if wall is not None:
         planes.append((_vec3("wall point", wall[0]), _vec3("wall normal", wall[1])))
     points, normals = np.array([p for p, _ in planes]), np.array([n for _, n in planes])
@@ -422,6 +476,8 @@ class MissionPlan:
     hover_m: Vec3
     yaw_rad: float
     approach_feasibility: Feasibility
+    candidates_tried: int = 1  # approaches the search examined: the index of the one flown + 1
+    search_time_s: float = 0.0  # wall time of the whole search (s)
     t_traverse_start_s: float = field(init=False)
     t_recovery_start_s: float = field(init=False)
     t_hover_start_s: float = field(init=False)
@@ -472,36 +528,113 @@ class MissionPlan:
         return self.hover_m, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
 
 
+#: approach durations (s) the search tries after the one asked for, nearest to it first (the recovery's step)
+APPROACH_DURATIONS_S = np.round(np.arange(1.1, 4.1 + 1e-9, 0.3), 10)
+#: traverse lengths l (m) the search tries after the one of the lowest start speed
+TRAVERSE_LENGTHS_M = (0.1, 0.2, 0.3, 0.4, 0.5)
+#: crossing speeds (m/s) the search may choose, nearest to the one asked for first
+CROSSING_SPEED_RANGE_M_S = (1.0, 5.0)
+CROSSING_SPEED_STEP_M_S = 0.5
+
+
+def _nearest_first(first: float, grid: object) -> list[float]:
+    """``first``, then the values of ``grid`` nearest to it first (the lower of a tie first)."""
+    rest = sorted((float(x) for x in grid if abs(float(x) - first) > 1e-9), key=lambda x: (abs(x - first), x))
+    return [first, *rest]
+
+
 def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel_m_s: object = (0, 0, 0),
                  start_acc_m_s2: object = (0, 0, 0), approach_duration_s: float = 2.6,
                  crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
                  d_min_m: float = 0.1, exit_m: float = 0.3, hover_distance_m: float = 2.5,
-                 hover_height_m: float = 1.0, strict: bool = True) -> MissionPlan:
-    """Plan the whole crossing from the current state (the paper's pipeline).
+                 hover_height_m: float = 1.0, body: BodyClearance | None = None,
+                 crossing_speed_range_m_s: tuple[float, float] = CROSSING_SPEED_RANGE_M_S) -> MissionPlan:
+    """Plan the whole crossing from the current state (the paper's pipeline), searched for a plan the
+    body can fly.
 
-    The crossing direction is the gap normal pointing away from the start. With ``strict`` an
-    INFEASIBLE approach raises PlanningError (INDETERMINABLE is accepted and recorded).
+    The crossing direction is the gap normal pointing away from the start. Candidates are tried in
+    order, the first that passes wins: the crossing speed asked for, then the others of
+    ``crossing_speed_range_m_s`` (0.5 m/s apart, nearest first); per speed the traverse of the lowest
+    start speed, then l = 0.1 ... 0.5 m; per traverse the approach duration asked for, then
+    `APPROACH_DURATIONS_S` nearest first. A candidate passes when every segment keeps ``body``'s
+    clearance from the floor (z = 0) and the lab's faces, the approach stays before the wall (no nearer
+    it than the traverse start), the traverse ends, and the recovery stays, the clearance past the wall,
+    the approach is not INFEASIBLE (INDETERMINABLE is accepted and recorded) and a recovery duration
+    passes `search_recovery`. Raises PlanningError, saying why the requested candidate failed, if none.
     """
+    started = time.perf_counter()
     limits = limits or VehicleLimits()
-    p_start = np.asarray(_vec3("start_pos_m", start_pos_m))
+    body = body or BodyClearance()
+    p_start = _vec3("start_pos_m", start_pos_m)
     if not (math.isfinite(approach_duration_s) and approach_duration_s > 0):
         raise ValueError("approach_duration_s must be positive")
-    side = float((p_start - gap.centre) @ gap.e1)
+    side = sum((p - c) * e for p, c, e in zip(p_start, gap.centre_m, gap.e1.tolist(), strict=True))
     sign = -1.0 if side > 0 else 1.0
-    trav = plan_traverse(gap, crossing_speed_m_s, limits, sign, d_min_m, exit_m)
-    p0, v0, a0 = trav.state_tuples(0.0)
     vel, acc = _vec3("start_vel_m_s", start_vel_m_s), _vec3("start_acc_m_s2", start_acc_m_s2)
-    (approach_f,) = solve_floats(tuple(p_start.tolist()), vel, acc, p0, v0, a0, [float(approach_duration_s)])
-    approach = approach_f.trajectory()
-    feas = approach_f.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
-                                     limits.min_dt_s)
-    if strict and feas is Feasibility.INFEASIBLE:
-        raise PlanningError(f"the approach in {approach_duration_s} s exceeds the thrust or body-rate limits")
-    if strict and not approach_f.planes_ok(list(_lab_planes(lab, 0.0 - 1e-9))):
-        raise PlanningError(f"the approach in {approach_duration_s} s leaves the lab")
-    u = trav.direction
+    clear = body.clearance_m
+    # the traverse ends the clearance past the wall; the recovery keeps the body's reach from it (the
+    # margin between the two lets the plane test decide at once)
+    exit_past = max(exit_m, clear)
+    (lo_x, lo_y, lo_z), hi = lab.min_m, lab.max_m
+    room = LabVolume((lo_x, lo_y, max(lo_z, 0.0)), hi)  # the floor is z = 0 whatever the lab says
+    box_planes = list(_lab_planes(room, clear - 1e-9))
+    u = _vec3("u", gap.e1 * sign)
+    back = (-u[0], -u[1], -u[2])
     hover = hover_point(gap, np.array(u), hover_distance_m, hover_height_m)
-    pe, ve, ae = trav.state_tuples(trav.duration_s)
-    recovery = search_recovery(pe, ve, ae, hover, lab, limits, wall=(gap.centre_m, u))
-    yaw = math.atan2(u[1], u[0])
-    return MissionPlan(gap, approach, trav, recovery, _vec3("hover", hover), yaw, feas)
+    wall = (gap.centre_m, u)
+    lo_s, hi_s = crossing_speed_range_m_s
+    speeds = _nearest_first(float(crossing_speed_m_s),
+                            np.arange(lo_s, hi_s + 1e-9, CROSSING_SPEED_STEP_M_S))
+    level = abs(float(GRAVITY_VEC_M_S2 @ gap.e0)) < NEAR_LEVEL_G0_M_S2
+    lengths = (None,) if level else (None, *TRAVERSE_LENGTHS_M)
+    durations = _nearest_first(float(approach_duration_s), APPROACH_DURATIONS_S)
+    why: list[str] = []  # why the first candidate failed
+    tried = 0
+    for speed in speeds:
+        for l_m in lengths:
+            try:
+                trav = plan_traverse(gap, speed, limits, sign, d_min_m, exit_past, l_m=l_m)
+            except PlanningError as exc:
+                why.append(str(exc))
+                continue
+            if not trav.float_trajectory().planes_ok(box_planes):
+                why.append(f"the traverse comes within {clear:.2f} m of the floor or the lab's faces")
+                continue
+            pe, ve, ae = trav.state_tuples(trav.duration_s)
+            try:
+                recovery = search_recovery(pe, ve, ae, hover, room, limits, wall=wall, margin_m=clear,
+                                           wall_margin_m=body.reach_m)
+            except PlanningError as exc:
+                why.append(str(exc))
+                continue
+            p0, v0, a0 = trav.state_tuples(0.0)
+            approach_planes = [*box_planes, Plane(gap.centre_m, back, trav.d_m - 1e-6)]
+            for T in durations:
+                tried += 1
+                (cand,) = solve_floats(p_start, vel, acc, p0, v0, a0, [T])
+                if not cand.planes_ok(approach_planes):  # (the cheaper test first)
+                    if not why:  # (only the first reason is told)
+                        why.append(_approach_failure(cand, T, box_planes, clear))
+                    continue
+                feas = cand.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
+                                           limits.min_dt_s)
+                if feas is Feasibility.INFEASIBLE:
+                    why.append(f"the approach in {T:g} s exceeds the thrust or body-rate limits")
+                else:
+                    yaw = math.atan2(u[1], u[0])
+                    return MissionPlan(gap, cand.trajectory(), trav, recovery, _vec3("hover", hover), yaw,
+                                       feas, tried, time.perf_counter() - started)
+    raise PlanningError(
+        f"no plan keeps the body's {clear:.2f} m clearance: tried {len(speeds)} crossing speeds "
+        f"{lo_s:g}-{hi_s:g} m/s, traverse lengths l in (0, 0.5] m and approach durations "
+        f"{durations[0]:g} s then {min(durations):g}-{max(durations):g} s ({tried} approaches); at "
+        f"{crossing_speed_m_s:g} m/s in {approach_duration_s:g} s: {why[0] if why else 'no candidate'}")
+
+
+def _approach_failure(approach: FloatTrajectory, T: float, box_planes: list[Plane], clear: float) -> str:
+    """Which plane test an approach of ``T`` s failed, in words."""
+    if not approach.planes_ok([box_planes[2]]):  # the floor: `_lab_planes`' lower z face
+        return f"the approach in {T:g} s comes within {clear:.2f} m of the floor"
+    if not approach.planes_ok(box_planes):
+        return f"the approach in {T:g} s comes within {clear:.2f} m of the lab's faces"
+    return f"the approach in {T:g} s gets nearer the wall than the traverse start"

@@ -29,6 +29,7 @@ class OnboardVehicle:
     full_thrust_n: float  # total thrust at N3 vertical command 100 %
     max_tilt_deg: float  # the expert's tilt limit (the FC's own limit or less)
     control_lead_s: float  # commands are computed this far ahead: the FC's attitude lag
+    body_box_m: tuple[float, float, float]  # the collision box the plans keep clear (length, width, height)
 
     def __post_init__(self) -> None:
         for name in ("mass_kg", "full_thrust_n", "max_tilt_deg"):
@@ -40,6 +41,11 @@ class OnboardVehicle:
         lead = self.control_lead_s
         if isinstance(lead, bool) or not isinstance(lead, int | float) or not (0 <= lead <= 0.2):
             raise ValueError(f"vehicle {self.name}: control_lead_s must be in [0, 0.2] s, got {lead!r}")
+        box = self.body_box_m
+        if not (isinstance(box, tuple) and len(box) == 3
+                and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                        for v in box)):
+            raise ValueError(f"vehicle {self.name}: body_box_m must be 3 positive lengths (m), got {box!r}")
         if self.mass_kg * GRAVITY_M_S2 >= self.full_thrust_n:
             raise ValueError(
                 f"vehicle {self.name}: full_thrust_n {self.full_thrust_n} N cannot hold {self.mass_kg} kg"
@@ -79,6 +85,8 @@ def load_vehicle(name_or_path: str | Path) -> OnboardVehicle:
         raise ValueError(
             f"{source}: unknown fields {unknown}, missing fields {missing} (fields: {', '.join(known)})"
         )
+    if isinstance(data.get("body_box_m"), list):
+        data["body_box_m"] = tuple(data["body_box_m"])
     try:
         return OnboardVehicle(**data)
     except (TypeError, ValueError) as exc:

@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 
 from policies.gap_planning import (
+    APPROACH_DURATIONS_S,
+    POINT_BODY,
     RECOVERY_DURATIONS_S,
+    BodyClearance,
     GapPose,
     LabVolume,
     PlanningError,
@@ -71,7 +74,7 @@ def test_traverse_limits_are_enforced() -> None:
 
 def test_paper_case_plans_and_segments_join() -> None:
     start = time.perf_counter()
-    plan = plan_mission(PAPER_START, paper_gap(), LAB, approach_duration_s=2.6)
+    plan = plan_mission(PAPER_START, paper_gap(), LAB, approach_duration_s=2.6, body=POINT_BODY)
     elapsed = time.perf_counter() - start
     print(f"\npaper case: planned in {elapsed * 1e3:.1f} ms, recovery search "
           f"{plan.recovery.search_time_s * 1e3:.1f} ms ({plan.recovery.duration_s} s, "
@@ -101,14 +104,18 @@ def test_recovery_stays_in_lab_and_ends_hovering(roll_deg: float) -> None:
     rec = plan.recovery.trajectory
     ts = np.linspace(0, rec.T, 2001)
     p, _, _ = rec.state(ts)
-    assert np.all(p >= np.array(LAB.min_m) - 1e-9) and np.all(p <= np.array(LAB.max_m) + 1e-9)
-    assert np.all((p - plan.gap.centre) @ np.array(plan.traverse.direction) >= -1e-9)  # never back through
+    body = BodyClearance()  # the body box's reach plus the margin from the floor and the lab's faces
+    clear = body.clearance_m
+    assert np.all(p >= np.array(LAB.min_m) + clear - 1e-9) and np.all(p <= np.array(LAB.max_m) - clear + 1e-9)
+    # never back towards the wall: the body's reach stays past its plane
+    assert np.all((p - plan.gap.centre) @ np.array(plan.traverse.direction) >= body.reach_m - 1e-9)
     pf, vf, af = rec.state(rec.T)
     np.testing.assert_allclose(pf, [2.5, 0.5, 1.0], atol=1e-9)  # 2.5 m past the centre, 1 m up
     np.testing.assert_allclose(vf, 0.0, atol=1e-9)
     np.testing.assert_allclose(af, 0.0, atol=1e-9)
     lim = VehicleLimits()
-    assert rec.input_feasible(lim.f_min_m_s2, lim.f_max_m_s2, lim.max_body_rate_rad_s) == Feasibility.FEASIBLE
+    assert rec.input_feasible(lim.f_min_m_s2, lim.f_max_m_s2, lim.max_body_rate_rad_s,
+                              lim.min_dt_s) == Feasibility.FEASIBLE
     assert plan.recovery.duration_s in np.round(np.arange(0.5, 3.01, 0.3), 10)
     ref = plan.reference(plan.t_hover_start_s + 3.0)
     assert ref.segment is Segment.HOVER and np.allclose(ref.vel_m_s, 0.0)
@@ -232,7 +239,7 @@ def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch
     for name in ("min_plane_distance", "_input_feasible_numpy"):
         monkeypatch.setattr(Trajectory, name, counted(name))
     plan = plan_mission(start, gap, lab, start_vel_m_s=vel, approach_duration_s=2.6, crossing_speed_m_s=2.5,
-                        d_min_m=0.25)
+                        d_min_m=0.25, body=POINT_BODY)
     assert calls == []  # plain floats throughout
     monkeypatch.undo()
     lim = VehicleLimits()
@@ -252,3 +259,74 @@ def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch
     assert (plan.recovery.duration_s, plan.recovery.tried) == (rec.duration_s, rec.tried)
     _same_trajectory(plan.recovery.trajectory, rec.trajectory)
     assert plan.hover_m == tuple(hover.tolist()) and plan.yaw_rad == math.atan2(u[1], u[0])
+
+
+def _lowest_and_outermost(plan) -> tuple[float, float]:
+    """The reference's lowest z (m) and how near it gets to the lab's side faces and ceiling (m), over
+    approach, traverse and recovery, sampled every millisecond."""
+    ts = np.arange(0.0, plan.t_hover_start_s, 1e-3)
+    p = np.array([plan.reference(t).pos_m for t in ts])
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    side = min(float((p[:, :2] - np.array(lab.min_m[:2])).min()), float((np.array(lab.max_m) - p).min()))
+    return float(p[:, 2].min()), side
+
+
+def test_the_approach_keeps_the_body_off_the_floor() -> None:
+    """A gap at 1.5 m rolled 54 deg from a 0.5 m hover: the 2.6 s approach dips the centre to 4 cm above
+    the floor (the body box would hit it); the plan flown keeps the body's clearance everywhere."""
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    gap = GapPose.from_deg((0.0, 0.5, 1.5), 54.0, width_m=0.8, height_m=0.45)
+    point = plan_mission(PAPER_START, gap, lab, crossing_speed_m_s=2.5, d_min_m=0.25, body=POINT_BODY)
+    assert float(point.approach.T) == 2.6 and _lowest_and_outermost(point)[0] < 0.1  # what the centre allows
+    plan = plan_mission(PAPER_START, gap, lab, crossing_speed_m_s=2.5, d_min_m=0.25)
+    clear = BodyClearance().clearance_m
+    lowest, side = _lowest_and_outermost(plan)
+    assert lowest >= clear - 1e-6 and side >= clear - 1e-6
+    assert plan.traverse.crossing_speed_m_s == 2.5  # found at the speed asked for, with another duration
+    assert float(plan.approach.T) in APPROACH_DURATIONS_S and plan.candidates_tried > 1
+    np.testing.assert_allclose(plan.reference(plan.t_gap_s).pos_m, gap.centre, atol=1e-12)
+
+
+def test_the_papers_rl_case_plans() -> None:
+    """The paper's RL case (gap at (2, 1, 1.5) m rolled 60 deg, start near the origin): no 2.6 s
+    approach fits the lab, a shorter one does."""
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    gap = GapPose.from_deg((2.0, 1.0, 1.5), 60.0, width_m=0.8, height_m=0.45)
+    plan = plan_mission((0.0, 0.0, 0.5), gap, lab, crossing_speed_m_s=2.5, d_min_m=0.25)
+    lowest, side = _lowest_and_outermost(plan)
+    clear = BodyClearance().clearance_m
+    assert lowest >= clear - 1e-6 and side >= clear - 1e-6
+    assert plan.approach_feasibility is not Feasibility.INFEASIBLE
+    np.testing.assert_allclose(plan.reference(plan.t_gap_s).pos_m, gap.centre, atol=1e-12)
+    assert plan.reference(plan.t_hover_start_s).pos_m[0] == pytest.approx(4.5)
+
+
+def test_the_search_keeps_what_was_asked_when_it_fits_and_says_why_when_nothing_does() -> None:
+    gap = paper_gap(30.0)
+    plan = plan_mission(PAPER_START, gap, LabVolume((-5, -5, 0), (5, 5, 4)), crossing_speed_m_s=2.0)
+    assert (plan.candidates_tried, float(plan.approach.T), plan.traverse.crossing_speed_m_s) == (1, 2.6, 2.0)
+    assert plan.search_time_s > 0
+    # a lab so low that the body cannot pass under its ceiling at the gap's height
+    with pytest.raises(PlanningError, match=r"no plan keeps the body's 0\.43 m clearance.*lab's faces"):
+        plan_mission(PAPER_START, gap, LabVolume((-5, -5, 0), (5, 5, 2.4)))
+    # a gap too near the floor for the body to cross
+    with pytest.raises(PlanningError, match="floor"):
+        plan_mission(PAPER_START, GapPose.from_deg((0, 0.5, 0.35), 0.0, width_m=0.8, height_m=0.45),
+                     LabVolume((-5, -5, 0), (5, 5, 4)))
+    # a bigger body needs more room: the same plan with a 1 m box is refused
+    with pytest.raises(PlanningError, match=r"0\.92 m clearance"):
+        plan_mission(PAPER_START, gap, LabVolume((-5, -5, 0), (5, 5, 2.8)),
+                     body=BodyClearance((1.0, 1.0, 1.0), 0.05))
+    with pytest.raises(ValueError):
+        BodyClearance((0.5, -0.1, 0.2))
+
+
+@pytest.mark.parametrize("roll_deg", [70.0, -70.0])
+@pytest.mark.parametrize("speed", [3.0, 4.0])
+def test_seventy_degree_gaps_plan_at_the_speed_asked_for(roll_deg: float, speed: float) -> None:
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    gap = GapPose.from_deg((0.0, 0.5, 2.1), roll_deg, width_m=0.8, height_m=0.45)
+    plan = plan_mission(PAPER_START, gap, lab, crossing_speed_m_s=speed, d_min_m=0.25)
+    assert plan.traverse.crossing_speed_m_s == speed
+    lowest, side = _lowest_and_outermost(plan)
+    assert lowest >= BodyClearance().clearance_m - 1e-6 and side >= BodyClearance().clearance_m - 1e-6

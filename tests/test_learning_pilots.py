@@ -15,7 +15,7 @@ from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
 from policies.controller import ExpertController
 from policies.frames import rot_z
-from policies.gap_planning import GapPose, LabVolume, plan_mission
+from policies.gap_planning import POINT_BODY, GapPose, LabVolume, plan_mission
 from policies.learning.onnx_runtime import load_shipped, shipped_path
 from policies.learning.pilots import approach_planner_inputs
 from policies.onboard.pilots import EXPERT, SEGMENTS, Observation, PilotContext, make_pilot, pilot_names
@@ -27,7 +27,7 @@ TIMES = np.linspace(0.0, 2.55, 12)
 def _plan(yaw_deg: float = 0.0, start=(-2.0, -1.0, 0.5)):
     gap = GapPose.from_euler((0.0, 0.5, 2.1), math.radians(-60.0), 0.0, math.radians(yaw_deg),
                              width_m=0.8, height_m=0.35)
-    return gap, plan_mission(start, gap, LAB, approach_duration_s=2.6)
+    return gap, plan_mission(start, gap, LAB, approach_duration_s=2.6, body=POINT_BODY)  # the paper's case
 
 
 def _obs(gap, plan, t: float) -> Observation:

@@ -297,7 +297,8 @@ def test_command_link_reads_every_waiting_datagram_in_one_poll():
 
 
 def test_run_reports_the_onboard_start_up_apart_from_the_loop(tmp_path: Path):
-    s = loads_scenarios("description: short hover\nduration_s: 0.5\ninitial: {pos_m: [0, -2, 1.5]}\n")[0]
+    # (a start beside the gap, not in the wall's plane: the program would refuse to plan from there)
+    s = loads_scenarios("description: short hover\nduration_s: 0.5\ninitial: {pos_m: [-1, -2, 1.5]}\n")[0]
     sm = run_scenario(s, tmp_path / "run", RunOptions(in_process=False)).summary
     assert sm["onboard_startup_s"] > 0  # a process had to start and open its ports
     assert sm["loop_sim_time_s"] == pytest.approx(0.49)  # from the first answered tick (0.01 s) on

@@ -18,6 +18,7 @@ from policies.gap_planning import (
     GapPose,
     LabVolume,
     Segment,
+    VehicleLimits,
     plan_mission,
     search_recovery,
 )
@@ -71,7 +72,8 @@ def test_batched_plane_checks_pick_the_recovery_the_plane_by_plane_checks_pick(s
     if start[1] > wall[0][1]:
         ok &= traj.position_feasible(*wall)
     cand = np.flatnonzero(ok)
-    feas = traj.input_feasible(2.0, 25.0, 15.0, 0.02)
+    lim = VehicleLimits()
+    feas = traj.input_feasible(lim.f_min_m_s2, lim.f_max_m_s2, lim.max_body_rate_rad_s, lim.min_dt_s)
     good = [i for i in cand if feas[i] == Feasibility.FEASIBLE]
     wall_arg = wall if start[1] > wall[0][1] else None
     if not good:

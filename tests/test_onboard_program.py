@@ -46,6 +46,41 @@ def test_stale_mocap_aborts_to_a_safe_hover_and_the_fc_holds():
     assert r.vehicle.state.pos_m[2] > 0.2  # still flying: the FC holds it, no fall
 
 
+def test_no_plan_for_the_body_aborts_before_takeoff_with_the_reason():
+    """A lab whose ceiling leaves the body box no room over the gap (2.1 m up, ceiling at 2.4 m): the
+    program says why and never arms; the vehicle stays on the ground."""
+    r = run_mission(0.0, 2.0, t_end_s=5.0, lab_max_m=(5.0, 5.0, 2.4))
+    abort = r.event("abort")
+    assert abort["reason"] == "planning_failed" and abort["phase"] == "wait"
+    assert "no plan keeps the body's 0.43 m clearance" in abort["detail"]
+    assert "lab's faces" in abort["detail"]
+    assert not {"authority", "armed", "takeoff", "plan"} & set(r.event_names)
+    assert r.program.exit_code == 3 and r.event_names[-1] == "aborted"
+    assert r.vehicle.state.pos_m[2] < 0.2  # never left the ground
+    # a bigger body than the default needs more room than the same lab has at a 2.6 m ceiling
+    assert "plan" in run_mission(0.0, 2.0, t_end_s=6.0, lab_max_m=(5.0, 5.0, 2.6)).event_names
+    big = run_mission(0.0, 2.0, t_end_s=5.0, lab_max_m=(5.0, 5.0, 2.6), body_box_m=(0.9, 0.9, 0.3))
+    assert big.event("abort")["reason"] == "planning_failed" and big.program.exit_code == 3
+
+
+@pytest.mark.parametrize("vehicle", ["n3_tx2", "f450"])
+def test_the_program_plans_with_its_vehicles_body_box_which_matches_the_airframe(vehicle):
+    # the onboard side knows its body box from its own configuration (never the emulator's profile);
+    # for the shipped vehicles it is the box the emulator's world checks collisions with
+    from emulator.profile import load_profile
+    from hil.runner.onboard_side import onboard_options, program_config
+    from hil.scenario import loads_scenarios
+    from policies.vehicle import load_vehicle
+
+    (s,) = loads_scenarios(f"description: d\nvehicle: {vehicle}\n")
+    box = program_config(onboard_options(s)).body_box_m
+    assert box == load_vehicle(vehicle).body_box_m == tuple(load_profile(vehicle).body_box_m)
+    bigger = program_config([*onboard_options(s), "--body-box", "0.9", "0.9", "0.3"])
+    assert bigger.body_box_m == (0.9, 0.9, 0.3)
+    with pytest.raises(ValueError, match="body box"):
+        ProgramConfig(body_box_m=(0.5, 0.0, -0.1))
+
+
 def test_lockstep_answers_every_tick_with_its_own_time_and_flies():
     r = run_mission(0.0, 1.5, lockstep_period_s=0.01, t_end_s=6.0)
     assert len(r.tick_answers) >= 590

@@ -36,7 +36,8 @@ def test_the_command_line_takes_the_vehicle_and_overrides_single_fields():
     assert (c.mass_kg, c.full_thrust_n, c.max_tilt_deg, c.control_lead_s) == (1.5, 62.88, 50.0, 0.07)
 
 
-GOOD = "name: x\nmass_kg: 1\nfull_thrust_n: 30\nmax_tilt_deg: 60\ncontrol_lead_s: 0.1\n"
+GOOD = ("name: x\nmass_kg: 1\nfull_thrust_n: 30\nmax_tilt_deg: 60\ncontrol_lead_s: 0.1\n"
+        "body_box_m: [0.5, 0.5, 0.2]\n")
 
 
 @pytest.mark.parametrize(
@@ -48,6 +49,7 @@ GOOD = "name: x\nmass_kg: 1\nfull_thrust_n: 30\nmax_tilt_deg: 60\ncontrol_lead_s
         (GOOD.replace("max_tilt_deg: 60", "max_tilt_deg: 95"), "max_tilt_deg"),
         (GOOD.replace("mass_kg: 1", "mass_kg: heavy"), "mass_kg"),
         (GOOD.replace("control_lead_s: 0.1", "control_lead_s: 0.5"), "control_lead_s"),
+        (GOOD.replace("[0.5, 0.5, 0.2]", "[0.5, 0.5]"), "body_box_m must be 3 positive lengths"),
         ("[1, 2]\n", "expected a mapping"),
     ],
 )

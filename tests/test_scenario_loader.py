@@ -67,9 +67,23 @@ def test_value_out_of_range(tmp_path: Path) -> None:
     path = write(tmp_path, "description: d\nlinks:\n  mocap:\n    loss: 1.5\n")
     assert str(error_of(path)) == f"{path}:4: links.mocap.loss: expected a number between 0 and 1, got 1.5"
     path = write(tmp_path, "description: d\napproach: {speed_m_s: 0.5}\n")
-    assert str(error_of(path)) == f"{path}:2: approach.speed_m_s: expected a number between 1 and 3, got 0.5"
+    assert str(error_of(path)) == f"{path}:2: approach.speed_m_s: expected a number between 1 and 5, got 0.5"
     path = write(tmp_path, "description: d\n\n\nduration_s: 0\n")
     assert str(error_of(path)) == f"{path}:4: duration_s: expected a number > 0 and <= 3600, got 0"
+
+
+def test_speeds_to_5_m_s_and_tilts_to_the_vehicles_limit(tmp_path: Path) -> None:
+    """Past the paper's 60 deg and 3 m/s: 70 deg at 4-5 m/s loads; a tilt past the profile's limit (75 deg
+    for n3_tx2, from roll and pitch together) is refused, naming the limit."""
+    (s,) = loads_scenarios("description: d\ngap: {roll_deg: -70}\napproach: {speed_m_s: 4.0}\n")
+    assert (s.gap.roll_deg, s.approach.speed_m_s) == (-70.0, 4.0)
+    (s,) = loads_scenarios("description: d\napproach: {speed_m_s: 5}\n")
+    assert s.approach.speed_m_s == 5.0
+    path = write(tmp_path, "description: d\ngap:\n  roll_deg: 60\n  pitch_deg: 60\n")
+    assert str(error_of(path)) == (f"{path}:3: gap.roll_deg: expected a gap tilt within the vehicle's tilt "
+                                   "limit (75 deg for n3_tx2), got 75.5 deg")
+    path = write(tmp_path, "description: d\nvehicle: f450\ngap: {roll_deg: 80}\n")
+    assert "gap.roll_deg: expected a gap tilt within the vehicle's tilt limit" in str(error_of(path))
 
 
 def test_unknown_field_with_did_you_mean(tmp_path: Path) -> None:

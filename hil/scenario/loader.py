@@ -531,6 +531,23 @@ class _Builder:
         unit = (params.direction[0] / norm, params.direction[1] / norm, params.direction[2] / norm)
         return WindGustParams(direction=unit, force_n=params.force_n, speed_m_s=params.speed_m_s)
 
+    def check_tilt(self, s: Scenario, doc_line: int) -> None:
+        """The gap's tilt within the vehicle profile's tilt limit (the traverse flies at the gap's tilt)."""
+        from emulator.profile import ProfileError, load_profile
+
+        try:
+            limit = load_profile(s.vehicle).max_tilt_deg
+        except (ProfileError, OSError):  # the vehicle field's own check names a bad profile
+            return
+        if s.gap.tilt_deg > limit:
+            key = "gap.roll_deg" if abs(s.gap.roll_deg) >= abs(s.gap.pitch_deg) else "gap.pitch_deg"
+            raise self.error(
+                self.line_of(key, doc_line),
+                key,
+                f"expected a gap tilt within the vehicle's tilt limit ({_fmt(limit)} deg for "
+                f"{s.vehicle}), got {s.gap.tilt_deg:.1f} deg",
+            )
+
     def check_across(self, s: Scenario, doc_line: int) -> None:
         """Rules that involve several fields; errors point at the field most likely wrong."""
         lab = s.lab
@@ -574,6 +591,7 @@ class _Builder:
                 "gap.height_m",
                 f"expected at most width_m ({_fmt(s.gap.width_m)}, the long side) got {_fmt(s.gap.height_m)}",
             )
+        self.check_tilt(s, doc_line)
         for i, fault in enumerate(s.faults):
             if fault.after is None and fault.start_s >= s.duration_s:
                 key = "at_s" if fault.kind == "onboard_killed" else "start_s"

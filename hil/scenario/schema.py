@@ -77,6 +77,7 @@ class GapSpec:
 
     centre_m: Vec3 = spec((0.0, 0.5, 2.1), lo=-100.0, hi=100.0, doc="centre of the opening, world ENU")
     roll_deg: float = spec(0.0, lo=-90.0, hi=90.0, doc="tilt about the crossing axis (the paper's gap angle)")
+
     pitch_deg: float = spec(0.0, lo=-90.0, hi=90.0, doc="rotation about world y, applied after roll")
     yaw_deg: float = spec(0.0, lo=-180.0, hi=180.0, doc="heading of the crossing direction from world +x")
     width_m: float = spec(0.8, lo=0.0, hi=5.0, lo_open=True, doc="long side of the opening (along e0)")
@@ -96,6 +97,12 @@ class GapSpec:
     @property
     def yaw_rad(self) -> float:
         return math.radians(self.yaw_deg)
+
+    @property
+    def tilt_deg(self) -> float:
+        """The opening's tilt from upright (deg): the angle of its short side from vertical, which the
+        vehicle's body z takes in the traverse."""
+        return math.degrees(math.acos(min(1.0, abs(math.cos(self.roll_rad) * math.cos(self.pitch_rad)))))
 
 
 @dataclass(frozen=True)
@@ -125,7 +132,7 @@ class ApproachSpec:
     """The approach manoeuvre to the traverse's start."""
 
     speed_m_s: float | None = spec(
-        None, lo=1.0, hi=3.0, doc="desired speed through the gap; null: the pilot's own choice"
+        None, lo=1.0, hi=5.0, doc="desired speed through the gap; null: the pilot's own choice"
     )
     duration_s: float = spec(2.6, lo=0.0, hi=30.0, lo_open=True, doc="approach primitive duration")
 

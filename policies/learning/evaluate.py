@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from policies.gap_planning import GapPose, LabVolume, plan_mission
+from policies.gap_planning import POINT_BODY, GapPose, LabVolume, plan_mission
 from policies.learning.features import planner_inputs
 
 Predictor = Callable[[np.ndarray], np.ndarray]
@@ -32,10 +32,13 @@ def planner_errors(pred: np.ndarray, label: np.ndarray) -> dict[str, float]:
 
 def paper_case(n_samples: int = 1000) -> tuple[np.ndarray, np.ndarray]:
     """Planner inputs (n, 17) and expert labels (n, 9) along the test case's approach trajectory
-    (start to the traverse start state of the gap planner, 2.6 s), ``n_samples`` uniform in [0, T]."""
+    (start to the traverse start state of the gap planner, 2.6 s), ``n_samples`` uniform in [0, T].
+
+    Planned for the centre point, as the release checks it (with the body box the 2.6 s approach
+    comes within 0.2 m of the floor and the planner takes a shorter one)."""
     gap = GapPose.from_euler(PAPER_GAP_CENTRE_M, PAPER_GAP_ROLL_RAD, width_m=0.8, height_m=0.35)
     plan = plan_mission(PAPER_START_M, gap, LabVolume((-4.0, -3.0, 0.0), (4.0, 4.0, 4.0)),
-                        approach_duration_s=PAPER_APPROACH_S)
+                        approach_duration_s=PAPER_APPROACH_S, body=POINT_BODY)
     tr = plan.approach
     t = np.linspace(0.0, float(tr.T), n_samples)
     p, v, a = (z.reshape(-1, 3) for z in tr.state(t))

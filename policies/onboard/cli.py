@@ -66,6 +66,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="lab lower corner (m)")
     p.add_argument("--lab-max", type=_triple, default=d.lab_max_m, metavar="X,Y,Z",
                    help="lab upper corner (m)")
+    p.add_argument("--body-box", type=float, nargs=3, default=None, metavar=("L", "W", "H"),
+                   help="the vehicle's collision box, length width height (m), instead of the vehicle's")
+    p.add_argument("--clearance-margin", type=float, default=d.clearance_margin_m, metavar="M",
+                   help="room the plan keeps beyond the body box's reach from the floor, the lab and the "
+                        f"wall (m, default {d.clearance_margin_m:g})")
     p.add_argument("--takeoff-height", type=float, default=d.takeoff_height_m, metavar="M",
                    help="climb at least to this height before the mission (m, default 0.5)")
     p.add_argument("--hover-time", type=float, default=d.hover_s, metavar="S",
@@ -94,6 +99,8 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
         max_tilt_deg=v.max_tilt_deg if args.max_tilt is None else args.max_tilt, control_lead_s=lead_s,
         gap_width_m=args.gap_size[0], gap_height_m=args.gap_size[1], lab_min_m=args.lab_min,
         lab_max_m=args.lab_max, takeoff_height_m=args.takeoff_height, hover_s=args.hover_time,
+        body_box_m=v.body_box_m if args.body_box is None else tuple(args.body_box),
+        clearance_margin_m=args.clearance_margin,
         estimator=EstimatorConfig(latency_s=args.mocap_latency_ms / 1e3),
         lockstep_spin_s=args.lockstep_spin_us * 1e-6,
     )

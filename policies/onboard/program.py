@@ -44,7 +44,15 @@ from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
 from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains
 from policies.frames import GRAVITY_M_S2
-from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
+from policies.gap_planning import (
+    BodyClearance,
+    GapPose,
+    LabVolume,
+    MissionPlan,
+    PlanningError,
+    Segment,
+    plan_mission,
+)
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
 from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
@@ -107,6 +115,10 @@ class ProgramConfig:
     gap_height_m: float = 0.45
     lab_min_m: tuple[float, float, float] = (-5.0, -5.0, 0.0)
     lab_max_m: tuple[float, float, float] = (5.0, 5.0, 4.0)
+    #: the vehicle's collision box, length x width x height in body FLU (m; the paper's vehicle), and the
+    #: margin (m) the plan keeps beyond its reach from the floor, the lab's faces and the wall
+    body_box_m: tuple[float, float, float] = (0.52, 0.52, 0.18)
+    clearance_margin_m: float = 0.05
     takeoff_height_m: float = 0.5  # climb at least to this height (m, world z) before the mission
     takeoff_duration_s: float = 2.5
     settle_s: float = 1.0  # hold the start point this long before planning
@@ -147,6 +159,7 @@ class ProgramConfig:
         if self.mass_kg * GRAVITY_M_S2 >= self.full_thrust_n:
             raise ValueError(f"full thrust {self.full_thrust_n} N cannot hold {self.mass_kg} kg")
         LabVolume(self.lab_min_m, self.lab_max_m)  # validates
+        BodyClearance(self.body_box_m, self.clearance_margin_m)  # validates
 
     @property
     def period_s(self) -> float:
@@ -244,6 +257,7 @@ class OnboardProgram:
         self.expert = ExpertController(cfg.mass_kg, ExpertGains(tilt_max_rad=math.radians(cfg.max_tilt_deg)))
         self.events = events or EventLog()
         self.lab = LabVolume(cfg.lab_min_m, cfg.lab_max_m)
+        self.body = BodyClearance(cfg.body_box_m, cfg.clearance_margin_m)
         self.phase = Phase.WAIT
         self.exit_code: int | None = None
         self.plan: MissionPlan | None = None
@@ -367,9 +381,20 @@ class OnboardProgram:
             assert gap is not None
             self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap.pos_m,
                              fc_armed=self.link.status.armed)  # type: ignore[union-attr]
+            self._abort_yaw = float(est.euler_rad[2])
+            # before taking off: a plan from where the climb ends must exist (it is planned again there)
+            start = est.pos_m.copy()
+            start[2] = max(start[2], cfg.takeoff_height_m)
+            gap_pose = self._gap_pose(now_s)
+            if gap_pose is None:
+                return  # (aborted, naming why)
+            try:
+                self._plan_mission(start, np.zeros(3), gap_pose)
+            except (PlanningError, ValueError) as exc:
+                self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
+                return
             self._go(Phase.AUTHORITY, now_s)
             self._next_control_s = now_s
-            self._abort_yaw = float(est.euler_rad[2])
             return
         if not fc_ok and now_s >= self._next_heartbeat_request_s:
             self.link.request_heartbeat()
@@ -465,9 +490,7 @@ class OnboardProgram:
         if gap is None:
             return
         try:
-            plan = plan_mission(est.pos_m, gap, self.lab, start_vel_m_s=est.vel_m_s,
-                                approach_duration_s=cfg.approach_duration_s,
-                                crossing_speed_m_s=cfg.approach_speed_m_s, d_min_m=cfg.traverse_lead_m)
+            plan = self._plan_mission(est.pos_m, est.vel_m_s, gap)
         except (PlanningError, ValueError) as exc:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
@@ -476,9 +499,19 @@ class OnboardProgram:
         self.segment = None
         self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
                          t_gap_s=round(plan.t_gap_s, 3), t_hover_s=round(plan.t_hover_start_s, 3),
-                         hover_m=np.array(plan.hover_m), crossing_speed_m_s=cfg.approach_speed_m_s,
-                         approach=plan.approach_feasibility.name.lower())
+                         hover_m=np.array(plan.hover_m), crossing_speed_m_s=plan.traverse.crossing_speed_m_s,
+                         approach_s=float(plan.approach.T), traverse_l_m=round(plan.traverse.l_m, 3),
+                         approach=plan.approach_feasibility.name.lower(), tried=plan.candidates_tried,
+                         search_ms=round(plan.search_time_s * 1e3, 3))
         self._go(Phase.MISSION, now_s)
+
+    def _plan_mission(self, pos_m: np.ndarray, vel_m_s: np.ndarray, gap: GapPose) -> MissionPlan:
+        """The mission from ``pos_m`` (m) at ``vel_m_s`` (m/s) with this program's settings and body box."""
+        cfg = self.config
+        return plan_mission(pos_m, gap, self.lab, start_vel_m_s=vel_m_s,
+                            approach_duration_s=cfg.approach_duration_s,
+                            crossing_speed_m_s=cfg.approach_speed_m_s, d_min_m=cfg.traverse_lead_m,
+                            body=self.body)
 
     def _mission_progress(self, now_s: float) -> None:
         assert self.plan is not None
