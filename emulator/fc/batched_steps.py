@@ -17,18 +17,14 @@ import numpy as np
 from numba import njit
 
 from emulator.fc import EmulatedVehicle, FcState
+from emulator.fc.flight_controller import HOLD_STATES
 from emulator.fc.inner_loop import _control
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.profile import GRAVITY_M_S2
 
 #: FC states flown by the velocity controller while in the air, with their climb rate's sign
-_HOLD_STATES = {
-    FcState.HOLD: 0.0,
-    FcState.FAILSAFE_HOVER: 0.0,
-    FcState.LAND: -1.0,
-    FcState.FAILSAFE_LAND: -1.0,
-}
+_CLIMB_SIGN = {st: -1.0 if st in (FcState.LAND, FcState.FAILSAFE_LAND) else 0.0 for st in HOLD_STATES}
 
 
 @njit(cache=True, nogil=True)
@@ -131,7 +127,7 @@ class FastStepper:
         returns the steps taken (0: take the per-step path)."""
         v = self.vehicle
         fc = v.fc
-        sign = _HOLD_STATES.get(fc.state)
+        sign = _CLIMB_SIGN.get(fc.state)
         if not self.native or sign is None or fc.landed:
             return 0
         cfg = fc.config
@@ -146,7 +142,7 @@ class FastStepper:
         assert isinstance(be, NativeBackend)
         h = self._hold
         h[0] = sign * cfg.land_speed_m_s
-        h[1] = fc._hold_yaw_rad
+        h[1] = fc.hold_heading_rad(be._x[6:10])  # latched at the first hold step, as the FC's own
         h[2] = v.profile.mass_kg
         h[3] = math.tan(math.radians(cfg.hover_max_tilt_deg))
         h[4] = v.profile.max_total_thrust_n
@@ -189,7 +185,6 @@ class FastStepper:
         # the FC's bookkeeping as its own per-step update would have left it
         t_last = be.time_s - be.dt_s
         fc._last_t = t_last
-        fc._quat = x[6:10].copy()
         if detect_landed:
             fc.detect_landed(x.item(2), x.item(5), t_last)  # (plain floats: the same comparisons)
         fc.motor_cmd = fc.inner._out
