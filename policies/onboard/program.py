@@ -41,7 +41,7 @@ from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
 from policies.controller import AttitudeThrustCommand, ExpertController
 from policies.frames import GRAVITY_M_S2
-from policies.gap_planning import GapPose, LabVolume, MissionPlan, PlanningError, Segment, plan_mission
+from policies.gap_planning import GapPose, LabVolume, MissionPlan, MissionRequest, PlanningError, Segment
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
 from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
@@ -248,7 +248,7 @@ class OnboardProgram:
         self._request: _Request | None = None
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
-        self._abort_yaw = 0.0
+        self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
 
@@ -422,10 +422,14 @@ class OnboardProgram:
         target[2] = max(target[2], cfg.takeoff_height_m)
         traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
                      cfg.takeoff_duration_s)
-        yaw0 = float(est.euler_rad[2])
+        # the turn starts from the heading commanded since the vehicle was first seen (the heading the
+        # FC holds), not from the one measured now: a vehicle still turning would have its motion adopted
+        # as the start of the turn and swing on past it
+        yaw0 = self._abort_yaw
         yaw1 = yaw0 + _wrap(self._mission_yaw(est.pos_m, gap) - yaw0)
         self._takeoff = (traj, yaw0, yaw1, now_s)
-        self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1))
+        self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1),
+                         duration_s=cfg.takeoff_duration_s)
         self._go(Phase.TAKEOFF, now_s)
 
     def _takeoff_progress(self, now_s: float) -> None:
@@ -436,9 +440,9 @@ class OnboardProgram:
         gap = self._gap_pose()
         assert gap is not None
         try:
-            plan = plan_mission(est.pos_m, gap, self.lab, start_vel_m_s=est.vel_m_s,
-                                approach_duration_s=cfg.approach_duration_s,
-                                crossing_speed_m_s=cfg.approach_speed_m_s, d_min_m=cfg.traverse_lead_m)
+            request = MissionRequest(tuple(est.pos_m.tolist()), tuple(est.vel_m_s.tolist()), gap, self.lab,
+                                     cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m)
+            plan = request.plan()
         except (PlanningError, ValueError) as exc:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
@@ -448,7 +452,7 @@ class OnboardProgram:
         self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
                          t_gap_s=round(plan.t_gap_s, 3), t_hover_s=round(plan.t_hover_start_s, 3),
                          hover_m=np.array(plan.hover_m), crossing_speed_m_s=cfg.approach_speed_m_s,
-                         approach=plan.approach_feasibility.name.lower())
+                         approach=plan.approach_feasibility.name.lower(), request=request.to_dict())
         self._go(Phase.MISSION, now_s)
 
     def _mission_progress(self, now_s: float) -> None:
