@@ -100,7 +100,7 @@ def test_the_plan_comes_back_from_the_event_the_program_writes():
 
 def _flat_columns(n: int = 10) -> dict[str, np.ndarray]:
     names = ("pos_m_x", "pos_m_y", "pos_m_z", "yaw_deg", "yaw_sp_deg", "roll_deg", "roll_cmd_deg",
-             "pitch_deg", "pitch_cmd_deg", "fc_state", "motor_max_pct")
+             "pitch_deg", "pitch_cmd_deg", "fc_state", "motor_max_pct", "setpoint_age_s")
     return {"t_s": np.arange(n) * 0.01, **{k: np.zeros(n) for k in names}}
 
 

@@ -10,7 +10,8 @@ time at thrust saturation and settling after each manoeuvre, each with its worst
   show (overshoot, ringing, a sluggish or saturated loop), not the lag every FC has.
 - Position against the plan: the plan is derived again, here, from the inputs the program's ``plan``
   event records (`MissionRequest`), so the reference is the one the program flew without sending it every
-  tick; per segment (approach, traverse, recovery), while the program flies the mission in offboard.
+  tick; per segment (approach, traverse, recovery), while the program flies the mission in offboard
+  (its setpoints fresh: after a kill or a stall the FC flies the last one, which is no plan).
 - Thrust saturation: time with a motor commanded at full throttle (no headroom left for attitude).
 - Settling: after each manoeuvre (the takeoff, the crossing's recovery into the hover), the time until
   the position stays within ``SETTLE_BAND_M`` of where the manoeuvre ends, over the hold that follows
@@ -32,6 +33,9 @@ ATTITUDE_LAG_S = 0.09  # the emulated FC's nominal attitude response, as a first
 SATURATED_PCT = 99.9  # a motor command at or above this (% of full throttle) is saturated
 SETTLE_BAND_M = 0.1  # settled: within this of the manoeuvre's end point (m)
 OFFBOARD_CODE = 2  # `recorder.FC_STATE_CODES["offboard"]`
+#: setpoints older than this (s; ten periods at 100 Hz): the program no longer flies the vehicle (killed,
+#: stalled, its link down) and the FC flies the last one until its failsafe: not a flight to the plan
+FRESH_SETPOINT_S = 0.1
 PLAN_SEGMENTS = (Segment.APPROACH, Segment.TRAVERSE, Segment.RECOVERY)
 #: onboard events that end the mission (its plan no longer flown)
 _MISSION_ENDS = ("mission_done", "abort", "done", "error", "link_lost", "fc_lost")
@@ -79,6 +83,7 @@ def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]])
     t = np.asarray(cols["t_s"], dtype=float)
     pos = np.column_stack([cols["pos_m_x"], cols["pos_m_y"], cols["pos_m_z"]])
     offboard = np.asarray(cols["fc_state"]) == OFFBOARD_CODE
+    flown = offboard & (np.asarray(cols["setpoint_age_s"]) <= FRESH_SETPOINT_S)  # by the program
     plan, t_plan = _plan(events)
     t_end = _first_time(events, _MISSION_ENDS, after_s=-math.inf if t_plan is None else t_plan)
     # settling over the hold after each manoeuvre, where the program held it to its end (a hold cut
@@ -88,20 +93,20 @@ def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]])
     if takeoff is not None and t_plan is not None and "duration_s" in takeoff and "target_m" in takeoff:
         t0 = float(takeoff["t_s"]) + float(takeoff["duration_s"])
         settling["takeoff"], settled["takeoff"] = settling_time(
-            t, pos, offboard, np.asarray(takeoff["target_m"], dtype=float), t0, t_plan
+            t, pos, flown, np.asarray(takeoff["target_m"], dtype=float), t0, t_plan
         )
     done = _event(events, "mission_done")
     if plan is not None and t_plan is not None and done is not None:
         t0 = t_plan + plan.t_hover_start_s
         settling["crossing"], settled["crossing"] = settling_time(
-            t, pos, offboard, np.asarray(plan.hover_m), t0, float(done["t_s"])
+            t, pos, flown, np.asarray(plan.hover_m), t0, float(done["t_s"])
         )
     return FlightQuality(
         heading_error_deg=heading_errors(t, cols["yaw_deg"], cols["yaw_sp_deg"], offboard),
         attitude_tracking_deg=attitude_tracking(t, cols, offboard),
         position_error_m={}
         if plan is None or t_plan is None
-        else position_errors(t, pos, offboard, plan, t_plan, t_end),
+        else position_errors(t, pos, flown, plan, t_plan, t_end),
         thrust_saturation_s=saturation(t, cols["motor_max_pct"]),
         settling_time_s=settling,
         settled=settled,
@@ -151,7 +156,7 @@ def position_errors(
     t: np.ndarray, pos: np.ndarray, offboard: np.ndarray, plan: MissionPlan, t_plan_s: float, t_end_s: float
 ) -> dict[str, Figure]:
     """Largest distance (m) to the plan's reference per segment, from the plan's time ``t_plan_s`` (its
-    mission time 0) to ``t_end_s``, in offboard."""
+    mission time 0) to ``t_end_s``, where ``offboard`` (the program flying)."""
     out: dict[str, Figure] = {}
     idx = np.flatnonzero(offboard & (t >= t_plan_s) & (t < t_end_s))
     segs = [plan.segment_at(tm) for tm in (t[idx] - t_plan_s).tolist()]
@@ -187,7 +192,8 @@ def settling_time(
 ) -> tuple[Figure, bool]:
     """(time after ``t0_s`` until the position stays within `SETTLE_BAND_M` of ``target_m`` up to
     ``t1_s``, with the sim time it settled; whether it did): never settled counts the whole window. Not
-    measured (None) unless the FC flew the whole window in offboard (no failsafe, no hold)."""
+    measured (None) unless the program flew the whole window in offboard (``offboard``: no failsafe, no
+    hold, no stale setpoints)."""
     window = (t >= t0_s) & (t < t1_s)
     idx = np.flatnonzero(window)
     if len(idx) == 0 or not offboard[idx].all():
