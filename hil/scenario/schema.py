@@ -256,7 +256,7 @@ class HeadingErrorLimits:
 
     held: float = spec(3.0, lo=0.0, hi=180.0, lo_open=True, doc="in hold, failsafe hover and landing")
     commanded: float = spec(
-        20.0, lo=0.0, hi=180.0, lo_open=True, doc="in offboard (the crossing's recovery takes up to ~15)"
+        20.0, lo=0.0, hi=180.0, lo_open=True, doc="in offboard (the crossing's recovery takes up to ~17)"
     )
 
 
