@@ -178,3 +178,26 @@ def test_the_shipped_failure_scenarios_are_caught_by_their_check(tmp_path: Path,
     assert value["value"] > 1.5 * limit  # well over the default limit
     assert summary["passed"], [c for c in summary["checks"] if not c["passed"]]
     assert {c["name"]: c for c in summary["checks"]}[check]["passed"]  # failed, as the scenario expects
+
+
+def test_the_takeoff_turns_from_the_heading_first_seen_not_a_moving_one(tmp_path: Path):
+    """A yaw gust turns the vehicle while the FC holds, before the program takes over: the takeoff's
+    first command is the heading the program first saw (90 deg), not the one it measures then; the
+    vehicle is brought back to it and does not swing on past it."""
+    from hil.scenario import loads_scenarios
+
+    [scenario] = loads_scenarios(
+        "description: a yaw gust during the hold before the program takes over\n"
+        "gap: {roll_deg: 0}\napproach: {speed_m_s: 2.0}\nduration_s: 3.0\n"
+        "faults:\n  - {kind: wind_gust, start_s: 0.0, end_s: 0.3, params: {force_n: 0.1, "
+        "direction: [0, 1, 0], yaw_moment_nm: 0.1}}\n",
+        source="yaw_at_start.scenario.yaml",
+    )
+    result = run_scenario(scenario, tmp_path / "run", RunOptions(in_process=True))
+    cols = dict(np.load(result.out_dir / "timeseries.npz"))
+    offboard = np.flatnonzero(cols["fc_state"] == 2)
+    first = offboard[0]
+    assert abs(cols["yaw_deg"][first] - 90.0) > 3.0  # the gust has turned it by the takeover
+    assert np.abs(cols["yaw_cmd_deg"][offboard] - 90.0).max() < 0.5  # every command, takeoff included
+    later = offboard[cols["t_s"][offboard] > cols["t_s"][first] + 1.5]
+    assert np.abs(cols["yaw_deg"][later] - 90.0).max() < 1.0
