@@ -58,6 +58,9 @@ class VehicleProfile:
     max_tilt_deg: float  # flight controller's roll/pitch limit
     max_body_rate_rad_s: float  # the inner loop's body-rate limit
     max_yaw_rate_deg_s: float = 150.0
+    #: the inertia the FC's inner loop is tuned for, when it is not the airframe's (a mis-measured or
+    #: stale tuning); None: the FC knows the airframe's inertia_kgm2
+    fc_inertia_kgm2: tuple[float, float, float] | None = None
     source_notes: str = ""  # where the numbers come from
     # the FC's gains when a profile sets them (None: derived from the fields above, see emulator.fc.tuning)
     fc_attitude_p_per_s: tuple[float, float, float] | None = None  # rate cmd (rad/s) per rad, x y z
@@ -65,6 +68,12 @@ class VehicleProfile:
     fc_hold_p_per_s: tuple[float, float] | None = None  # velocity hold: horizontal, vertical (1/s)
 
     # --- derived quantities -------------------------------------------------------------
+    @property
+    def fc_tuned_inertia_kgm2(self) -> tuple[float, float, float]:
+        """The principal moments (kg m^2) the FC's inner loop believes in: ``fc_inertia_kgm2`` when
+        given, else the airframe's ``inertia_kgm2`` (the physics always flies ``inertia_kgm2``)."""
+        return self.inertia_kgm2 if self.fc_inertia_kgm2 is None else self.fc_inertia_kgm2
+
     @property
     def max_rotor_speed_rad_s(self) -> float:
         """Rotor speed at full throttle (rad/s)."""
@@ -97,6 +106,7 @@ class VehicleProfile:
 
 _VECTOR_FIELDS = {
     "inertia_kgm2": 3,
+    "fc_inertia_kgm2": 3,
     "linear_drag_n_s_m": 3,
     "angular_drag_nm_s_rad": 3,
     "body_box_m": 3,
@@ -130,7 +140,7 @@ def _build(data: dict[str, Any], source: str) -> VehicleProfile:
                 continue
             raise ProfileError(source, f.name, "required field is missing")
         raw = data[f.name]
-        if raw is None and f.default is None:
+        if raw is None and f.default is None:  # an optional field left out
             continue
         if f.name in ("name", "source_notes"):
             if not isinstance(raw, str):

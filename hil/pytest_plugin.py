@@ -57,6 +57,7 @@ SCENARIO_MARKERS = {
     "lab": "scenario: lab bounds",
     "negative": "scenario: the pipeline must fail and the harness must say so",
     "jsbsim": "scenario: JSBSim backend",
+    "quality": "scenario: a flight-quality check must catch a badly flown run",
 }
 
 

@@ -32,8 +32,10 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 
@@ -638,3 +640,39 @@ def _approach_failure(approach: FloatTrajectory, T: float, box_planes: list[Plan
     if not approach.planes_ok(box_planes):
         return f"the approach in {T:g} s comes within {clear:.2f} m of the lab's faces"
     return f"the approach in {T:g} s gets nearer the wall than the traverse start"
+
+
+@dataclass(frozen=True)
+class MissionRequest:
+    """What the onboard program plans its mission from (SI units, world ENU): the measured start state,
+    the gap, the lab and its settings. Its `to_dict` is what the program's ``plan`` event records, so
+    that the harness derives the very plan the program flew (`plan`) to check the flight against it."""
+
+    start_pos_m: Vec3
+    start_vel_m_s: Vec3
+    gap: GapPose
+    lab: LabVolume
+    approach_duration_s: float
+    crossing_speed_m_s: float
+    d_min_m: float
+    body: BodyClearance = field(default_factory=BodyClearance)
+
+    def plan(self) -> MissionPlan:
+        """The mission `plan_mission` makes from this request (PlanningError, ValueError as it)."""
+        return plan_mission(self.start_pos_m, self.gap, self.lab, start_vel_m_s=self.start_vel_m_s,
+                            approach_duration_s=self.approach_duration_s,
+                            crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
+                            body=self.body)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready numbers (full precision: the same plan comes back from `from_dict`)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> MissionRequest:
+        """The request of a `to_dict` (e.g. read back from JSON); ValueError or KeyError if malformed."""
+        return cls(_vec3("start_pos_m", data["start_pos_m"]), _vec3("start_vel_m_s", data["start_vel_m_s"]),
+                   GapPose(**data["gap"]), LabVolume(**data["lab"]), float(data["approach_duration_s"]),
+                   float(data["crossing_speed_m_s"]), float(data["d_min_m"]),
+                   BodyClearance(**data["body"]) if "body" in data else BodyClearance())
+

@@ -209,3 +209,45 @@ def test_config_rejects_nonsense():
         FcConfig(failsafe_timeout_s=-1.0)
     with pytest.raises(ValueError, match="failsafe_timeout_s"):
         FcConfig(failsafe_timeout_s=math.nan)
+
+
+def _hovering_east(z_m: float = 2.0) -> EmulatedVehicle:
+    """Hovering at ``z_m``, heading east (NED yaw 90 deg), disarmed: the runner's start in the air."""
+    start = hover_state(PROFILE, (0.0, 0.0, z_m))
+    return EmulatedVehicle(PROFILE, initial_state=start)  # hover_state: body x along world +x (east)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_hold_keeps_the_heading_it_had_when_armed_in_the_air(batched):
+    """Armed in the air the FC holds (PX4's Hold: the heading on entry), on the per-step path and the
+    batched one: the heading stays at 90 deg (it used to swing toward north at ~60 deg/s)."""
+    from emulator.fc.batched_steps import FastStepper
+
+    v = _hovering_east()
+    assert ned_euler(v)[2] == pytest.approx(math.pi / 2, abs=1e-9)
+    v.fc.arm(0.0)
+    assert v.fc.state is FcState.HOLD
+    stepper = FastStepper.for_vehicle(v) if batched else None
+    worst = 0.0
+    for _ in range(100):  # 1 s
+        stepper.step(10) if stepper is not None else v.step(10)
+        worst = max(worst, abs(math.degrees(ned_euler(v)[2]) - 90.0))
+        assert v.fc.heading_setpoint_rad() == pytest.approx(math.pi / 2, abs=1e-6)
+    assert worst < 0.05
+
+
+def test_a_failsafe_hover_and_landing_hold_the_heading_on_entry():
+    """Setpoints at a 30 deg heading stop: the failsafe hover and the landing after it keep 30 deg."""
+    v = airborne()
+    sp = N3Setpoint(ATTITUDE_THRUST_YAW_ANGLE, 0.0, 0.0, HOVER_PCT, 30.0)
+    fly(v, sp, 2.0)
+    assert math.degrees(ned_euler(v)[2]) == pytest.approx(30.0, abs=0.5)
+    heading_at_entry = None
+    while v.time_s < 9.0:
+        v.step(10)
+        if v.fc.state.failsafe and heading_at_entry is None:
+            heading_at_entry = math.degrees(ned_euler(v)[2])
+        if v.fc.state.failsafe:
+            assert math.degrees(ned_euler(v)[2]) == pytest.approx(heading_at_entry, abs=0.2)
+    assert v.fc.state is FcState.FAILSAFE_LAND
+    assert heading_at_entry == pytest.approx(30.0, abs=0.5)

@@ -114,3 +114,31 @@ def test_thrust_percent_round_trip() -> None:
     percent = p.force_to_thrust_percent(hover_n)
     assert 30.0 < percent < 45.0
     assert p.thrust_percent_to_force_n(percent) == pytest.approx(hover_n)
+
+
+def test_the_fc_flies_the_inertia_it_is_tuned_for(tmp_path: Path) -> None:
+    """``fc_inertia_kgm2`` (optional) is what the FC's inner loop believes; the physics keeps the
+    airframe's ``inertia_kgm2``. Left out, the FC knows the airframe's; a bad value names the field."""
+    import numpy as np
+
+    from emulator.fc.inner_loop import InnerLoop
+    from emulator.physics.native import NativeBackend
+
+    p = load_profile("n3_tx2")
+    assert p.fc_inertia_kgm2 is None and p.fc_tuned_inertia_kgm2 == p.inertia_kgm2
+    wrong = p.with_changes(fc_inertia_kgm2=(0.002, 0.002, 0.0137))
+    assert wrong.fc_tuned_inertia_kgm2 == (0.002, 0.002, 0.0137)
+    assert wrong.with_changes(fc_inertia_kgm2=None) == p
+    # the FC asks for the torque its inertia needs: a quarter-size belief gives a smaller roll torque
+    q, w = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
+    right = InnerLoop(p).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
+    low = InnerLoop(wrong).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
+    assert np.ptp(low) < 0.5 * np.ptp(right)
+    assert NativeBackend(wrong)._params.tolist() == NativeBackend(p)._params.tolist()  # the airframe
+    shipped = Path(__file__).parent.parent / "scenarios" / "vehicles" / "n3_tx2_fc_inertia_low.yaml"
+    assert load_profile(shipped).fc_tuned_inertia_kgm2[0] == pytest.approx(p.inertia_kgm2[0] / 4, rel=0.01)
+    bad = tmp_path / "bad.yaml"
+    data = yaml.safe_load((resources.files("emulator") / "profiles" / "n3_tx2.yaml").read_text())
+    bad.write_text(yaml.safe_dump({**data, "fc_inertia_kgm2": [0.1, -1, 0.1]}))
+    with pytest.raises(ProfileError, match="fc_inertia_kgm2"):
+        load_profile(bad)

@@ -256,7 +256,10 @@ links:
     burst: {p_gb: 0.001, p_bg: 0.5}
     rate_hz: 200
 faults:
-  - {kind: wind_gust, start_s: 2.0, end_s: 2.5, params: {force_n: 1.5, direction: [0, 1, 0]}}
+  - kind: wind_gust
+    start_s: 2.0
+    end_s: 2.5
+    params: {force_n: 1.5, direction: [0, 1, 0], yaw_moment_nm: 0.02}
   - {kind: wind_gust, start_s: 6.0, params: {speed_m_s: 3.0, direction: [1, 1, 0]}}
   - {kind: corrupt_bytes, start_s: 1.0, end_s: 1.5, params: {link: mocap, fraction: 0.001}}
   - {kind: mocap_frozen, start_s: 6.5, end_s: 6.6}
@@ -284,6 +287,13 @@ expect:
     command_delivered_fraction_min: 0.95
     mocap_rate_hz_min: 150
     command_rate_hz_min: 40
+  quality:
+    heading_error_deg: {held: 2, commanded: 10}
+    attitude_tracking_deg: 10
+    position_error_m: {approach: 0.2, traverse: 0.15, recovery: 0.2}
+    thrust_saturation_s: 0.1
+    settling_time_s: 0.4
+    expected_failures: [settling_time_s]
 """
 
 
@@ -333,6 +343,9 @@ def test_the_format_document_names_every_field() -> None:
         schema.EventTime,
         schema.RecoveryExpectation,
         schema.LinkExpectations,
+        schema.HeadingErrorLimits,
+        schema.SegmentErrorLimits,
+        schema.QualityExpectations,
         schema.Expectations,
         Scenario,
     ):

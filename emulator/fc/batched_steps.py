@@ -15,18 +15,14 @@ import numpy as np
 from numba import njit
 
 from emulator.fc import EmulatedVehicle, FcState
+from emulator.fc.flight_controller import HOLD_STATES
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import _control
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 
 #: FC states flown by the velocity controller while in the air, with their climb rate's sign
-_HOLD_STATES = {
-    FcState.HOLD: 0.0,
-    FcState.FAILSAFE_HOVER: 0.0,
-    FcState.LAND: -1.0,
-    FcState.FAILSAFE_LAND: -1.0,
-}
+_CLIMB_SIGN = {st: -1.0 if st in (FcState.LAND, FcState.FAILSAFE_LAND) else 0.0 for st in HOLD_STATES}
 
 
 @njit(cache=True, nogil=True)
@@ -111,7 +107,7 @@ class FastStepper:
         returns the steps taken (0: take the per-step path)."""
         v = self.vehicle
         fc = v.fc
-        sign = _HOLD_STATES.get(fc.state)
+        sign = _CLIMB_SIGN.get(fc.state)
         if not self.native or sign is None or fc.landed:
             return 0
         cfg = fc.config
@@ -126,7 +122,7 @@ class FastStepper:
         assert isinstance(be, NativeBackend)
         h = self._hold
         h[0] = sign * cfg.land_speed_m_s
-        h[1] = fc._hold_yaw_rad
+        h[1] = fc.hold_heading_rad(be._x[6:10])  # latched at the first hold step, as the FC's own
         h[2] = fc._rest_height_m
         h[3] = cfg.landed_margin_m
         n = _hold_batch(be._x, be._aux, be._params, h, fc.hold_params, inner._params, inner._mix_inv,
@@ -167,7 +163,6 @@ class FastStepper:
         # the FC's bookkeeping as its own per-step update would have left it
         t_last = be.time_s - be.dt_s
         fc._last_t = t_last
-        fc._quat = x[6:10].copy()
         if detect_landed:
             fc.detect_landed(x.item(2), x.item(5), t_last)  # (plain floats: the same comparisons)
         fc.motor_cmd = fc.inner._out

@@ -29,6 +29,15 @@ from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 
 PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
+#: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
+HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
+
+
+def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
+    """Heading (NED yaw, rad) of a body FLU -> world ENU attitude: yaw_ned = pi/2 - yaw_enu."""
+    w, x, y, z = quat_wxyz.tolist() if isinstance(quat_wxyz, np.ndarray) else quat_wxyz
+    yaw_enu = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return wrap_pi(math.pi / 2 - yaw_enu)
 
 
 @dataclass(frozen=True)
@@ -71,7 +80,9 @@ class FlightController:
         self._arrivals: deque[float] = deque(maxlen=2)
         self._yaw_sp_rad = 0.0
         self._yaw_sp_fresh = True
-        self._hold_yaw_rad = 0.0
+        #: the heading (NED yaw, rad) held by the FC's own hover/land controller: latched from the
+        #: attitude at its first step after a hold state is entered (None until then), as PX4's Hold
+        self._hold_yaw_rad: float | None = None
         self._last_t: float | None = None
         self._rest_height_m = self.config.ground_z_m + 0.5 * profile.body_box_m[2]
         self._landed_since_s: float | None = 0.0
@@ -136,10 +147,10 @@ class FlightController:
         if self.state.armed:
             return ACCEPTED
         if self.offboard_selected and self.stream_ok(time_s):
-            self.machine.go(FcState.OFFBOARD, time_s, "armed in offboard")
+            self._go(FcState.OFFBOARD, time_s, "armed in offboard")
         else:
             self.offboard_selected = False
-            self.machine.go(FcState.HOLD, time_s, "armed")
+            self._go(FcState.HOLD, time_s, "armed")
         return ACCEPTED
 
     def disarm(self, time_s: float, force: bool = False) -> CommandResult:
@@ -148,7 +159,7 @@ class FlightController:
         if not self.landed and not force:
             return CommandResult(False, "disarm refused: vehicle in the air")
         self.offboard_selected = False
-        self.machine.go(FcState.DISARMED, time_s, "disarmed (forced)" if force else "disarmed")
+        self._go(FcState.DISARMED, time_s, "disarmed (forced)" if force else "disarmed")
         return ACCEPTED
 
     def request_offboard(self, time_s: float) -> CommandResult:
@@ -159,7 +170,7 @@ class FlightController:
         if not self.state.armed:
             self.offboard_selected = True
             return ACCEPTED
-        self.machine.go(FcState.OFFBOARD, time_s, "offboard control granted")
+        self._go(FcState.OFFBOARD, time_s, "offboard control granted")
         return ACCEPTED
 
     def request_hold(self, time_s: float, reason: str = "hold requested") -> CommandResult:
@@ -167,18 +178,43 @@ class FlightController:
         if not self.state.armed:
             self.offboard_selected = False
             return ACCEPTED
-        if self.state is not FcState.HOLD:
-            self._hold_yaw_rad = self._current_yaw
-            self.machine.go(FcState.HOLD, time_s, reason)
+        self._go(FcState.HOLD, time_s, reason)
         return ACCEPTED
 
     def request_land(self, time_s: float) -> CommandResult:
         if not self.state.armed:
             return CommandResult(False, "land refused: not armed")
         if self.state not in (FcState.LAND, FcState.FAILSAFE_LAND):
-            self._hold_yaw_rad = self._current_yaw
-            self.machine.go(FcState.LAND, time_s, "land requested")
+            self._go(FcState.LAND, time_s, "land requested")
         return ACCEPTED
+
+    def _go(self, to_state: FcState, time_s: float, reason: str) -> None:
+        """Change state; entering the FC's own hover/land from anything else releases the held heading
+        (the next step latches the heading it finds, see `hold_heading_rad`)."""
+        if to_state in HOLD_STATES and self.machine.state not in HOLD_STATES:
+            self._hold_yaw_rad = None
+        self.machine.go(to_state, time_s, reason)
+
+    def hold_heading_rad(self, quat_wxyz: np.ndarray) -> float:
+        """The heading (NED yaw, rad) the FC's own hover/land holds: the one of ``quat_wxyz`` (the body
+        FLU -> world ENU attitude it flies from) at its first step after entering hold, then kept."""
+        yaw = self._hold_yaw_rad
+        if yaw is None:
+            yaw = self._hold_yaw_rad = heading_ned_rad(quat_wxyz)
+        return yaw
+
+    def heading_setpoint_rad(self) -> float:
+        """The heading (NED yaw, rad) the FC steers to now: the offboard target's yaw (or its integrated
+        yaw rate), the held heading in hold, hover and land; NaN when it steers none (disarmed, idle on
+        the ground, or hold entered and not yet stepped)."""
+        st = self.machine.state
+        if st is FcState.OFFBOARD and self.target is not None:
+            if self.target.yaw_rate_rad_s is None:
+                return self.target.yaw_rad
+            return math.nan if self._yaw_sp_fresh else self._yaw_sp_rad
+        if st in HOLD_STATES and not self.landed and self._hold_yaw_rad is not None:
+            return self._hold_yaw_rad
+        return math.nan
 
     # --- the step ----------------------------------------------------------------------------
     def update(self, state: VehicleState) -> np.ndarray:
@@ -186,7 +222,6 @@ class FlightController:
         t = state.time_s
         dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
         self._last_t = t
-        self._quat = state.quat_wxyz
         self._detect_landed(state, t)
         self._check_transitions(t)
         st = self.machine.state
@@ -204,18 +239,17 @@ class FlightController:
         return cmd
 
     def _check_transitions(self, t: float) -> None:
-        cfg, m = self.config, self.machine
+        cfg, m, go = self.config, self.machine, self._go
         if m.state is FcState.OFFBOARD and t - self.last_setpoint_s > cfg.failsafe_timeout_s:
-            self._hold_yaw_rad = self._current_yaw
-            m.go(FcState.FAILSAFE_HOVER, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: hover")
+            go(FcState.FAILSAFE_HOVER, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: hover")
         elif m.state is FcState.FAILSAFE_HOVER and t - m.since_s >= cfg.failsafe_hover_s:
-            m.go(FcState.FAILSAFE_LAND, t, f"no control for {cfg.failsafe_hover_s:g} s: land")
+            go(FcState.FAILSAFE_LAND, t, f"no control for {cfg.failsafe_hover_s:g} s: land")
         elif (
             m.state in (FcState.LAND, FcState.FAILSAFE_LAND)
             and self._landed_since_s is not None
             and t - self._landed_since_s >= cfg.auto_disarm_s
         ):
-            m.go(FcState.DISARMED, t, "landed: disarmed")
+            go(FcState.DISARMED, t, "landed: disarmed")
         if m.state is FcState.DISARMED and self.offboard_selected and not self.stream_ok(t):
             self.offboard_selected = False
 
@@ -232,24 +266,13 @@ class FlightController:
             self._landed_since_s = None
         self.landed = landed
 
-    @property
-    def _current_yaw(self) -> float:
-        """Heading (NED yaw, rad) of the last attitude seen."""
-        q = getattr(self, "_quat", None)
-        if q is None:
-            return 0.0
-        # ENU/FLU quaternion -> NED heading: yaw_ned = pi/2 - yaw_enu
-        w, x, y, z = q
-        yaw_enu = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        return wrap_pi(math.pi / 2 - yaw_enu)
-
     def _fly_target(self, state: VehicleState, dt: float) -> np.ndarray:
         tg = self.target
         if tg is None:  # cannot happen: OFFBOARD needs a stream
             return self._velocity_hold(state, 0.0)
         if tg.yaw_rate_rad_s is not None:
             if self._yaw_sp_fresh:
-                self._yaw_sp_rad, self._yaw_sp_fresh = self._current_yaw, False
+                self._yaw_sp_rad, self._yaw_sp_fresh = heading_ned_rad(state.quat_wxyz), False
             self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + tg.yaw_rate_rad_s * dt)
             yaw = self._yaw_sp_rad
         else:
@@ -261,6 +284,6 @@ class FlightController:
     def _velocity_hold(self, state: VehicleState, climb_m_s: float) -> np.ndarray:
         """The FC's own hover/land controller: hold horizontal velocity 0 and climb rate ``climb_m_s``."""
         ve, vn, vu = state.vel_m_s
-        yaw = self._hold_yaw_rad
+        yaw = self.hold_heading_rad(state.quat_wxyz)
         roll, pitch, thrust = hold_command(float(ve), float(vn), float(vu), climb_m_s, yaw, self.hold_params)
         return self.inner.update(state.quat_wxyz, state.omega_rad_s, roll, pitch, yaw, thrust)

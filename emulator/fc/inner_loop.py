@@ -52,7 +52,7 @@ class InnerLoop:
             [
                 *gains.attitude_p_per_s,
                 *gains.rate_p_per_s,
-                *profile.inertia_kgm2,
+                *profile.fc_tuned_inertia_kgm2,  # what the FC believes (the airframe's by default)
                 profile.max_body_rate_rad_s,
                 profile.max_thrust_per_rotor_n,
                 gains.idle_throttle,

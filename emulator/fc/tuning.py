@@ -55,7 +55,7 @@ def roll_accel_authority_rad_s2(profile: VehicleProfile, idle_throttle: float = 
     idle, about the smaller of Ixx, Iyy."""
     f_max = profile.max_thrust_per_rotor_n
     arm = profile.arm_length_m * math.sqrt(0.5)
-    return 2.0 * f_max * (1.0 - idle_throttle) * arm / min(profile.inertia_kgm2[:2])
+    return 2.0 * f_max * (1.0 - idle_throttle) * arm / min(profile.fc_tuned_inertia_kgm2[:2])  # as tuned
 
 
 def derived_gains(profile: VehicleProfile) -> FcGains:

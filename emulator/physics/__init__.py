@@ -34,6 +34,9 @@ class PhysicsBackend(Protocol):
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (wind gust) in world ENU (N), held until changed."""
 
+    def set_external_torque(self, torque_body_nm: np.ndarray) -> None:
+        """A disturbance torque (a gust's moment) in body FLU (N m), held until changed."""
+
     @property
     def state(self) -> VehicleState:
         """The current state."""

@@ -132,6 +132,7 @@ class JSBSimBackend:
         self._lin_drag = p.linear_drag_n_s_m
         self._ang_drag = p.angular_drag_nm_s_rad
         self._w = [0.0, 0.0, 0.0, 0.0]
+        self._torque_frd_nm = (0.0, 0.0, 0.0)  # the external torque, body FRD
         self._corners_flu_m = box_corners_flu_m(p)
         self._t0_s = 0.0
         self._steps = 0
@@ -233,6 +234,14 @@ class JSBSimBackend:
         self._set_dist[1](fe)
         self._set_dist[2](-fu)
 
+    def set_external_torque(self, torque_body_nm: np.ndarray) -> None:
+        """A disturbance torque in body FLU (N m), held until changed."""
+        self._live()
+        m = np.asarray(torque_body_nm, dtype=np.float64)
+        if m.shape != (3,) or not np.all(np.isfinite(m)):
+            raise ValueError(f"torque_body_nm must be 3 finite numbers (N m), got {torque_body_nm!r}")
+        self._torque_frd_nm = (float(m[0]), -float(m[1]), -float(m[2]))  # FLU -> FRD
+
     @property
     def state(self) -> VehicleState:
         """The current state in world ENU / body FLU (SI units)."""
@@ -285,9 +294,10 @@ class JSBSimBackend:
         set_drag[0](-cx * u_fps * FT_M / LBF_N)
         set_drag[1](-cy * v_fps * FT_M / LBF_N)
         set_drag[2](-cz * w_fps * FT_M / LBF_N)
-        set_torque[0](-dx * p / _FT_LBF)
-        set_torque[1](-dy * q / _FT_LBF)
-        set_torque[2]((-yaw_n_m - dz * r) / _FT_LBF)
+        ext_x, ext_y, ext_z = self._torque_frd_nm
+        set_torque[0]((ext_x - dx * p) / _FT_LBF)
+        set_torque[1]((ext_y - dy * q) / _FT_LBF)
+        set_torque[2]((ext_z - yaw_n_m - dz * r) / _FT_LBF)
 
     def _node(self, path: str) -> jsbsim.FGPropertyNode:
         node = self._pm.get_node(path)

@@ -1,7 +1,8 @@
 """Numba kernels of the native quadrotor physics: one vehicle step, and a parallel batch of them.
 
 Each vehicle is a row of STATE_SIZE floats (layout in `emulator.physics.state`) plus an auxiliary row
-of AUX_SIZE floats: the external world force (N) and the last step's world acceleration (m/s^2).
+of AUX_SIZE floats: the external world force (N), the last step's world acceleration (m/s^2) and the
+external body torque (N m).
 The profile is packed once into a flat parameter vector (`pack_params`) so that the loops touch no
 Python objects. `step_vehicle` is the one kernel; `step_batch` runs it over rows in parallel.
 """
@@ -18,7 +19,8 @@ from emulator.profile import GRAVITY_M_S2, ROTOR_ANGLES_RAD, ROTOR_SPIN, Vehicle
 # Auxiliary row layout.
 AUX_FORCE = slice(0, 3)  # external force, world ENU (N)
 AUX_ACCEL = slice(3, 6)  # last step's world acceleration (m/s^2)
-AUX_SIZE = 6
+AUX_TORQUE = slice(6, 9)  # external torque, body FLU (N m)
+AUX_SIZE = 9
 
 # Ground-contact constants (not profile fields): Coulomb friction and rotational damping on contact.
 GROUND_FRICTION = 0.5
@@ -83,13 +85,14 @@ def step_vehicle(x: np.ndarray, aux: np.ndarray, p: np.ndarray, cmd: np.ndarray,
             u = 1.0
         w_cmd[i] = math.sqrt(u) * p[P_WMAX]
     fx_ext, fy_ext, fz_ext = aux[0], aux[1], aux[2]
+    tx_ext, ty_ext, tz_ext = aux[6], aux[7], aux[8]
     ax = ay = az = 0.0
     for _ in range(n_steps):
         # --- motors: exact first-order lag, then forces and torques from the new speeds -----------
         thrust = 0.0
-        tau_x = 0.0
-        tau_y = 0.0
-        tau_z = 0.0
+        tau_x = tx_ext
+        tau_y = ty_ext
+        tau_z = tz_ext
         for i in range(4):
             w = x[13 + i] + (w_cmd[i] - x[13 + i]) * alpha
             x[13 + i] = w

@@ -15,7 +15,15 @@ from dataclasses import fields
 import numpy as np
 
 from emulator.physics import DEFAULT_DT_S
-from emulator.physics.kernels import AUX_ACCEL, AUX_FORCE, AUX_SIZE, pack_params, step_batch, step_vehicle
+from emulator.physics.kernels import (
+    AUX_ACCEL,
+    AUX_FORCE,
+    AUX_SIZE,
+    AUX_TORQUE,
+    pack_params,
+    step_batch,
+    step_vehicle,
+)
 from emulator.physics.state import OMEGA, POS, QUAT, ROTOR, STATE_SIZE, VEL, VehicleState
 from emulator.profile import VehicleProfile
 
@@ -47,14 +55,15 @@ def _check_state_vector(v: np.ndarray, what: str) -> np.ndarray:
     return v
 
 
-def _check_force(force: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+def _check_force(force: np.ndarray, shape: tuple[int, ...], what: str = "external force",
+                 unit: str = "N, world ENU") -> np.ndarray:
     f = np.asarray(force, dtype=np.float64)
     try:
         f = np.broadcast_to(f, shape)
     except ValueError:
-        raise ValueError(f"external force: expected shape {shape} (N, world ENU), got {f.shape}") from None
+        raise ValueError(f"{what}: expected shape {shape} ({unit}), got {f.shape}") from None
     if not np.all(np.isfinite(f)):
-        raise ValueError("external force: non-finite values")
+        raise ValueError(f"{what}: non-finite values")
     return f
 
 
@@ -123,6 +132,10 @@ class NativeBackend:
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""
         self._aux[AUX_FORCE] = _check_force(force_world_n, (3,))
+
+    def set_external_torque(self, torque_body_nm: np.ndarray) -> None:
+        """A disturbance torque (N m, body FLU) held until changed."""
+        self._aux[AUX_TORQUE] = _check_force(torque_body_nm, (3,), "external torque", "N m, body FLU")
 
     @property
     def time_s(self) -> float:

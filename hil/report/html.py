@@ -309,14 +309,18 @@ def _charts(cols: dict[str, np.ndarray], scenario: Scenario, crossing: dict[str,
 
     gap_roll = ((scenario.gap.roll_deg, "gap roll"),)
     for axis in ("roll", "pitch", "yaw"):
+        # the heading the FC steers to (the command, or the heading it holds itself) where recorded
+        cmd = s("yaw_sp_deg", "held or commanded", COMMANDED, True) if axis == "yaw" else []
+        cmd = cmd or s(f"{axis}_cmd_deg", "commanded", COMMANDED, True)
         add(
             f"{axis.capitalize()}",
             "deg",
-            s(f"{axis}_deg", "measured", MEASURED) + s(f"{axis}_cmd_deg", "commanded", COMMANDED, True),
+            s(f"{axis}_deg", "measured", MEASURED) + cmd,
             gap_roll if axis == "roll" else (),
             min_span=10.0,
         )
     add("Thrust command", "%", s("thrust_cmd_pct", "thrust", "#6c3483"))
+    add("Largest motor command", "%", s("motor_max_pct", "motor", "#a04000"), ((100.0, "full throttle"),))
     add("Clearance to the gap's edges", "m", s("clearance_m", "clearance", "#117a65"), ((0.0, "contact"),))
     add(
         "Position",

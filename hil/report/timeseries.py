@@ -17,6 +17,10 @@ Conventional column names (units in the name; any other identifier is stored too
 ``command_rate_hz``                    setpoints arriving at the FC, over the last second (Hz)
 ``mocap_rate_hz``                      mocap frames arriving at the onboard computer (Hz)
 ``command_lost``, ``mocap_lost``       messages lost so far (count)
+``yaw_sp_deg``                         heading the FC steers to (deg): the offboard setpoint's, or
+                                       the one it holds in hold, hover and land; NaN when none
+``motor_max_pct``                      the largest of the four motor commands (% of full throttle)
+``setpoint_age_s``                     time since the FC last took a setpoint (s; inf: none yet)
 =====================================  ==========================================================
 """
 

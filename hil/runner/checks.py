@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from hil.runner.flight_quality import SETTLE_BAND_M, Figure, FlightQuality
 from hil.runner.mission import window_hits
-from hil.scenario.schema import Fault, Scenario
+from hil.scenario.schema import Fault, QualityExpectations, Scenario
 
 RECOVERY_MAX_SPEED_M_S = 0.5  # "hovering": slower than this
 
@@ -53,6 +54,7 @@ class Observations:
     hover_point_m: tuple[float, float, float] | None  # the scenario's recovery point (run.recovery_point_m)
     columns: dict[str, np.ndarray]
     link: dict[str, float | None]  # delivered fractions and rates
+    quality: FlightQuality  # the flight-quality figures (`hil.runner.flight_quality`)
     nonfinite_state_s: float | None = None  # first sim time the simulated state was NaN or Inf
     lockstep: bool = True  # the run was flown in lockstep (not on the wall clock)
     lockstep_lost_s: float | None = None  # first tick whose announced mocap bytes did not arrive
@@ -94,6 +96,7 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
             value = obs.link.get(key)
             ok = value is not None and value >= limit
             checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
+    checks += check_quality(e.quality, obs.quality)
     return checks
 
 
@@ -159,6 +162,48 @@ def check_stays_in_lab(obs: Observations) -> Check:
         return Check("stays_in_lab", False, "inside the lab volume", "position not finite",
                      obs.nonfinite_state_s)
     return Check("stays_in_lab", outside <= 0.0, "inside the lab volume", f"{outside:.3f} m outside at most")
+
+
+def check_quality(limits: QualityExpectations, q: FlightQuality) -> list[Check]:
+    """The flight-quality checks (`hil.runner.flight_quality`), one per figure, in every run; a check
+    named in ``limits.expected_failures`` passes when its figure exceeds the limit."""
+    pos = limits.position_error_m
+    seg_limits = {"approach": pos.approach, "traverse": pos.traverse, "recovery": pos.recovery}
+    settle = {k: Figure(None if f.value is None else (f.value if q.settled[k] else math.inf), f.time_s)
+              for k, f in q.settling_time_s.items()}
+    rows = (
+        ("heading_error_deg", q.heading_error_deg,
+         {"held": limits.heading_error_deg.held, "commanded": limits.heading_error_deg.commanded}, " deg",
+         "off the held or the commanded heading"),
+        ("attitude_tracking_deg", {"": q.attitude_tracking_deg}, {"": limits.attitude_tracking_deg}, " deg",
+         "roll/pitch off the command (after the FC's nominal lag)"),
+        ("position_error_m", q.position_error_m, seg_limits, " m", "from the plan"),
+        ("thrust_saturation_s", {"": q.thrust_saturation_s}, {"": limits.thrust_saturation_s}, " s",
+         "with a motor at full throttle"),
+        ("settling_time_s", settle, dict.fromkeys(settle, limits.settling_time_s), " s",
+         f"to settle within {SETTLE_BAND_M:g} m after each manoeuvre"),
+    )
+    return [_limit_check(name, figures, lims, unit, what, name in limits.expected_failures)
+            for name, figures, lims, unit, what in rows]
+
+
+def _limit_check(name: str, figures: dict[str, Figure], limits: dict[str, float], unit: str, what: str,
+                 must_fail: bool) -> Check:
+    """Whether every figure is within its limit (by part: a segment, a manoeuvre; "" for one figure);
+    the time is the worst part's worst moment (the one furthest over, or nearest to, its limit)."""
+    parts = [(k, f, limits[k]) for k, f in figures.items() if f.value is not None and k in limits]
+    within = all(f.value <= lim for _, f, lim in parts)  # type: ignore[operator]
+    worst = max(parts, key=lambda p: p[1].value / p[2] if p[2] > 0 else math.inf, default=None)  # type: ignore[operator]
+    observed = "nothing to measure" if not parts else ", ".join(
+        f"{k + ' ' if k else ''}{'never settled' if f.value == math.inf else f'{f.value:.3g}{unit}'}"
+        for k, f, _ in parts
+    )
+    limit_text = ", ".join(f"{k + ' ' if k else ''}<= {lim:g}{unit}" for k, lim in limits.items())
+    expected = f"{what}: {limit_text}"
+    if must_fail:
+        expected = f"fails (the check must catch this run): {expected}"
+    return Check(name, (not within) if must_fail else within, expected, observed,
+                 None if worst is None else worst[1].time_s)
 
 
 def check_crossing(expected: bool, obs: Observations) -> Check:

@@ -289,6 +289,7 @@ class EmulatorSide:
         faults = self.faults
         force = faults.wind_force_n(t)
         self.vehicle.backend.set_external_force(force)
+        self.vehicle.backend.set_external_torque(faults.wind_torque_nm(t))
         frozen = faults.any_active("mocap_frozen", t)
         if frozen and self._frozen_truth is None:
             self._frozen_truth = self.vehicle.pose_values()

@@ -1,8 +1,9 @@
 """Fault injection for a run: the scenario's fault schedule queried by sim time, byte corruption, and
-the wind-gust force.
+the wind gust's force and moment.
 
 Faults act where they act on the bench: in the links (bytes dropped or flipped, mocap frozen or
-dropped), in the onboard process (killed, stalled) and on the airframe (a gust as an external force).
+dropped), in the onboard process (killed, stalled) and on the airframe (a gust as an external force,
+with a yaw moment if given).
 """
 
 from __future__ import annotations
@@ -109,6 +110,14 @@ class FaultSchedule:
         total = np.zeros(3)
         for f in self.active("wind_gust", time_s):
             total += gust_force_n(f.params)
+        return total
+
+    def wind_torque_nm(self, time_s: float) -> np.ndarray:
+        """The total gust moment on the airframe at ``time_s`` (N m, body FLU: about its z axis)."""
+        total = np.zeros(3)
+        for f in self.active("wind_gust", time_s):
+            if isinstance(f.params, WindGustParams):
+                total[2] += f.params.yaw_moment_nm
         return total
 
     def events(self) -> list[dict[str, object]]:

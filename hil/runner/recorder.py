@@ -48,10 +48,17 @@ COLUMNS = (
     "fc_state",
     "thrust_n",
     "body_rate_rad_s",
+    "yaw_sp_deg",
+    "motor_max_pct",
+    "setpoint_age_s",
 )
 #: what `Recorder.sample` keeps for `Recorder.flush`: t, state, offset along the gap normal (m), FC
-#: target, FC state, setpoints applied, mocap frames written, command frames lost, mocap packets lost
-_Sample = tuple[float, np.ndarray, float, AttitudeThrustTarget | None, str, int, int, int, int]
+#: target, FC state, setpoints applied, mocap frames written, command frames lost, mocap packets lost,
+#: the heading the FC steers to (rad, NED; NaN: none), the four motor commands (0..1), when the FC
+#: last took a setpoint (s)
+_Sample = tuple[
+    float, np.ndarray, float, AttitudeThrustTarget | None, str, int, int, int, int, float, list[float], float
+]
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
@@ -195,7 +202,8 @@ class Recorder:
         to_fc = server.codec.transport.to_fc
         self._pending.append((t, x, n_wall, fc.target, fc.state.value, server.stats.setpoints_applied,
                               mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
-                              mocap.radio.stats.lost))
+                              mocap.radio.stats.lost, fc.heading_setpoint_rad(), fc.motor_cmd.tolist(),
+                              fc.last_setpoint_s))
 
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
@@ -208,7 +216,9 @@ class Recorder:
     def _record(self, batch: list[_Sample]) -> None:
         """World checks, the crossing tracker and the time-series rows of a batch of samples, as the
         samples would have been taken one by one."""
-        ts, xs, n_wall, targets, fc_states, applied, frames, cmd_lost, mocap_lost = zip(*batch, strict=True)
+        ts, xs, n_wall, targets, fc_states, applied, frames, cmd_lost, mocap_lost, yaw_sp, motors, sp_s = zip(
+            *batch, strict=True
+        )
         t = np.array(ts)
         x = np.array(xs)  # (N, STATE_SIZE)
         pos, quat = x[:, POS], x[:, QUAT]
@@ -264,6 +274,9 @@ class Recorder:
         block[:, 15], block[:, 16] = cmd_rate, mocap_rate
         block[:, 17], block[:, 18] = cmd_lost[:m], mocap_lost[:m]
         block[:, 19] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
+        block[:, 22] = np.degrees(yaw_sp[:m])
+        block[:, 23] = 100.0 * np.max(motors[:m], axis=1)
+        block[:, 24] = t - np.array(sp_s[:m])  # inf before the first setpoint
         self._n = n1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:

@@ -24,6 +24,7 @@ from hil.link.transport import Transport
 from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
+from hil.runner.flight_quality import measure
 from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
 from hil.runner.mission import phase_intervals, window_hits
 from hil.runner.onboard_side import (
@@ -279,6 +280,7 @@ def _finish(
         hover_point_m=hover,
         columns=cols,
         link={k: links["summary"][k] for k in links["summary"]},
+        quality=measure(cols, onboard_events),
         nonfinite_state_s=emu.diverged_s,  # (the recorder has been flushed by `columns`)
         lockstep=not realtime,
         realtime=loop.realtime,
@@ -371,6 +373,7 @@ def _finish(
         "onboard_hover_point_m": reported,
         "mean_thrust_n": float(np.mean(cols["thrust_n"][airborne])) if np.any(airborne) else 0.0,
         "mean_angular_rate_rad_s": float(np.mean(cols["body_rate_rad_s"])) if len(cols["t_s"]) else 0.0,
+        "flight_quality": obs.quality.to_dict(),
         "events": events,
         "scenario": s.to_dict(),
     }

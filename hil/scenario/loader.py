@@ -12,7 +12,7 @@ import math
 import re
 import types
 from collections.abc import Callable, Iterable
-from dataclasses import MISSING, fields, is_dataclass
+from dataclasses import MISSING, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
@@ -529,7 +529,7 @@ class _Builder:
         if abs(norm - 1.0) < 1e-12:  # already a unit vector: keep it bit for bit (round trips)
             return params
         unit = (params.direction[0] / norm, params.direction[1] / norm, params.direction[2] / norm)
-        return WindGustParams(direction=unit, force_n=params.force_n, speed_m_s=params.speed_m_s)
+        return replace(params, direction=unit)
 
     def check_tilt(self, s: Scenario, doc_line: int) -> None:
         """The gap's tilt within the vehicle profile's tilt limit (the traverse flies at the gap's tilt)."""

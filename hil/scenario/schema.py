@@ -187,11 +187,15 @@ class CorruptBytesParams:
 
 @dataclass(frozen=True)
 class WindGustParams:
-    """A force on the vehicle: give exactly one of force_n and speed_m_s."""
+    """A force on the vehicle (give exactly one of force_n and speed_m_s), and the moment about its
+    vertical axis that a gust on an asymmetric airframe brings with it."""
 
     direction: Vec3 = spec(MISSING, lo=-1000.0, hi=1000.0, doc="world ENU direction (normalised on load)")
     force_n: float | None = spec(None, lo=0.0, hi=100.0, lo_open=True, doc="gust force")
     speed_m_s: float | None = spec(None, lo=0.0, hi=30.0, lo_open=True, doc="wind speed (drag model)")
+    yaw_moment_nm: float = spec(
+        0.0, lo=-1.0, hi=1.0, doc="the gust's moment about the body z axis (N m; + turns the nose left)"
+    )
 
 
 FaultParams = NoParams | CorruptBytesParams | WindGustParams
@@ -294,6 +298,59 @@ class LinkExpectations:
     command_rate_hz_min: float | None = spec(None, lo=0.0, hi=1000.0, lo_open=True, doc="setpoint rate at FC")
 
 
+QUALITY_CHECKS = (
+    "heading_error_deg",
+    "attitude_tracking_deg",
+    "position_error_m",
+    "thrust_saturation_s",
+    "settling_time_s",
+)
+
+
+@dataclass(frozen=True)
+class SegmentErrorLimits:
+    """Largest distance from the plan's reference in each segment of the mission (m)."""
+
+    approach: float = spec(0.25, lo=0.0, hi=10.0, lo_open=True, doc="during the approach")
+    traverse: float = spec(0.2, lo=0.0, hi=10.0, lo_open=True, doc="during the traverse (through the gap)")
+    recovery: float = spec(0.25, lo=0.0, hi=10.0, lo_open=True, doc="during the recovery")
+
+
+@dataclass(frozen=True)
+class HeadingErrorLimits:
+    """Largest heading error (deg) to the heading the FC holds itself, and to the commanded one."""
+
+    held: float = spec(3.0, lo=0.0, hi=180.0, lo_open=True, doc="in hold, failsafe hover and landing")
+    commanded: float = spec(
+        20.0, lo=0.0, hi=180.0, lo_open=True, doc="in offboard (the crossing's recovery takes up to ~17)"
+    )
+
+
+@dataclass(frozen=True)
+class QualityExpectations:
+    """Flight-quality limits, checked in every run (defaults the shipped suite meets; tighten them here).
+    ``expected_failures`` names the checks that must fail: a scenario showing what a check catches."""
+
+    heading_error_deg: HeadingErrorLimits = spec(
+        factory=HeadingErrorLimits, doc="heading off the held or the commanded heading"
+    )
+    attitude_tracking_deg: float = spec(
+        12.0, lo=0.0, hi=180.0, lo_open=True, doc="roll or pitch off the command through the FC's nominal lag"
+    )
+    position_error_m: SegmentErrorLimits = spec(
+        factory=SegmentErrorLimits, doc="distance from the plan's reference, per segment"
+    )
+    thrust_saturation_s: float = spec(
+        0.2, lo=0.0, hi=3600.0, doc="time with a motor commanded at full throttle"
+    )
+    settling_time_s: float = spec(
+        0.5, lo=0.0, hi=3600.0, doc="after the takeoff and the crossing, until within 0.1 m of the end point"
+    )
+    expected_failures: tuple[str, ...] = spec(
+        (), choices=QUALITY_CHECKS, doc="quality checks that must fail (names of the checks above)"
+    )
+
+
 @dataclass(frozen=True)
 class Expectations:
     """What must hold for the scenario to pass; defaults: crosses, no collision, recovers, stays in lab."""
@@ -317,6 +374,7 @@ class Expectations:
         REALTIME_MAX_LATE_MS, lo=0.0, hi=10_000.0, lo_open=True,
         doc="real-time runs: the emulator loop's worst lateness against the wall clock (ms)",
     )
+    quality: QualityExpectations = spec(factory=QualityExpectations, doc="flight-quality limits")
 
 
 @dataclass(frozen=True)

@@ -49,9 +49,9 @@ from policies.gap_planning import (
     GapPose,
     LabVolume,
     MissionPlan,
+    MissionRequest,
     PlanningError,
     Segment,
-    plan_mission,
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
@@ -275,7 +275,7 @@ class OnboardProgram:
         self._request: _Request | None = None
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
-        self._abort_yaw = 0.0
+        self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
@@ -389,7 +389,7 @@ class OnboardProgram:
             if gap_pose is None:
                 return  # (aborted, naming why)
             try:
-                self._plan_mission(start, np.zeros(3), gap_pose)
+                self._mission_request(start, np.zeros(3), gap_pose).plan()
             except (PlanningError, ValueError) as exc:
                 self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
                 return
@@ -475,10 +475,14 @@ class OnboardProgram:
         target[2] = max(target[2], cfg.takeoff_height_m)
         traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
                      cfg.takeoff_duration_s)
-        yaw0 = float(est.euler_rad[2])
+        # the turn starts from the heading commanded since the vehicle was first seen (the heading the
+        # FC holds), not from the one measured now: a vehicle still turning would have its motion adopted
+        # as the start of the turn and swing on past it
+        yaw0 = self._abort_yaw
         yaw1 = yaw0 + _wrap(self._mission_yaw(est.pos_m, gap) - yaw0)
         self._takeoff = (traj, yaw0, yaw1, now_s)
-        self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1))
+        self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1),
+                         duration_s=cfg.takeoff_duration_s)
         self._go(Phase.TAKEOFF, now_s)
 
     def _takeoff_progress(self, now_s: float) -> None:
@@ -490,7 +494,8 @@ class OnboardProgram:
         if gap is None:
             return
         try:
-            plan = self._plan_mission(est.pos_m, est.vel_m_s, gap)
+            request = self._mission_request(est.pos_m, est.vel_m_s, gap)
+            plan = request.plan()
         except (PlanningError, ValueError) as exc:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
@@ -502,16 +507,15 @@ class OnboardProgram:
                          hover_m=np.array(plan.hover_m), crossing_speed_m_s=plan.traverse.crossing_speed_m_s,
                          approach_s=float(plan.approach.T), traverse_l_m=round(plan.traverse.l_m, 3),
                          approach=plan.approach_feasibility.name.lower(), tried=plan.candidates_tried,
-                         search_ms=round(plan.search_time_s * 1e3, 3))
+                         search_ms=round(plan.search_time_s * 1e3, 3), request=request.to_dict())
         self._go(Phase.MISSION, now_s)
 
-    def _plan_mission(self, pos_m: np.ndarray, vel_m_s: np.ndarray, gap: GapPose) -> MissionPlan:
-        """The mission from ``pos_m`` (m) at ``vel_m_s`` (m/s) with this program's settings and body box."""
+    def _mission_request(self, pos_m: np.ndarray, vel_m_s: np.ndarray, gap: GapPose) -> MissionRequest:
+        """The mission to plan from ``pos_m`` (m) at ``vel_m_s`` (m/s) with this program's settings and
+        body box (its `plan` is the plan; its `to_dict` goes into the plan event)."""
         cfg = self.config
-        return plan_mission(pos_m, gap, self.lab, start_vel_m_s=vel_m_s,
-                            approach_duration_s=cfg.approach_duration_s,
-                            crossing_speed_m_s=cfg.approach_speed_m_s, d_min_m=cfg.traverse_lead_m,
-                            body=self.body)
+        return MissionRequest(tuple(pos_m.tolist()), tuple(vel_m_s.tolist()), gap, self.lab,
+                              cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m, self.body)
 
     def _mission_progress(self, now_s: float) -> None:
         assert self.plan is not None
