@@ -122,6 +122,7 @@ def test_the_fc_flies_the_inertia_it_is_tuned_for(tmp_path: Path) -> None:
     import numpy as np
 
     from emulator.fc.inner_loop import InnerLoop
+    from emulator.fc.tuning import fc_gains
     from emulator.physics.native import NativeBackend
 
     p = load_profile("n3_tx2")
@@ -131,8 +132,9 @@ def test_the_fc_flies_the_inertia_it_is_tuned_for(tmp_path: Path) -> None:
     assert wrong.with_changes(fc_inertia_kgm2=None) == p
     # the FC asks for the torque its inertia needs: a quarter-size belief gives a smaller roll torque
     q, w = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
-    right = InnerLoop(p).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
-    low = InnerLoop(wrong).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
+    right = InnerLoop(p, fc_gains(p).inner).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
+    low = InnerLoop(wrong, fc_gains(wrong).inner).update(q, w, 0.3, 0.0, math.pi / 2, 8.8).copy()
+    assert fc_gains(wrong) == fc_gains(p)  # the same tuning rule: only the torque it asks for differs
     assert np.ptp(low) < 0.5 * np.ptp(right)
     assert NativeBackend(wrong)._params.tolist() == NativeBackend(p)._params.tolist()  # the airframe
     shipped = Path(__file__).parent.parent / "scenarios" / "vehicles" / "n3_tx2_fc_inertia_low.yaml"

@@ -11,6 +11,7 @@ from hil.link.clock import SimClock
 from hil.link.memory import MemoryTransport
 from hil.runner.checks import Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
+from hil.runner.flight_quality import measure
 from hil.runner.lockstep import run_lockstep
 from hil.runner.onboard_side import InProcessOnboard, onboard_options, program_config
 from hil.scenario import loads_scenarios
@@ -32,6 +33,7 @@ def _observations(emu: EmulatorSide, **overrides) -> Observations:
         collision_time_s=None, min_clearance_m=None, min_clearance_time_s=None, attitude_error_deg=None,
         max_outside_lab_m=rec.max_outside_lab_m, failsafe_states=(), onboard_abort_s=None,
         hover_point_m=None, columns=cols, link={}, nonfinite_state_s=emu.diverged_s,
+        quality=measure(cols, []),
     )
     fields.update(overrides)
     return Observations(**fields)

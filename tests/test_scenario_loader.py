@@ -287,6 +287,7 @@ expect:
     command_delivered_fraction_min: 0.95
     mocap_rate_hz_min: 150
     command_rate_hz_min: 40
+  realtime_max_late_ms: 15
   quality:
     heading_error_deg: {held: 2, commanded: 10}
     attitude_tracking_deg: 10

@@ -130,8 +130,14 @@ def test_heavier_inertia_and_a_0p08_s_motor_flies_the_30_deg_scenario(tmp_path):
     path = write_vehicle(tmp_path, slow, control_lead_s=0.14)
     s = for_vehicle(scenario(30.0, 2.0), str(path))
     r, tracking = fly(s, tmp_path)
-    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    checks = {c.name: c for c in r.checks}
+    mission = ("crosses_gap", "collision", "recovery", "stays_in_lab", "failsafe", "onboard_abort")
+    assert all(checks[n].passed for n in mission), [f"{c.name}: {c.observed}" for c in r.failed_checks]
     assert crossing_offset_m(r, s) < 0.05
+    # it flies the mission, and the flight-quality checks say how sluggishly: its attitude trails the
+    # command by more than the default allows (19 deg), where the F450 as built stays within it
+    quality = r.summary["flight_quality"]
+    assert not checks["attitude_tracking_deg"].passed and quality["attitude_tracking_deg"]["value"] > 15.0
     print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}")
 
 

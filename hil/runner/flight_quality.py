@@ -5,8 +5,9 @@ time at thrust saturation and settling after each manoeuvre, each with its worst
 - Heading: the measured heading against the one the FC steers to (``yaw_sp_deg``), apart for the
   heading it holds itself (hold, hover, land: ``held``) and the offboard setpoints' (``commanded``).
 - Attitude tracking (roll, pitch, in offboard): the measured attitude against the command passed through
-  the FC's nominal attitude response, a first-order lag of ``ATTITUDE_LAG_S`` (the emulated N3 answers a
-  20 deg roll step with an equivalent lag of about 0.09 s): what remains is what a healthy loop would not
+  the FC's nominal attitude response, a first-order lag of 1 / its attitude loop's gain (the runner
+  passes the vehicle's; `ATTITUDE_LAG_S` for the n3_tx2, whose emulated N3 answers a 20 deg roll step
+  with an equivalent lag of about 0.09 s): what remains is what a healthy loop would not
   show (overshoot, ringing, a sluggish or saturated loop), not the lag every FC has.
 - Position against the plan: the plan is derived again, here, from the inputs the program's ``plan``
   event records (`MissionRequest`), so the reference is the one the program flew without sending it every
@@ -29,7 +30,7 @@ import numpy as np
 
 from policies.gap_planning import MissionPlan, MissionRequest, Segment
 
-ATTITUDE_LAG_S = 0.09  # the emulated FC's nominal attitude response, as a first-order lag (s)
+ATTITUDE_LAG_S = 0.09  # the n3_tx2's nominal attitude response, a first-order lag (s): 1 / its 11 /s loop
 SATURATED_PCT = 99.9  # a motor command at or above this (% of full throttle) is saturated
 SETTLE_BAND_M = 0.1  # settled: within this of the manoeuvre's end point (m)
 OFFBOARD_CODE = 2  # `recorder.FC_STATE_CODES["offboard"]`
@@ -78,8 +79,10 @@ class FlightQuality:
         }
 
 
-def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]]) -> FlightQuality:
-    """The flight-quality figures of a run's columns (`recorder.COLUMNS`) and onboard events."""
+def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]],
+            attitude_lag_s: float = ATTITUDE_LAG_S) -> FlightQuality:
+    """The flight-quality figures of a run's columns (`recorder.COLUMNS`) and onboard events;
+    ``attitude_lag_s`` is the FC's nominal attitude response (s): 1 / its attitude loop's gain."""
     t = np.asarray(cols["t_s"], dtype=float)
     pos = np.column_stack([cols["pos_m_x"], cols["pos_m_y"], cols["pos_m_z"]])
     offboard = np.asarray(cols["fc_state"]) == OFFBOARD_CODE
@@ -103,7 +106,7 @@ def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]])
         )
     return FlightQuality(
         heading_error_deg=heading_errors(t, cols["yaw_deg"], cols["yaw_sp_deg"], offboard),
-        attitude_tracking_deg=attitude_tracking(t, cols, offboard),
+        attitude_tracking_deg=attitude_tracking(t, cols, offboard, attitude_lag_s),
         position_error_m={}
         if plan is None or t_plan is None
         else position_errors(t, pos, flown, plan, t_plan, t_end),
@@ -122,20 +125,23 @@ def heading_errors(
     return {"held": _worst(t[~offboard], err[~offboard]), "commanded": _worst(t[offboard], err[offboard])}
 
 
-def attitude_tracking(t: np.ndarray, cols: Mapping[str, np.ndarray], offboard: np.ndarray) -> Figure:
-    """Largest roll or pitch error (deg) in offboard against the command through `ATTITUDE_LAG_S`."""
+def attitude_tracking(t: np.ndarray, cols: Mapping[str, np.ndarray], offboard: np.ndarray,
+                      lag_s: float = ATTITUDE_LAG_S) -> Figure:
+    """Largest roll or pitch error (deg) in offboard against the command through a first-order lag of
+    ``lag_s`` (s)."""
     worst = NONE
     for axis in ("roll", "pitch"):
-        ref = lagged_command(t, cols[f"{axis}_cmd_deg"], cols[f"{axis}_deg"], offboard)
+        ref = lagged_command(t, cols[f"{axis}_cmd_deg"], cols[f"{axis}_deg"], offboard, lag_s)
         f = _worst(t, np.abs(np.asarray(cols[f"{axis}_deg"]) - ref))
         if f.value is not None and (worst.value is None or f.value > worst.value):
             worst = f
     return worst
 
 
-def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active: np.ndarray) -> np.ndarray:
-    """The command ``cmd`` through a first-order lag of `ATTITUDE_LAG_S` (the command held between
-    samples), started from the measured value where ``active`` begins; NaN where not ``active``."""
+def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active: np.ndarray,
+                   lag_s: float = ATTITUDE_LAG_S) -> np.ndarray:
+    """The command ``cmd`` through a first-order lag of ``lag_s`` (s; the command held between samples),
+    started from the measured value where ``active`` begins; NaN where not ``active``."""
     out = np.full(len(t), np.nan)
     ts, c, m, on = t.tolist(), np.asarray(cmd).tolist(), np.asarray(measured).tolist(), active.tolist()
     r = math.nan
@@ -146,7 +152,7 @@ def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active:
         if not math.isfinite(r):
             r = m[i]
         else:
-            a = math.exp(-(ts[i] - ts[i - 1]) / ATTITUDE_LAG_S)
+            a = math.exp(-(ts[i] - ts[i - 1]) / lag_s)
             r = c[i - 1] + (r - c[i - 1]) * a
         out[i] = r
     return out

@@ -280,7 +280,8 @@ def _finish(
         hover_point_m=hover,
         columns=cols,
         link={k: links["summary"][k] for k in links["summary"]},
-        quality=measure(cols, onboard_events),
+        # (the FC's attitude response, as the vehicle's derived loop makes it: 1 / its roll gain)
+        quality=measure(cols, onboard_events, 1.0 / emu.vehicle.fc.gains.inner.attitude_p_per_s[0]),
         nonfinite_state_s=emu.diverged_s,  # (the recorder has been flushed by `columns`)
         lockstep=not realtime,
         realtime=loop.realtime,
