@@ -153,9 +153,10 @@ class LabVolume:
         object.__setattr__(self, "max_m", hi)
 
     def contains(self, pos_m: object, margin_m: float = 0.0) -> bool:
-        p = np.asarray(pos_m, dtype=float)
-        lo, hi = np.array(self.min_m) + margin_m, np.array(self.max_m) - margin_m
-        return bool(np.all(p >= lo) and np.all(p <= hi))
+        """Whether the point (m) is at least ``margin_m`` inside every face."""
+        p = pos_m.tolist() if isinstance(pos_m, np.ndarray) else pos_m
+        return all(lo + margin_m <= x <= hi - margin_m
+                   for x, lo, hi in zip(p, self.min_m, self.max_m, strict=True))  # type: ignore[call-overload]
 
     def half_spaces(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The six (point, inward normal) pairs bounding the box."""
@@ -372,7 +373,7 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
     limits = limits or VehicleLimits()
     start = time.perf_counter()
     hover = _vec3("hover_m", hover_m)
-    if not _inside(hover, lab, margin_m):
+    if not lab.contains(hover, margin_m):
         raise PlanningError(f"hover point {np.asarray(hover).round(3).tolist()} is outside the lab")
     p0, v0, a0 = _vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2)
     durations = np.asarray(durations_s, dtype=float)
@@ -393,17 +394,10 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
                         "the lab and within the thrust and body-rate limits")
 
 
-def _inside(p: Vec3, lab: LabVolume, margin_m: float) -> bool:
-    """``lab.contains(p, margin_m)`` for one point of plain floats."""
-    return all(lo + margin_m <= x <= hi - margin_m for x, lo, hi in zip(p, lab.min_m, lab.max_m, strict=True))
-
-
 @functools.lru_cache(maxsize=32)
 def _lab_planes(lab: LabVolume, threshold_m: float) -> tuple[Plane, ...]:
-    """The lab's six walls (``lab.half_spaces()``, in its order) as planes passed at ``threshold_m``."""
-    eye = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    return (tuple(Plane(lab.min_m, e, threshold_m) for e in eye)
-            + tuple(Plane(lab.max_m, (-e[0], -e[1], -e[2]), threshold_m) for e in eye))
+    """The lab's six walls (``lab.half_spaces()``) as planes passed at ``threshold_m``."""
+    return tuple(Plane(tuple(p.tolist()), tuple(n.tolist()), threshold_m) for p, n in lab.half_spaces())
 
 
 class Segment(StrEnum):
