@@ -8,13 +8,13 @@ taken in the same run: the machines are shared and noisy.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import pkgutil
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+
+from hil.link.registry import Registry
 
 
 @dataclass(frozen=True)
@@ -27,20 +27,22 @@ class BenchRow:
     note: str = ""
 
 
+#: the bench groups: one module of `hil.benches` each, measured by its ``collect``
+BENCHES = Registry("bench group", package="hil.benches", attr="collect")
+
+
 def bench_modules() -> list[str]:
     """Names of the bench groups (modules of hil.benches), in a stable order."""
-    import hil.benches
-
-    return sorted(m.name for m in pkgutil.iter_modules(hil.benches.__path__) if not m.name.startswith("_"))
+    return BENCHES.names()
 
 
 def run_benches(groups: Iterable[str], quick: bool, progress: Callable[[str], None]) -> Iterator[BenchRow]:
     """Run the named groups, yielding rows as they are measured."""
     for group in groups:
-        module = importlib.import_module(f"hil.benches.{group}")
+        collect = BENCHES.load(group)
         progress(f"bench {group} ...")
         start = time.perf_counter()
-        yield from module.collect(quick)
+        yield from collect(quick)  # type: ignore[operator]
         progress(f"bench {group} done in {time.perf_counter() - start:.1f} s")
 
 

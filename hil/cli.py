@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import pkgutil
 import sys
 
 import hil
-import hil.commands
+from hil.bench import register as register_bench
+from hil.link.registry import Registry
+
+#: the subcommands: one module of `hil.commands` each, added to the parser by its ``register``
+COMMANDS = Registry("command", package="hil.commands", attr="register")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -17,13 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"crossgap-hil {hil.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = ["hil.bench"] + [
-        f"hil.commands.{m.name}"
-        for m in pkgutil.iter_modules(hil.commands.__path__)
-        if not m.name.startswith("_")
-    ]
-    for name in sorted(modules):
-        importlib.import_module(name).register(sub)
+    register_bench(sub)
+    for name in COMMANDS.names():
+        COMMANDS.load(name)(sub)  # type: ignore[operator]
     return parser
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -55,30 +56,11 @@ def expert_command_batch(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref
     holding a vehicle must not send them; ``ExpertController.command`` raises instead)."""
     if not (math.isfinite(mass_kg) and mass_kg > 0):
         raise ValueError("mass_kg must be positive")
-    e_p = np.clip(np.asarray(pos_ref_m, float) - np.asarray(pos_m, float), -gains.max_pos_err_m,
-                  gains.max_pos_err_m)
-    e_v = np.clip(np.asarray(vel_ref_m_s, float) - np.asarray(vel_m_s, float), -gains.max_vel_err_m_s,
-                  gains.max_vel_err_m_s)
-    kp, kv = np.asarray(gains.kp), np.asarray(gains.kv)
-    acc_cmd = kv * (e_v + kp * e_p) + gains.ka * np.asarray(acc_ref_m_s2, float)
-    acc_cmd = acc_cmd + np.array([0.0, 0.0, GRAVITY_M_S2])
-    f_z = np.maximum(acc_cmd[..., 2], gains.min_thrust_frac * GRAVITY_M_S2)
-    horiz = acc_cmd[..., :2]
-    h_norm = np.linalg.norm(horiz, axis=-1)
-    h_max = f_z * math.tan(gains.tilt_max_rad)
+    axes = [tuple(np.asarray(x, float)[..., k] for k in range(3))
+            for x in (pos_ref_m, vel_ref_m_s, acc_ref_m_s2, pos_m, vel_m_s)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(h_norm > h_max, h_max / h_norm, 1.0)
-    force = mass_kg * np.concatenate([horiz * scale[..., None], f_z[..., None]], axis=-1)
-    thrust = np.linalg.norm(force, axis=-1)
-    z_b = force / thrust[..., None]
-    yaw = np.broadcast_to(np.asarray(yaw_ref_rad, float), thrust.shape)
-    # R_d = Rz(yaw) Ry(pitch) Rx(roll): rotate z_b back by -yaw, then z' = (cr sp, -sr, cr cp)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    zx = cy * z_b[..., 0] + sy * z_b[..., 1]
-    zy = -sy * z_b[..., 0] + cy * z_b[..., 1]
-    roll = np.arcsin(np.clip(-zy, -1.0, 1.0))
-    pitch = np.arctan2(zx, z_b[..., 2])
-    return roll, pitch, np.array(yaw), thrust
+        roll, pitch, thrust = _expert_law(*axes, np.asarray(yaw_ref_rad, float), mass_kg, gains, _ARRAYS)
+    return roll, pitch, np.array(np.broadcast_to(np.asarray(yaw_ref_rad, float), thrust.shape)), thrust
 
 
 class ExpertController:
@@ -115,7 +97,8 @@ class ExpertController:
                 vals.append((x, y, z))
         if not math.isfinite(yaw_ref_rad):
             raise ValueError("yaw_ref_rad must be finite")
-        return _expert_one(*vals, float(yaw_ref_rad), self.mass_kg, self.gains)
+        yaw = float(yaw_ref_rad)
+        return _new_command(*_expert_law(*vals, yaw, self.mass_kg, self.gains, _FLOATS), yaw)
 
 
 def _floats3(value: object) -> tuple[float, float, float]:
@@ -124,43 +107,63 @@ def _floats3(value: object) -> tuple[float, float, float]:
     return float(x), float(y), float(z)
 
 
-def _expert_one(p_ref: tuple[float, float, float], v_ref: tuple[float, float, float],
-                a_ref: tuple[float, float, float], p: tuple[float, float, float],
-                v: tuple[float, float, float], yaw: float, mass_kg: float,
-                gains: ExpertGains) -> AttitudeThrustCommand:
-    """`expert_command_batch` for one sample in plain floats (the same operations, no arrays)."""
+class _Floats:
+    """The operations of `_expert_law` on plain floats (one sample, the per-step path)."""
+
+    sqrt, sin, cos, asin, atan2, maximum = math.sqrt, math.sin, math.cos, math.asin, math.atan2, max
+
+    @staticmethod
+    def clip(x: float, limit: float) -> float:
+        return limit if x > limit else (-limit if x < -limit else x)
+
+    @staticmethod
+    def scale(norm: float, limit: float) -> float:
+        return limit / norm if norm > limit else 1.0
+
+
+class _Arrays:
+    """The operations of `_expert_law` on arrays (a batch)."""
+
+    sqrt, sin, cos, asin, atan2, maximum = np.sqrt, np.sin, np.cos, np.arcsin, np.arctan2, np.maximum
+
+    @staticmethod
+    def clip(x: np.ndarray, limit: float) -> np.ndarray:
+        return np.clip(x, -limit, limit)
+
+    @staticmethod
+    def scale(norm: np.ndarray, limit: np.ndarray) -> np.ndarray:
+        return np.where(norm > limit, limit / norm, 1.0)
+
+
+_FLOATS, _ARRAYS = _Floats(), _Arrays()
+_Vec = tuple[Any, Any, Any]  # x, y, z components: floats, or arrays of the batch shape
+
+
+def _expert_law(p_ref: _Vec, v_ref: _Vec, a_ref: _Vec, p: _Vec, v: _Vec, yaw: Any, mass_kg: float,
+                gains: ExpertGains, ops: _Floats | _Arrays) -> tuple[Any, Any, Any]:
+    """The expert law (module docstring) on x, y, z components: roll, pitch (rad) and thrust (N)."""
     mp, mv = gains.max_pos_err_m, gains.max_vel_err_m_s
     (kpx, kpy, kpz), (kvx, kvy, kvz), ka = gains.kp, gains.kv, gains.ka
-    # e = clip(ref - measured, +-limit), written as comparisons (the inputs are finite)
-    ex, ey, ez = p_ref[0] - p[0], p_ref[1] - p[1], p_ref[2] - p[2]
-    ex = mp if ex > mp else (-mp if ex < -mp else ex)
-    ey = mp if ey > mp else (-mp if ey < -mp else ey)
-    ez = mp if ez > mp else (-mp if ez < -mp else ez)
-    fx, fy, fz = v_ref[0] - v[0], v_ref[1] - v[1], v_ref[2] - v[2]
-    fx = mv if fx > mv else (-mv if fx < -mv else fx)
-    fy = mv if fy > mv else (-mv if fy < -mv else fy)
-    fz = mv if fz > mv else (-mv if fz < -mv else fz)
+    clip = ops.clip
+    ex, ey, ez = clip(p_ref[0] - p[0], mp), clip(p_ref[1] - p[1], mp), clip(p_ref[2] - p[2], mp)
+    fx, fy, fz = clip(v_ref[0] - v[0], mv), clip(v_ref[1] - v[1], mv), clip(v_ref[2] - v[2], mv)
     hx = kvx * (fx + kpx * ex) + ka * a_ref[0] + 0.0
     hy = kvy * (fy + kpy * ey) + ka * a_ref[1] + 0.0
-    az = kvz * (fz + kpz * ez) + ka * a_ref[2]
-    f_z = max(az + GRAVITY_M_S2, gains.min_thrust_frac * GRAVITY_M_S2)
-    h_norm = math.sqrt(hx * hx + hy * hy)
-    h_max = f_z * math.tan(gains.tilt_max_rad)
-    if h_norm > h_max:
-        scale = h_max / h_norm
-        hx, hy = hx * scale, hy * scale
-    fx, fy, fz = mass_kg * hx, mass_kg * hy, mass_kg * f_z
-    thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
+    f_z = ops.maximum(kvz * (fz + kpz * ez) + ka * a_ref[2] + GRAVITY_M_S2,
+                      gains.min_thrust_frac * GRAVITY_M_S2)
+    # F's horizontal part scaled down to the tilt limit, F_z kept
+    scale = ops.scale(ops.sqrt(hx * hx + hy * hy), f_z * math.tan(gains.tilt_max_rad))
+    fx, fy, fz = mass_kg * (hx * scale), mass_kg * (hy * scale), mass_kg * f_z
+    thrust = ops.sqrt(fx * fx + fy * fy + fz * fz)
     zx_w, zy_w, zz = fx / thrust, fy / thrust, fz / thrust
-    cy, sy = math.cos(yaw), math.sin(yaw)
+    # R_d = Rz(yaw) Ry(pitch) Rx(roll): rotate z_b back by -yaw, then z' = (cr sp, -sr, cr cp)
+    cy, sy = ops.cos(yaw), ops.sin(yaw)
     zx = cy * zx_w + sy * zy_w
     zy = -sy * zx_w + cy * zy_w
-    roll = math.asin(min(max(-zy, -1.0), 1.0))
-    pitch = math.atan2(zx, zz)
-    return _new_command(roll, pitch, yaw, thrust)
+    return ops.asin(clip(-zy, 1.0)), ops.atan2(zx, zz), thrust
 
 
-def _new_command(roll_rad: float, pitch_rad: float, yaw_rad: float, thrust_n: float) -> AttitudeThrustCommand:
+def _new_command(roll_rad: float, pitch_rad: float, thrust_n: float, yaw_rad: float) -> AttitudeThrustCommand:
     """``AttitudeThrustCommand(roll_rad, pitch_rad, yaw_rad, thrust_n)`` made without the frozen
     dataclass's per-field __setattr__ calls (once per control step): the same object, built faster."""
     cmd = object.__new__(AttitudeThrustCommand)

@@ -8,8 +8,6 @@ transpose, world -> body). All functions accept a leading batch dimension.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 GRAVITY_M_S2 = 9.8  # the paper's release uses 9.8
@@ -49,34 +47,12 @@ def euler_to_matrix(roll_rad: np.ndarray | float, pitch_rad: np.ndarray | float,
     return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
 
 
-def matrix_to_euler(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ZYX Euler angles (roll, pitch, yaw) in rad of body -> world rotations of shape (..., 3, 3)."""
-    r = np.asarray(rot, dtype=float)
-    if r.shape == (3, 3):  # one matrix: plain floats (the per-tick path)
-        (r00, _, _), (r10, _, _), (r20, r21, r22) = r.tolist()
-        return (math.atan2(r21, r22), math.asin(min(max(-r20, -1.0), 1.0)),  # type: ignore[return-value]
-                math.atan2(r10, r00))
-    pitch = np.arcsin(np.clip(-r[..., 2, 0], -1.0, 1.0))
-    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
-    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
-    return roll, pitch, yaw
-
-
 def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """Unit quaternion(s) (w, x, y, z), shape (..., 4), to rotation matrices (..., 3, 3).
 
     The quaternion is normalised first; a zero quaternion raises ValueError.
     """
     q = np.asarray(q_wxyz, dtype=float)
-    if q.shape == (4,):  # one quaternion: plain floats (the per-tick path)
-        w, x, y, z = q.tolist()
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        if not (math.isfinite(n) and n >= 1e-12):
-            raise ValueError("quaternion must be finite and non-zero")
-        w, x, y, z = w / n, x / n, y / n, z / n
-        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
     if q.shape[-1] != 4:
         raise ValueError(f"quaternion must have 4 components (w, x, y, z), got shape {q.shape}")
     norm = np.linalg.norm(q, axis=-1, keepdims=True)

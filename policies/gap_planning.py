@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
-from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, solve, solve_floats
+from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, solve_floats
 
 Vec3 = tuple[float, float, float]
 
@@ -153,9 +153,10 @@ class LabVolume:
         object.__setattr__(self, "max_m", hi)
 
     def contains(self, pos_m: object, margin_m: float = 0.0) -> bool:
-        p = np.asarray(pos_m, dtype=float)
-        lo, hi = np.array(self.min_m) + margin_m, np.array(self.max_m) - margin_m
-        return bool(np.all(p >= lo) and np.all(p <= hi))
+        """Whether the point (m) is at least ``margin_m`` inside every face."""
+        p = pos_m.tolist() if isinstance(pos_m, np.ndarray) else pos_m
+        return all(lo + margin_m <= x <= hi - margin_m
+                   for x, lo, hi in zip(p, self.min_m, self.max_m, strict=True))  # type: ignore[call-overload]
 
     def half_spaces(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The six (point, inward normal) pairs bounding the box."""
@@ -178,11 +179,6 @@ class VehicleLimits:
         if not (0 < self.f_min_m_s2 < self.f_max_m_s2 and self.max_body_rate_rad_s > 0
                 and self.max_speed_m_s > 0 and 0 < self.max_tilt_rad < math.pi / 2 and self.min_dt_s > 0):
             raise ValueError(f"inconsistent vehicle limits: {self}")
-
-    @classmethod
-    def from_vehicle(cls, mass_kg: float, max_thrust_n: float, **kw: float) -> VehicleLimits:
-        """Limits with f_max = max_thrust_n / mass_kg (other fields as keywords)."""
-        return cls(f_max_m_s2=max_thrust_n / mass_kg, **kw)
 
 
 @dataclass(frozen=True)
@@ -234,13 +230,11 @@ class Traverse:
 
     def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position (m), velocity (m/s), acceleration (m/s^2) at ``t`` (s) from the traverse start."""
-        tau = t - self.t_c_s
-        a = np.array(self.acc_m_s2)
-        v_c = self.crossing_speed_m_s * np.array(self.direction)
-        return np.array(self.gap_centre_m) + v_c * tau + a * tau * tau / 2, v_c + a * tau, a
+        p, v, a = self.state_tuples(t)
+        return np.array(p), np.array(v), np.array(a)
 
     def state_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3]:
-        """`state` as (x, y, z) tuples of plain floats (the same operations and numbers)."""
+        """`state` as (x, y, z) tuples of plain floats (the per-step path)."""
         tau = float(t) - self.t_c_s
         s = self.crossing_speed_m_s
         (cx, cy, cz), (ux, uy, uz), (ax, ay, az) = self.gap_centre_m, self.direction, self.acc_m_s2
@@ -379,16 +373,13 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
     limits = limits or VehicleLimits()
     start = time.perf_counter()
     hover = _vec3("hover_m", hover_m)
-    if not _inside(hover, lab, margin_m):
+    if not lab.contains(hover, margin_m):
         raise PlanningError(f"hover point {np.asarray(hover).round(3).tolist()} is outside the lab")
     p0, v0, a0 = _vec3("pos_m", pos_m), _vec3("vel_m_s", vel_m_s), _vec3("acc_m_s2", acc_m_s2)
     durations = np.asarray(durations_s, dtype=float)
-    if durations.ndim != 1:
-        return _search_recovery_batched(p0, v0, a0, hover, lab, limits, wall, durations_s, margin_m, start,
-                                        wall_margin_m)
     T_all = durations.tolist()
-    if not all(math.isfinite(T) and T > 0 for T in T_all):
-        raise ValueError("T must be finite and positive")
+    if durations.ndim != 1 or not all(math.isfinite(T) and T > 0 for T in T_all):
+        raise ValueError(f"durations_s must be one row of finite and positive durations (s), got {T_all}")
     planes = list(_lab_planes(lab, float(margin_m) - 1e-9))
     if wall is not None:
         planes.append(Plane(_vec3("wall point", wall[0]), _vec3("wall normal", wall[1]),
@@ -403,48 +394,10 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
                         "the lab and within the thrust and body-rate limits")
 
 
-def _inside(p: Vec3, lab: LabVolume, margin_m: float) -> bool:
-    """``lab.contains(p, margin_m)`` for one point of plain floats."""
-    return all(lo + margin_m <= x <= hi - margin_m for x, lo, hi in zip(p, lab.min_m, lab.max_m, strict=True))
-
-
 @functools.lru_cache(maxsize=32)
 def _lab_planes(lab: LabVolume, threshold_m: float) -> tuple[Plane, ...]:
-    """The lab's six walls (``lab.half_spaces()``, in its order) as planes passed at ``threshold_m``."""
-    eye = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    return (tuple(Plane(lab.min_m, e, threshold_m) for e in eye)
-            + tuple(Plane(lab.max_m, (-e[0], -e[1], -e[2]), threshold_m) for e in eye))
-
-
-def _search_recovery_batched(p0: Vec3, v0: Vec3, a0: Vec3, hover: Vec3, lab: LabVolume, limits: VehicleLimits,
-                             wall: tuple[object, object] | None, durations_s: object, margin_m: float,
-                             start: float, wall_margin_m: float = 0.0) -> RecoveryResult:
-    """`search_recovery` with every duration solved and tested as one numpy batch (for durations not 1-D)."""
-    hover_a = np.asarray(hover)
-    traj = solve(p0, v0, a0, hover_a, np.zeros(3), np.zeros(3), np.asarray(durations_s, dtype=float))
-    # every plane in one batched call: rows are the lab's six walls (then the gap's wall), columns durations
-    planes = lab.half_spaces()
-    margins = np.array([margin_m] * len(planes) + [wall_margin_m] * (wall is not None))
-    if wall is not None:
-        planes.append((_vec3("wall point", wall[0]), _vec3("wall normal", wall[1])))
-    points, normals = np.array([p for p, _ in planes]), np.array([n for _, n in planes])
-    dist = traj.min_plane_distance(points[:, None, :], normals[:, None, :])
-    ok = np.all(dist >= margins[:, None] - 1e-9, axis=0)
-    candidates = np.flatnonzero(ok)
-    if candidates.size:
-        sub = solve(traj.p0[candidates], traj.v0[candidates], traj.a0[candidates], hover_a, np.zeros(3),
-                    np.zeros(3), traj.T[candidates])
-        feas = sub.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
-                                  limits.min_dt_s)
-        good = candidates[feas == Feasibility.FEASIBLE]
-    else:
-        good = candidates
-    if not good.size:
-        raise PlanningError(f"no recovery duration in {np.asarray(durations_s).round(2).tolist()} s stays in "
-                            "the lab and within the thrust and body-rate limits")
-    i = int(good[0])
-    best = solve(traj.p0[i], traj.v0[i], traj.a0[i], hover_a, np.zeros(3), np.zeros(3), traj.T[i])
-    return RecoveryResult(best, float(traj.T[i]), i + 1, time.perf_counter() - start)
+    """The lab's six walls (``lab.half_spaces()``) as planes passed at ``threshold_m``."""
+    return tuple(Plane(tuple(p.tolist()), tuple(n.tolist()), threshold_m) for p, n in lab.half_spaces())
 
 
 class Segment(StrEnum):

@@ -19,9 +19,9 @@ Feasibility tests after the same paper:
 
 Shapes: positions, velocities and accelerations are (..., 3), durations (...); they broadcast.
 
-A few trajectories at a time (the gap planner's) are cheaper in plain floats than in numpy, where every
-call on a 3-vector costs microseconds: ``solve_floats`` / ``FloatTrajectory`` and the small-batch path of
-``input_feasible`` repeat the numpy code's operations in its order (the same numbers and verdicts);
+The input-feasibility recursion runs in plain floats, one trajectory at a time (the planner tests a few
+at once, where numpy calls on 3-vectors cost microseconds each). The planner's single trajectories are
+``FloatTrajectory`` objects from ``solve_floats`` (the numbers of ``solve``, in plain floats);
 ``FloatTrajectory.planes_ok`` decides most half-space tests from Bernstein bounds and leaves the rest to
 the exact ``min_plane_distance``.
 """
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from enum import IntEnum
+from typing import TypeVar
 
 import numpy as np
 
@@ -66,6 +67,9 @@ GAINS: dict[tuple[bool, bool, bool], np.ndarray] = {
 }
 
 
+_Num = TypeVar("_Num", float, np.ndarray)
+
+
 def _vec3(name: str, value: object) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.ndim == 0 or arr.shape[-1] != 3:
@@ -73,6 +77,15 @@ def _vec3(name: str, value: object) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite")
     return arr
+
+
+def _poly_state(p0: _Num, v0: _Num, a0: _Num, al: _Num, be: _Num, ga: _Num,
+                t1: _Num) -> tuple[_Num, _Num, _Num]:
+    """Position, velocity and acceleration of the quintic at ``t1``: one formula for arrays and floats."""
+    t2, t3 = t1 * t1, t1 * t1 * t1
+    return (p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120,
+            v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24,
+            a0 + ga * t1 + be * t2 / 2 + al * t3 / 6)
 
 
 class Trajectory:
@@ -116,23 +129,12 @@ class Trajectory:
         outputs (..., 3)), or an array of the batch shape plus a trailing sample axis of length S (S
         times per trajectory; outputs (..., S, 3)). The polynomial is evaluated as is outside [0, T].
         """
-        if not self.batch_shape and t.__class__ is float:
-            return self._state_one(t)
         t1, (p0, v0, a0, al, be, ga) = self._coeffs_for(t)
-        t2, t3 = t1 * t1, t1 * t1 * t1
-        p = p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120
-        v = v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24
-        a = a0 + ga * t1 + be * t2 / 2 + al * t3 / 6
-        return p, v, a
-
-    def _state_one(self, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`state` of a single trajectory at one time, in plain floats (the same operations)."""
-        p, v, a = self.state_tuples(t1)
-        return np.array(p), np.array(v), np.array(a)
+        return _poly_state(p0, v0, a0, al, be, ga, t1)
 
     def state_tuples(self, t: float) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
-        """`state` of a single trajectory (empty batch shape) at one time ``t`` (s) as plain floats:
-        position (m), velocity (m/s), acceleration (m/s^2), each an (x, y, z) tuple; the same numbers."""
+        """`state` of a single trajectory (empty batch shape) at one time ``t`` (s) in plain floats (the
+        per-step path): position (m), velocity (m/s), acceleration (m/s^2), each an (x, y, z) tuple."""
         coeffs = self.__dict__.get("_floats")
         if coeffs is None:
             if self.batch_shape:
@@ -141,13 +143,8 @@ class Trajectory:
                 zip(*(c.tolist() for c in (self.p0, self.v0, self.a0, self.alpha, self.beta, self.gamma)),
                     strict=True))
         t1 = float(t)
-        t2, t3 = t1 * t1, t1 * t1 * t1
-        p, v, a = [], [], []
-        for p0, v0, a0, al, be, ga in coeffs:
-            p.append(p0 + v0 * t1 + a0 * t2 / 2 + ga * t3 / 6 + be * t2 * t2 / 24 + al * t3 * t2 / 120)
-            v.append(v0 + a0 * t1 + ga * t2 / 2 + be * t3 / 6 + al * t2 * t2 / 24)
-            a.append(a0 + ga * t1 + be * t2 / 2 + al * t3 / 6)
-        return tuple(p), tuple(v), tuple(a)
+        x, y, z = (_poly_state(*c, t1) for c in coeffs)
+        return (x[0], y[0], z[0]), (x[1], y[1], z[1]), (x[2], y[2], z[2])
 
     def jerk(self, t: object) -> np.ndarray:
         """Jerk (m/s^3) at ``t`` (s); same shape rules as ``state``."""
@@ -171,52 +168,9 @@ class Trajectory:
         ``w_max_rad_s``: roll/pitch body-rate limit; ``min_dt``: smallest interval (s) before the
         test gives up on it (INDETERMINABLE).
         """
-        if not (0 < f_min_m_s2 < f_max_m_s2 and w_max_rad_s > 0 and min_dt > 0):
-            raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
-        if self.T.size <= FLOAT_PATH_MAX_BATCH:
-            axes = _axis_floats(self)
-            if axes is not None:  # a few trajectories: the same recursion in plain floats, one at a time
-                codes = [_feasibility_floats(a, t, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
-                         for a, t in axes]
-                return np.array(codes, dtype=np.int8).reshape(self.batch_shape)
-        return self._input_feasible_numpy(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
-
-    def _input_feasible_numpy(self, f_min_m_s2: float, f_max_m_s2: float, w_max_rad_s: float,
-                              min_dt: float) -> np.ndarray:
-        """`input_feasible` vectorised over the batch (every trajectory's intervals of one depth at once)."""
-        flat = _FlatCoeffs(self)
-        n = flat.T.shape[0]
-        result = np.full(n, Feasibility.FEASIBLE, dtype=np.int8)
-        idx = np.arange(n)
-        t_lo = np.zeros(n)
-        t_hi = flat.T.copy()
-        bad = ~flat.point_ok(idx, t_lo, f_min_m_s2, f_max_m_s2, w_max_rad_s)
-        bad |= ~flat.point_ok(idx, t_hi, f_min_m_s2, f_max_m_s2, w_max_rad_s)
-        result[idx[bad]] = Feasibility.INFEASIBLE
-        while idx.size:
-            keep = result[idx] != Feasibility.INFEASIBLE
-            idx, t_lo, t_hi = idx[keep], t_lo[keep], t_hi[keep]
-            if not idx.size:
-                break
-            fsq_lo, fsq_hi, jsq_hi = flat.interval_bounds(idx, t_lo, t_hi)
-            infeasible = (fsq_lo > f_max_m_s2**2) | (fsq_hi < f_min_m_s2**2)
-            result[idx[infeasible]] = Feasibility.INFEASIBLE
-            thrust_ok = (fsq_hi <= f_max_m_s2**2) & (fsq_lo >= f_min_m_s2**2)
-            done = thrust_ok & (jsq_hi <= w_max_rad_s**2 * fsq_lo)
-            undecided = ~infeasible & ~done
-            half = (t_hi - t_lo) / 2
-            too_small = undecided & (half < min_dt)
-            tag = idx[too_small]
-            result[tag] = np.where(result[tag] == Feasibility.INFEASIBLE, Feasibility.INFEASIBLE,
-                                   Feasibility.INDETERMINABLE)
-            split = undecided & ~too_small
-            idx, t_lo, t_hi = idx[split], t_lo[split], t_hi[split]
-            t_mid = (t_lo + t_hi) / 2
-            bad = ~flat.point_ok(idx, t_mid, f_min_m_s2, f_max_m_s2, w_max_rad_s)
-            result[idx[bad]] = Feasibility.INFEASIBLE
-            idx = np.concatenate([idx, idx])
-            t_lo, t_hi = np.concatenate([t_lo, t_mid]), np.concatenate([t_mid, t_hi])
-        return result.reshape(self.batch_shape)
+        _check_limits(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
+        return np.array([_verdict(axes, T, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
+                         for axes, T in _axis_floats(self)], dtype=np.int8).reshape(self.batch_shape)
 
     def min_plane_distance(self, point: object, normal: object) -> np.ndarray:
         """Smallest signed distance (m) over [0, T] to the plane through ``point`` with ``normal``.
@@ -265,66 +219,6 @@ class Trajectory:
         return self.min_plane_distance(point, normal) >= margin_m - 1e-9
 
 
-def _finite_or_zero(x: np.ndarray) -> np.ndarray:
-    """``x`` with NaN and +-inf replaced by 0 (what ``np.nan_to_num(x, nan=0, posinf=0, neginf=0)``
-    gives, in one ufunc and one select)."""
-    return np.where(np.isfinite(x), x, 0.0)
-
-
-class _FlatCoeffs:
-    """Coefficients flattened to (N, 3) for the feasibility recursion."""
-
-    def __init__(self, traj: Trajectory) -> None:
-        shape = (*traj.batch_shape, 3)
-        flat = lambda c: np.broadcast_to(c, shape).reshape(-1, 3)  # noqa: E731
-        self.a0 = flat(traj.a0) - GRAVITY_VEC_M_S2  # thrust acceleration offset: f = a - g
-        self.al, self.be, self.ga = flat(traj.alpha), flat(traj.beta), flat(traj.gamma)
-        self.T = traj.T.reshape(-1)
-
-    def thrust_acc(self, idx: np.ndarray, t: np.ndarray) -> np.ndarray:
-        t = t[..., None]
-        return self.a0[idx] + self.ga[idx] * t + self.be[idx] * t * t / 2 + self.al[idx] * t**3 / 6
-
-    def jerk(self, idx: np.ndarray, t: np.ndarray) -> np.ndarray:
-        t = t[..., None]
-        return self.ga[idx] + self.be[idx] * t + self.al[idx] * t * t / 2
-
-    def point_ok(self, idx: np.ndarray, t: np.ndarray, f_min: float, f_max: float,
-                 w_max: float) -> np.ndarray:
-        """Exact thrust and roll/pitch-rate check at single times."""
-        f_vec = self.thrust_acc(idx, t)
-        f = np.linalg.norm(f_vec, axis=-1)
-        j = self.jerk(idx, t)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            z = f_vec / f[:, None]
-            j_perp = j - np.sum(j * z, axis=-1, keepdims=True) * z
-            rate = np.linalg.norm(j_perp, axis=-1) / f
-        return (f >= f_min) & (f <= f_max) & (rate <= w_max)
-
-    def interval_bounds(self, idx: np.ndarray, t_lo: np.ndarray,
-                        t_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Lower and upper bounds on f^2 and an upper bound on |j|^2 over each [t_lo, t_hi]."""
-        al, be, ga = self.al[idx], self.be[idx], self.ga[idx]
-        lo, hi = t_lo[:, None], t_hi[:, None]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            # roots of the jerk (acceleration extrema): al/2 t^2 + be t + ga = 0
-            disc = np.sqrt(be * be - 2 * al * ga)
-            r1 = np.where(al != 0, (-be + disc) / al, -ga / be)
-            r2 = np.where(al != 0, (-be - disc) / al, -ga / be)
-            r_snap = -be / al  # jerk extremum
-        cand = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
-                         np.clip(_finite_or_zero(r1), lo, hi),
-                         np.clip(_finite_or_zero(r2), lo, hi)], 0)
-        acc = self.a0[idx] + ga * cand + be * cand**2 / 2 + al * cand**3 / 6
-        a_min, a_max = acc.min(axis=0), acc.max(axis=0)
-        sq_hi = np.maximum(a_min**2, a_max**2)
-        sq_lo = np.where((a_min <= 0) & (a_max >= 0), 0.0, np.minimum(a_min**2, a_max**2))
-        jc = np.stack([np.broadcast_to(lo, al.shape), np.broadcast_to(hi, al.shape),
-                       np.clip(_finite_or_zero(r_snap), lo, hi)], 0)
-        jer = ga + be * jc + al * jc**2 / 2
-        return sq_lo.sum(-1), sq_hi.sum(-1), (np.abs(jer).max(axis=0) ** 2).sum(-1)
-
-
 def solve(p0: object, v0: object, a0: object, pf: object | None, vf: object | None, af: object | None,
           T: object) -> Trajectory:
     """Minimum-jerk trajectories from (p0, v0, a0) to the end state (pf, vf, af) in ``T`` seconds.
@@ -363,17 +257,13 @@ def solve(p0: object, v0: object, a0: object, pf: object | None, vf: object | No
     return Trajectory(np.array(p0a), np.array(v0a), np.array(a0a), alpha, beta, gamma, np.array(Ta))
 
 
-# --- plain-float paths for a few trajectories ------------------------------------------------------
+# --- plain-float paths ----------------------------------------------------------------------------
 # The planner solves and tests a handful of single trajectories, where each numpy call on a 3-vector
-# costs microseconds. The functions below repeat the numpy code's operations in plain floats, in the same
-# order, so they give the same numbers and the same verdicts. Two operations are left to numpy because
-# plain floats cannot repeat them bit for bit: the array power (numpy's SIMD pow can differ from C's pow
-# in the last bit) and the gain product (einsum's summation order); both are taken from numpy, batched
-# (`_cubes`, `solve_floats`). The sums over the three axes are numpy's left-to-right ((x + y) + z).
+# costs microseconds, so the feasibility test, `solve_floats` and `FloatTrajectory` work in plain floats.
+# Two operations are taken from numpy, batched, as the shipped plans were computed: the cube of a time
+# (`_cubes`; numpy's SIMD pow can differ from C's in the last bit) and the gain product of `solve_floats`
+# (einsum's summation order, the same numbers as `solve`). Sums over the three axes are ((x + y) + z).
 
-#: batches up to this many trajectories take the float recursion in `Trajectory.input_feasible`
-FLOAT_PATH_MAX_BATCH = 12
-_FLOAT_PATH_MAX_ABS = 1e30  # larger coefficients take the numpy path (no overflow in the float path)
 _GRAVITY = tuple(GRAVITY_VEC_M_S2.tolist())
 _GAIN_ALL_FIXED = GAINS[(True, True, True)]
 
@@ -386,44 +276,41 @@ def _cubes(times: list[float]) -> list[float]:
     return np.power(np.array(times, dtype=float), 3.0).tolist()
 
 
-def _axis_floats(traj: Trajectory) -> list[tuple[tuple[AxisCoeffs, ...], float]] | None:
-    """Per trajectory of the batch: (a0 - g, alpha, beta, gamma) per axis and T, as plain floats.
-
-    None where the float path would not repeat the numpy code: arrays not float64, a duration not
-    positive, or values large enough to overflow (the batch then takes the numpy path)."""
+def _axis_floats(traj: Trajectory) -> list[tuple[tuple[AxisCoeffs, ...], float]]:
+    """Per trajectory of the batch: (a0 - g, alpha, beta, gamma) per axis and T, as plain floats."""
     shape = (*traj.batch_shape, 3)
-    cols = []
-    for c in (traj.a0, traj.alpha, traj.beta, traj.gamma):
-        if c.dtype != np.float64:
-            return None
-        c = c if c.shape == shape else np.broadcast_to(c, shape)
-        cols.append(c.reshape(-1, 3).tolist())
-    if traj.T.dtype != np.float64:
-        return None
-    T = traj.T.reshape(-1).tolist()
-    limit = _FLOAT_PATH_MAX_ABS
-    out = []
-    for a0, al, be, ga, t in zip(*cols, T, strict=True):
-        if not (sum(map(abs, a0 + al + be + ga)) <= limit and 0 < t <= limit):  # NaN fails too
-            return None
-        out.append((tuple((a0[k] - _GRAVITY[k], al[k], be[k], ga[k]) for k in range(3)), t))
-    return out
+    cols = [np.broadcast_to(c, shape).reshape(-1, 3).tolist()
+            for c in (traj.a0, traj.alpha, traj.beta, traj.gamma)]
+    return [(tuple((a0[k] - _GRAVITY[k], al[k], be[k], ga[k]) for k in range(3)), t)
+            for a0, al, be, ga, t in zip(*cols, traj.T.reshape(-1).tolist(), strict=True)]
+
+
+def _check_limits(f_min: float, f_max: float, w_max: float, min_dt: float) -> None:
+    if not (0 < f_min < f_max and w_max > 0 and min_dt > 0):
+        raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
+
+
+def _verdict(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_max: float, w_max: float,
+             min_dt: float) -> int:
+    """The input-feasibility verdict of one trajectory; INFEASIBLE where a coefficient is not finite."""
+    if not math.isfinite(sum(map(abs, (*axes[0], *axes[1], *axes[2], T)))):
+        return Feasibility.INFEASIBLE
+    return _feasibility_floats(axes, T, f_min, f_max, w_max, min_dt)
 
 
 def _feasibility_floats(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_max: float, w_max: float,
                         min_dt: float) -> int:
-    """`Trajectory.input_feasible` for one trajectory in plain floats: the same verdict.
+    """Mueller et al.'s recursive input-feasibility test of one trajectory (`Trajectory.input_feasible`).
 
-    The interval tree is the numpy code's (halving at ``(lo + hi) / 2``); a trajectory's verdict does not
-    depend on the order its intervals are visited in (INFEASIBLE once any check fails, else
-    INDETERMINABLE once any interval is too small, else FEASIBLE), so one depth at a time, stopping at the
-    first failure, gives the batch's verdict. The bounds over an interval use the extrema of the
-    acceleration (roots of the jerk) and of the jerk (root of the snap); these roots are the same for
-    every interval, so their values are computed once, and the values at interval ends are cached.
+    Intervals are halved at ``(lo + hi) / 2``, one depth at a time; the verdict is INFEASIBLE once any
+    check fails, else INDETERMINABLE once any interval is too small, else FEASIBLE. The bounds over an
+    interval use the extrema of the acceleration (roots of the jerk) and of the jerk (root of the snap);
+    these roots are the same for every interval, so their values are computed once, and the values at
+    interval ends are cached.
     """
     fmax2, fmin2, w2 = f_max**2, f_min**2, w_max**2
-    # roots inside (0, T), as the numpy code's r1, r2 (acceleration) and r_snap (jerk); roots it zeroes
-    # (non-finite) or that fall outside an interval only repeat that interval's end values
+    # roots inside (0, T) of the jerk (acceleration extrema) and of the snap (jerk extremum); roots outside
+    # an interval only repeat that interval's end values
     acc_roots: list[list[float]] = []
     snap_roots: list[float | None] = []
     for _, al, be, ga in axes:
@@ -442,7 +329,7 @@ def _feasibility_floats(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_
     roots = [r for rs in acc_roots for r in rs]
     cubes = _cubes([0.0, T, *roots])
     cube_of = dict(zip([0.0, T, *roots], cubes, strict=True))
-    # bound-formula values at the roots (the numpy code's `acc` at cand = r and `jer` at jc = r_snap)
+    # the acceleration at its extrema and |jerk| at its extremum
     acc_root_vals = [[((a0 + ga * r) + (be * (r * r)) / 2) + (al * cube_of[r]) / 6 for r in rs]
                      for (a0, al, be, ga), rs in zip(axes, acc_roots, strict=True)]
     acc_root_pairs = [list(zip(rs, vs, strict=True)) for rs, vs in zip(acc_roots, acc_root_vals, strict=True)]
@@ -452,7 +339,7 @@ def _feasibility_floats(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_
     (x0, xl, xb, xg), (y0, yl, yb, yg), (z0, zl, zb, zg) = axes
 
     def point_ok(t: float, t3: float) -> bool:
-        """_FlatCoeffs.point_ok at one time: thrust_acc and jerk as written there."""
+        """Exact thrust and roll/pitch-rate check at one time ``t`` (s; ``t3`` = its cube)."""
         fx = ((x0 + xg * t) + ((xb * t) * t) / 2) + (xl * t3) / 6
         fy = ((y0 + yg * t) + ((yb * t) * t) / 2) + (yl * t3) / 6
         fz = ((z0 + zg * t) + ((zb * t) * t) / 2) + (zl * t3) / 6
@@ -468,7 +355,7 @@ def _feasibility_floats(axes: tuple[AxisCoeffs, ...], T: float, f_min: float, f_
         return math.sqrt((px * px + py * py) + pz * pz) / f <= w_max
 
     def ends(t: float, t3: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        """Acceleration and |jerk| per axis at an interval end, as interval_bounds writes them."""
+        """Thrust acceleration and |jerk| per axis at an interval end."""
         tt = t * t
         return ((((x0 + xg * t) + (xb * tt) / 2) + (xl * t3) / 6,
                  ((y0 + yg * t) + (yb * tt) / 2) + (yl * t3) / 6,
@@ -593,15 +480,12 @@ class FloatTrajectory:
 
     def input_feasible(self, f_min_m_s2: float, f_max_m_s2: float, w_max_rad_s: float,
                        min_dt: float = 0.02) -> Feasibility:
-        """`Trajectory.input_feasible` of this trajectory (the same verdict)."""
+        """`Trajectory.input_feasible` of this trajectory."""
         (_, _, x0, xl, xb, xg), (_, _, y0, yl, yb, yg), (_, _, z0, zl, zb, zg) = self.axes
         gx, gy, gz = _GRAVITY
         axes = ((x0 - gx, xl, xb, xg), (y0 - gy, yl, yb, yg), (z0 - gz, zl, zb, zg))
-        if sum(map(abs, (*axes[0], *axes[1], *axes[2], self.T))) <= _FLOAT_PATH_MAX_ABS:  # NaN fails too
-            if not (0 < f_min_m_s2 < f_max_m_s2 and w_max_rad_s > 0 and min_dt > 0):
-                raise ValueError("need 0 < f_min_m_s2 < f_max_m_s2, w_max_rad_s > 0 and min_dt > 0")
-            return Feasibility(_feasibility_floats(axes, self.T, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt))
-        return Feasibility(int(self.trajectory().input_feasible(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)))
+        _check_limits(f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt)
+        return Feasibility(_verdict(axes, self.T, f_min_m_s2, f_max_m_s2, w_max_rad_s, min_dt))
 
     def planes_ok(self, planes: list[Plane]) -> bool:
         """Whether ``min_plane_distance(plane.point, plane.normal) >= plane.threshold_m`` for every plane

@@ -126,3 +126,28 @@ def test_tracks_the_paper_approach_and_traverse() -> None:
 
     worst = _simulate(ref, plan.t_recovery_start_s, np.array([-2.0, -1.0, 0.5]))
     assert worst < 0.1  # Ka = 0.9 leaves 10 % of the 8.5 m/s^2 traverse feed-forward to feedback
+
+
+def test_controller_checks_every_input_and_names_the_bad_one():
+    ctl = ExpertController(0.9)
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        pr, vr, ar, p, v = (rng.normal(size=3) for _ in range(5))
+        yaw = float(rng.uniform(-3, 3))
+        cmd = ctl.command(tuple(pr), vr, list(ar), yaw, p, v)
+        roll, pitch, _, thrust = expert_command_batch(pr, vr, ar, yaw, p, v, 0.9)
+        assert cmd.roll_rad == pytest.approx(float(roll), abs=1e-12)
+        assert cmd.pitch_rad == pytest.approx(float(pitch), abs=1e-12)
+        assert cmd.thrust_n == pytest.approx(float(thrust), abs=1e-12) and cmd.yaw_rad == yaw
+    z = np.zeros(3)
+    for k, name in enumerate(("pos_ref_m", "vel_ref_m_s", "acc_ref_m_s2", "pos_m", "vel_m_s")):
+        for bad in (np.array([0.0, math.nan, 0.0]), (0.0, math.inf), "abc", None):
+            args = [z, z, z, z, z]
+            args[k] = bad
+            with pytest.raises(ValueError, match=name):
+                ctl.command(args[0], args[1], args[2], 0.0, args[3], args[4])
+    # finite inputs whose sum overflows are still accepted (errors are clipped, so the command is sane)
+    cmd = ctl.command((1e308, 1e308, 1e308), z, z, 0.0, z, z)
+    assert math.isfinite(cmd.thrust_n) and cmd.thrust_n > 0
+    with pytest.raises(ValueError, match="yaw"):
+        ctl.command(z, z, z, math.nan, z, z)

@@ -183,45 +183,11 @@ def _outcome(search: Callable[[], RecoveryResult]) -> RecoveryResult | str:
         return str(exc)
 
 
-def test_recovery_search_gives_the_batched_search_result() -> None:
-    """The one-duration-at-a-time search (plain floats) against the all-durations numpy batch."""
-    from policies.gap_planning import _search_recovery_batched
-
-    rng = np.random.default_rng(31)
-    durations = np.round(np.arange(0.5, 3.0 + 1e-9, 0.3), 10)
-    outcomes = set()
-    for i in range(150):
-        pos = tuple(rng.uniform([-2, -2, 0.5], [2, 2, 3]).tolist())
-        vel, acc = tuple(rng.normal(0, 2.0, 3).tolist()), tuple(rng.normal(0, 4.0, 3).tolist())
-        lab = LabVolume(tuple(rng.uniform([-5, -5, 0], [-3.5, -3.5, 0.3]).tolist()),
-                        tuple(rng.uniform([3.5, 3.5, 3], [5, 5, 5]).tolist()))
-        hover = tuple(rng.uniform([-3, -3, 0.5], [3, 3, 2]).tolist())
-        wall = None
-        if i % 2:
-            n = rng.normal(size=3) * rng.choice([1.0, 2.5])
-            wall = (tuple((np.array(pos) - 0.3 * n / np.linalg.norm(n)).tolist()), tuple(n.tolist()))
-        margin = float(rng.uniform(0, 0.3)) if i % 5 == 0 else 0.0
-        limits = VehicleLimits(f_max_m_s2=float(rng.uniform(14, 30)),
-                               max_body_rate_rad_s=float(rng.uniform(5, 20)))
-        args = (pos, vel, acc, hover, lab, limits, wall)
-        got = _outcome(lambda a=args, m=margin: search_recovery(*a, durations, m))
-        want = _outcome(lambda a=args, m=margin: _search_recovery_batched(*a, durations, m, 0.0))
-        if isinstance(want, str):
-            assert got == want
-            outcomes.add("none")
-        else:
-            assert not isinstance(got, str)
-            assert (got.duration_s, got.tried) == (want.duration_s, want.tried)
-            _same_trajectory(got.trajectory, want.trajectory)
-            outcomes.add(got.tried)
-    assert "none" in outcomes and len(outcomes) >= 4
-
-
 @pytest.mark.parametrize("roll_deg", [-60.0, -20.0, 0.0, 35.0, 60.0])
 def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The plan is the one the numpy pipeline (solve, batched feasibility, exact plane distances, batched
-    recovery search) gives, and the usual case never needs the numpy fallbacks."""
-    from policies.gap_planning import _search_recovery_batched, hover_point
+    """The plan is the one the numpy pipeline (solve, exact plane distances) gives with the paper's
+    recovery search, and the usual case never needs the exact plane distances."""
+    from policies.gap_planning import hover_point
 
     gap = GapPose.from_deg((0.0, 0.5, 2.1), roll_deg, width_m=0.8, height_m=0.45)
     lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
@@ -236,8 +202,7 @@ def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch
             return original(self, *a, **k)
         return method
 
-    for name in ("min_plane_distance", "_input_feasible_numpy"):
-        monkeypatch.setattr(Trajectory, name, counted(name))
+    monkeypatch.setattr(Trajectory, "min_plane_distance", counted("min_plane_distance"))
     plan = plan_mission(start, gap, lab, start_vel_m_s=vel, approach_duration_s=2.6, crossing_speed_m_s=2.5,
                         d_min_m=0.25, body=POINT_BODY)
     assert calls == []  # plain floats throughout
@@ -247,15 +212,14 @@ def test_plan_mission_gives_the_numpy_pipeline_plan(roll_deg: float, monkeypatch
     assert plan.traverse == trav
     approach = solve(start, vel, np.zeros(3), *trav.start_state, 2.6)
     _same_trajectory(plan.approach, approach)
-    assert plan.approach_feasibility == approach._input_feasible_numpy(lim.f_min_m_s2, lim.f_max_m_s2,
-                                                                       lim.max_body_rate_rad_s, lim.min_dt_s)
+    assert plan.approach_feasibility == approach.input_feasible(lim.f_min_m_s2, lim.f_max_m_s2,
+                                                                lim.max_body_rate_rad_s, lim.min_dt_s)
     planes = lab.half_spaces()
     points, normals = np.array([p for p, _ in planes]), np.array([n for _, n in planes])
     assert np.all(approach.position_feasible(points, normals))
     u = np.array(trav.direction)
     hover = hover_point(gap, u, 2.5, 1.0)
-    rec = _search_recovery_batched(*trav.end_state, tuple(hover.tolist()), lab, lim, (gap.centre, u),
-                                   RECOVERY_DURATIONS_S, 0.0, 0.0)
+    rec = search_recovery(*trav.end_state, hover, lab, lim, wall=(gap.centre, u))
     assert (plan.recovery.duration_s, plan.recovery.tried) == (rec.duration_s, rec.tried)
     _same_trajectory(plan.recovery.trajectory, rec.trajectory)
     assert plan.hover_m == tuple(hover.tolist()) and plan.yaw_rad == math.atan2(u[1], u[0])
@@ -330,3 +294,30 @@ def test_seventy_degree_gaps_plan_at_the_speed_asked_for(roll_deg: float, speed:
     assert plan.traverse.crossing_speed_m_s == speed
     lowest, side = _lowest_and_outermost(plan)
     assert lowest >= BodyClearance().clearance_m - 1e-6 and side >= BodyClearance().clearance_m - 1e-6
+
+
+LAB5 = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+
+
+@pytest.mark.parametrize("start", [(-2.0, -1.0, 0.5), (1.5, 1.2, 1.0), (0.0, 2.4, 2.0), (-4.0, 0.5, 3.2)])
+def test_recovery_search_picks_the_first_duration_that_passes_every_check(start):
+    hover = np.array([0.5, 2.5, 1.0])
+    wall = (np.array([0.0, 0.5, 2.1]), np.array([0.0, 1.0, 0.0]))
+    vel = np.array([0.0, 2.0, -0.5])
+    traj = solve(start, vel, np.zeros(3), hover, np.zeros(3), np.zeros(3), RECOVERY_DURATIONS_S)
+    ok = np.ones(traj.batch_shape, dtype=bool)
+    for point, normal in LAB5.half_spaces():
+        ok &= traj.position_feasible(point, normal, 0.2)
+    if start[1] > wall[0][1]:
+        ok &= traj.position_feasible(*wall)
+    cand = np.flatnonzero(ok)
+    lim = VehicleLimits()
+    feas = traj.input_feasible(lim.f_min_m_s2, lim.f_max_m_s2, lim.max_body_rate_rad_s, lim.min_dt_s)
+    good = [i for i in cand if feas[i] == Feasibility.FEASIBLE]
+    wall_arg = wall if start[1] > wall[0][1] else None
+    if not good:
+        with pytest.raises(ValueError, match="no recovery duration"):
+            search_recovery(start, vel, np.zeros(3), hover, LAB5, wall=wall_arg, margin_m=0.2)
+        return
+    res = search_recovery(start, vel, np.zeros(3), hover, LAB5, wall=wall_arg, margin_m=0.2)
+    assert res.tried == good[0] + 1 and res.duration_s == float(RECOVERY_DURATIONS_S[good[0]])

@@ -19,10 +19,10 @@ from emulator.physics.state import VehicleState
 from emulator.uwb import UwbConfig
 from emulator.world.geometry import Gap
 from hil.link.clock import SimClock, WallClock
-from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
+from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame, encode_mocap_payload
 from hil.link.memory import MemoryTransport
 from hil.link.pty import PtyTransport
-from policies.mocap_reader import CLOCK_JUMP_FRAMES, MocapReader, main
+from policies.mocap_reader import CLOCK_JUMP_FRAMES, MocapReader, PoseSample, main
 
 
 def test_module_prints_vehicle_and_gap_poses_live():
@@ -166,3 +166,25 @@ def test_a_bad_first_stamp_or_a_new_mocap_clock_is_followed_once_frames_agree_on
         t += 1 / 120
         f.send(_frame(k), t)
     assert reader.counters.clock_jumps == 2 and reader.latest("vehicle").frame_no == CLOCK_JUMP_FRAMES - 1
+
+
+def test_reader_samples_are_ordinary_pose_samples():
+    a, _b = MemoryTransport.pair()
+    got: list[PoseSample] = []
+    reader = MocapReader(a, on_sample=got.append)
+    packet = MocapPacket(42, (BodySample(1, 1.5, (1.0, 2.0, 3.0), (1.004, 0.0, 0.0, 0.0)),
+                              BodySample(7, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
+                              BodySample(2, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), valid=False),
+                              BodySample(3, 1.5, (0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0))))
+    assert reader._take(encode_mocap_payload(packet), 2.0) == 1
+    assert [s.name for s in got] == ["vehicle", "body7"]
+    want = PoseSample("vehicle", 1, np.array([1.0, 2.0, 3.0]), np.array([1.0, 0.0, 0.0, 0.0]), 1.5, 2.0, 42)
+    s = got[0]
+    assert repr(s) == repr(want) and s.frame_no == 42 and s.age_s(2.25) == 0.25
+    with pytest.raises(AttributeError):
+        s.stamp_s = 0.0  # type: ignore[misc]
+    assert reader.latest("vehicle") is s and reader.latest(7) is got[1] and reader.latest("body7") is got[1]
+    assert reader.latest("gap") is None and reader.counters.bodies_invalid == 1
+    assert reader.counters.bodies_bad_quat == 1  # body 3's quaternion of norm 2
+    with pytest.raises(KeyError, match="unknown body"):
+        reader.latest("wing")

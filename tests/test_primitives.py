@@ -169,7 +169,7 @@ def test_position_feasibility_catches_floor_dip() -> None:
         tr.position_feasible([0, 0, 0], [0, 0, 0])
 
 
-# --- the plain-float paths repeat the numpy code -----------------------------------------------------
+# --- input feasibility and the plain-float paths --------------------------------------------------------
 def _feasibility_cases(rng: np.random.Generator, n: int) -> list[tuple[Trajectory, tuple[float, ...]]]:
     """(trajectory batch of 1..12, limits): random ones, straight lines, and limits set right at a
     trajectory's own thrust or body-rate extreme (deep recursion, INDETERMINABLE verdicts)."""
@@ -204,32 +204,31 @@ def _feasibility_cases(rng: np.random.Generator, n: int) -> list[tuple[Trajector
     return out
 
 
-def test_input_feasibility_float_path_gives_the_numpy_verdicts() -> None:
-    from policies.primitives import FLOAT_PATH_MAX_BATCH, solve_floats
-
+def test_input_feasibility_verdicts_agree_with_dense_sampling() -> None:
+    """FEASIBLE: no sample breaks a limit; INFEASIBLE: some sample breaks one or comes within a hair of it
+    (the recursion's point checks fall between samples); every verdict occurs; any batch shape."""
+    up = np.array([0.0, 0.0, 9.8])
     seen = set()
-    for tr, limits in _feasibility_cases(np.random.default_rng(21), 400):
-        assert tr.T.size <= FLOAT_PATH_MAX_BATCH
-        got = tr.input_feasible(*limits)
-        want = tr._input_feasible_numpy(*limits)
-        assert got.dtype == want.dtype and got.shape == want.shape
-        np.testing.assert_array_equal(got, want)
-        seen.update(want.tolist())
-        one = solve_floats(tuple(tr.p0[0].tolist()), tuple(tr.v0[0].tolist()), tuple(tr.a0[0].tolist()),
-                           tuple(tr.state(tr.T[0])[0][0].tolist()), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
-                           [float(tr.T[0])])[0]
-        assert one.input_feasible(*limits) == one.trajectory()._input_feasible_numpy(*limits)
+    for tr, (f_min, f_max, w_max, min_dt) in _feasibility_cases(np.random.default_rng(21), 200):
+        verdict = tr.input_feasible(f_min, f_max, w_max, min_dt)
+        assert verdict.dtype == np.int8 and verdict.shape == tr.batch_shape
+        ts = np.linspace(0, 1, 4001)[None, :] * tr.T[:, None]
+        a, j = tr.state(ts)[2] + up, tr.jerk(ts)
+        f = np.linalg.norm(a, axis=-1)
+        z = a / f[..., None]
+        w = np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1) / f
+        # the worst relative margin to a limit over the samples (< 0: a limit broken)
+        margin = np.minimum(np.minimum(f.min(1) / f_min - 1, 1 - f.max(1) / f_max), 1 - w.max(1) / w_max)
+        assert np.all(margin[verdict == Feasibility.FEASIBLE] >= -1e-9)
+        assert np.all(margin[verdict == Feasibility.INFEASIBLE] <= 1e-2)
+        seen.update(verdict.tolist())
     assert seen == {Feasibility.FEASIBLE, Feasibility.INFEASIBLE, Feasibility.INDETERMINABLE}
-    # a batch shape of more than one dimension, and one too large for the float path
-    c = _random_case(np.random.default_rng(22), 40)
-    tr = solve(c["p0"], c["v0"], c["a0"], c["pf"], c["vf"], c["af"], c["T"])
-    np.testing.assert_array_equal(tr.input_feasible(2.0, 25.0, 10.0),
-                                  tr._input_feasible_numpy(2.0, 25.0, 10.0, 0.02))
-    sub = solve(c["p0"][:6].reshape(2, 3, 3), c["v0"][:6].reshape(2, 3, 3), c["a0"][:6].reshape(2, 3, 3),
-                c["pf"][:6].reshape(2, 3, 3), None, None, c["T"][:6].reshape(2, 3))
-    assert sub.input_feasible(2.0, 25.0, 10.0).shape == (2, 3)
-    np.testing.assert_array_equal(sub.input_feasible(2.0, 25.0, 10.0),
-                                  sub._input_feasible_numpy(2.0, 25.0, 10.0, 0.02))
+    c = _random_case(np.random.default_rng(22), 6)
+    sub = solve(c["p0"].reshape(2, 3, 3), c["v0"].reshape(2, 3, 3), c["a0"].reshape(2, 3, 3),
+                c["pf"].reshape(2, 3, 3), None, None, c["T"].reshape(2, 3))
+    flat = solve(c["p0"], c["v0"], c["a0"], c["pf"], None, None, c["T"])
+    np.testing.assert_array_equal(sub.input_feasible(2.0, 25.0, 10.0).reshape(-1),
+                                  flat.input_feasible(2.0, 25.0, 10.0))
 
 
 def test_solve_floats_gives_the_numbers_of_solve() -> None:
@@ -282,3 +281,15 @@ def test_planes_ok_gives_the_verdicts_of_min_plane_distance() -> None:
         if i == 0:
             with pytest.raises(ValueError, match="non-zero"):
                 Plane((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+
+
+def test_single_trajectory_floats_match_the_array_evaluation():
+    traj = solve((0.1, -2.0, 0.5), (0.3, 0.2, -0.1), (0.0, 0.5, 0.2), (1.0, 0.0, 1.5), (0.0, 2.0, 0.0),
+                 (0.0, 0.0, -3.0), 2.6)
+    for t in (0.0, 0.37, 1.3, 2.6, 3.1):
+        p, v, a = traj.state(np.array([t]))  # the array path
+        pf, vf, af = traj.state_tuples(t)
+        assert np.array_equal(p[0], pf) and np.array_equal(v[0], vf) and np.array_equal(a[0], af)
+    batch = solve(np.zeros((2, 3)), np.zeros(3), np.zeros(3), np.ones(3), np.zeros(3), np.zeros(3), 1.0)
+    with pytest.raises(ValueError, match="single trajectory"):
+        batch.state_tuples(0.5)

@@ -356,3 +356,15 @@ def test_the_format_document_names_every_field() -> None:
               *schema.MISSION_EVENTS, *schema.FLIGHT_PHASES}
     missing = sorted(n for n in names if not re.search(rf"`{re.escape(n)}`", doc))
     assert missing == []
+
+
+def test_a_pilot_added_as_one_module_is_accepted_by_scenario_files(tmp_path, monkeypatch):
+    import policies.onboard.pilots as pilots
+
+    extra = tmp_path / "pilots"
+    extra.mkdir()
+    (extra / "hover_only.py").write_text("def make_pilot(context):\n    raise NotImplementedError\n")
+    monkeypatch.setattr(pilots, "__path__", [*pilots.__path__, str(extra)])
+    (s,) = load_scenarios(write(tmp_path, MINIMAL + "pilot: hover_only\n"))
+    assert s.pilot == "hover_only"
+    assert "hover_only" in str(error_of(write(tmp_path, MINIMAL + "pilot: magic\n", "y.scenario.yaml")))

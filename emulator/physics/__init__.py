@@ -7,13 +7,13 @@ optional engine (jsbsim) fails only for those who ask for it.
 
 from __future__ import annotations
 
-import importlib
 from typing import Protocol
 
 import numpy as np
 
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
+from hil.link.registry import Registry
 
 DEFAULT_DT_S = 0.001  # 1 kHz
 
@@ -45,27 +45,23 @@ class PhysicsBackend(Protocol):
         """Release the engine; idempotent."""
 
 
-_BACKENDS: dict[str, tuple[str, str]] = {
-    "native": ("emulator.physics.native", "NativeBackend"),
-    "jsbsim": ("emulator.physics.jsbsim_backend", "JSBSimBackend"),
-}
+#: the physics engines by name, each imported only when asked for
+BACKENDS = Registry("physics backend", entries={"native": "emulator.physics.native:NativeBackend",
+                                                "jsbsim": "emulator.physics.jsbsim_backend:JSBSimBackend"})
 
 
 def backend_names() -> list[str]:
     """Names accepted by `make_backend`."""
-    return sorted(_BACKENDS)
+    return BACKENDS.names()
 
 
 def make_backend(name: str, profile: VehicleProfile, dt_s: float = DEFAULT_DT_S) -> PhysicsBackend:
     """Create a backend by name; a clear error for an unknown name or a missing optional engine."""
-    if name not in _BACKENDS:
-        raise ValueError(f"unknown physics backend '{name}' (choose from: {', '.join(backend_names())})")
-    module_name, class_name = _BACKENDS[name]
     try:
-        module = importlib.import_module(module_name)
+        backend = BACKENDS.load(name)
     except ImportError as exc:
         raise RuntimeError(
             f"physics backend '{name}' needs an optional dependency: {exc}. "
             "Install it with: pip install 'crossgap-hil[jsbsim]'"
         ) from exc
-    return getattr(module, class_name)(profile, dt_s=dt_s)
+    return backend(profile, dt_s=dt_s)  # type: ignore[operator]

@@ -332,7 +332,7 @@ class _Builder:
             "name": self.name,
             "vehicle": self.vehicle,
             "physics": self.physics,
-            "pilot": lambda n, p: self.convert(str, n, p, {"choices": schema.PILOTS}),
+            "pilot": self.pilot,
             "faults": self.faults,
             "markers": self.markers,
             "expect": self.expectations,
@@ -406,6 +406,11 @@ class _Builder:
         from emulator.physics import backend_names
 
         return self.convert(str, node, path, {"choices": tuple(backend_names())})
+
+    def pilot(self, node: Node, path: str) -> str:
+        from policies.onboard.pilots import pilot_names
+
+        return self.convert(str, node, path, {"choices": tuple(pilot_names())})
 
     def markers(self, node: Node, path: str) -> tuple[str, ...]:
         out = []

@@ -18,7 +18,6 @@ from typing import Any
 Vec3 = tuple[float, float, float]
 
 TRANSPORTS = ("pty", "memory", "udp")
-PILOTS = ("traditional", "planner_net", "e2e")
 FAILSAFE_KINDS = ("hover", "land")  # the FC's failsafe action; `true` in a file means any of them
 FAULT_KINDS = (
     "command_link_down",

@@ -61,9 +61,3 @@ def planner_inputs(t_s: np.ndarray | float, dp_m: np.ndarray, v0_m_s: np.ndarray
              for x in (dp, v0_m_s, a0_m_s2, vf_m_s, af_m_s2)]
     return np.concatenate(cols, axis=-1)
 
-
-def e2e_inputs(pos_rel_start_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, euler_rad: np.ndarray,
-               planner_in: np.ndarray) -> np.ndarray:
-    """Stack end-to-end inputs (..., 29)."""
-    return np.concatenate([np.asarray(x, float) for x in (pos_rel_start_m, vel_m_s, acc_m_s2, euler_rad,
-                                                          planner_in)], axis=-1)

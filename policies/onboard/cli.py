@@ -11,7 +11,7 @@ from types import FrameType
 from hil.link.endpoint import open_link
 from hil.link.transport import LinkError
 from policies.onboard.estimator import EstimatorConfig
-from policies.onboard.pilots import UnknownPilot, pilot_names
+from policies.onboard.pilots import PILOTS
 from policies.onboard.program import EXIT_ERROR, MIN_RATE_HZ, EventLog, OnboardProgram, ProgramConfig
 from policies.vehicle import DEFAULT_VEHICLE, load_vehicle, vehicle_names
 
@@ -34,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="MAVLink link to the FC, e.g. serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
     p.add_argument("--mocap-link", required=True, metavar="SPEC",
                    help="mocap (LinkTrack) link, e.g. serial:/dev/pts/6:921600 or udp:127.0.0.1:14660")
-    p.add_argument("--pilot", default=d.pilot, help=f"pilot by name: {', '.join(pilot_names())}")
+    p.add_argument("--pilot", default=d.pilot, help=f"pilot by name: {', '.join(PILOTS.names())}")
     p.add_argument("--rate-hz", type=float, default=d.rate_hz,
                    help=f"control rate (Hz, >= {MIN_RATE_HZ:g}, the N3's minimum; default {d.rate_hz:g})")
     p.add_argument("--approach-speed", type=float, default=d.approach_speed_m_s, metavar="M_S",
@@ -111,8 +111,7 @@ def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
     the exit code (0 done, 1 error, 2 bad options, 3 aborted to a safe hover, 143 ended by SIGTERM)."""
     try:
         config = config_from_args(args)
-        if config.pilot not in pilot_names():
-            raise UnknownPilot(f"unknown pilot {config.pilot!r}; known: {', '.join(pilot_names())}")
+        PILOTS.check(config.pilot)
     except ValueError as exc:
         print(f"{prog_name}: {exc}", file=sys.stderr)
         return 2

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil.link.mavlink import euler_from_quat
+
 
 @dataclass(frozen=True)
 class EstimatorConfig:
@@ -165,10 +167,7 @@ class PoseEstimator:
         px, vx, ax, py, vy, ay, pz, vz, az = self._x
         euler = self._euler
         if euler is None:
-            qw, qx, qy, qz = self._quat
-            euler = self._euler = (math.atan2(2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
-                                   math.asin(min(max(2 * (qw * qy - qx * qz), -1.0), 1.0)),
-                                   math.atan2(2 * (qx * qy + qw * qz), 1 - 2 * (qy * qy + qz * qz)))
+            euler = self._euler = euler_from_quat(self._quat)
         return _new_estimate(np.array((px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh)),
                              np.array((vx + ax * h, vy + ay * h, vz + az * h)), np.array((ax, ay, az)),
                              np.array(euler), np.array(self._quat))

@@ -608,7 +608,7 @@ class OnboardProgram:
             assert self._takeoff is not None
             traj, yaw0, yaw1, t0 = self._takeoff
             tau = min(max(t_s - t0, 0.0), self.config.takeoff_duration_s)
-            p, v, a = traj.state(tau)
+            p, v, a = traj.state_tuples(tau)
             yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
             self._send(self.expert.command(p, v, a, yaw, est.pos_m, est.vel_m_s))
         elif ph in (Phase.MISSION, Phase.HANDBACK):

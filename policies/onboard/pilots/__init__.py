@@ -14,13 +14,12 @@ AttitudeThrustCommand: roll and pitch are the ZYX Euler angles of the desired bo
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from hil.link.registry import Registry
 from policies.controller import AttitudeThrustCommand
 from policies.gap_planning import GapPose, MissionPlan
 
@@ -85,20 +84,21 @@ class UnknownPilot(ValueError):
     """No pilot of that name; the message lists the known ones."""
 
 
+#: the pilots: one module of this package each, built by its ``make_pilot``
+PILOTS = Registry("pilot", package=__name__, attr="make_pilot", error=UnknownPilot)
+
+
 def pilot_names() -> list[str]:
     """Names of the pilots available (modules of this package), sorted."""
-    return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+    return PILOTS.names()
 
 
 def make_pilot(name: str, context: PilotContext | None = None) -> Pilot:
     """Build the pilot called ``name``; UnknownPilot if there is none."""
-    if name not in pilot_names():
-        raise UnknownPilot(f"unknown pilot {name!r}; known: {', '.join(pilot_names())}")
-    module = importlib.import_module(f"{__name__}.{name}")
-    pilot = module.make_pilot(context or PilotContext())
+    pilot = PILOTS.load(name)(context or PilotContext())  # type: ignore[operator]
     if not isinstance(pilot, Pilot):
         raise TypeError(f"pilot module {name!r} built {type(pilot).__name__}, which has no command(obs)")
     return pilot
 
 
-__all__ = ["Observation", "Pilot", "PilotContext", "UnknownPilot", "make_pilot", "pilot_names"]
+__all__ = ["PILOTS", "Observation", "Pilot", "PilotContext", "UnknownPilot", "make_pilot", "pilot_names"]

@@ -3,7 +3,7 @@ recovery and hover as the traditional pilot. Options: ``onnx=<path>``, ``acc_inp
 
 from __future__ import annotations
 
-from policies.learning.pilots import EndToEndPilot, make_e2e
+from policies.learning.learned_pilots import EndToEndPilot, make_e2e
 from policies.onboard.pilots import PilotContext
 
 

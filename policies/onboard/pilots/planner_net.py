@@ -3,7 +3,7 @@ the expert controller; traverse, recovery and hover as the traditional pilot."""
 
 from __future__ import annotations
 
-from policies.learning.pilots import PlannerNetPilot, make_planner_net
+from policies.learning.learned_pilots import PlannerNetPilot, make_planner_net
 from policies.onboard.pilots import PilotContext
 
 

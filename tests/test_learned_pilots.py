@@ -16,8 +16,8 @@ from hil.scenario import loads_scenarios
 from policies.controller import ExpertController
 from policies.frames import rot_z
 from policies.gap_planning import POINT_BODY, GapPose, LabVolume, plan_mission
+from policies.learning.learned_pilots import approach_planner_inputs
 from policies.learning.onnx_runtime import load_shipped, shipped_path
-from policies.learning.pilots import approach_planner_inputs
 from policies.onboard.pilots import EXPERT, SEGMENTS, Observation, PilotContext, make_pilot, pilot_names
 
 LAB = LabVolume((-4.0, -3.0, 0.0), (4.0, 4.0, 4.0))
