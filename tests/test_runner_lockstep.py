@@ -17,11 +17,11 @@ from emulator.fc.batched_steps import FastStepper
 from emulator.fc.n3 import N3Setpoint
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
-from hil.link.mavlink import mav
+from hil.link.lockstep import answered_ns
+from hil.link.mavlink import FrameSplitter, mav
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import _FaultyLink
-from hil.runner.wires import FrameSplitter, timesync_answer_ns
 from hil.scenario import load_scenarios, loads_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -116,8 +116,8 @@ def test_frame_splitter_and_tick_answers():
     stream = b"\x00\x01" + hb + answer + request
     frames = sp.feed(stream[:7]) + sp.feed(stream[7:])
     assert frames == [b"\x00\x01", hb, answer, request]
-    assert timesync_answer_ns(answer) == 20_000_000
-    assert timesync_answer_ns(request) is None and timesync_answer_ns(hb) is None
+    assert answered_ns(answer) == 20_000_000
+    assert answered_ns(request) is None and answered_ns(hb) is None
 
 
 FAULTY = """

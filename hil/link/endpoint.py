@@ -17,6 +17,7 @@ BAUD defaults to 921600 (bit/s).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -25,7 +26,6 @@ from hil.link.transport import Transport
 
 Role = Literal["fc", "onboard"]
 ROLES: tuple[str, ...] = ("fc", "onboard")
-KINDS: tuple[str, ...] = ("pty", "serial", "udp", "udpout", "tcp", "tcpout", "memory")
 DEFAULT_BAUD = 921600
 SERIAL_RECONNECT_S = 0.25  # how often the fc side of a serial link tries a vanished device again (s)
 SPEC_HELP = (
@@ -68,7 +68,7 @@ def parse_endpoint(spec: str) -> EndpointSpec:
     spec = spec.strip()
     kind, _, rest = spec.partition(":")
     kind = kind.lower()
-    if kind not in KINDS:
+    if kind not in OPENERS:
         raise ValueError(f"unknown link kind {kind!r} in {spec!r}; {SPEC_HELP}")
     if kind == "pty":
         return EndpointSpec("pty", baud=_parse_baud(rest, spec) if rest else DEFAULT_BAUD)
@@ -108,6 +108,54 @@ def _open_memory(name: str, role: str) -> Transport:
         return end
 
 
+def _open_pty(ep: EndpointSpec, role: str) -> Transport:
+    if role != "fc":
+        raise ValueError(
+            "only the fc side creates a pty; the onboard side opens its path as 'serial:/dev/pts/N:BAUD'"
+        )
+    from hil.link.pty import PtyTransport
+
+    return PtyTransport.create(ep.baud or DEFAULT_BAUD)
+
+
+def _open_serial(ep: EndpointSpec, role: str) -> Transport:
+    from hil.link.serial_port import SerialTransport
+
+    # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
+    # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
+    return SerialTransport(ep.device, ep.baud or DEFAULT_BAUD,
+                           reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
+
+
+def _open_udp(ep: EndpointSpec, role: str) -> Transport:
+    from hil.link.udp import UdpTransport
+
+    return UdpTransport(ep.host, ep.port, server=ep.kind == "udp")
+
+
+def _open_tcp(ep: EndpointSpec, role: str) -> Transport:
+    from hil.link.tcp import TcpTransport
+
+    return TcpTransport(ep.host, ep.port, server=ep.kind == "tcp")
+
+
+def _open_memory_spec(ep: EndpointSpec, role: str) -> Transport:
+    return _open_memory(ep.name, role)
+
+
+#: link kind -> opener, each importing its transport's module only when used (an optional driver
+#: fails only for its users)
+OPENERS: dict[str, Callable[[EndpointSpec, str], Transport]] = {
+    "pty": _open_pty,
+    "serial": _open_serial,
+    "udp": _open_udp,
+    "udpout": _open_udp,
+    "tcp": _open_tcp,
+    "tcpout": _open_tcp,
+    "memory": _open_memory_spec,
+}
+
+
 def open_link(
     spec: str | EndpointSpec,
     role: Role = "fc",
@@ -125,32 +173,7 @@ def open_link(
     if role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, got {role!r}")
     ep = spec if isinstance(spec, EndpointSpec) else parse_endpoint(spec)
-    link: Transport
-    if ep.kind == "pty":
-        if role != "fc":
-            raise ValueError(
-                "only the fc side creates a pty; the onboard side opens its path as 'serial:/dev/pts/N:BAUD'"
-            )
-        from hil.link.pty import PtyTransport
-
-        link = PtyTransport.create(ep.baud or DEFAULT_BAUD)
-    elif ep.kind == "serial":
-        from hil.link.serial_port import SerialTransport
-
-        # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
-        # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
-        link = SerialTransport(ep.device, ep.baud or DEFAULT_BAUD,
-                               reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
-    elif ep.kind in ("udp", "udpout"):
-        from hil.link.udp import UdpTransport
-
-        link = UdpTransport(ep.host, ep.port, server=ep.kind == "udp")
-    elif ep.kind in ("tcp", "tcpout"):
-        from hil.link.tcp import TcpTransport
-
-        link = TcpTransport(ep.host, ep.port, server=ep.kind == "tcp")
-    else:
-        link = _open_memory(ep.name, role)
+    link = OPENERS[ep.kind](ep, role)
     if uart_baud is not None:
         from hil.link.uart import DEFAULT_TX_BUFFER_BYTES, UartTransport
 

@@ -21,7 +21,8 @@ from hil.link.transport import Transport
 mav = mavlink2
 MAVLinkMessage = mavlink2.MAVLink_message
 
-MAVLINK_V2_MAGIC = 0xFD
+MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC = 0xFD, 0xFE
+MAX_FRAME_BYTES = 280  # the longest MAVLink 2 frame: header, 255 payload bytes, CRC, signature
 SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us units from 2015-01-01
 #: messages that must be signed when a key is configured (commands and setpoints)
 SIGNED_ONLY_MSG_IDS: frozenset[int] = frozenset(
@@ -60,6 +61,47 @@ class MavlinkStats:
     @property
     def errors(self) -> int:
         return self.garbage_bytes + self.bad_crc + self.unknown_msg_id + self.bad_signature + self.malformed
+
+
+def frame_size(buf: bytes | bytearray, i: int) -> int:
+    """The length (bytes, signature included) of the MAVLink 2 or 1 frame that starts at ``buf[i]``,
+    by its header: 0 when the header is not complete in ``buf``, -1 when ``buf[i]`` starts no frame."""
+    magic = buf[i]
+    if magic == MAVLINK_V2_MAGIC:
+        return 12 + buf[i + 1] + (13 if buf[i + 2] & 0x01 else 0) if i + 3 <= len(buf) else 0
+    if magic == MAVLINK_V1_MAGIC:
+        return 8 + buf[i + 1] if i + 2 <= len(buf) else 0
+    return -1
+
+
+class FrameSplitter:
+    """Cuts a MAVLink byte stream into frames by their length fields (no CRC check: a codec does
+    that); bytes before a frame start are passed on as they are."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """The complete frames (and runs of other bytes) of what has come so far, in order."""
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        i, n = 0, len(buf)
+        while i < n:
+            size = frame_size(buf, i)
+            if size < 0:
+                j = i + 1
+                while j < n and buf[j] != MAVLINK_V2_MAGIC and buf[j] != MAVLINK_V1_MAGIC:
+                    j += 1
+                out.append(bytes(buf[i:j]))
+                i = j
+                continue
+            if size == 0 or i + size > n:
+                break
+            out.append(bytes(buf[i : i + size]))
+            i += size
+        del buf[:i]
+        return out
 
 
 def parse_signing_key(text: str) -> bytes:
@@ -232,7 +274,7 @@ class MavlinkCodec:
         extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
         mirrored = b""  # ``data`` bit-reversed byte by byte (see `crc_x25`), made for the first frame
         while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
-            end = i + 12 + data[i + 1]
+            end = i + frame_size(data, i)
             if end > n:
                 break
             msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
@@ -482,11 +524,6 @@ def quat_enu_flu_to_ned_frd_tuple(
     return qw / n, qx / n, qy / n, qz / n
 
 
-def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
-    """Body(FRD)->world(NED) attitude -> body(FLU)->world(ENU) attitude, (w, x, y, z)."""
-    return _canonical(quat_multiply(quat_multiply(_Q_ENU_NED, np.asarray(q_wxyz, float)), _Q_FLU_FRD))
-
-
 def enu_to_ned(v: np.ndarray) -> np.ndarray:
     """A world vector ENU -> NED (the same map both ways)."""
     return np.array([v[1], v[0], -v[2]])
@@ -553,7 +590,3 @@ def px4_mode_parts(custom_mode: int) -> tuple[int, int]:
     """(main mode, sub mode) of a PX4 custom_mode word."""
     return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
 
-
-def message_types(msgs: list[MAVLinkMessage]) -> list[str]:
-    """Type names of ``msgs`` (for logs and tests)."""
-    return [m.get_type() for m in msgs]
