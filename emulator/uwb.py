@@ -51,7 +51,7 @@ class UwbConfig(ChannelModel):
 
     def uart_time_s(self, n_bytes: int) -> float:
         """Wire time of ``n_bytes`` on the UART (s)."""
-        return n_bytes * (self.uart_bits_per_byte / self.uart_baud)
+        return n_bytes * self.uart_bits_per_byte / self.uart_baud
 
 
 @dataclass

@@ -7,8 +7,14 @@ import math
 import numpy as np
 import pytest
 
+from hil.link.mavlink import (
+    quat_enu_flu_to_ned_frd,
+    quat_enu_flu_to_ned_frd_tuple,
+    quat_from_euler,
+    quat_from_euler_tuple,
+)
 from policies.controller import ExpertController, ExpertGains, expert_command_batch
-from policies.frames import euler_to_matrix
+from policies.frames import euler_to_matrix, matrix_to_euler, quat_to_matrix
 from policies.gap_planning import GapPose, LabVolume, plan_mission
 from policies.primitives import solve
 
@@ -126,3 +132,31 @@ def test_tracks_the_paper_approach_and_traverse() -> None:
 
     worst = _simulate(ref, plan.t_recovery_start_s, np.array([-2.0, -1.0, 0.5]))
     assert worst < 0.1  # Ka = 0.9 leaves 10 % of the 8.5 m/s^2 traverse feed-forward to feedback
+
+
+def test_plain_float_helpers_agree_with_the_array_ones():
+    rng = np.random.default_rng(7)
+    ctrl = ExpertController(0.9)
+    for _ in range(300):
+        q = rng.normal(size=4)
+        np.testing.assert_allclose(quat_to_matrix(q), quat_to_matrix(q[None])[0], atol=1e-15)
+        r = quat_to_matrix(q)
+        assert matrix_to_euler(r) == pytest.approx([float(x[0]) for x in matrix_to_euler(r[None])], abs=1e-14)
+        qu = q / np.linalg.norm(q)
+        want = list(quat_enu_flu_to_ned_frd(qu))
+        assert quat_enu_flu_to_ned_frd_tuple(*qu) == pytest.approx(want, abs=1e-15)
+        e = rng.uniform(-3, 3, 3)
+        assert quat_from_euler_tuple(*e) == pytest.approx(list(quat_from_euler(*e)), abs=1e-15)
+        a = [rng.normal(0.0, s, 3) for s in (0.5, 2.0, 8.0, 0.5, 2.0)]
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        cmd = ctrl.command(a[0], a[1], a[2], yaw, a[3], a[4])
+        roll, pitch, _, thrust = expert_command_batch(a[0], a[1], a[2], yaw, a[3], a[4], 0.9)
+        assert (cmd.roll_rad, cmd.pitch_rad, cmd.thrust_n) == pytest.approx(
+            (float(roll), float(pitch), float(thrust)), abs=1e-12
+        )
+    with pytest.raises(ValueError):
+        quat_to_matrix(np.zeros(4))
+    with pytest.raises(ValueError):
+        ctrl.command([0.0, 0.0], [0.0] * 3, [0.0] * 3, 0.0, [0.0] * 3, [0.0] * 3)
+    with pytest.raises(ValueError):
+        ctrl.command([0.0, 0.0, math.nan], [0.0] * 3, [0.0] * 3, 0.0, [0.0] * 3, [0.0] * 3)

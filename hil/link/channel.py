@@ -118,20 +118,19 @@ class UartWire:
             raise ValueError(f"UART needs baud > 0 and bits_per_byte >= 1, got {baud}, {bits_per_byte}")
         self.baud = baud
         self.bits_per_byte = bits_per_byte
-        self.byte_time_s = bits_per_byte / baud
         self._busy_until_s = -math.inf
         self._queue: list[tuple[float, bytes]] = []
         self.bytes_written = 0
 
     def wire_time_s(self, n_bytes: int) -> float:
         """Time ``n_bytes`` take on the wire (s)."""
-        return n_bytes * self.byte_time_s
+        return n_bytes * self.bits_per_byte / self.baud
 
     def finish_s(self, now_s: float, n_bytes: int) -> float:
         """Book ``n_bytes`` handed over at ``now_s`` behind what is on the line; when their last bit
         is out (s)."""
         busy = self._busy_until_s
-        done = (busy if busy > now_s else now_s) + n_bytes * self.byte_time_s
+        done = (busy if busy > now_s else now_s) + n_bytes * self.bits_per_byte / self.baud
         self._busy_until_s = done
         return done
 

@@ -151,8 +151,9 @@ class MavlinkCodec:
         self.recorder = recorder
         self.stats = MavlinkStats()
         self._out: list[bytes] = []
+        #: packs (and signs) what the codec does not frame itself; its signing state is the parser's
         self._mav = mavlink2.MAVLink(_Sink(self._out), srcSystem=system_id, srcComponent=component_id)
-        self._mav.robust_parsing = True
+        self._parser = self._new_parser()
         self._signed_only = frozenset(signed_only)
         self._signing_epoch_unix_s = signing_epoch_unix_s
         self._accept = None if accept_ids is None else frozenset(accept_ids)
@@ -165,6 +166,13 @@ class MavlinkCodec:
             self._mav.signing.link_id = link_id
             self._mav.signing.allow_unsigned_callback = self._allow_unsigned
             self._refresh_signing_time()
+
+    def _new_parser(self) -> mavlink2.MAVLink:
+        """pymavlink's parser for incoming bytes, sharing the signing state of the packer."""
+        parser = mavlink2.MAVLink(None, srcSystem=self._mav.srcSystem, srcComponent=self._mav.srcComponent)
+        parser.robust_parsing = True
+        parser.signing = self._mav.signing
+        return parser
 
     @property
     def system_id(self) -> int:
@@ -191,16 +199,15 @@ class MavlinkCodec:
 
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
-        msg_id = msg.get_msgId()  # not ``msg.id``: some messages have a field of that name
         if not self.signing:  # framed here: the same bytes as pymavlink's, without its generic code
             try:
                 payload = payload_of(msg)
-            except (struct.error, TypeError):  # a field pymavlink converts itself (text as str): let it
-                payload = None
-            if payload is not None:
-                return self.pack_payload(msg_id, payload)
-        if self.signing:
-            self._refresh_signing_time()
+            except (struct.error, TypeError):  # a field pymavlink converts itself (text as str)
+                frame = msg.pack(self._mav)
+                payload = frame[10 : 10 + frame[1]]
+            # not ``msg.id``: some messages have a field of that name
+            return self.pack_payload(msg.get_msgId(), payload)
+        self._refresh_signing_time()
         self._mav.send(msg)
         frame = self._out.pop()
         self.stats.frames_sent += 1
@@ -215,10 +222,9 @@ class MavlinkCodec:
         if self.signing:
             return self.pack(message_from_payload(msg_id, payload))
         m = self._mav
+        # one sequence for the frames framed here and by pymavlink: its public ``seq``
         frame = encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent)
-        m.seq = (m.seq + 1) % 256
-        m.total_packets_sent += 1
-        m.total_bytes_sent += len(frame)
+        m.seq = (m.seq + 1) & 0xFF
         self.stats.frames_sent += 1
         if self.recorder is not None:
             self.recorder.record(frame, self.clock.now_s())
@@ -234,7 +240,7 @@ class MavlinkCodec:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
         as bytes for ``raw_ids``, see `__init__`)."""
         good: list[Any] = []
-        if len(self._mav.buf) == self._mav.buf_index and (self._accept is not None or not self.signing):
+        if self._parser.buf_len() == 0 and (self._accept is not None or not self.signing):
             data = self._take_leading(data, good)
             if not data:
                 return good
@@ -244,12 +250,10 @@ class MavlinkCodec:
     def _parse_slow(self, data: bytes, good: list[MAVLinkMessage]) -> None:
         """pymavlink's parser on ``data``; good messages appended to ``good``."""
         try:
-            msgs = self._mav.parse_buffer(data) or []
-        except Exception:  # pymavlink raising on input it should have flagged: drop the buffer
+            msgs = self._parser.parse_buffer(data) or []
+        except Exception:  # pymavlink raising on input it should have flagged: drop what it holds
             self.stats.malformed += 1
-            self._mav.buf = bytearray()
-            self._mav.buf_index = 0
-            self._mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+            self._parser = self._new_parser()
             return
         now_s = self.clock.now_s()
         for m in msgs:
@@ -340,18 +344,6 @@ def _mirrored(data: Any) -> bytes:
     return data.translate(_BIT_REVERSED)
 
 
-def crc_x25(data: bytes, extra: int | None = None) -> int:
-    """MAVLink's CRC-16/MCRF4XX of ``data`` (then the message's CRC_EXTRA byte, if given).
-
-    Computed by the C CRC-CCITT of `binascii` on the bit-reversed bytes: the reflected CRC is the
-    plain one of the mirrored input, mirrored back (init 0xFFFF is its own mirror image)."""
-    rev = _BIT_REVERSED
-    crc = binascii.crc_hqx(_mirrored(data), 0xFFFF)
-    if extra is not None:
-        crc = binascii.crc_hqx(_MIRRORED_BYTE[extra], crc)
-    return rev[crc & 0xFF] << 8 | rev[crc >> 8]
-
-
 #: per-tick messages framed and decoded here rather than by pymavlink's generic code (same bytes, same
 #: message objects): setpoints, lockstep ticks, and the FC's heartbeat, ACKs and attitude/position
 FAST_DECODE_IDS: frozenset[int] = frozenset(
@@ -383,19 +375,6 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
-_FIELD_PLANS: dict[int, tuple[tuple[int, int], ...]] = {}
-
-
-def _field_plan(cls: Any) -> tuple[tuple[int, int], ...]:
-    """(first index in the unpacked tuple, count) of each field in declaration order."""
-    plan = _FIELD_PLANS.get(cls.id)
-    if plan is None:
-        lengths = cls.lengths
-        plan = tuple((sum(lengths[:o]), lengths[o]) for o in cls.orders)
-        _FIELD_PLANS[cls.id] = plan
-    return plan
-
-
 #: per message class: a getter of the wire-order values (None when a field is an array)
 _PAYLOAD_GETTERS: dict[type, Callable[[Any], tuple[Any, ...]] | None] = {}
 
@@ -421,55 +400,21 @@ def payload_of(msg: MAVLinkMessage) -> bytes:
     return msg.unpacker.pack(*values)
 
 
-#: per message id: (getter of the declaration-order values from the unpacked tuple, positions of the
-#: array fields, positions of the char fields)
-_DECODE_PLANS: dict[int, tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]] = {}
-
-
-def _decode_plan(cls: Any) -> tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]:
-    plan = _DECODE_PLANS.get(cls.id)
-    if plan is None:
-        fields = _field_plan(cls)
-        items = [slice(tip, tip + count) if count > 1 else tip for tip, count in fields]
-        getter = operator.itemgetter(*items) if len(items) > 1 else (lambda t, i=items[0]: (t[i],))
-        zeros = cls.unpacker.unpack(bytes(cls.unpacker.size))  # strings unpack as bytes
-        arrays = tuple(k for k, (_, count) in enumerate(fields) if count > 1)
-        chars = tuple(k for k, (tip, n) in enumerate(fields) if n == 1 and isinstance(zeros[tip], bytes))
-        plan = _DECODE_PLANS[cls.id] = (getter, arrays, chars)
-    return plan
+#: pymavlink's parser, for its public `decode` of single frames
+_DECODER = mavlink2.MAVLink(None)
 
 
 def message_from_payload(msg_id: int, payload: bytes) -> MAVLinkMessage:
     """The pymavlink message of ``payload`` (zero-padded or cut to the message's size, as pymavlink
     does); KeyError for an unknown id."""
-    cls = mavlink2.mavlink_map[msg_id]
-    unpacker = cls.unpacker
-    size = unpacker.size
-    if len(payload) != size:
-        payload = bytes(payload[:size]).ljust(size, b"\x00")
-    getter, arrays, chars = _decode_plan(cls)
-    values = getter(unpacker.unpack(payload))
-    if arrays or chars:
-        values = list(values)
-        for k in arrays:
-            values[k] = list(values[k])
-        for k in chars:
-            values[k] = values[k].rstrip(b"\x00")
-    return cls(*values)
+    size = mavlink2.mavlink_map[msg_id].unpacker.size
+    return decode_frame(encode_frame(msg_id, bytes(payload[:size]), 0, 0, 0))
 
 
 def decode_frame(frame: bytes) -> MAVLinkMessage:
     """The message of one complete, unsigned MAVLink 2 frame whose CRC has been checked, with the header,
-    payload and buffer pymavlink's parser would give it."""
-    mlen = frame[1]
-    msg_id = frame[7] | frame[8] << 8 | frame[9] << 16
-    m = message_from_payload(msg_id, frame[10 : 10 + mlen])
-    buf = bytearray(frame)
-    m._msgbuf = buf
-    m._payload = buf[6:-2]
-    m._crc = frame[-2] | frame[-1] << 8
-    m._header = mavlink2.MAVLink_header(msg_id, frame[2], frame[3], mlen, frame[4], frame[5], frame[6])
-    return m
+    payload and buffer pymavlink's parser gives it."""
+    return _DECODER.decode(bytearray(frame))
 
 
 class _Sink:
