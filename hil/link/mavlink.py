@@ -269,14 +269,15 @@ class MavlinkCodec:
 
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
-        not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, `DECODE_ONLY_IDS`;
-        unsigned links only) are decoded here, others go through pymavlink one by one, all in stream
-        order. Returns the rest (from the first byte that is not such a frame on), for pymavlink."""
+        not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded
+        (unsigned links) or go through pymavlink's parser (signed: it checks the signature) one by one,
+        all in stream order. Returns the rest (from the first byte that is not such a frame on), for
+        pymavlink's parser."""
         accept, raw, n, i = self._accept, self._raw, len(data), 0
         fast = not self.signing
         recorder = self.recorder
         extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
-        mirrored = b""  # ``data`` bit-reversed byte by byte (see `crc_x25`), made for the first frame
+        mirrored = b""  # ``data`` bit-reversed byte by byte (see `encode_frame`), made for the first frame
         while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
             end = i + frame_size(data, i)
             if end > n:
@@ -287,7 +288,7 @@ class MavlinkCodec:
                 break  # an unknown id: pymavlink counts it
             if not mirrored:
                 mirrored = _mirrored(data)
-            # `crc_x25` of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
+            # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
@@ -295,7 +296,7 @@ class MavlinkCodec:
                 self.stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
-            elif fast and (msg_id in raw or msg_id in _DECODED_HERE):
+            elif fast:
                 frame = bytes(data[i:end])
                 good.append(frame if msg_id in raw else decode_frame(frame))
                 self.stats.frames_received += 1
@@ -344,21 +345,6 @@ def _mirrored(data: Any) -> bytes:
     return data.translate(_BIT_REVERSED)
 
 
-#: per-tick messages framed and decoded here rather than by pymavlink's generic code (same bytes, same
-#: message objects): setpoints, lockstep ticks, and the FC's heartbeat, ACKs and attitude/position
-FAST_DECODE_IDS: frozenset[int] = frozenset(
-    {
-        mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
-        mavlink2.MAVLINK_MSG_ID_TIMESYNC,
-        mavlink2.MAVLINK_MSG_ID_HEARTBEAT,
-        mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,
-        mavlink2.MAVLINK_MSG_ID_ATTITUDE,
-        mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
-    }
-)
-#: per-tick messages decoded here but packed by pymavlink (a string field): the lockstep tick's count
-DECODE_ONLY_IDS: frozenset[int] = frozenset({mavlink2.MAVLINK_MSG_ID_NAMED_VALUE_INT})
-_DECODED_HERE = FAST_DECODE_IDS | DECODE_ONLY_IDS
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 
 
@@ -368,7 +354,9 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     body = payload.rstrip(b"\x00") or payload[:1]
     head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
                            msg_id & 0xFFFF, msg_id >> 16)
-    # `crc_x25` of header and payload, then CRC_EXTRA, on mirrored bytes; sent low byte first, mirrored back
+    # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
+    # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
+    # init 0xFFFF is its own mirror image); sent low byte first
     rev = _BIT_REVERSED
     crc = binascii.crc_hqx((head[1:] + body).translate(rev), 0xFFFF)
     crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
