@@ -8,25 +8,19 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-#: public name -> the module that defines it
-_EXPORTS = {
-    "Clock": "clock",
-    "SimClock": "clock",
-    "WallClock": "clock",
-    "EndpointSpec": "endpoint",
-    "open_link": "endpoint",
-    "parse_endpoint": "endpoint",
-    "MemoryTransport": "memory",
-    "PtyTransport": "pty",
-    "SerialTransport": "serial_port",
-    "TcpTransport": "tcp",
-    "LinkError": "transport",
-    "LinkStats": "transport",
-    "Transport": "transport",
-    "UartModel": "uart",
-    "UartTransport": "uart",
-    "UdpTransport": "udp",
+#: module -> the public names it defines
+_MODULES = {
+    "clock": ("Clock", "SimClock", "WallClock"),
+    "endpoint": ("EndpointSpec", "open_link", "parse_endpoint"),
+    "memory": ("MemoryTransport",),
+    "pty": ("PtyTransport",),
+    "serial_port": ("SerialTransport",),
+    "tcp": ("TcpTransport",),
+    "transport": ("LinkError", "LinkStats", "Transport"),
+    "uart": ("UartModel", "UartTransport"),
+    "udp": ("UdpTransport",),
 }
+_EXPORTS = {name: module for module, names in _MODULES.items() for name in names}
 __all__ = sorted(_EXPORTS)
 
 

@@ -92,9 +92,10 @@ _memory_pairs: dict[str, dict[str, Transport]] = {}
 _memory_lock = threading.Lock()
 
 
-def _open_memory(name: str, role: str) -> Transport:
+def _open_memory(ep: EndpointSpec, role: str) -> Transport:
     from hil.link.memory import MemoryTransport
 
+    name = ep.name
     with _memory_lock:
         waiting = _memory_pairs.get(name)
         if waiting is None:
@@ -127,20 +128,12 @@ def _open_serial(ep: EndpointSpec, role: str) -> Transport:
                            reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
 
 
-def _open_udp(ep: EndpointSpec, role: str) -> Transport:
-    from hil.link.udp import UdpTransport
-
-    return UdpTransport(ep.host, ep.port, server=ep.kind == "udp")
-
-
-def _open_tcp(ep: EndpointSpec, role: str) -> Transport:
-    from hil.link.tcp import TcpTransport
-
-    return TcpTransport(ep.host, ep.port, server=ep.kind == "tcp")
-
-
-def _open_memory_spec(ep: EndpointSpec, role: str) -> Transport:
-    return _open_memory(ep.name, role)
+def _open_socket(ep: EndpointSpec, role: str) -> Transport:
+    if ep.kind.startswith("udp"):
+        from hil.link.udp import UdpTransport as cls
+    else:
+        from hil.link.tcp import TcpTransport as cls  # type: ignore[assignment]
+    return cls(ep.host, ep.port, server=ep.kind in ("udp", "tcp"))
 
 
 #: link kind -> opener, each importing its transport's module only when used (an optional driver
@@ -148,11 +141,11 @@ def _open_memory_spec(ep: EndpointSpec, role: str) -> Transport:
 OPENERS: dict[str, Callable[[EndpointSpec, str], Transport]] = {
     "pty": _open_pty,
     "serial": _open_serial,
-    "udp": _open_udp,
-    "udpout": _open_udp,
-    "tcp": _open_tcp,
-    "tcpout": _open_tcp,
-    "memory": _open_memory_spec,
+    "udp": _open_socket,
+    "udpout": _open_socket,
+    "tcp": _open_socket,
+    "tcpout": _open_socket,
+    "memory": _open_memory,
 }
 
 

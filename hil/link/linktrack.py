@@ -369,7 +369,7 @@ def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequ
             _u8("body id", body_id)
         fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
     out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
-    return out + _CRC.pack(binascii.crc_hqx(out, 0xFFFF))
+    return out + _CRC.pack(crc16_ccitt(out))
 
 
 #: values `unpack_mocap_payload` gives per body: id, flags, stamp (us), position (3), quaternion (4)
@@ -390,7 +390,7 @@ def unpack_mocap_payload(data: bytes) -> tuple[Any, ...]:
         raise FrameError(f"mocap payload version {version} not supported (want {PAYLOAD_VERSION})")
     if size != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
         raise FrameError(f"mocap payload of {size} bytes does not hold {count} bodies")
-    if binascii.crc_hqx(memoryview(data)[:-2], 0xFFFF) != data[-2] | data[-1] << 8:
+    if crc16_ccitt(memoryview(data)[:-2]) != data[-2] | data[-1] << 8:
         raise FrameError("mocap payload CRC mismatch")
     if count <= MAX_BODIES:
         return _PAYLOAD_BODIES[count].unpack_from(data)

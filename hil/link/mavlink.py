@@ -287,7 +287,7 @@ class MavlinkCodec:
             if extra is None:
                 break  # an unknown id: pymavlink counts it
             if not mirrored:
-                mirrored = _mirrored(data)
+                mirrored = bytes(data).translate(_BIT_REVERSED)
             # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
@@ -330,19 +330,10 @@ class MavlinkCodec:
 
 
 _BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
-#: byte value -> the one byte of its bits reversed
-_MIRRORED_BYTE = tuple(bytes((r,)) for r in _BIT_REVERSED)
 #: message id -> its CRC_EXTRA byte bit-reversed (the ids pymavlink knows)
 _CRC_EXTRA_MIRRORED: dict[int, bytes] = {
-    msg_id: _MIRRORED_BYTE[cls.crc_extra] for msg_id, cls in mavlink2.mavlink_map.items()
+    msg_id: bytes((_BIT_REVERSED[cls.crc_extra],)) for msg_id, cls in mavlink2.mavlink_map.items()
 }
-
-
-def _mirrored(data: Any) -> bytes:
-    """``data`` with the bits of every byte reversed."""
-    if data.__class__ is not bytes and data.__class__ is not bytearray:
-        data = bytes(data)
-    return data.translate(_BIT_REVERSED)
 
 
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
