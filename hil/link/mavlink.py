@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import binascii
 import math
-import operator
 import struct
-from collections.abc import Callable, Collection
+from collections.abc import Collection
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
@@ -150,9 +149,8 @@ class MavlinkCodec:
         self.clock = clock
         self.recorder = recorder
         self.stats = MavlinkStats()
-        self._out: list[bytes] = []
         #: packs (and signs) what the codec does not frame itself; its signing state is the parser's
-        self._mav = mavlink2.MAVLink(_Sink(self._out), srcSystem=system_id, srcComponent=component_id)
+        self._mav = mavlink2.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._parser = self._new_parser()
         self._signed_only = frozenset(signed_only)
         self._signing_epoch_unix_s = signing_epoch_unix_s
@@ -199,21 +197,9 @@ class MavlinkCodec:
 
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
-        if not self.signing:  # framed here: the same bytes as pymavlink's, without its generic code
-            try:
-                payload = payload_of(msg)
-            except (struct.error, TypeError):  # a field pymavlink converts itself (text as str)
-                frame = msg.pack(self._mav)
-                payload = frame[10 : 10 + frame[1]]
-            # not ``msg.id``: some messages have a field of that name
-            return self.pack_payload(msg.get_msgId(), payload)
-        self._refresh_signing_time()
-        self._mav.send(msg)
-        frame = self._out.pop()
-        self.stats.frames_sent += 1
-        if self.recorder is not None:
-            self.recorder.record(frame, self.clock.now_s())
-        return frame
+        if self.signing:
+            self._refresh_signing_time()
+        return self._sent(bytes(msg.pack(self._mav)))
 
     def pack_payload(self, msg_id: int, payload: bytes) -> bytes:
         """`pack` for a message given as its full payload (fields in wire order, as the message's
@@ -222,9 +208,11 @@ class MavlinkCodec:
         if self.signing:
             return self.pack(message_from_payload(msg_id, payload))
         m = self._mav
-        # one sequence for the frames framed here and by pymavlink: its public ``seq``
-        frame = encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent)
-        m.seq = (m.seq + 1) & 0xFF
+        return self._sent(encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent))
+
+    def _sent(self, frame: bytes) -> bytes:
+        """Count and record ``frame``, framed on the packer's sequence number, and step that number."""
+        self._mav.seq = (self._mav.seq + 1) & 0xFF  # one sequence, pymavlink's public ``seq``
         self.stats.frames_sent += 1
         if self.recorder is not None:
             self.recorder.record(frame, self.clock.now_s())
@@ -354,31 +342,6 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
-#: per message class: a getter of the wire-order values (None when a field is an array)
-_PAYLOAD_GETTERS: dict[type, Callable[[Any], tuple[Any, ...]] | None] = {}
-
-
-def payload_of(msg: MAVLinkMessage) -> bytes:
-    """The full payload of ``msg`` (fields in wire order, arrays spread), as pymavlink packs it."""
-    cls = msg.__class__
-    try:
-        getter = _PAYLOAD_GETTERS[cls]
-    except KeyError:
-        names = msg.ordered_fieldnames
-        scalar = len(names) > 1 and all(count == 1 for count in msg.lengths)  # one name: no tuple
-        getter = _PAYLOAD_GETTERS[cls] = operator.attrgetter(*names) if scalar else None
-    if getter is not None:
-        return msg.unpacker.pack(*getter(msg))
-    values: list[Any] = []
-    for name, count in zip(msg.ordered_fieldnames, msg.lengths, strict=True):
-        v = getattr(msg, name)
-        if count > 1:  # an array field: any sequence, its first ``count`` items (as pymavlink reads it)
-            values.extend(v[k] for k in range(count))
-        else:
-            values.append(v)
-    return msg.unpacker.pack(*values)
-
-
 #: pymavlink's parser, for its public `decode` of single frames
 _DECODER = mavlink2.MAVLink(None)
 
@@ -394,16 +357,6 @@ def decode_frame(frame: bytes) -> MAVLinkMessage:
     """The message of one complete, unsigned MAVLink 2 frame whose CRC has been checked, with the header,
     payload and buffer pymavlink's parser gives it."""
     return _DECODER.decode(bytearray(frame))
-
-
-class _Sink:
-    """A write()-able that keeps what pymavlink writes, for the codec to forward."""
-
-    def __init__(self, out: list[bytes]) -> None:
-        self._out = out
-
-    def write(self, data: bytes) -> None:
-        self._out.append(bytes(data))
 
 
 # --- frames: world ENU / body FLU inside, NED / FRD on the wire ------------------------------
