@@ -1,9 +1,9 @@
 """The link channel model: independent and Gilbert-Elliott burst loss, latency with jitter, in-order
 delivery and UART wire time (10 bits a byte, 8N1). Seeded; all times in s.
 
-One model for every link the harness simulates: the UWB radio of the mocap (`emulator.uwb`), the
-command link of a run (`hil.runner.wires`) and the UART of a serial line (`hil.link.uart`). A link's
-own defaults are data of this model (`ChannelModel` field values), never a second model.
+One model for every link the harness simulates: the UWB radio of the mocap (`emulator.uwb`) and the
+command link of a run (`hil.runner.wires`); the live UART pacing of `hil.link.uart` uses its byte
+time. A link's own defaults are data of this model (`ChannelModel` field values), never a second model.
 """
 
 from __future__ import annotations
