@@ -5,12 +5,18 @@ from __future__ import annotations
 import contextlib
 import math
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hil.link.clock import SimClock
 from hil.link.linktrack import (
+    _BODY,
+    _PAYLOAD_HEAD,
+    BODY_LEN,
+    FLAG_VALID,
     MAX_BODIES,
     MAX_NODE_DATA,
     BodySample,
@@ -19,6 +25,7 @@ from hil.link.linktrack import (
     MocapPacket,
     Node,
     NodeFrame,
+    crc16_ccitt,
     decode_frame,
     decode_mocap_payload,
     encode_frame,
@@ -26,7 +33,10 @@ from hil.link.linktrack import (
     encode_mocap_payload,
     mocap_frame_len,
     sum8,
+    unpack_mocap_payload,
 )
+from hil.link.memory import MemoryTransport
+from policies.mocap_reader import MocapReader, PoseSample
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "mocap-link-format.md"
 
@@ -162,3 +172,154 @@ def test_node_data_over_224_bytes_is_refused_and_decode_of_junk_raises():
         decode_frame(b"\x55\x02\x05\x00")
     with pytest.raises(FrameError, match="not a mocap payload"):
         decode_mocap_payload(b"X" * 20)
+
+
+# --- mocap link --------------------------------------------------------------------------------
+def test_sum8_is_the_8_bit_byte_sum_at_every_length():
+    rng = np.random.default_rng(23)
+    for n in [*range(0, 300), 511, 512, 4000]:
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        want = sum(data) & 0xFF
+        assert sum8(data) == sum8(bytearray(data)) == sum8(memoryview(data)[:]) == want
+    assert sum8(b"\xff" * 256) == (255 * 256) & 0xFF and sum8(b"\xff" * 257) == (255 * 257) & 0xFF
+
+
+def _decode_mocap_payload_reference(data: bytes) -> MocapPacket:
+    """The payload decoder before `unpack_mocap_payload`: one body at a time."""
+    if len(data) < _PAYLOAD_HEAD.size + 2:
+        raise FrameError(f"mocap payload too short ({len(data)} bytes)")
+    kind, version, frame_no, count = _PAYLOAD_HEAD.unpack_from(data, 0)
+    if kind != 0x4D:
+        raise FrameError(f"not a mocap payload (type 0x{kind:02X})")
+    if version != 1:
+        raise FrameError(f"mocap payload version {version} not supported (want 1)")
+    if len(data) != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
+        raise FrameError(f"mocap payload of {len(data)} bytes does not hold {count} bodies")
+    (crc,) = struct.unpack_from("<H", data, len(data) - 2)
+    if crc16_ccitt(data[:-2]) != crc:
+        raise FrameError("mocap payload CRC mismatch")
+    bodies = []
+    for k in range(count):
+        body_id, flags, stamp_us, *vals = _BODY.unpack_from(data, _PAYLOAD_HEAD.size + k * BODY_LEN)
+        bodies.append(BodySample(body_id=body_id, stamp_s=stamp_us * 1e-6, pos_m=tuple(vals[:3]),
+                                 quat_wxyz=tuple(vals[3:]), valid=bool(flags & FLAG_VALID)))
+    return MocapPacket(frame_no=frame_no, bodies=tuple(bodies))
+
+
+def _random_packet(rng: np.random.Generator, frame_no: int, plausible: bool = False) -> MocapPacket:
+    """Random bodies; ``plausible``: most of them as a reader takes them (unit quaternions, stamps
+    increasing with the frame number at 120 Hz), from the tenth frame on some with a random stamp (most
+    of them far in the future) or a quaternion of norm 0.3 or 2."""
+    bodies = []
+    for _ in range(int(rng.integers(0, MAX_BODIES + 1))):
+        q = rng.normal(size=4) * float(rng.choice([1.0, 0.3, 2.0]))
+        stamp_s = float(rng.uniform(0, 1e4))
+        if plausible:  # one in ten with a random stamp, one in ten with a random quaternion
+            r = 1.0 if frame_no < 10 else rng.random()  # (the first ones set the reference)
+            q = q if r < 0.1 else q / np.linalg.norm(q)
+            stamp_s = stamp_s if 0.1 <= r < 0.2 else frame_no / 120
+        bodies.append(BodySample(int(rng.integers(0, 6)), stamp_s,
+                                 tuple(float(x) for x in rng.normal(0, 3, 3)), tuple(float(x) for x in q),
+                                 bool(rng.random() < 0.9)))
+    return MocapPacket(frame_no, tuple(bodies))
+
+
+def _outcome(decode: object, data: bytes) -> object:
+    """What ``decode`` makes of ``data``, or the FrameError's message."""
+    try:
+        return decode(data)  # type: ignore[operator]
+    except FrameError as exc:
+        return str(exc)
+
+
+def test_flat_unpacking_gives_the_packet_and_the_errors_of_the_body_by_body_decoder():
+    rng = np.random.default_rng(23)
+    payloads = []
+    for k in range(300):
+        raw = bytearray(encode_mocap_payload(_random_packet(rng, k)))
+        if rng.random() < 0.4:
+            raw[int(rng.integers(0, len(raw)))] ^= int(rng.integers(1, 256))
+        if rng.random() < 0.1:
+            raw = raw[: int(rng.integers(0, len(raw)))]
+        payloads.append(bytes(raw))
+    # more bodies than a node carries: the decoders take them all the same
+    rows = struct.pack("<BBIB", 0x4D, 1, 9, MAX_BODIES + 2) + b"".join(
+        _BODY.pack(k, 1, 10 * k, 0.0, 1.0, 2.0, 1.0, 0.0, 0.0, 0.0) for k in range(MAX_BODIES + 2))
+    payloads += [rows + struct.pack("<H", crc16_ccitt(rows)), b"", b"M\x01", b"X" * 20]
+    for data in payloads:
+        want = _outcome(_decode_mocap_payload_reference, data)
+        assert _outcome(decode_mocap_payload, data) == want
+        assert _outcome(decode_mocap_payload, bytearray(data)) == want
+        flat = _outcome(unpack_mocap_payload, data)
+        if isinstance(want, str):
+            assert flat == want
+        else:
+            assert flat[2] == want.frame_no and flat[3] == len(want.bodies) == (len(flat) - 4) // 10
+
+
+def _random_frames(rng: np.random.Generator, plausible: bool = False) -> bytes:
+    """Mocap frames and other node frames (none, one, several nodes), some corrupted or cut;
+    ``plausible``: as `_random_packet`."""
+    stream = bytearray()
+    for k in range(300):
+        r = rng.random()
+        if r < 0.7:
+            raw = encode_mocap_frame(_random_packet(rng, k, plausible))
+        else:
+            nodes = tuple(Node(1, int(rng.integers(0, 256)),
+                               encode_mocap_payload(_random_packet(rng, k, plausible)) if rng.random() < 0.5
+                               else rng.integers(0, 256, int(rng.integers(0, 60)), dtype=np.uint8).tobytes())
+                          for _ in range(int(rng.integers(0, 4))))
+            raw = encode_frame(NodeFrame(2, 0, nodes))
+        raw = bytearray(raw)
+        r = rng.random()
+        if r < 0.15:
+            raw[int(rng.integers(0, len(raw)))] ^= int(rng.integers(1, 256))
+        elif r < 0.2:
+            raw = raw[: int(rng.integers(1, len(raw)))]
+        elif r < 0.25:
+            raw = bytearray(b"\x55\x02" + bytes(rng.integers(0, 256, 9, dtype=np.uint8))) + raw
+        stream += raw
+    return bytes(stream)
+
+
+@pytest.mark.parametrize("chunk", [1, 37, 100, 5000])
+def test_node_data_decoding_matches_the_frame_objects_on_corrupt_streams(chunk: int):
+    stream = _random_frames(np.random.default_rng(23 + chunk))
+    objects, datas = FrameDecoder(), FrameDecoder()
+    for i in range(0, len(stream), chunk):
+        piece = stream[i:i + chunk]
+        want = [tuple(n.data for n in f.nodes) for f in objects.feed(piece)]
+        assert datas.feed_node_data(piece) == want
+        assert datas.stats == objects.stats and datas.buffered == objects.buffered
+    assert objects.stats.bad_checksum and objects.stats.bad_structure and objects.stats.frames_ok > 200
+
+
+def test_reader_poses_without_samples_are_the_samples():
+    stream = _random_frames(np.random.default_rng(23), plausible=True)
+    clock = SimClock()
+    samples: list[PoseSample] = []
+    poses: list[tuple] = []
+    eager = MocapReader(MemoryTransport.pair()[0], clock, on_sample=samples.append)
+    lazy = MocapReader(MemoryTransport.pair()[0], clock, on_pose=lambda *a: poses.append(a))
+    both = MocapReader(MemoryTransport.pair()[0], clock, on_sample=lambda s: None,
+                       on_pose=lambda *a: None)
+    for k, i in enumerate(range(0, len(stream), 90)):
+        clock.advance_to(0.01 * (k + 1))
+        n = eager._feed(stream[i:i + 90])
+        assert lazy._feed(stream[i:i + 90]) == both._feed(stream[i:i + 90]) == n
+        if k % 3 == 0:  # asked now and then, so some samples are made from older poses
+            for body in (1, 2, 3, "vehicle"):
+                s = lazy.latest(body)
+                assert repr(s) == repr(eager.latest(body)) == repr(both.latest(body))
+                assert lazy.latest(body) is s and lazy.age_s(body) == eager.age_s(body)
+                assert lazy.is_stale(body) == eager.is_stale(body)
+    assert poses == [(s.body_id, s.stamp_s, tuple(s.pos_m), tuple(s.quat_wxyz), s.received_s)
+                     for s in samples]
+    assert all(type(x) is float for p in poses for x in (p[1], *p[2], *p[3], p[4]))
+    assert lazy.counters == eager.counters == both.counters
+    c = eager.counters
+    assert c.bad_payload and c.bodies_invalid and c.bodies_bad_quat and c.bodies_stamp_future
+    assert c.bodies_stamp_backwards and len(samples) > 100  # (a body id twice in a frame: its second)
+    for body in range(6):
+        assert repr(lazy.latest(body)) == repr(eager.latest(body))

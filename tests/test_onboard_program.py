@@ -12,8 +12,8 @@ from onboard_rig import fc_holding, rewrite_mocap_from, run_mission
 
 from hil.cli import main as hil_main
 from hil.link import MemoryTransport, SimClock
+from hil.link.lockstep import tick_frames
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav
-from hil.runner.lockstep import tick_frames
 from policies.controller import AttitudeThrustCommand
 from policies.onboard import OnboardProgram, PoseEstimator, ProgramConfig, make_pilot, pilot_names
 from policies.onboard.command_link import CommandLink
@@ -138,7 +138,7 @@ def test_a_tick_whose_announced_mocap_never_arrives_is_reported_as_lockstep_lost
     program = OnboardProgram(cmd_ob, moc_ob, ProgramConfig())
     program.link.lockstep = True
     moc_fc.send(bytes(120))
-    cmd_fc.send(tick_frames(0.01, 500))
+    cmd_fc.send(tick_frames(0.01, 500, 1, mav.MAV_COMP_ID_AUTOPILOT1))
     assert program.lockstep_poll() == [0.01]
     lost = [e for e in program.events.events if e["event"] == "lockstep_lost"]
     assert lost == [{"event": "lockstep_lost", "t_s": 0.01, "short_reads": 1}]
@@ -147,7 +147,7 @@ def test_a_tick_whose_announced_mocap_never_arrives_is_reported_as_lockstep_lost
     assert [(m.tc1, m.ts1) for m in answers] == [(10_000_000, 10_000_000)]  # the tick is still answered
     # the next tick announces what has been written by then in all: read in full, nothing more reported
     moc_fc.send(bytes(400))
-    cmd_fc.send(tick_frames(0.02, 520))
+    cmd_fc.send(tick_frames(0.02, 520, 1, mav.MAV_COMP_ID_AUTOPILOT1))
     assert program.lockstep_poll() == [0.02]
     assert len([e for e in program.events.events if e["event"] == "lockstep_lost"]) == 1
 

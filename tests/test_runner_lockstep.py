@@ -17,11 +17,14 @@ from emulator.fc.batched_steps import FastStepper
 from emulator.fc.n3 import N3Setpoint
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
-from hil.link.mavlink import mav
+from hil.link.lockstep import answered_ns
+from hil.link.mavlink import (
+    FrameSplitter,
+    mav,
+)
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import _FaultyLink
-from hil.runner.wires import FrameSplitter, timesync_answer_ns
 from hil.scenario import load_scenarios, loads_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -116,8 +119,8 @@ def test_frame_splitter_and_tick_answers():
     stream = b"\x00\x01" + hb + answer + request
     frames = sp.feed(stream[:7]) + sp.feed(stream[7:])
     assert frames == [b"\x00\x01", hb, answer, request]
-    assert timesync_answer_ns(answer) == 20_000_000
-    assert timesync_answer_ns(request) is None and timesync_answer_ns(hb) is None
+    assert answered_ns(answer) == 20_000_000
+    assert answered_ns(request) is None and answered_ns(hb) is None
 
 
 FAULTY = """
@@ -333,3 +336,14 @@ def test_a_run_goes_on_while_the_recovery_window_is_open(tmp_path, realtime):
     start = r.summary["realtime"]["contact_s"] if realtime else 0.0
     assert crossing + 4.0 <= r.summary["sim_time_s"] <= crossing + 4.0 + 0.1
     assert r.summary["sim_time_s"] - start > 9.0
+
+
+def test_run_reports_the_onboard_start_up_apart_from_the_loop(tmp_path: Path):
+    # (a start beside the gap, not in the wall's plane: the program would refuse to plan from there)
+    s = loads_scenarios("description: short hover\nduration_s: 0.5\ninitial: {pos_m: [-1, -2, 1.5]}\n")[0]
+    sm = run_scenario(s, tmp_path / "run", RunOptions(in_process=False)).summary
+    assert sm["onboard_startup_s"] > 0  # a process had to start and open its ports
+    assert sm["loop_sim_time_s"] == pytest.approx(0.49)  # from the first answered tick (0.01 s) on
+    assert sm["real_time_factor"] == pytest.approx(sm["loop_sim_time_s"] / sm["loop_wall_time_s"])
+    assert sm["ticks_answered"] == sm["ticks"] == 50
+    assert sm["wall_time_s"] >= sm["onboard_startup_s"] + sm["loop_wall_time_s"]

@@ -333,3 +333,13 @@ def test_bad_world_values_are_clear_errors() -> None:
         World(body_box_m=(0.4, 0.0, 0.1))
     with pytest.raises(ValueError, match="positions"):
         world().collision_batch(np.zeros((3, 3)), np.tile(np.eye(3), (2, 1, 1)))
+
+
+def test_world_check_state_equals_the_validated_check():
+    world = World(Gap.from_deg((0.0, 0.0, 1.5), -60.0, 0.0, 0.0), LabVolume())
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        pos = rng.normal([0.0, 0.0, 1.5], [0.4, 0.4, 0.3])
+        quat = rng.normal(size=4)
+        quat /= np.linalg.norm(quat)
+        assert world.check_state(pos, quat) == world.check(pos, quat)

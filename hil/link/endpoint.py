@@ -17,6 +17,7 @@ BAUD defaults to 921600 (bit/s).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -25,7 +26,6 @@ from hil.link.transport import Transport
 
 Role = Literal["fc", "onboard"]
 ROLES: tuple[str, ...] = ("fc", "onboard")
-KINDS: tuple[str, ...] = ("pty", "serial", "udp", "udpout", "tcp", "tcpout", "memory")
 DEFAULT_BAUD = 921600
 SERIAL_RECONNECT_S = 0.25  # how often the fc side of a serial link tries a vanished device again (s)
 SPEC_HELP = (
@@ -68,7 +68,7 @@ def parse_endpoint(spec: str) -> EndpointSpec:
     spec = spec.strip()
     kind, _, rest = spec.partition(":")
     kind = kind.lower()
-    if kind not in KINDS:
+    if kind not in OPENERS:
         raise ValueError(f"unknown link kind {kind!r} in {spec!r}; {SPEC_HELP}")
     if kind == "pty":
         return EndpointSpec("pty", baud=_parse_baud(rest, spec) if rest else DEFAULT_BAUD)
@@ -92,9 +92,10 @@ _memory_pairs: dict[str, dict[str, Transport]] = {}
 _memory_lock = threading.Lock()
 
 
-def _open_memory(name: str, role: str) -> Transport:
+def _open_memory(ep: EndpointSpec, role: str) -> Transport:
     from hil.link.memory import MemoryTransport
 
+    name = ep.name
     with _memory_lock:
         waiting = _memory_pairs.get(name)
         if waiting is None:
@@ -106,6 +107,46 @@ def _open_memory(name: str, role: str) -> Transport:
         if not waiting:
             del _memory_pairs[name]
         return end
+
+
+def _open_pty(ep: EndpointSpec, role: str) -> Transport:
+    if role != "fc":
+        raise ValueError(
+            "only the fc side creates a pty; the onboard side opens its path as 'serial:/dev/pts/N:BAUD'"
+        )
+    from hil.link.pty import PtyTransport
+
+    return PtyTransport.create(ep.baud or DEFAULT_BAUD)
+
+
+def _open_serial(ep: EndpointSpec, role: str) -> Transport:
+    from hil.link.serial_port import SerialTransport
+
+    # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
+    # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
+    return SerialTransport(ep.device, ep.baud or DEFAULT_BAUD,
+                           reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
+
+
+def _open_socket(ep: EndpointSpec, role: str) -> Transport:
+    if ep.kind.startswith("udp"):
+        from hil.link.udp import UdpTransport as cls
+    else:
+        from hil.link.tcp import TcpTransport as cls  # type: ignore[assignment]
+    return cls(ep.host, ep.port, server=ep.kind in ("udp", "tcp"))
+
+
+#: link kind -> opener, each importing its transport's module only when used (an optional driver
+#: fails only for its users)
+OPENERS: dict[str, Callable[[EndpointSpec, str], Transport]] = {
+    "pty": _open_pty,
+    "serial": _open_serial,
+    "udp": _open_socket,
+    "udpout": _open_socket,
+    "tcp": _open_socket,
+    "tcpout": _open_socket,
+    "memory": _open_memory,
+}
 
 
 def open_link(
@@ -125,32 +166,7 @@ def open_link(
     if role not in ROLES:
         raise ValueError(f"role must be one of {ROLES}, got {role!r}")
     ep = spec if isinstance(spec, EndpointSpec) else parse_endpoint(spec)
-    link: Transport
-    if ep.kind == "pty":
-        if role != "fc":
-            raise ValueError(
-                "only the fc side creates a pty; the onboard side opens its path as 'serial:/dev/pts/N:BAUD'"
-            )
-        from hil.link.pty import PtyTransport
-
-        link = PtyTransport.create(ep.baud or DEFAULT_BAUD)
-    elif ep.kind == "serial":
-        from hil.link.serial_port import SerialTransport
-
-        # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
-        # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
-        link = SerialTransport(ep.device, ep.baud or DEFAULT_BAUD,
-                               reconnect_s=SERIAL_RECONNECT_S if role == "fc" else None)
-    elif ep.kind in ("udp", "udpout"):
-        from hil.link.udp import UdpTransport
-
-        link = UdpTransport(ep.host, ep.port, server=ep.kind == "udp")
-    elif ep.kind in ("tcp", "tcpout"):
-        from hil.link.tcp import TcpTransport
-
-        link = TcpTransport(ep.host, ep.port, server=ep.kind == "tcp")
-    else:
-        link = _open_memory(ep.name, role)
+    link = OPENERS[ep.kind](ep, role)
     if uart_baud is not None:
         from hil.link.uart import DEFAULT_TX_BUFFER_BYTES, UartTransport
 

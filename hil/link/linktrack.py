@@ -149,31 +149,28 @@ def encode_node_frame(
     return b"".join((head[0], data, _BYTE[(head[1] + sum(data)) & 0xFF]))
 
 
-def _node_data(buf: bytes | bytearray | memoryview) -> tuple[bytes, ...]:
-    """The data of each node of a complete, checksum-verified frame (`_parse_frame` without the
-    objects)."""
-    n_nodes = buf[10]
-    if n_nodes == 1:  # header at 11 (role, id, data length at 13), data from 15
-        return (bytes(buf[15 : 15 + (buf[13] | buf[14] << 8)]),)
+def _node_spans(buf: bytes | bytearray | memoryview) -> list[tuple[int, int]]:
+    """(offset of the node header, data length) of each node of a complete, checked frame."""
     pos, out = FIXED_LEN, []
-    for _ in range(n_nodes):
+    for _ in range(buf[10]):
         dlen = buf[pos + 2] | buf[pos + 3] << 8
-        pos += NODE_HEADER_LEN
-        out.append(bytes(buf[pos:pos + dlen]))
-        pos += dlen
-    return tuple(out)
+        out.append((pos, dlen))
+        pos += NODE_HEADER_LEN + dlen
+    return out
+
+
+def _node_data(buf: bytes | bytearray | memoryview) -> tuple[bytes, ...]:
+    """The data of each node of a complete, checked frame: `_parse_frame` without the objects."""
+    if buf[10] == 1:  # header at 11 (role, id, data length at 13), data from 15
+        return (bytes(buf[15 : 15 + (buf[13] | buf[14] << 8)]),)
+    return tuple(bytes(buf[p + NODE_HEADER_LEN : p + NODE_HEADER_LEN + n]) for p, n in _node_spans(buf))
 
 
 def _parse_frame(buf: bytes | bytearray | memoryview) -> NodeFrame:
     """Split a complete, checksum-verified frame into nodes (structure already checked)."""
-    n_nodes = buf[10]
-    pos, nodes = FIXED_LEN, []
-    for _ in range(n_nodes):
-        role, node_id, dlen = struct.unpack_from("<BBH", buf, pos)
-        pos += NODE_HEADER_LEN
-        nodes.append(Node(role, node_id, bytes(buf[pos:pos + dlen])))
-        pos += dlen
-    return NodeFrame(role=buf[4], module_id=buf[5], nodes=tuple(nodes))
+    data = _node_data(buf)
+    nodes = tuple(Node(buf[p], buf[p + 1], d) for (p, _), d in zip(_node_spans(buf), data, strict=True))
+    return NodeFrame(role=buf[4], module_id=buf[5], nodes=nodes)
 
 
 def decode_frame(data: bytes) -> NodeFrame:
@@ -372,7 +369,7 @@ def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequ
             _u8("body id", body_id)
         fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
     out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
-    return out + _CRC.pack(binascii.crc_hqx(out, 0xFFFF))
+    return out + _CRC.pack(crc16_ccitt(out))
 
 
 #: values `unpack_mocap_payload` gives per body: id, flags, stamp (us), position (3), quaternion (4)
@@ -393,7 +390,7 @@ def unpack_mocap_payload(data: bytes) -> tuple[Any, ...]:
         raise FrameError(f"mocap payload version {version} not supported (want {PAYLOAD_VERSION})")
     if size != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
         raise FrameError(f"mocap payload of {size} bytes does not hold {count} bodies")
-    if binascii.crc_hqx(memoryview(data)[:-2], 0xFFFF) != data[-2] | data[-1] << 8:
+    if crc16_ccitt(memoryview(data)[:-2]) != data[-2] | data[-1] << 8:
         raise FrameError("mocap payload CRC mismatch")
     if count <= MAX_BODIES:
         return _PAYLOAD_BODIES[count].unpack_from(data)

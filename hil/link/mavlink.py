@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import binascii
 import math
-import operator
 import struct
-from collections.abc import Callable, Collection
+from collections.abc import Collection
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
@@ -21,7 +20,8 @@ from hil.link.transport import Transport
 mav = mavlink2
 MAVLinkMessage = mavlink2.MAVLink_message
 
-MAVLINK_V2_MAGIC = 0xFD
+MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC = 0xFD, 0xFE
+MAX_FRAME_BYTES = 280  # the longest MAVLink 2 frame: header, 255 payload bytes, CRC, signature
 SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us units from 2015-01-01
 #: messages that must be signed when a key is configured (commands and setpoints)
 SIGNED_ONLY_MSG_IDS: frozenset[int] = frozenset(
@@ -60,6 +60,47 @@ class MavlinkStats:
     @property
     def errors(self) -> int:
         return self.garbage_bytes + self.bad_crc + self.unknown_msg_id + self.bad_signature + self.malformed
+
+
+def frame_size(buf: bytes | bytearray, i: int) -> int:
+    """The length (bytes, signature included) of the MAVLink 2 or 1 frame that starts at ``buf[i]``,
+    by its header: 0 when the header is not complete in ``buf``, -1 when ``buf[i]`` starts no frame."""
+    magic = buf[i]
+    if magic == MAVLINK_V2_MAGIC:
+        return 12 + buf[i + 1] + (13 if buf[i + 2] & 0x01 else 0) if i + 3 <= len(buf) else 0
+    if magic == MAVLINK_V1_MAGIC:
+        return 8 + buf[i + 1] if i + 2 <= len(buf) else 0
+    return -1
+
+
+class FrameSplitter:
+    """Cuts a MAVLink byte stream into frames by their length fields (no CRC check: a codec does
+    that); bytes before a frame start are passed on as they are."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """The complete frames (and runs of other bytes) of what has come so far, in order."""
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        i, n = 0, len(buf)
+        while i < n:
+            size = frame_size(buf, i)
+            if size < 0:
+                j = i + 1
+                while j < n and buf[j] != MAVLINK_V2_MAGIC and buf[j] != MAVLINK_V1_MAGIC:
+                    j += 1
+                out.append(bytes(buf[i:j]))
+                i = j
+                continue
+            if size == 0 or i + size > n:
+                break
+            out.append(bytes(buf[i : i + size]))
+            i += size
+        del buf[:i]
+        return out
 
 
 def parse_signing_key(text: str) -> bytes:
@@ -108,9 +149,9 @@ class MavlinkCodec:
         self.clock = clock
         self.recorder = recorder
         self.stats = MavlinkStats()
-        self._out: list[bytes] = []
-        self._mav = mavlink2.MAVLink(_Sink(self._out), srcSystem=system_id, srcComponent=component_id)
-        self._mav.robust_parsing = True
+        #: packs (and signs) what the codec does not frame itself; its signing state is the parser's
+        self._mav = mavlink2.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+        self._parser = self._new_parser()
         self._signed_only = frozenset(signed_only)
         self._signing_epoch_unix_s = signing_epoch_unix_s
         self._accept = None if accept_ids is None else frozenset(accept_ids)
@@ -123,6 +164,13 @@ class MavlinkCodec:
             self._mav.signing.link_id = link_id
             self._mav.signing.allow_unsigned_callback = self._allow_unsigned
             self._refresh_signing_time()
+
+    def _new_parser(self) -> mavlink2.MAVLink:
+        """pymavlink's parser for incoming bytes, sharing the signing state of the packer."""
+        parser = mavlink2.MAVLink(None, srcSystem=self._mav.srcSystem, srcComponent=self._mav.srcComponent)
+        parser.robust_parsing = True
+        parser.signing = self._mav.signing
+        return parser
 
     @property
     def system_id(self) -> int:
@@ -149,22 +197,9 @@ class MavlinkCodec:
 
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
-        msg_id = msg.get_msgId()  # not ``msg.id``: some messages have a field of that name
-        if not self.signing:  # framed here: the same bytes as pymavlink's, without its generic code
-            try:
-                payload = payload_of(msg)
-            except (struct.error, TypeError):  # a field pymavlink converts itself (text as str): let it
-                payload = None
-            if payload is not None:
-                return self.pack_payload(msg_id, payload)
         if self.signing:
             self._refresh_signing_time()
-        self._mav.send(msg)
-        frame = self._out.pop()
-        self.stats.frames_sent += 1
-        if self.recorder is not None:
-            self.recorder.record(frame, self.clock.now_s())
-        return frame
+        return self._sent(bytes(msg.pack(self._mav)))
 
     def pack_payload(self, msg_id: int, payload: bytes) -> bytes:
         """`pack` for a message given as its full payload (fields in wire order, as the message's
@@ -173,10 +208,11 @@ class MavlinkCodec:
         if self.signing:
             return self.pack(message_from_payload(msg_id, payload))
         m = self._mav
-        frame = encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent)
-        m.seq = (m.seq + 1) % 256
-        m.total_packets_sent += 1
-        m.total_bytes_sent += len(frame)
+        return self._sent(encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent))
+
+    def _sent(self, frame: bytes) -> bytes:
+        """Count and record ``frame``, framed on the packer's sequence number, and step that number."""
+        self._mav.seq = (self._mav.seq + 1) & 0xFF  # one sequence, pymavlink's public ``seq``
         self.stats.frames_sent += 1
         if self.recorder is not None:
             self.recorder.record(frame, self.clock.now_s())
@@ -192,7 +228,7 @@ class MavlinkCodec:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
         as bytes for ``raw_ids``, see `__init__`)."""
         good: list[Any] = []
-        if len(self._mav.buf) == self._mav.buf_index and (self._accept is not None or not self.signing):
+        if self._parser.buf_len() == 0 and (self._accept is not None or not self.signing):
             data = self._take_leading(data, good)
             if not data:
                 return good
@@ -202,12 +238,10 @@ class MavlinkCodec:
     def _parse_slow(self, data: bytes, good: list[MAVLinkMessage]) -> None:
         """pymavlink's parser on ``data``; good messages appended to ``good``."""
         try:
-            msgs = self._mav.parse_buffer(data) or []
-        except Exception:  # pymavlink raising on input it should have flagged: drop the buffer
+            msgs = self._parser.parse_buffer(data) or []
+        except Exception:  # pymavlink raising on input it should have flagged: drop what it holds
             self.stats.malformed += 1
-            self._mav.buf = bytearray()
-            self._mav.buf_index = 0
-            self._mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+            self._parser = self._new_parser()
             return
         now_s = self.clock.now_s()
         for m in msgs:
@@ -223,16 +257,17 @@ class MavlinkCodec:
 
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
-        not accepted are dropped undecoded, the per-tick ids (`FAST_DECODE_IDS`, `DECODE_ONLY_IDS`;
-        unsigned links only) are decoded here, others go through pymavlink one by one, all in stream
-        order. Returns the rest (from the first byte that is not such a frame on), for pymavlink."""
+        not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded
+        (unsigned links) or go through pymavlink's parser (signed: it checks the signature) one by one,
+        all in stream order. Returns the rest (from the first byte that is not such a frame on), for
+        pymavlink's parser."""
         accept, raw, n, i = self._accept, self._raw, len(data), 0
         fast = not self.signing
         recorder = self.recorder
         extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
-        mirrored = b""  # ``data`` bit-reversed byte by byte (see `crc_x25`), made for the first frame
+        mirrored = b""  # ``data`` bit-reversed byte by byte (see `encode_frame`), made for the first frame
         while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
-            end = i + 12 + data[i + 1]
+            end = i + frame_size(data, i)
             if end > n:
                 break
             msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
@@ -240,8 +275,8 @@ class MavlinkCodec:
             if extra is None:
                 break  # an unknown id: pymavlink counts it
             if not mirrored:
-                mirrored = _mirrored(data)
-            # `crc_x25` of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
+                mirrored = bytes(data).translate(_BIT_REVERSED)
+            # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
@@ -249,7 +284,7 @@ class MavlinkCodec:
                 self.stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
-            elif fast and (msg_id in raw or msg_id in _DECODED_HERE):
+            elif fast:
                 frame = bytes(data[i:end])
                 good.append(frame if msg_id in raw else decode_frame(frame))
                 self.stats.frames_received += 1
@@ -283,48 +318,12 @@ class MavlinkCodec:
 
 
 _BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
-#: byte value -> the one byte of its bits reversed
-_MIRRORED_BYTE = tuple(bytes((r,)) for r in _BIT_REVERSED)
 #: message id -> its CRC_EXTRA byte bit-reversed (the ids pymavlink knows)
 _CRC_EXTRA_MIRRORED: dict[int, bytes] = {
-    msg_id: _MIRRORED_BYTE[cls.crc_extra] for msg_id, cls in mavlink2.mavlink_map.items()
+    msg_id: bytes((_BIT_REVERSED[cls.crc_extra],)) for msg_id, cls in mavlink2.mavlink_map.items()
 }
 
 
-def _mirrored(data: Any) -> bytes:
-    """``data`` with the bits of every byte reversed."""
-    if data.__class__ is not bytes and data.__class__ is not bytearray:
-        data = bytes(data)
-    return data.translate(_BIT_REVERSED)
-
-
-def crc_x25(data: bytes, extra: int | None = None) -> int:
-    """MAVLink's CRC-16/MCRF4XX of ``data`` (then the message's CRC_EXTRA byte, if given).
-
-    Computed by the C CRC-CCITT of `binascii` on the bit-reversed bytes: the reflected CRC is the
-    plain one of the mirrored input, mirrored back (init 0xFFFF is its own mirror image)."""
-    rev = _BIT_REVERSED
-    crc = binascii.crc_hqx(_mirrored(data), 0xFFFF)
-    if extra is not None:
-        crc = binascii.crc_hqx(_MIRRORED_BYTE[extra], crc)
-    return rev[crc & 0xFF] << 8 | rev[crc >> 8]
-
-
-#: per-tick messages framed and decoded here rather than by pymavlink's generic code (same bytes, same
-#: message objects): setpoints, lockstep ticks, and the FC's heartbeat, ACKs and attitude/position
-FAST_DECODE_IDS: frozenset[int] = frozenset(
-    {
-        mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
-        mavlink2.MAVLINK_MSG_ID_TIMESYNC,
-        mavlink2.MAVLINK_MSG_ID_HEARTBEAT,
-        mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,
-        mavlink2.MAVLINK_MSG_ID_ATTITUDE,
-        mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
-    }
-)
-#: per-tick messages decoded here but packed by pymavlink (a string field): the lockstep tick's count
-DECODE_ONLY_IDS: frozenset[int] = frozenset({mavlink2.MAVLINK_MSG_ID_NAMED_VALUE_INT})
-_DECODED_HERE = FAST_DECODE_IDS | DECODE_ONLY_IDS
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 
 
@@ -334,110 +333,30 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     body = payload.rstrip(b"\x00") or payload[:1]
     head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
                            msg_id & 0xFFFF, msg_id >> 16)
-    # `crc_x25` of header and payload, then CRC_EXTRA, on mirrored bytes; sent low byte first, mirrored back
+    # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
+    # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
+    # init 0xFFFF is its own mirror image); sent low byte first
     rev = _BIT_REVERSED
     crc = binascii.crc_hqx((head[1:] + body).translate(rev), 0xFFFF)
     crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
     return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
-_FIELD_PLANS: dict[int, tuple[tuple[int, int], ...]] = {}
-
-
-def _field_plan(cls: Any) -> tuple[tuple[int, int], ...]:
-    """(first index in the unpacked tuple, count) of each field in declaration order."""
-    plan = _FIELD_PLANS.get(cls.id)
-    if plan is None:
-        lengths = cls.lengths
-        plan = tuple((sum(lengths[:o]), lengths[o]) for o in cls.orders)
-        _FIELD_PLANS[cls.id] = plan
-    return plan
-
-
-#: per message class: a getter of the wire-order values (None when a field is an array)
-_PAYLOAD_GETTERS: dict[type, Callable[[Any], tuple[Any, ...]] | None] = {}
-
-
-def payload_of(msg: MAVLinkMessage) -> bytes:
-    """The full payload of ``msg`` (fields in wire order, arrays spread), as pymavlink packs it."""
-    cls = msg.__class__
-    try:
-        getter = _PAYLOAD_GETTERS[cls]
-    except KeyError:
-        names = msg.ordered_fieldnames
-        scalar = len(names) > 1 and all(count == 1 for count in msg.lengths)  # one name: no tuple
-        getter = _PAYLOAD_GETTERS[cls] = operator.attrgetter(*names) if scalar else None
-    if getter is not None:
-        return msg.unpacker.pack(*getter(msg))
-    values: list[Any] = []
-    for name, count in zip(msg.ordered_fieldnames, msg.lengths, strict=True):
-        v = getattr(msg, name)
-        if count > 1:  # an array field: any sequence, its first ``count`` items (as pymavlink reads it)
-            values.extend(v[k] for k in range(count))
-        else:
-            values.append(v)
-    return msg.unpacker.pack(*values)
-
-
-#: per message id: (getter of the declaration-order values from the unpacked tuple, positions of the
-#: array fields, positions of the char fields)
-_DECODE_PLANS: dict[int, tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]] = {}
-
-
-def _decode_plan(cls: Any) -> tuple[Callable[[tuple[Any, ...]], Any], tuple[int, ...], tuple[int, ...]]:
-    plan = _DECODE_PLANS.get(cls.id)
-    if plan is None:
-        fields = _field_plan(cls)
-        items = [slice(tip, tip + count) if count > 1 else tip for tip, count in fields]
-        getter = operator.itemgetter(*items) if len(items) > 1 else (lambda t, i=items[0]: (t[i],))
-        zeros = cls.unpacker.unpack(bytes(cls.unpacker.size))  # strings unpack as bytes
-        arrays = tuple(k for k, (_, count) in enumerate(fields) if count > 1)
-        chars = tuple(k for k, (tip, n) in enumerate(fields) if n == 1 and isinstance(zeros[tip], bytes))
-        plan = _DECODE_PLANS[cls.id] = (getter, arrays, chars)
-    return plan
+#: pymavlink's parser, for its public `decode` of single frames
+_DECODER = mavlink2.MAVLink(None)
 
 
 def message_from_payload(msg_id: int, payload: bytes) -> MAVLinkMessage:
     """The pymavlink message of ``payload`` (zero-padded or cut to the message's size, as pymavlink
     does); KeyError for an unknown id."""
-    cls = mavlink2.mavlink_map[msg_id]
-    unpacker = cls.unpacker
-    size = unpacker.size
-    if len(payload) != size:
-        payload = bytes(payload[:size]).ljust(size, b"\x00")
-    getter, arrays, chars = _decode_plan(cls)
-    values = getter(unpacker.unpack(payload))
-    if arrays or chars:
-        values = list(values)
-        for k in arrays:
-            values[k] = list(values[k])
-        for k in chars:
-            values[k] = values[k].rstrip(b"\x00")
-    return cls(*values)
+    size = mavlink2.mavlink_map[msg_id].unpacker.size
+    return decode_frame(encode_frame(msg_id, bytes(payload[:size]), 0, 0, 0))
 
 
 def decode_frame(frame: bytes) -> MAVLinkMessage:
     """The message of one complete, unsigned MAVLink 2 frame whose CRC has been checked, with the header,
-    payload and buffer pymavlink's parser would give it."""
-    mlen = frame[1]
-    msg_id = frame[7] | frame[8] << 8 | frame[9] << 16
-    m = message_from_payload(msg_id, frame[10 : 10 + mlen])
-    buf = bytearray(frame)
-    m._msgbuf = buf
-    m._payload = buf[6:-2]
-    m._crc = frame[-2] | frame[-1] << 8
-    m._header = mavlink2.MAVLink_header(msg_id, frame[2], frame[3], mlen, frame[4], frame[5], frame[6])
-    return m
-
-
-class _Sink:
-    """A write()-able that keeps what pymavlink writes, for the codec to forward."""
-
-    def __init__(self, out: list[bytes]) -> None:
-        self._out = out
-
-    def write(self, data: bytes) -> None:
-        self._out.append(bytes(data))
+    payload and buffer pymavlink's parser gives it."""
+    return _DECODER.decode(bytearray(frame))
 
 
 # --- frames: world ENU / body FLU inside, NED / FRD on the wire ------------------------------
@@ -480,11 +399,6 @@ def quat_enu_flu_to_ned_frd_tuple(
     if qw < 0:
         n = -n
     return qw / n, qx / n, qy / n, qz / n
-
-
-def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
-    """Body(FRD)->world(NED) attitude -> body(FLU)->world(ENU) attitude, (w, x, y, z)."""
-    return _canonical(quat_multiply(quat_multiply(_Q_ENU_NED, np.asarray(q_wxyz, float)), _Q_FLU_FRD))
 
 
 def enu_to_ned(v: np.ndarray) -> np.ndarray:
@@ -553,7 +467,3 @@ def px4_mode_parts(custom_mode: int) -> tuple[int, int]:
     """(main mode, sub mode) of a PX4 custom_mode word."""
     return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
 
-
-def message_types(msgs: list[MAVLinkMessage]) -> list[str]:
-    """Type names of ``msgs`` (for logs and tests)."""
-    return [m.get_type() for m in msgs]

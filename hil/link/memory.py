@@ -104,11 +104,6 @@ class MemoryTransport(Transport):
         """True once the other end has been closed."""
         return not self._state.open_ends[1 - self._side]
 
-    @property
-    def pending_bytes(self) -> int:
-        """Bytes waiting to be read at this end."""
-        return len(self._rx.buf)
-
     def fileno(self) -> int:
         if self._closed:
             raise ValueError(f"{self.endpoint}: fileno on a closed link")

@@ -8,6 +8,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
+from hil.link.mavlink import frame_size
+
 FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
 
 
@@ -72,12 +74,8 @@ def read_tlog(path: str | Path) -> list[tuple[int, bytes]]:
     while i + 8 < len(data):
         (stamp,) = struct.unpack_from(">Q", data, i)
         i += 8
-        magic = data[i]
-        if magic == 0xFD:
-            n = 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
-        elif magic == 0xFE:
-            n = 8 + data[i + 1]
-        else:
+        n = frame_size(data, i)
+        if n <= 0:
             raise ValueError(f"{path}: no MAVLink frame at byte {i}")
         out.append((stamp, data[i : i + n]))
         i += n

@@ -1,5 +1,7 @@
-"""UART wire time: bytes leave at the configured baud (10 bits a byte, 8N1) and a full transmit
-buffer drops bytes, as a real UART does.
+"""UART pacing of a live link: bytes leave at the configured baud (10 bits a byte, 8N1, as in the
+channel model `hil.link.channel`) one by one, and a full transmit buffer drops bytes, as a real UART
+does. (The channel model's `UartWire` hands over whole messages on simulated time; this releases
+bytes as they leave, on any clock, for transports in real time.)
 
 `UartModel` sits on the sending side: `write()` queues bytes into a transmit buffer of
 ``tx_buffer_bytes`` (dropping and counting the excess), and `pump()` hands out exactly the bytes
@@ -17,11 +19,11 @@ import math
 import select
 from collections import deque
 
+from hil.link.channel import BITS_PER_BYTE
 from hil.link.clock import Clock, WallClock
 from hil.link.memory import MemoryTransport
 from hil.link.transport import Transport
 
-BITS_PER_BYTE = 10  # start bit, 8 data bits, stop bit
 DEFAULT_TX_BUFFER_BYTES = 4096
 _EPS_BYTES = 1e-6  # tolerance on byte counts for floating-point times
 

@@ -13,6 +13,7 @@ in another.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,7 @@ from hil.link.transport import Transport
 from hil.runner.faults import FaultSchedule, corrupt
 from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
-from hil.runner.wires import CommandWire, LinkModel
+from hil.runner.wires import CommandWire, channel_model
 from hil.scenario.schema import Scenario
 
 FC_SYSTEM_ID = 1
@@ -169,7 +170,7 @@ class EmulatorSide:
         self._gap_pose = (*gap_pose.pos_m.tolist(), *gap_pose.quat_wxyz.tolist())
         self.world = World.for_profile(self.gap, LabVolume(scenario.lab.min_m, scenario.lab.max_m), profile)
         self.wire = CommandWire(
-            command_raw, clock, LinkModel.from_spec(scenario.links.command), cmd_rng, self.faults
+            command_raw, clock, scenario.links.command, cmd_rng, self.faults
         )
         # setpoints reach the server as frames (it unpacks them itself; see RAW_MSG_IDS)
         self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog,
@@ -177,15 +178,7 @@ class EmulatorSide:
         streams = ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S))
         self.server = MavlinkServer(self.vehicle, self.codec, streams)
         m = scenario.links.mocap
-        burst = m.burst
-        uwb = UwbConfig(
-            latency_s=m.latency_ms * 1e-3,
-            jitter_s=m.jitter_ms * 1e-3,
-            loss_prob=m.loss,
-            burst_enter_prob=0.0 if burst is None else burst.p_gb,
-            burst_exit_prob=0.3 if burst is None else burst.p_bg,
-            uart_baud=m.baud,
-        )
+        uwb = UwbConfig(**asdict(channel_model(m)), uart_baud=m.baud)
         self.mocap_link = _FaultyLink(mocap_raw, clock, self.faults, corrupt_rng)
         self.mocap = MocapLinkServer(self.mocap_link, clock, mocap_rng, MocapConfig(rate_hz=m.rate_hz), uwb)
         self.recorder = Recorder(self.world, profile, duration_s)

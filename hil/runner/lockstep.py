@@ -2,8 +2,8 @@
 answered it (or has been declared dead), so a run is faster than real time and deterministic.
 
 Per tick at time t: the emulator side runs up to t (physics, FC, mocap, links), the runner writes the
-tick's mocap frames, then the FC's frames and the TIMESYNC tick (tc1 = 0, ts1 = t in ns) on the command
-link; the onboard program reads everything, acts, writes its outputs and answers TIMESYNC(tc1 = ts1 = t).
+tick's mocap frames, then the FC's frames and the tick on the command link (the convention is
+`hil.link.lockstep`'s); the onboard program reads everything, acts, writes its outputs and answers.
 Its outputs count as handed to the command link at t + the onboard computer's compute time (one tick by
 default, the scenario's ``onboard_compute_ms``) and reach the FC after their modelled wire time. The
 emulator side runs on to that time while the onboard program works, so with the default the two
@@ -23,7 +23,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from hil.link.mavlink import encode_frame, mav
+from hil.link.lockstep import MOCAP_COUNT_MASK, RESEND_FILLER, RESEND_S, STARTUP_RESEND_S, tick_frames
+from hil.link.mavlink import mav
 from hil.runner.emulator_side import CHECK_OVERRUN_S, FC_SYSTEM_ID, EmulatorSide
 from hil.runner.faults import FaultSchedule
 from hil.runner.onboard_side import OnboardSide
@@ -31,25 +32,15 @@ from hil.runner.onboard_side import OnboardSide
 DEFAULT_TICK_S = 0.01  # one tick per onboard control period (100 Hz)
 DEFAULT_GUARD_S = 3.0  # wall time without an answer before the onboard program counts as dead
 STARTUP_GUARD_S = 60.0  # the first answer may wait for a process to start
-_TIMESYNC = mav.MAVLink_timesync_message.unpacker
-_NAMED_INT = mav.MAVLink_named_value_int_message.unpacker
-MOCAP_COUNT_NAME = b"mocap_n"  # NAMED_VALUE_INT of a tick: mocap bytes written in all, mod 2^31
-MOCAP_COUNT_MASK = 0x7FFFFFFF
 #: wall time the loop polls for an answer before it sleeps: the answer usually comes within it, and a
 #: sleeping CPU of a virtual machine takes tens to hundreds of microseconds to wake
 SPIN_S = 1e-3
+FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
 #: samples the recorder gathers before it checks and records them together (about half a second)
 RECORD_BATCH = 64
-RESEND_FILLER = bytes(280)  # longer than any MAVLink frame; zeros are never a frame start
 #: wall time the loop waits on a silent onboard program before asking whether it has exited (the spin,
 #: SPIN_S, is part of it)
 EXIT_POLL_S = 2e-3
-#: a tick not answered within this wall time is sent again (lost on a fresh port, or in the program's
-#: parser behind a frame with a corrupt length): a repeat is only answered, so a spurious one costs nothing
-RESEND_S = 0.1
-#: until the first answer: a new process opening its port drops what was written before (pyserial
-#: flushes on open), so the first tick is repeated often; the program acts on a repeat only once
-STARTUP_RESEND_S = 0.02
 
 
 @dataclass
@@ -159,7 +150,7 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                wire.send_sync(tick_frames(t, mocap_total))
+                wire.send_sync(tick_frames(t, mocap_total, FC_SYSTEM_ID, FC_COMPONENT_ID))
                 onboard.service()
                 emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
                 if first:  # wait for the new process, then the loop proper starts
@@ -203,19 +194,6 @@ def _note_exit(rep: LoopReport, onboard: OnboardSide, t: float) -> None:
     onboard.alive = False
     rep.onboard_exit_s = t
     rep.events.append({"time_s": t, "source": "runner", "text": "onboard program exited"})
-
-
-def tick_frames(t: float, mocap_total: int) -> bytes:
-    """The harness's tick at ``t`` (s): NAMED_VALUE_INT "mocap_n" (the mocap bytes written for the onboard
-    program in all, mod 2^31: it reads up to there before acting) then TIMESYNC(tc1 = 0, ts1 = t in ns);
-    sequence numbers always 0. A total, not a per-tick count, so a tick lost to corrupt bytes costs
-    nothing: the next one says it again."""
-    ms = round(t * 1e3) & 0xFFFFFFFF
-    count = _NAMED_INT.pack(ms, mocap_total & MOCAP_COUNT_MASK, MOCAP_COUNT_NAME)
-    comp = mav.MAV_COMP_ID_AUTOPILOT1
-    return encode_frame(mav.MAVLINK_MSG_ID_NAMED_VALUE_INT, count, 0, FC_SYSTEM_ID, comp) + encode_frame(
-        mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(0, round(t * 1e9)), 0, FC_SYSTEM_ID, comp
-    )
 
 
 def _collect(
@@ -266,7 +244,7 @@ def _await_answer(
             # lost on a port opened after it was written, or to corrupt bytes in front of it (a later
             # tick has been answered): the same tick again, after enough filler bytes to complete any
             # frame the program's parser is still collecting on a corrupt length
-            wire.send_sync(RESEND_FILLER + tick_frames(t, mocap_total))
+            wire.send_sync(RESEND_FILLER + tick_frames(t, mocap_total, FC_SYSTEM_ID, FC_COMPONENT_ID))
             resend_at = now + resend_s
         # the process is asked whether it has exited each time it has been silent for EXIT_POLL_S: a
         # program that finished its mission while ticks were in flight leaves them unanswered

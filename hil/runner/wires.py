@@ -1,10 +1,10 @@
-"""The command link as the emulator sees it in a run: per-message latency, jitter and loss (with
-Gilbert-Elliott bursts), UART wire time at the link's baud, and the link faults, in both directions,
-on simulated time.
+"""The command link as the emulator sees it in a run: the link channel model (`hil.link.channel`: loss
+with bursts, latency, jitter, UART wire time at the link's baud) and the link faults, in both
+directions, on simulated time.
 
 `CommandWire` is the Transport under the FC's MAVLink codec. Frames the FC sends are queued with their
 arrival time and written to the real link (memory end or pty master) by `pump()`; bytes the onboard
-program wrote are split into frames by the runner (`FrameSplitter`), each given an arrival time, and
+program wrote are split into frames (`hil.link.mavlink.FrameSplitter`), each given an arrival time, and
 read by the FC's codec once the SimClock has reached it. Lockstep ticks and their answers are the
 harness's own traffic: they bypass the model, the faults and the FC (`send_sync`).
 """
@@ -18,38 +18,25 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from hil.link.channel import Channel, ChannelModel, UartWire
 from hil.link.clock import SimClock
+from hil.link.lockstep import answered_ns
+from hil.link.mavlink import MAVLINK_V2_MAGIC, FrameSplitter
 from hil.link.transport import Transport, wait_readable
 from hil.runner.faults import FaultSchedule, corrupt
 from hil.scenario.schema import LinkSpec
 
-BITS_PER_BYTE = 10  # 8N1
-MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC = 0xFD, 0xFE
-TIMESYNC_MSG_ID = 111
 
-
-@dataclass(frozen=True)
-class LinkModel:
-    """Per-message behaviour of one link direction (s, bit/s, probabilities)."""
-
-    baud: int = 921600
-    latency_s: float = 0.0
-    jitter_s: float = 0.0
-    loss: float = 0.0
-    burst_p_gb: float = 0.0
-    burst_p_bg: float = 1.0
-
-    @classmethod
-    def from_spec(cls, spec: LinkSpec) -> LinkModel:
-        burst = spec.burst
-        return cls(
-            baud=spec.baud,
-            latency_s=spec.latency_ms * 1e-3,
-            jitter_s=spec.jitter_ms * 1e-3,
-            loss=spec.loss,
-            burst_p_gb=0.0 if burst is None else burst.p_gb,
-            burst_p_bg=1.0 if burst is None else burst.p_bg,
-        )
+def channel_model(spec: LinkSpec) -> ChannelModel:
+    """The channel model of a scenario's link (the file's names and units mapped here, once)."""
+    burst = spec.burst
+    return ChannelModel(
+        latency_s=spec.latency_ms * 1e-3,
+        jitter_s=spec.jitter_ms * 1e-3,
+        loss_prob=spec.loss,
+        burst_enter_prob=0.0 if burst is None else burst.p_gb,
+        burst_exit_prob=1.0 if burst is None else burst.p_bg,
+    )
 
 
 @dataclass
@@ -67,84 +54,19 @@ class DirectionStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-class _Channel:
-    """Loss, latency and jitter then the UART: gives each accepted frame its arrival time (s)."""
+class _Direction:
+    """One direction: the channel (loss, latency, jitter, order) behind the UART at the link's baud."""
 
-    def __init__(self, model: LinkModel, rng: np.random.Generator) -> None:
-        self.model = model
-        self.rng = rng
-        self.byte_time_s = BITS_PER_BYTE / model.baud
-        self._bad = False
-        self._line_free_s = -math.inf
-        self._last_arrival_s = -math.inf
+    def __init__(self, model: ChannelModel, baud: int, rng: np.random.Generator) -> None:
+        self.channel = Channel(model, rng)
+        self.uart = UartWire(baud)
 
     def arrival_s(self, now_s: float, n_bytes: int) -> float | None:
         """When a frame of ``n_bytes`` handed over at ``now_s`` arrives, or None if the link loses it."""
-        m, rng = self.model, self.rng
-        if m.burst_p_gb > 0:
-            self._bad = (rng.random() >= m.burst_p_bg) if self._bad else (rng.random() < m.burst_p_gb)
-            if self._bad:
-                return None
-        if m.loss > 0 and rng.random() < m.loss:
+        channel = self.channel
+        if channel.can_lose and channel.drop() is not None:
             return None
-        start = max(now_s, self._line_free_s)  # the UART sends one frame after the other
-        self._line_free_s = start + n_bytes * self.byte_time_s
-        latency = m.latency_s
-        if m.jitter_s > 0:
-            latency = max(0.0, latency + rng.normal(0.0, m.jitter_s))
-        arrival = max(self._line_free_s + latency, self._last_arrival_s)  # a serial link keeps order
-        self._last_arrival_s = arrival
-        return arrival
-
-
-class FrameSplitter:
-    """Cuts a MAVLink byte stream into frames by their length fields (no CRC check: the FC's codec does
-    that); bytes before a frame start are passed on as they are."""
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-
-    def feed(self, data: bytes) -> list[bytes]:
-        buf = self._buf
-        buf += data
-        out: list[bytes] = []
-        i = 0
-        n = len(buf)
-        while i < n:
-            magic = buf[i]
-            if magic == MAVLINK_V2_MAGIC:
-                if i + 3 > n:
-                    break
-                size = 12 + buf[i + 1] + (13 if buf[i + 2] & 0x01 else 0)
-            elif magic == MAVLINK_V1_MAGIC:
-                if i + 2 > n:
-                    break
-                size = 8 + buf[i + 1]
-            else:
-                j = i + 1
-                while j < n and buf[j] not in (MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC):
-                    j += 1
-                out.append(bytes(buf[i:j]))
-                i = j
-                continue
-            if i + size > n:
-                break
-            out.append(bytes(buf[i : i + size]))
-            i += size
-        del buf[:i]
-        return out
-
-
-def timesync_answer_ns(frame: bytes) -> int | None:
-    """The tick time (ns) of a lockstep answer (TIMESYNC with tc1 == ts1 != 0), else None."""
-    if len(frame) < 12 or frame[0] != MAVLINK_V2_MAGIC:
-        return None
-    if frame[7] | frame[8] << 8 | frame[9] << 16 != TIMESYNC_MSG_ID:
-        return None
-    payload = bytes(frame[10 : 10 + frame[1]]).ljust(16, b"\x00")  # MAVLink 2 trims trailing zeros
-    tc1 = int.from_bytes(payload[0:8], "little", signed=True)
-    ts1 = int.from_bytes(payload[8:16], "little", signed=True)
-    return tc1 if tc1 == ts1 and tc1 != 0 else None
+        return channel.arrival_s(self.uart.finish_s(now_s, n_bytes))
 
 
 class CommandWire(Transport):
@@ -154,7 +76,7 @@ class CommandWire(Transport):
         self,
         raw: Transport,
         clock: SimClock,
-        model: LinkModel,
+        spec: LinkSpec,
         rng: np.random.Generator,
         faults: FaultSchedule,
     ) -> None:
@@ -164,8 +86,9 @@ class CommandWire(Transport):
         self.faults = faults
         self.endpoint = raw.endpoint
         out_rng, in_rng, self._corrupt_rng = rng.spawn(3)
-        self._out = _Channel(model, out_rng)
-        self._in = _Channel(model, in_rng)
+        model = channel_model(spec)
+        self._out = _Direction(model, spec.baud, out_rng)
+        self._in = _Direction(model, spec.baud, in_rng)
         self._out_queue: list[tuple[float, int, bytes]] = []
         self._in_queue: list[tuple[float, int, bytes]] = []
         self._seq = 0
@@ -255,7 +178,7 @@ class CommandWire(Transport):
         backlog = self._backlog
         while backlog:
             frame = backlog.popleft()
-            if timesync_answer_ns(frame) is None:
+            if answered_ns(frame) is None:
                 self._queue_for_fc(frame, now)
         return got
 
@@ -272,7 +195,7 @@ class CommandWire(Transport):
         backlog, frames = self._backlog, self._unanswered
         while backlog:
             frame = backlog.popleft()
-            answered = timesync_answer_ns(frame)
+            answered = answered_ns(frame)
             if answered is None:
                 frames.append(frame)
                 continue

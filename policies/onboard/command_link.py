@@ -17,6 +17,14 @@ from collections import deque
 from dataclasses import dataclass
 
 from hil.link.clock import Clock
+from hil.link.lockstep import (
+    TICK_MSG_IDS,
+    TIMESYNC_ID,
+    answer_payload,
+    mocap_count,
+    read_tick_frame,
+    tick_request_s,
+)
 from hil.link.mavlink import (
     PX4_AUTO_LOITER,
     PX4_MAIN_AUTO,
@@ -38,20 +46,14 @@ FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
 USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMAND_ACK,
                           mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_STATUSTEXT,
                           mav.MAVLINK_MSG_ID_NAMED_VALUE_INT})
-#: NAMED_VALUE_INT a lockstep harness sends before a tick: the mocap bytes it has written in all (mod
-#: 2^31), which the program reads before acting on the tick
-MOCAP_COUNT_NAME = "mocap_n"
-#: the lockstep's own per-tick messages, which the codec hands over as frames and this client decodes
-#: straight from the payload (`CommandLink._handle_frame`): no pymavlink objects for them
-RAW_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_TIMESYNC, mav.MAVLINK_MSG_ID_NAMED_VALUE_INT})
+#: the lockstep's own per-tick messages, which the codec hands over as frames and this client reads
+#: straight from the payload (`hil.link.lockstep.read_tick_frame`): no pymavlink objects for them
+RAW_MSG_IDS = TICK_MSG_IDS
 READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
 #: payload layouts (wire order) of the per-tick messages, framed by `MavlinkCodec.pack_payload`
 _ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker
-_TIMESYNC = mav.MAVLink_timesync_message.unpacker
-_NAMED_VALUE_INT = mav.MAVLink_named_value_int_message.unpacker
-_MOCAP_COUNT_RAW = MOCAP_COUNT_NAME.encode("ascii")
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
@@ -171,25 +173,18 @@ class CommandLink:
         return handled
 
     def _handle_frame(self, frame: bytes) -> None:
-        """`_handle` of the message in ``frame`` (a good frame of one of `RAW_MSG_IDS`), read with
-        struct from its payload as pymavlink would decode it (zero-padded or cut to the full size)."""
+        """`_handle` of the message in ``frame`` (a good MAVLink 2 frame of one of `RAW_MSG_IDS`)."""
         if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
             self.foreign["ticks"] += 1
             return
-        payload = frame[10:-2]
-        if frame[7] == mav.MAVLINK_MSG_ID_TIMESYNC:  # both ids < 256: the id's upper bytes are 0
-            if len(payload) != _TIMESYNC.size:
-                payload = payload[: _TIMESYNC.size].ljust(_TIMESYNC.size, b"\x00")
-            tc1, ts1 = _TIMESYNC.unpack(payload)
-            if tc1 == 0:  # a request: in lockstep, the FC's tick (ts1 = simulated time, ns)
-                self._ticks.append(ts1 * 1e-9)
-        else:  # NAMED_VALUE_INT
-            if len(payload) != _NAMED_VALUE_INT.size:
-                payload = payload[: _NAMED_VALUE_INT.size].ljust(_NAMED_VALUE_INT.size, b"\x00")
-            _, value, name = _NAMED_VALUE_INT.unpack(payload)
-            # pymavlink's ``name``: the bytes up to the first NUL, as ASCII (other bytes never match)
-            if value >= 0 and name.split(b"\x00", 1)[0] == _MOCAP_COUNT_RAW:
-                self.mocap_announced = int(value)
+        self._on_tick(*read_tick_frame(frame))
+
+    def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
+        """A lockstep tick request at ``tick_s`` (s), or the harness's mocap byte total (None: not)."""
+        if tick_s is not None:
+            self._ticks.append(tick_s)
+        elif mocap_total is not None:
+            self.mocap_announced = mocap_total
 
     def _handle(self, m: MAVLinkMessage) -> None:
         kind = m.get_type()
@@ -209,11 +204,9 @@ class CommandLink:
         elif kind == "COMMAND_ACK":
             self.acks[m.command] = CommandAck(m.command, m.result, now)
         elif kind == "TIMESYNC":
-            if m.tc1 == 0:  # a request: in lockstep, the FC's tick (ts1 = simulated time, ns)
-                self._ticks.append(m.ts1 * 1e-9)
+            self._on_tick(tick_request_s(m.tc1, m.ts1), None)
         elif kind == "NAMED_VALUE_INT":
-            if m.name == MOCAP_COUNT_NAME and m.value >= 0:
-                self.mocap_announced = int(m.value)
+            self._on_tick(None, mocap_count(m.name, m.value))
         elif kind == "STATUSTEXT":
             self.status_texts.append(str(m.text))
 
@@ -294,9 +287,8 @@ class CommandLink:
         self.send_command(mav.MAV_CMD_DO_SET_MODE, PX4_BASE_MODE_CUSTOM, PX4_MAIN_AUTO, PX4_AUTO_LOITER)
 
     def answer_tick(self, tick_s: float) -> None:
-        """Lockstep "done with this tick": TIMESYNC with tc1 = ts1 = the tick time (ns)."""
-        ns = round(tick_s * 1e9)
-        self._send_frame(self.codec.pack_payload(mav.MAVLINK_MSG_ID_TIMESYNC, _TIMESYNC.pack(ns, ns)))
+        """Lockstep "done with this tick" (`hil.link.lockstep`)."""
+        self._send_frame(self.codec.pack_payload(TIMESYNC_ID, answer_payload(tick_s)))
         self._open_ticks = max(0, self._open_ticks - 1)
         if self._open_ticks == 0:
             self.flush()

@@ -1,13 +1,9 @@
-"""The second round of per-tick fast paths keeps behaviour: hand-framed MAVLink is byte for byte
-pymavlink's and decodes to the same messages, the scalar estimator is the textbook Kalman filter, a
-repeated lockstep tick is acted on once, readers drain datagram links fully, and a run reports the
-onboard start-up apart from the loop."""
+"""The MAVLink codec of the link layer: frames byte for byte pymavlink's, decoded to the same
+messages, telemetry a side does not use dropped only when its CRC is good, counts, order, signing,
+recording, and the frame scanner."""
 
 from __future__ import annotations
 
-import math
-import select
-import time
 from pathlib import Path
 
 import numpy as np
@@ -15,15 +11,16 @@ import pytest
 from pymavlink import mavutil
 
 from hil.link.clock import SimClock
-from hil.link.mavlink import MavlinkCodec, decode_frame, encode_frame, mav, message_from_payload
+from hil.link.mavlink import (
+    MavlinkCodec,
+    decode_frame,
+    encode_frame,
+    mav,
+    message_from_payload,
+)
 from hil.link.memory import MemoryTransport
 from hil.link.tlog import TlogWriter
-from hil.link.udp import UdpTransport
-from hil.runner import RunOptions, run_scenario
-from hil.scenario import loads_scenarios
-from policies.onboard import OnboardProgram, ProgramConfig
 from policies.onboard.command_link import CommandLink
-from policies.onboard.estimator import EstimatorConfig, PoseEstimator
 
 RNG_SEED = 11
 
@@ -205,103 +202,35 @@ def test_tlog_of_hand_framed_setpoints_reads_back_with_pymavlink(tmp_path: Path)
     assert ticks[-1].tc1 == ticks[-1].ts1 == 200_000_000
 
 
-def _reference_filter(cfg: EstimatorConfig, poses: list[tuple[float, np.ndarray]]) -> np.ndarray:
-    """A plain matrix constant-acceleration Kalman filter per axis (the estimator's model)."""
-    x = P = None
-    last = -math.inf
-    for stamp, z in poses:
-        dt = stamp - last
-        if x is None or dt > cfg.reset_after_s:
-            x = np.stack([z, np.zeros(3), np.zeros(3)])
-            P = np.diag([cfg.pos_noise_m**2, 1.0, 10.0])
-        else:
-            F = np.array([[1.0, dt, dt * dt / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
-            Q = cfg.jerk_psd * np.array([[dt**5 / 20, dt**4 / 8, dt**3 / 6],
-                                         [dt**4 / 8, dt**3 / 3, dt**2 / 2],
-                                         [dt**3 / 6, dt**2 / 2, dt]])
-            x, P = F @ x, F @ P @ F.T + Q
-            k = P[:, 0] / (P[0, 0] + cfg.pos_noise_m**2)
-            x = x + np.outer(k, z - x[0])
-            P = P - np.outer(k, P[0, :])
-        last = stamp
-    assert x is not None
-    return x
+def _fc_frames(fc: MavlinkCodec) -> list[bytes]:
+    m = fc.mav
+    return [
+        fc.pack(m.attitude_encode(10, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)),
+        fc.pack(m.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 1, 2, 3)),
+        fc.pack(m.local_position_ned_encode(10, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0)),
+        fc.pack(m.timesync_encode(0, 123_000_000)),
+    ]
 
 
-def test_scalar_estimator_is_the_matrix_kalman_filter():
-    rng = np.random.default_rng(RNG_SEED)
-    cfg = EstimatorConfig()
-    est = PoseEstimator(cfg)
-    poses = []
-    t = 0.0
-    for k in range(400):
-        t += 1 / 120 + (0.6 if k == 200 else 0.0)  # one silence long enough to restart the filter
-        pos = np.array([math.sin(t), 0.5 * t * t, 2.0 - math.cos(2 * t)]) + rng.normal(0, 0.003, 3)
-        poses.append((t, pos))
-        assert est.update(t, pos, np.array([1.0, 0.0, 0.0, 0.0]), t + 0.028)
-    x_ref = _reference_filter(cfg, poses)
-    e = est.estimate(t + 0.028)  # received at t + latency, asked at once: predicted over the latency
-    h = cfg.latency_s
-    np.testing.assert_allclose(e.acc_m_s2, x_ref[2], rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(e.vel_m_s, x_ref[1] + x_ref[2] * h, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(e.pos_m, x_ref[0] + x_ref[1] * h + x_ref[2] * h * h / 2, rtol=1e-9, atol=1e-9)
-
-
-def test_estimator_rejects_bad_poses_without_raising():
-    est = PoseEstimator()
-    quat = np.array([1.0, 0.0, 0.0, 0.0])
-    assert not est.update(0.1, np.array([1.0, math.nan, 0.0]), quat, 0.12)
-    assert not est.update(0.1, np.array([1.0, 2.0]), quat, 0.12)
-    assert not est.update(0.1, np.zeros(3), np.zeros(4), 0.12)
-    assert not est.update(0.1, "abc", quat, 0.12)  # type: ignore[arg-type]
-    assert not est.ready and est.rejected == 4
-    with pytest.raises(ValueError):
-        est.estimate(0.2)
-    assert est.update(0.1, np.zeros(3), np.array([0.0, 0.0, 0.0, 2.0]), 0.12)
-    np.testing.assert_allclose(est.estimate(0.12).quat_wxyz, [0.0, 0.0, 0.0, 1.0])
-    assert not est.update(0.1, np.zeros(3), quat, 0.13)  # the same stamp again
-
-
-def test_a_repeated_tick_is_acted_on_once_and_answered_each_time():
+def test_onboard_codec_decodes_what_it_uses_and_drops_the_rest_undecoded():
     clock = SimClock()
-    cmd_ob, cmd_fc = MemoryTransport.pair()
-    moc_ob, _ = MemoryTransport.pair()
-    program = OnboardProgram(cmd_ob, moc_ob, ProgramConfig())
-    program.link.lockstep = True
-    fc = MavlinkCodec(cmd_fc, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
-    tick = fc.pack(fc.mav.timesync_encode(0, 10_000_000))
-    cmd_fc.send(tick + tick)  # the same tick twice, as a resend during start-up leaves it
-    assert program.lockstep_poll() == [0.01]
-    answers = [m for m in fc.receive() if m.get_type() == "TIMESYNC"]
-    assert [(m.tc1, m.ts1) for m in answers] == [(10_000_000, 10_000_000)] * 2
-    assert [e["event"] for e in program.events.events] == ["start"]  # acted on once
+    a, b = MemoryTransport.pair()
+    fc = MavlinkCodec(a, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    used = {mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_TIMESYNC}
+    ob = MavlinkCodec(b, clock, 1, 191, accept_ids=used)
+    msgs = ob.feed(b"".join(_fc_frames(fc)))
+    assert [m.get_type() for m in msgs] == ["HEARTBEAT", "TIMESYNC"]
+    assert ob.stats.frames_ignored == 2 and ob.stats.errors == 0
 
 
-def test_command_link_reads_every_waiting_datagram_in_one_poll():
+def test_a_corrupted_unused_frame_is_still_counted_as_bad():
     clock = SimClock()
-    rx = UdpTransport.server("127.0.0.1", 0)
-    tx = UdpTransport.client("127.0.0.1", int(rx.endpoint.rsplit(":", 1)[1]))
-    try:
-        link = CommandLink(rx, clock)
-        ref = mav.MAVLink(None, srcSystem=1, srcComponent=mav.MAV_COMP_ID_AUTOPILOT1)
-        for k in range(3):
-            tx.send(bytes(ref.timesync_encode(0, (k + 1) * 10_000_000).pack(ref)))
-        select.select([rx.fileno()], [], [], 2.0)
-        time.sleep(0.05)  # loopback delivery is quick; let all three be waiting
-        msgs = link.poll()  # one poll takes every waiting datagram, one read each
-        assert len(msgs) == 3
-        assert link.take_ticks() == pytest.approx([0.01, 0.02, 0.03])
-    finally:
-        tx.close()
-        rx.close()
-
-
-def test_run_reports_the_onboard_start_up_apart_from_the_loop(tmp_path: Path):
-    # (a start beside the gap, not in the wall's plane: the program would refuse to plan from there)
-    s = loads_scenarios("description: short hover\nduration_s: 0.5\ninitial: {pos_m: [-1, -2, 1.5]}\n")[0]
-    sm = run_scenario(s, tmp_path / "run", RunOptions(in_process=False)).summary
-    assert sm["onboard_startup_s"] > 0  # a process had to start and open its ports
-    assert sm["loop_sim_time_s"] == pytest.approx(0.49)  # from the first answered tick (0.01 s) on
-    assert sm["real_time_factor"] == pytest.approx(sm["loop_sim_time_s"] / sm["loop_wall_time_s"])
-    assert sm["ticks_answered"] == sm["ticks"] == 50
-    assert sm["wall_time_s"] >= sm["onboard_startup_s"] + sm["loop_wall_time_s"]
+    a, b = MemoryTransport.pair()
+    fc = MavlinkCodec(a, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    ob = MavlinkCodec(b, clock, 1, 191, accept_ids={mav.MAVLINK_MSG_ID_HEARTBEAT})
+    att, hb, *_ = _fc_frames(fc)
+    bad = bytearray(att)
+    bad[12] ^= 0x40  # a payload bit: the CRC no longer matches
+    msgs = ob.feed(bytes(bad) + hb)
+    assert [m.get_type() for m in msgs] == ["HEARTBEAT"]
+    assert ob.stats.bad_crc == 1 and ob.stats.frames_ignored == 0

@@ -1,0 +1,161 @@
+"""The link channel model: independent and Gilbert-Elliott burst loss, latency with jitter, in-order
+delivery and UART wire time (10 bits a byte, 8N1). Seeded; all times in s.
+
+One model for every link the harness simulates: the UWB radio of the mocap (`emulator.uwb`) and the
+command link of a run (`hil.runner.wires`); the live UART pacing of `hil.link.uart` uses its byte
+time. A link's own defaults are data of this model (`ChannelModel` field values), never a second model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+BITS_PER_BYTE = 10  # start bit, 8 data bits, stop bit
+JITTER_BLOCK = 64  # jitter draws made at once by a channel that cannot lose (same numbers, in order)
+
+
+@dataclass(frozen=True)
+class ChannelModel:
+    """Per-message behaviour of one link direction (s, probabilities per message)."""
+
+    latency_s: float = 0.0  # mean one-way latency added to each message (s)
+    jitter_s: float = 0.0  # std of normal jitter on the latency (s), truncated so latency stays >= 0
+    loss_prob: float = 0.0  # independent loss per message
+    burst_enter_prob: float = 0.0  # Gilbert-Elliott: chance per message to go from good to bad
+    burst_exit_prob: float = 1.0  # Gilbert-Elliott: chance per message to go from bad back to good
+    burst_loss_prob: float = 1.0  # loss per message while in the bad state
+
+    def __post_init__(self) -> None:
+        for name in ("latency_s", "jitter_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        for name in ("loss_prob", "burst_enter_prob", "burst_exit_prob", "burst_loss_prob"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {v}")
+        if self.burst_enter_prob > 0 and self.burst_exit_prob <= 0:
+            raise ValueError("burst_exit_prob must be > 0 when bursts can start (or loss never ends)")
+
+    @property
+    def can_lose(self) -> bool:
+        return self.loss_prob > 0 or self.burst_enter_prob > 0
+
+    @property
+    def mean_loss(self) -> float:
+        """Long-run fraction of messages lost (independent and burst losses combined)."""
+        p_bad = 0.0
+        if self.burst_enter_prob > 0:
+            p_bad = self.burst_enter_prob / (self.burst_enter_prob + self.burst_exit_prob)
+        return 1.0 - (1.0 - self.loss_prob) * (1.0 - p_bad * self.burst_loss_prob)
+
+
+class Channel:
+    """One direction of a link on ``model``: `drop()` says whether a message is lost, `arrival_s()`
+    when one ready at a time arrives (latency, jitter, order kept). Draws only from ``rng`` (and may
+    draw ahead: give it a generator of its own)."""
+
+    def __init__(self, model: ChannelModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self.can_lose = model.can_lose
+        self._bad = False
+        self._last_arrival_s = -math.inf
+        self._jitter_block: list[float] = []
+        self._jitter_next = 0
+
+    def drop(self) -> str | None:
+        """Whether the next message is lost: "burst" (in the bad state), "loss" (independent) or None.
+        Draws: the state change (bursts on), the burst loss (bad state), then the independent loss."""
+        m, rng = self.model, self.rng
+        if m.burst_enter_prob > 0:
+            bad = self._bad
+            self._bad = (rng.random() >= m.burst_exit_prob) if bad else (rng.random() < m.burst_enter_prob)
+        if self._bad and rng.random() < m.burst_loss_prob:
+            return "burst"
+        if m.loss_prob > 0 and rng.random() < m.loss_prob:
+            return "loss"
+        return None
+
+    def arrival_s(self, ready_s: float) -> float:
+        """When a message whose last byte is out at ``ready_s`` arrives: after the latency with its
+        jitter, never before the one before it (s)."""
+        m = self.model
+        latency = m.latency_s
+        if m.jitter_s > 0:
+            latency = max(0.0, latency + self._jitter(m.jitter_s))
+        arrival = ready_s + latency
+        if arrival < self._last_arrival_s:
+            arrival = self._last_arrival_s
+        self._last_arrival_s = arrival
+        return arrival
+
+    def _jitter(self, jitter_s: float) -> float:
+        """One draw of N(0, jitter_s) (s); in blocks when nothing else draws (the same numbers)."""
+        if self.can_lose:
+            return self.rng.normal(0.0, jitter_s)
+        k = self._jitter_next
+        block = self._jitter_block
+        if k >= len(block):
+            block = self._jitter_block = self.rng.standard_normal(JITTER_BLOCK).tolist()
+            k = 0
+        self._jitter_next = k + 1
+        return 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
+
+
+class UartWire:
+    """A UART at ``baud``: chunks leave one after the other, each out whole when its last bit is.
+
+    ``write(now_s, data)`` queues a chunk; ``update(now_s)`` returns the chunks finished by then;
+    `finish_s` only books the line (for a caller that queues the chunks itself).
+    """
+
+    def __init__(self, baud: int, bits_per_byte: int = BITS_PER_BYTE) -> None:
+        if not baud > 0 or bits_per_byte < 1:
+            raise ValueError(f"UART needs baud > 0 and bits_per_byte >= 1, got {baud}, {bits_per_byte}")
+        self.baud = baud
+        self.bits_per_byte = bits_per_byte
+        self._busy_until_s = -math.inf
+        self._queue: list[tuple[float, bytes]] = []
+        self.bytes_written = 0
+
+    def wire_time_s(self, n_bytes: int) -> float:
+        """Time ``n_bytes`` take on the wire (s)."""
+        return n_bytes * self.bits_per_byte / self.baud
+
+    def finish_s(self, now_s: float, n_bytes: int) -> float:
+        """Book ``n_bytes`` handed over at ``now_s`` behind what is on the line; when their last bit
+        is out (s)."""
+        busy = self._busy_until_s
+        done = (busy if busy > now_s else now_s) + n_bytes * self.bits_per_byte / self.baud
+        self._busy_until_s = done
+        return done
+
+    def write(self, now_s: float, data: bytes) -> float:
+        """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
+        done = self.finish_s(now_s, len(data))
+        self._queue.append((done, data if data.__class__ is bytes else bytes(data)))
+        return done
+
+    def next_event_s(self) -> float:
+        return self._queue[0][0] if self._queue else math.inf
+
+    def update(self, now_s: float) -> list[tuple[float, bytes]]:
+        """(done_s, bytes) of the chunks whose wire time has passed by ``now_s``."""
+        q = self._queue
+        limit = now_s + 1e-12
+        if not q or q[0][0] > limit:
+            return []  # nothing done yet (most calls)
+        if len(q) == 1:  # one chunk, done: the queue empties
+            self._queue = []
+            self.bytes_written += len(q[0][1])
+            return q
+        n = 1
+        while n < len(q) and q[n][0] <= limit:
+            n += 1
+        out, self._queue = q[:n], q[n:]
+        self.bytes_written += sum(len(d) for _, d in out)
+        return out

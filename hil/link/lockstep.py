@@ -1,0 +1,104 @@
+"""The harness's lockstep convention, spoken by the runner (`hil.runner.lockstep`) and the onboard
+program (`policies.onboard.command_link`): how simulated time advances only once the onboard program
+is done with a tick. It is the harness's own, not a MAVLink or DJI standard.
+
+A tick at simulated time t: the harness writes the mocap bytes due by t on the mocap link, then on the
+command link, from the FC's ids, a count and a request:
+    NAMED_VALUE_INT name "mocap_n", value = the mocap bytes written in all, mod 2^31 (a total, not a
+        per-tick count, so a tick lost to corrupt bytes costs nothing: the next says it again); the
+        program reads the mocap link up to there before acting on the tick;
+    TIMESYNC tc1 = 0, ts1 = t in ns (a request).
+The program acts on everything before the request, then answers TIMESYNC tc1 = ts1 = t in ns. The
+harness sends no tick at t = 0 (its answer TIMESYNC(0, 0) would read as a request). A tick not answered
+within `RESEND_S` of wall time (`STARTUP_RESEND_S` until the first answer: a process opening its port
+drops what was written before) is sent again after `RESEND_FILLER`; the program answers a repeat but
+acts on a tick once.
+
+The convention's logic is in plain values (`tick_request_s`, `tick_answer_ns`, `mocap_count`); its
+MAVLink frames are at the end of this module, so a second codec can carry the same ticks.
+"""
+
+from __future__ import annotations
+
+from hil.link.mavlink import MAX_FRAME_BYTES, encode_frame, mav
+
+MOCAP_COUNT_NAME = "mocap_n"
+MOCAP_COUNT_MASK = 0x7FFFFFFF  # the count is mod 2^31 (a non-negative int32)
+NS_PER_S = 1_000_000_000
+#: wall time after which an unanswered tick is sent again (a repeat is only answered: spurious ones
+#: cost nothing)
+RESEND_S = 0.1
+#: the same until the first answer (a new process opening its port drops what came before)
+STARTUP_RESEND_S = 0.02
+_MOCAP_COUNT_RAW = MOCAP_COUNT_NAME.encode("ascii")
+
+
+def tick_request_s(tc1: int, ts1: int) -> float | None:
+    """The tick time (s) of a request TIMESYNC(tc1, ts1), None when it is no request."""
+    return ts1 * 1e-9 if tc1 == 0 else None
+
+
+def tick_answer_ns(tc1: int, ts1: int) -> int | None:
+    """The tick time (ns) a TIMESYNC(tc1, ts1) answers, None when it is no answer."""
+    return tc1 if tc1 == ts1 and tc1 != 0 else None
+
+
+def mocap_count(name: str | bytes, value: int) -> int | None:
+    """The mocap byte total a NAMED_VALUE_INT(name, value) announces, None when it is no count (the
+    name as text, or as the wire's bytes up to the first NUL)."""
+    if value < 0:
+        return None
+    if name.__class__ is bytes:
+        return int(value) if name.split(b"\x00", 1)[0] == _MOCAP_COUNT_RAW else None
+    return int(value) if name == MOCAP_COUNT_NAME else None
+
+
+# --- on MAVLink 2 --------------------------------------------------------------------------------
+TIMESYNC_ID = mav.MAVLINK_MSG_ID_TIMESYNC
+MOCAP_COUNT_ID = mav.MAVLINK_MSG_ID_NAMED_VALUE_INT
+TICK_MSG_IDS = frozenset({TIMESYNC_ID, MOCAP_COUNT_ID})
+#: written before a repeated tick: longer than any MAVLink frame, so a parser collecting a frame of a
+#: corrupt length completes it; zeros are never a frame start
+RESEND_FILLER = bytes(MAX_FRAME_BYTES)
+_TIMESYNC = mav.MAVLink_timesync_message.unpacker
+_NAMED_INT = mav.MAVLink_named_value_int_message.unpacker
+
+
+def tick_frames(t_s: float, mocap_total: int, system_id: int, component_id: int) -> bytes:
+    """The tick at ``t_s`` (s) from the FC (``system_id``, ``component_id``): the mocap count, then the
+    request; sequence numbers 0."""
+    ms = round(t_s * 1e3) & 0xFFFFFFFF
+    count = _NAMED_INT.pack(ms, mocap_total & MOCAP_COUNT_MASK, _MOCAP_COUNT_RAW)
+    request = _TIMESYNC.pack(0, round(t_s * NS_PER_S))
+    return encode_frame(MOCAP_COUNT_ID, count, 0, system_id, component_id) + encode_frame(
+        TIMESYNC_ID, request, 0, system_id, component_id
+    )
+
+
+def answer_payload(tick_s: float) -> bytes:
+    """The TIMESYNC payload that answers the tick at ``tick_s`` (s), for the program's codec to frame."""
+    ns = round(tick_s * NS_PER_S)
+    return _TIMESYNC.pack(ns, ns)
+
+
+def _payload(frame: bytes, size: int) -> bytes:
+    """The full payload of a MAVLink 2 frame (zero-padded: MAVLink 2 trims trailing zeros)."""
+    payload = frame[10 : 10 + frame[1]]
+    return payload if len(payload) == size else bytes(payload[:size]).ljust(size, b"\x00")
+
+
+def answered_ns(frame: bytes) -> int | None:
+    """The tick time (ns) a frame answers (a MAVLink 2 TIMESYNC answer), else None. No CRC check: the
+    harness reads the program's frames before they enter the modelled link."""
+    if len(frame) < 12 or frame[0] != 0xFD or frame[7] | frame[8] << 8 | frame[9] << 16 != TIMESYNC_ID:
+        return None
+    return tick_answer_ns(*_TIMESYNC.unpack(_payload(frame, _TIMESYNC.size)))
+
+
+def read_tick_frame(frame: bytes) -> tuple[float | None, int | None]:
+    """(tick request time (s), mocap count) of a good MAVLink 2 frame of `TICK_MSG_IDS`, None where it
+    says none."""
+    if frame[7] == TIMESYNC_ID:  # both ids < 256: the id's upper bytes are 0
+        return tick_request_s(*_TIMESYNC.unpack(_payload(frame, _TIMESYNC.size))), None
+    _, value, name = _NAMED_INT.unpack(_payload(frame, _NAMED_INT.size))
+    return None, mocap_count(name, value)
