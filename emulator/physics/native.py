@@ -129,6 +129,17 @@ class NativeBackend:
         step_vehicle(self._x, self._aux, self._params, cmd, n_steps)
         self._steps += n_steps
 
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(state row (STATE_SIZE,), auxiliary row (AUX_SIZE,), parameters) as `step_vehicle` advances
+        them in place: for a compiled caller that fuses its own per-step work with the physics step
+        (`emulator.fc.batched_steps`); it reports the steps it took with `advance_clock`."""
+        return self._x, self._aux, self._params
+
+    def advance_clock(self, n_steps: int) -> None:
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
+        self._steps += n_steps
+
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""
         self._aux[AUX_FORCE] = _check_force(force_world_n, (3,))
@@ -227,11 +238,6 @@ class BatchPhysics:
     def quaternions(self) -> np.ndarray:
         """(n, 4) attitudes body->world (w, x, y, z)."""
         return self._view(QUAT)
-
-    @property
-    def body_rates(self) -> np.ndarray:
-        """(n, 3) body angular rates FLU (rad/s)."""
-        return self._view(OMEGA)
 
     @property
     def rotor_speeds(self) -> np.ndarray:

@@ -138,10 +138,6 @@ class World:
         """A world checking the collision box of a `VehicleProfile` (its ``body_box_m``)."""
         return cls(gap, lab, body_box_m=profile.body_box_m, **kwargs)  # type: ignore[attr-defined]
 
-    def with_gap(self, gap: Gap) -> World:
-        """The same world with the gap moved or changed."""
-        return World(gap, self.lab, self.body_box_m, self.contact_tolerance_m)
-
     # --- scalar queries (one pose) ------------------------------------------------------------------
     def check(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[Obstacle | None, Clearance]:
         """Both `collision` and `clearance` for one pose, computed together."""
