@@ -1,5 +1,5 @@
 """The per-tick fast paths keep behaviour: the onboard codec drops unused telemetry only when its CRC is
-good, one write per lockstep tick on each side, the unvalidated world check and the plain-float
+good, one write per lockstep tick on each side, the plain-float
 controller, rotation and quaternion helpers agree with the general ones."""
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from pymavlink.generator.mavcrc import x25crc_slow
 
-from emulator.world import Gap, LabVolume, World
 from hil.link.clock import SimClock
 from hil.link.mavlink import (
     MavlinkCodec,
@@ -94,16 +93,6 @@ def test_lockstep_tick_outputs_go_out_in_one_write():
     link.lockstep = False
     link.send_heartbeat()
     assert ob_end.stats.send_calls == calls + 2
-
-
-def test_world_check_state_equals_the_validated_check():
-    world = World(Gap.from_deg((0.0, 0.0, 1.5), -60.0, 0.0, 0.0), LabVolume())
-    rng = np.random.default_rng(RNG_SEED)
-    for _ in range(200):
-        pos = rng.normal([0.0, 0.0, 1.5], [0.4, 0.4, 0.3])
-        quat = rng.normal(size=4)
-        quat /= np.linalg.norm(quat)
-        assert world.check_state(pos, quat) == world.check(pos, quat)
 
 
 def test_plain_float_helpers_agree_with_the_array_ones():

@@ -175,8 +175,7 @@ def test_batch_matches_the_scalar_path() -> None:
     w = World(gap, LabVolume(), BOX)
     pos, quats = _random_poses(rng, gap, 400)
     pos[:20, 2] = rng.uniform(0.0, 0.1, 20)  # some near the floor
-    codes = w.collision_batch(pos, quats)
-    clr, in_slab = w.clearance_batch(pos, quats)
+    codes, clr, in_slab = w.check_batch(pos, quats)
     for i in range(len(pos)):
         hit, c = w.check(pos[i], quats[i])
         assert World.obstacle(codes[i]) == hit
@@ -281,7 +280,7 @@ def test_a_batch_of_samples_tracks_like_the_samples_one_by_one() -> None:
     n = (pos - w.gap.centre_m) @ w.gap.axes()[1]
     one = CrossingTracker(w)
     for i in range(300):
-        one.add_checked(t[i], pos[i], hits[i], clr[i], bool(in_slab[i]))
+        one.update(t[i], pos[i], q[i])
     batch = CrossingTracker(w)
     done = []
     for lo, hi in ((0, 1), (1, 49), (49, 50), (50, 300)):  # batches of every size, a crossing across two
@@ -332,4 +331,4 @@ def test_bad_world_values_are_clear_errors() -> None:
     with pytest.raises(ValueError, match="body_box_m"):
         World(body_box_m=(0.4, 0.0, 0.1))
     with pytest.raises(ValueError, match="positions"):
-        world().collision_batch(np.zeros((3, 3)), np.tile(np.eye(3), (2, 1, 1)))
+        world().check_batch(np.zeros((3, 3)), np.tile(np.eye(3), (2, 1, 1)))

@@ -451,28 +451,13 @@ def attitude_target_values(
         raise SetpointRejected("non-finite attitude quaternion")
     if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
         raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    if len(qs) == 4:  # the message's own size: `euler_from_quat` written out, its yaw only when used
-        w, x, y, z = qs
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        w, x, y, z = w / norm, x / norm, y / norm, z / norm
-        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-        s = 2 * (w * y - z * x)
-        s = s if s < 1.0 else 1.0  # max(-1.0, min(1.0, s)), NaN included
-        pitch = math.asin(s if s > -1.0 else -1.0)
-        if mask & _YAW_RATE_IGNORE:
-            yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-            return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
-                math.degrees(yaw)
-    else:
-        norm = math.sqrt(sum(v * v for v in qs))
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
-        if mask & _YAW_RATE_IGNORE:
-            return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
-                math.degrees(yaw)
+    norm = math.sqrt(sum(v * v for v in qs))
+    if abs(norm - 1.0) > 0.1:
+        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+    roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
+    if mask & _YAW_RATE_IGNORE:
+        return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
+            math.degrees(yaw)
     rate = float(body_yaw_rate)
     if not math.isfinite(rate):
         raise SetpointRejected("non-finite yaw rate")
