@@ -24,6 +24,8 @@ from hil.link.linktrack import (
     encode_frame,
     encode_mocap_frame,
     encode_mocap_payload,
+    encode_mocap_rows,
+    encode_node_frame,
     mocap_frame_len,
     sum8,
 )
@@ -162,3 +164,33 @@ def test_node_data_over_224_bytes_is_refused_and_decode_of_junk_raises():
         decode_frame(b"\x55\x02\x05\x00")
     with pytest.raises(FrameError, match="not a mocap payload"):
         decode_mocap_payload(b"X" * 20)
+
+
+def test_one_node_frames_and_payload_rows_are_the_general_encoders_bytes():
+    rng = np.random.default_rng(4)
+    for k in range(200):
+        data = bytes(rng.integers(0, 256, int(rng.integers(0, 225)), dtype=np.uint8))
+        role, module, node_role, node = (int(x) for x in rng.integers(0, 256, 4))
+        assert encode_node_frame(data, role, module, node_role, node) == encode_frame(
+            NodeFrame(role, module, (Node(node_role, node, data),)))
+        bodies = tuple(
+            BodySample(int(rng.integers(0, 256)), float(rng.uniform(0, 100)), tuple(rng.normal(size=3)),
+                       tuple(rng.normal(size=4)), bool(rng.integers(0, 2)))
+            for _ in range(int(rng.integers(0, 6))))
+        rows = [(b.body_id, b.valid, b.stamp_s, [*b.pos_m, *b.quat_wxyz]) for b in bodies]
+        assert encode_mocap_rows(k, rows) == encode_mocap_payload(MocapPacket(k, bodies))
+
+
+def test_fast_encoders_still_refuse_bad_input():
+    with pytest.raises(FrameError):
+        encode_node_frame(bytes(225))
+    with pytest.raises(FrameError):
+        encode_node_frame(b"abc", role=1.0)  # type: ignore[arg-type]  # equal to 1 as a key, not a byte
+    with pytest.raises(FrameError):
+        encode_mocap_rows(1, [(1, True, 0.0, [0.0, math.nan, 0.0, 1.0, 0.0, 0.0, 0.0])])
+    with pytest.raises(FrameError):
+        encode_mocap_rows(1, [(1, True, 0.0, [0.0, math.inf, -math.inf, 1.0, 0.0, 0.0, 0.0])])
+    with pytest.raises(FrameError):
+        encode_mocap_rows(1, [(256, True, 0.0, [0.0] * 7)])
+    with pytest.raises(FrameError):
+        encode_mocap_rows(1, [(1, True, -1.0, [0.0] * 7)])

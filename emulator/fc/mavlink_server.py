@@ -28,6 +28,7 @@ from hil.link.mavlink import (
     decode_frame,
     euler_from_quat,
     mav,
+    message_from_payload,
 )
 
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
@@ -105,15 +106,11 @@ class MavlinkServer:
         #: called with (message, now_s) after a setpoint is applied (for latency measurements)
         self.on_setpoint: Callable[[MAVLinkMessage, float], None] | None = None
         self._senders: dict[int, Callable[[float], MAVLinkMessage]] = {
-            mav.MAVLINK_MSG_ID_HEARTBEAT: lambda t: self.telemetry.heartbeat(),
-            mav.MAVLINK_MSG_ID_ATTITUDE: self.telemetry.attitude,
             mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self.telemetry.attitude_quaternion,
-            mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self.telemetry.local_position_ned,
             mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.telemetry.global_position_int,
             mav.MAVLINK_MSG_ID_HIGHRES_IMU: self.telemetry.highres_imu,
             mav.MAVLINK_MSG_ID_SYS_STATUS: lambda t: self.telemetry.sys_status(self.codec.stats.errors),
             mav.MAVLINK_MSG_ID_BATTERY_STATUS: lambda t: self.telemetry.battery_status(),
-            mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda t: self.telemetry.extended_sys_state(),
             mav.MAVLINK_MSG_ID_HOME_POSITION: self.telemetry.home_position,
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda t: self.telemetry.autopilot_version(
                 self.codec.system_id
@@ -132,14 +129,18 @@ class MavlinkServer:
             mav.mavlink_map[getattr(mav, f"MAVLINK_MSG_ID_{name}")]: handler
             for name, handler in self._handlers.items()
         }
-        #: streams sent as payloads built without message objects (the same bytes as `_senders`')
+        #: streams the telemetry gives as payloads (built without message objects): the message, when
+        #: one is asked for, is read back from the payload
         t = self.telemetry
-        self._payloads: dict[int, Callable[[float, list[float] | None], bytes]] = {
+        self._payloads: dict[int, Callable[[float, Any], bytes]] = {
             mav.MAVLINK_MSG_ID_HEARTBEAT: lambda now_s, x: t.heartbeat_payload(),
             mav.MAVLINK_MSG_ID_ATTITUDE: t.attitude_payload,
             mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: t.local_position_ned_payload,
             mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda now_s, x: t.extended_sys_state_payload(),
         }
+        for msg_id, make in self._payloads.items():
+            self._senders[msg_id] = lambda now_s, i=msg_id, f=make: message_from_payload(
+                i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
 
@@ -228,8 +229,7 @@ class MavlinkServer:
                 else:
                     if x is None and msg_id in _STATE_STREAMS:
                         x = self.telemetry.state_values()
-                    codec = self.codec
-                    codec.transport.send(codec.pack_payload(msg_id, make(now_s, x)))
+                    self._send_payload(msg_id, make(now_s, x))
                 nxt = due + interval
                 due = next_due[msg_id] = nxt if nxt > now_s else now_s + interval
             if due < due_min:
@@ -248,7 +248,12 @@ class MavlinkServer:
             else:
                 self.statustext(mav.MAV_SEVERITY_INFO, ev.reason, now_s, key=f"ev:{ev.reason}")
         self._events_seen = len(events)
-        self.send(self.telemetry.heartbeat())  # let clients see the new mode now, not at the next 1 Hz beat
+        # let clients see the new mode now, not at the next 1 Hz beat
+        self._send_payload(mav.MAVLINK_MSG_ID_HEARTBEAT, self.telemetry.heartbeat_payload())
+
+    def _send_payload(self, msg_id: int, payload: bytes) -> None:
+        codec = self.codec
+        codec.transport.send(codec.pack_payload(msg_id, payload))
 
     # --- setpoints -------------------------------------------------------------------------
     def _for_me(self, target_system: int, target_component: int | None) -> bool:
