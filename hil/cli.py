@@ -1,4 +1,4 @@
-"""The `hil` command line: discovers its subcommands in `hil.commands` (and `hil.bench`)."""
+"""The `hil` command line: discovers its subcommands in `hil.commands`."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"crossgap-hil {hil.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = ["hil.bench"] + [
+    modules = [
         f"hil.commands.{m.name}"
         for m in pkgutil.iter_modules(hil.commands.__path__)
         if not m.name.startswith("_")
