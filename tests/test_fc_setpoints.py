@@ -11,7 +11,7 @@ from dataclasses import astuple
 import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
-from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values, setpoint_from_attitude_target
+from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values
 from emulator.fc.n3 import (
     ATTITUDE_THRUST_YAW_ANGLE,
     ATTITUDE_THRUST_YAW_RATE,
@@ -168,12 +168,11 @@ def test_attitude_targets_give_the_reference_setpoints_and_targets():
     kinds = set()
     for msg in msgs:
         ref = _outcome(_ref_setpoint, msg)
-        assert _outcome(setpoint_from_attitude_target, msg) == ref
         assert _outcome(attitude_target_values, msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate) == ref
         if ref[0] != "ok":
             kinds.add(ref[1].split(" ")[0])
             continue
-        sp = setpoint_from_attitude_target(msg)
+        sp = N3Setpoint(*attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate))
         want = _outcome(_ref_to_target, sp, PROFILE)
         if want[0] == "ok":
             over = tilt_of(math.radians(sp.roll_deg), math.radians(sp.pitch_deg)) > math.radians(

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from emulator.fc.vehicle import resting_state
 from emulator.physics import make_backend
-from emulator.physics.native import BatchPhysics, NativeBackend, ground_state, hover_state
+from emulator.physics.native import BatchPhysics, NativeBackend, hover_state
 from emulator.physics.state import STATE_SIZE, VehicleState
 from emulator.profile import GRAVITY_M_S2, load_profile
 
@@ -48,7 +49,7 @@ def test_free_fall_matches_closed_form() -> None:
 
 
 def test_rests_on_the_ground_without_drift_or_jitter() -> None:
-    b = _backend(state=ground_state(PROFILE, 3.0, -2.0))
+    b = _backend(state=resting_state(PROFILE, 3.0, -2.0, yaw_rad=0.0))
     heights = []
     for _ in range(2000):
         b.step(np.full(4, 0.5 * HOVER))  # spinning, but below hover
@@ -77,7 +78,7 @@ def test_fast_fall_never_tunnels_and_does_not_bounce() -> None:
 
 
 def test_takes_off_when_thrust_exceeds_weight() -> None:
-    b = _backend(state=ground_state(PROFILE))
+    b = _backend(state=resting_state(PROFILE, yaw_rad=0.0))
     b.step(np.full(4, 0.95 * HOVER), 1000)
     assert b.state.pos_m[2] == HALF_HEIGHT
     b.step(np.full(4, 1.2 * HOVER), 1000)
@@ -197,7 +198,7 @@ def test_batch_rows_are_independent() -> None:
 def batch_views_are_read_only(batch: BatchPhysics) -> bool:
     with pytest.raises(ValueError):
         batch.positions[0, 0] = 1.0
-    return batch.positions.shape == (batch.n, 3) and batch.rotor_speeds.shape == (batch.n, 4)
+    return batch.positions.shape == (batch.n, 3) and batch.states.shape == (batch.n, 17)
 
 
 def test_bad_inputs_give_clear_errors_or_failsafe() -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
-from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, N3Setpoint, SetpointRejected
+from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
 from emulator.fc.telemetry import Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
@@ -431,11 +431,6 @@ class MavlinkServer:
 
 def _mav_result(res: CommandResult) -> int:
     return mav.MAV_RESULT_ACCEPTED if res.accepted else mav.MAV_RESULT_DENIED
-
-
-def setpoint_from_attitude_target(msg: MAVLinkMessage) -> N3Setpoint:
-    """SET_ATTITUDE_TARGET -> N3Setpoint; raises SetpointRejected with the reason."""
-    return N3Setpoint(*attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate))
 
 
 def attitude_target_values(

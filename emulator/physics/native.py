@@ -34,11 +34,6 @@ def hover_state(profile: VehicleProfile, pos_m: tuple[float, float, float] = (0.
     return VehicleState(pos_m=np.array(pos_m, dtype=float), rotor_speed_rad_s=np.full(4, w))
 
 
-def ground_state(profile: VehicleProfile, x_m: float = 0.0, y_m: float = 0.0) -> VehicleState:
-    """A level vehicle resting on the ground (box bottom at z = 0), rotors stopped."""
-    return VehicleState(pos_m=np.array([x_m, y_m, 0.5 * profile.body_box_m[2]]))
-
-
 def _check_state_vector(v: np.ndarray, what: str) -> np.ndarray:
     """A validated copy of state rows (..., STATE_SIZE) with unit quaternions."""
     v = np.array(v, dtype=np.float64)
@@ -238,11 +233,6 @@ class BatchPhysics:
     def quaternions(self) -> np.ndarray:
         """(n, 4) attitudes body->world (w, x, y, z)."""
         return self._view(QUAT)
-
-    @property
-    def rotor_speeds(self) -> np.ndarray:
-        """(n, 4) rotor speeds (rad/s)."""
-        return self._view(ROTOR)
 
     @property
     def accelerations(self) -> np.ndarray:

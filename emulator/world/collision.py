@@ -30,7 +30,7 @@ from enum import IntEnum, StrEnum
 import numpy as np
 
 from emulator.world.box_kernel import check_packed, check_states, pack_world, quat_to_rot
-from emulator.world.geometry import Gap, LabVolume, quat_to_matrix
+from emulator.world.geometry import Gap, LabVolume
 
 EDGE_NAMES: tuple[str, ...] = ("+e0", "-e0", "+e2", "-e2")
 
@@ -74,15 +74,14 @@ def _as_positions(pos_m: np.ndarray, batch: bool) -> np.ndarray:
     return p
 
 
-def _as_rotations(attitude: np.ndarray, batch: bool) -> np.ndarray:
+def _as_attitudes(attitude: np.ndarray, batch: bool) -> np.ndarray:
+    """Validated quaternions (N, 4) or rotations (N, 3, 3) of a batch; one pose's rotation (3, 3)."""
     a = np.asarray(attitude, dtype=np.float64)
     lead = a.shape[:1] if batch else ()
     if a.shape == (*lead, 4):
-        if batch:
-            return quat_to_matrix(a)
-        if not (np.isfinite(a).all() and a @ a > 1e-18):
+        if not (np.isfinite(a).all() and np.all(np.einsum("...i,...i", a, a) > 1e-18)):
             raise ValueError(f"quaternion must be finite and non-zero, got {attitude!r}")
-        return quat_to_rot(a)
+        return a if batch else quat_to_rot(a)
     if a.shape == (*lead, 3, 3):
         if not np.all(np.isfinite(a)):
             raise ValueError("rotation matrix has non-finite values")
@@ -126,7 +125,7 @@ class World:
     def check(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[Obstacle | None, Clearance]:
         """Both `collision` and `clearance` for one pose, computed together."""
         p = _as_positions(pos_m, batch=False)
-        code, clr, in_slab, edge = check_packed(p, _as_rotations(attitude, batch=False), self._packed)
+        code, clr, in_slab, edge = check_packed(p, _as_attitudes(attitude, batch=False), self._packed)
         return _CODE_TO_OBSTACLE.get(code), Clearance(float(clr), bool(in_slab), EDGE_NAMES[edge])
 
     def collision(self, pos_m: np.ndarray, attitude: np.ndarray) -> Obstacle | None:
@@ -159,10 +158,10 @@ class World:
     def check_batch(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[np.ndarray, ...]:
         """`check_states_values` of positions (N, 3) and attitudes (N, 3, 3) or (N, 4), validated."""
         p = _as_positions(pos_m, batch=True)
-        rot = _as_rotations(attitude, batch=True)
-        if len(rot) != len(p):
-            raise ValueError(f"{len(p)} positions but {len(rot)} attitudes")
-        return self.check_states_values(p, rot)
+        att = _as_attitudes(attitude, batch=True)
+        if len(att) != len(p):
+            raise ValueError(f"{len(p)} positions but {len(att)} attitudes")
+        return self.check_states_values(p, att)
 
     @staticmethod
     def obstacle(code: int) -> Obstacle | None:
