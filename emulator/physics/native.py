@@ -205,6 +205,16 @@ class BatchPhysics:
         step_batch(self._x, self._aux, self._params, np.ascontiguousarray(cmd), _check_steps(n_steps))
         self._steps += n_steps
 
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`NativeBackend.kernel_arrays` of the batch: state rows (n, STATE_SIZE), auxiliary rows
+        (n, AUX_SIZE), parameters; a caller reports the steps it took with `advance_clock`."""
+        return self._x, self._aux, self._params
+
+    def advance_clock(self, n_steps: int) -> None:
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
+        self._steps += n_steps
+
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """Disturbance forces (N, world ENU): (n, 3) per vehicle or (3,) for all, held until changed."""
         self._aux[:, AUX_FORCE] = _check_force(force_world_n, (self.n, 3))
