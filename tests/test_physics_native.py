@@ -235,3 +235,19 @@ def test_make_backend_gives_native_and_state_round_trips() -> None:
     assert b.state.time_s == pytest.approx(2.75)
     b.close()
     b.close()
+
+
+def test_a_caller_stepping_the_kernel_arrays_keeps_the_batch_and_its_clock() -> None:
+    # what a batched FC loop fused with the physics does: step the rows in place, then count the steps
+    from emulator.physics.kernels import step_vehicle
+
+    fused, ref = BatchPhysics(PROFILE, 3), BatchPhysics(PROFILE, 3)
+    for b in (fused, ref):
+        b.reset(hover_state(PROFILE))
+    cmd = np.full(4, PROFILE.hover_throttle * 1.05)
+    x, aux, p = fused.kernel_arrays
+    for i in range(3):
+        step_vehicle(x[i], aux[i], p, cmd, 50)
+    fused.advance_clock(50)
+    ref.step(cmd, 50)
+    assert np.array_equal(fused.states, ref.states) and fused.time_s == ref.time_s == pytest.approx(0.05)
