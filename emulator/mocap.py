@@ -135,27 +135,6 @@ class MocapStats:
     frames_skipped: int = 0  # exposures not taken because update() came too late
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of (w, x, y, z) quaternions."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
-
-
-def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the rotation vector ``v`` (rad)."""
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-12:
-        return np.array([1.0, *(0.5 * np.asarray(v))])
-    s = math.sin(0.5 * angle) / angle
-    return np.array([math.cos(0.5 * angle), v[0] * s, v[1] * s, v[2] * s])
-
-
 def _pose_arrays(obj: object) -> tuple[np.ndarray, np.ndarray]:
     """(pos_m (3,), quat_wxyz (4,)) float arrays of ``obj``, as `pose_of` reads them; a VehicleState's
     own read-only arrays are used as they are."""
@@ -228,12 +207,8 @@ class MocapSystem:
         """When the next frame already exposed is ready (s; inf when none is waiting)."""
         return self._pending[0][0] if self._pending else math.inf
 
-    def release(self, now_s: float) -> list[MocapFrame]:
-        """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
-        return [frame_of(r) for r in self.release_rows(now_s)]
-
     def release_rows(self, now_s: float) -> list[FrameRows]:
-        """`release` as plain values (no objects per body)."""
+        """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
         pending = self._pending
         if not pending or pending[0][0] > now_s + 1e-12:
             return []  # nothing ready yet (most calls)

@@ -1,4 +1,4 @@
-"""The `hil` command line: discovers its subcommands in `hil.commands` (and `hil.bench`)."""
+"""The `hil` command line: discovers its subcommands in `hil.commands`."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import argparse
 import sys
 
 import hil
-from hil.bench import register as register_bench
 from hil.link.registry import Registry
 
 #: the subcommands: one module of `hil.commands` each, added to the parser by its ``register``
@@ -19,7 +18,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"crossgap-hil {hil.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    register_bench(sub)
     for name in COMMANDS.names():
         COMMANDS.load(name)(sub)  # type: ignore[operator]
     return parser

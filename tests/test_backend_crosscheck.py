@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from emulator.fc.vehicle import resting_state
 from emulator.physics import make_backend
-from emulator.physics.native import ground_state
 from emulator.profile import load_profile
 
 POS_TOL_M = 0.015
@@ -53,7 +53,7 @@ def fly(name: str) -> np.ndarray:
     profile = load_profile("n3_tx2")
     backend = make_backend(name, profile)
     try:
-        backend.reset(ground_state(profile))
+        backend.reset(resting_state(profile, yaw_rad=0.0))
         rows = []
         for duration_s, cmd in command_sequence(profile.hover_throttle):
             for _ in range(round(duration_s / 0.01)):

@@ -234,3 +234,11 @@ def test_a_corrupted_unused_frame_is_still_counted_as_bad():
     msgs = ob.feed(bytes(bad) + hb)
     assert [m.get_type() for m in msgs] == ["HEARTBEAT"]
     assert ob.stats.bad_crc == 1 and ob.stats.frames_ignored == 0
+
+
+def test_named_value_int_decodes_to_pymavlinks_message():
+    ref = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    for name, value in ((b"mocap_n", 123), (b"abcdefghij", -5), (b"", 0)):
+        frame = bytes(ref.named_value_int_encode(1234, name, value).pack(ref))
+        mine, theirs = decode_frame(frame), ref.decode(bytearray(frame))
+        assert mine.to_dict() == theirs.to_dict() and mine.get_msgbuf() == theirs.get_msgbuf()

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from emulator.fc.vehicle import resting_state
 from emulator.physics import make_backend
-from emulator.physics.native import BatchPhysics, NativeBackend, ground_state, hover_state
+from emulator.physics.native import BatchPhysics, NativeBackend, hover_state
 from emulator.physics.state import STATE_SIZE, VehicleState
 from emulator.profile import GRAVITY_M_S2, load_profile
 
@@ -48,7 +49,7 @@ def test_free_fall_matches_closed_form() -> None:
 
 
 def test_rests_on_the_ground_without_drift_or_jitter() -> None:
-    b = _backend(state=ground_state(PROFILE, 3.0, -2.0))
+    b = _backend(state=resting_state(PROFILE, 3.0, -2.0, yaw_rad=0.0))
     heights = []
     for _ in range(2000):
         b.step(np.full(4, 0.5 * HOVER))  # spinning, but below hover
@@ -77,7 +78,7 @@ def test_fast_fall_never_tunnels_and_does_not_bounce() -> None:
 
 
 def test_takes_off_when_thrust_exceeds_weight() -> None:
-    b = _backend(state=ground_state(PROFILE))
+    b = _backend(state=resting_state(PROFILE, yaw_rad=0.0))
     b.step(np.full(4, 0.95 * HOVER), 1000)
     assert b.state.pos_m[2] == HALF_HEIGHT
     b.step(np.full(4, 1.2 * HOVER), 1000)
@@ -197,7 +198,7 @@ def test_batch_rows_are_independent() -> None:
 def batch_views_are_read_only(batch: BatchPhysics) -> bool:
     with pytest.raises(ValueError):
         batch.positions[0, 0] = 1.0
-    return batch.positions.shape == (batch.n, 3) and batch.rotor_speeds.shape == (batch.n, 4)
+    return batch.positions.shape == (batch.n, 3) and batch.states.shape == (batch.n, 17)
 
 
 def test_bad_inputs_give_clear_errors_or_failsafe() -> None:
@@ -234,3 +235,19 @@ def test_make_backend_gives_native_and_state_round_trips() -> None:
     assert b.state.time_s == pytest.approx(2.75)
     b.close()
     b.close()
+
+
+def test_a_caller_stepping_the_kernel_arrays_keeps_the_batch_and_its_clock() -> None:
+    # what a batched FC loop fused with the physics does: step the rows in place, then count the steps
+    from emulator.physics.kernels import step_vehicle
+
+    fused, ref = BatchPhysics(PROFILE, 3), BatchPhysics(PROFILE, 3)
+    for b in (fused, ref):
+        b.reset(hover_state(PROFILE))
+    cmd = np.full(4, PROFILE.hover_throttle * 1.05)
+    x, aux, p = fused.kernel_arrays
+    for i in range(3):
+        step_vehicle(x[i], aux[i], p, cmd, 50)
+    fused.advance_clock(50)
+    ref.step(cmd, 50)
+    assert np.array_equal(fused.states, ref.states) and fused.time_s == ref.time_s == pytest.approx(0.05)

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from emulator.physics import BACKENDS, backend_names
-from hil.bench import BENCHES
+from hil.benches import BENCHES
 from hil.cli import COMMANDS
 from hil.link.registry import Registry
 from policies.onboard.pilots import PILOTS, UnknownPilot

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hil.report import read_summary, read_timeseries, write_report_html, write_summary, write_timeseries
-from hil.report.demo import DEMO_SCENARIO, synthetic_run
+from hil.report.synthetic import DEMO_SCENARIO, synthetic_run
 from hil.scenario import Scenario, loads_scenarios
 
 

@@ -115,3 +115,91 @@ def test_bad_config_is_a_clear_error(field, value):
         kwargs["burst_enter_prob"] = 0.1
     with pytest.raises(ValueError, match=field):
         UwbConfig(**kwargs)
+
+
+def test_radio_jitter_drawn_in_blocks_is_the_per_packet_sequence():
+    cfg = UwbConfig(latency_s=0.01, jitter_s=0.004)
+    radio = UwbRadio(cfg, np.random.default_rng(9))
+    ref = np.random.default_rng(9)
+    arrivals = []
+    for k in range(300):  # past several blocks
+        assert radio.send(k * 0.01, b"x" * 40)
+        arrivals.extend(d.arrival_s for d in radio.update(k * 0.01 + 1.0))
+    last = -math.inf
+    for k, got in enumerate(arrivals):
+        air_end = k * 0.01 + cfg.air_time_s(40)
+        want = max(air_end + max(0.0, cfg.latency_s + ref.normal(0.0, cfg.jitter_s)), last)
+        last = want
+        assert got == want
+
+
+class _RefUart:
+    """`UartWire` as it was."""
+
+    def __init__(self, baud: int, bits_per_byte: int = 10) -> None:
+        self.baud, self.bits_per_byte = baud, bits_per_byte
+        self._busy_until_s = -math.inf
+        self._queue: list[tuple[float, bytes]] = []
+        self.bytes_written = 0
+
+    def write(self, now_s: float, data: bytes) -> float:
+        done = max(now_s, self._busy_until_s) + len(data) * self.bits_per_byte / self.baud
+        self._busy_until_s = done
+        self._queue.append((done, bytes(data)))
+        return done
+
+    def update(self, now_s: float) -> list[tuple[float, bytes]]:
+        n = 0
+        while n < len(self._queue) and self._queue[n][0] <= now_s + 1e-12:
+            n += 1
+        out, self._queue = self._queue[:n], self._queue[n:]
+        self.bytes_written += sum(len(d) for _, d in out)
+        return out
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        UwbConfig(latency_s=0.01, jitter_s=0.004),
+        UwbConfig(loss_prob=0.1, burst_enter_prob=0.05, jitter_s=0.02, late_after_s=0.03, queue_packets=2),
+        UwbConfig(jitter_s=0.0, max_packet_bytes=60, air_rate_bps=1e5),
+    ],
+)
+def test_radio_data_and_deliveries_agree(cfg):
+    a, b = UwbRadio(cfg, np.random.default_rng(2)), UwbRadio(cfg, np.random.default_rng(2))
+    rng = np.random.default_rng(8)
+    got_a, got_b, sent = [], [], {}
+    for k in range(3000):
+        t = k / 120 + float(rng.uniform(0, 1e-3))
+        data = k.to_bytes(4, "little") + bytes(int(rng.integers(0, 80)))
+        payload = bytearray(data) if k % 3 == 0 else data
+        assert a.send(t, payload) == b.send(t, payload)
+        sent[k] = t
+        now = t + float(rng.uniform(0, 0.02))
+        got_a += a.update(now)
+        got_b += b.update_data(now)
+    got_a += a.update(math.inf)
+    got_b += b.update_data(math.inf)
+    assert a.stats == b.stats and a.stats.delivered == len(got_a) > 1000
+    assert [(d.arrival_s, d.data) for d in got_a] == got_b
+    assert all(d.data.__class__ is bytes and d.sent_s == sent[int.from_bytes(d.data[:4], "little")]
+               for d in got_a)
+
+
+def test_uart_wire_is_the_reference_wire():
+    rng = np.random.default_rng(4)
+    wire, ref = UartWire(115200), _RefUart(115200)
+    t = 0.0
+    for k in range(5000):
+        t += float(rng.choice([0.0, 1e-5, 1e-4, 1e-3, 5e-3]))
+        if rng.random() < 0.6:
+            data = bytes(int(rng.integers(1, 120)))
+            data = bytearray(data) if k % 4 == 0 else data
+            assert wire.write(t, data) == ref.write(t, data)
+        now = t + float(rng.choice([0.0, 1e-4, 2e-3, 1e-2]))
+        got = wire.update(now)
+        assert got == ref.update(now)
+        assert all(d.__class__ is bytes for _, d in got)
+        assert wire.bytes_written == ref.bytes_written
+        assert wire.next_event_s() == (ref._queue[0][0] if ref._queue else math.inf)
+    assert wire.bytes_written > 10_000

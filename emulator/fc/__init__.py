@@ -7,7 +7,7 @@ from emulator.fc.inner_loop import InnerLoop, InnerLoopGains
 from emulator.fc.mavlink_server import MavlinkServer, ServerConfig, ServerStats
 from emulator.fc.modes import CommandResult, FcEvent, FcState, LandedState
 from emulator.fc.n3 import AttitudeThrustTarget, N3Setpoint, SetpointRejected
-from emulator.fc.realtime import RealtimeRunner
+from emulator.fc.realtime_runner import RealtimeRunner
 from emulator.fc.tuning import FcGains, fc_gains
 from emulator.fc.vehicle import EmulatedVehicle, resting_state
 

@@ -31,6 +31,8 @@ from emulator.profile import VehicleProfile
 PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
 #: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
 HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
+LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
+LANDED_MAX_SPEED_M_S = 0.3  # on the ground: near the resting height and climbing or sinking slower than this
 
 
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
@@ -84,7 +86,8 @@ class FlightController:
         #: attitude at its first step after a hold state is entered (None until then), as PX4's Hold
         self._hold_yaw_rad: float | None = None
         self._last_t: float | None = None
-        self._rest_height_m = self.config.ground_z_m + 0.5 * profile.body_box_m[2]
+        #: the body's height (m, world ENU z) when it rests on the ground
+        self.rest_height_m = self.config.ground_z_m + 0.5 * profile.body_box_m[2]
         self._landed_since_s: float | None = 0.0
         self.landed = True
         self._off = np.zeros(4)
@@ -104,7 +107,7 @@ class FlightController:
     def landed_state(self) -> LandedState:
         if self.landed:
             return LandedState.ON_GROUND
-        if self.state in (FcState.LAND, FcState.FAILSAFE_LAND):
+        if self.state in LANDING_STATES:
             return LandedState.LANDING
         return LandedState.IN_AIR
 
@@ -184,7 +187,7 @@ class FlightController:
     def request_land(self, time_s: float) -> CommandResult:
         if not self.state.armed:
             return CommandResult(False, "land refused: not armed")
-        if self.state not in (FcState.LAND, FcState.FAILSAFE_LAND):
+        if self.state not in LANDING_STATES:
             self._go(FcState.LAND, time_s, "land requested")
         return ACCEPTED
 
@@ -229,14 +232,41 @@ class FlightController:
             cmd = self._off
         elif st is FcState.OFFBOARD:
             cmd = self._fly_target(state, dt)
-        elif st is FcState.HOLD and self.landed:
+        elif self.landed and (st is FcState.HOLD or st in LANDING_STATES):
             cmd = self._idle
-        elif st in (FcState.LAND, FcState.FAILSAFE_LAND):
-            cmd = self._idle if self.landed else self._velocity_hold(state, -self.config.land_speed_m_s)
-        else:  # HOLD in the air, FAILSAFE_HOVER
-            cmd = self._velocity_hold(state, 0.0)
+        else:  # HOLD in the air, FAILSAFE_HOVER, landing in the air
+            cmd = self._velocity_hold(state, self.hold_climb_m_s())
         self.motor_cmd = cmd
         return cmd
+
+    def hold_climb_m_s(self) -> float:
+        """The climb rate (m/s, up) the FC's own hover/land controller holds in the state now."""
+        return -self.config.land_speed_m_s if self.machine.state in LANDING_STATES else 0.0
+
+    def quiet_steps(self, time_s: float, dt_s: float, n_max: int) -> int:
+        """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed
+        change of state (the setpoint-loss failsafe, the failsafe hover's end): steps that a batched
+        stepper may fly without `update`'s checks. Landing and arming are not timed here."""
+        cfg, m = self.config, self.machine
+        if m.state is FcState.OFFBOARD:  # checked before each step, at the step's start time
+            room = self.last_setpoint_s + cfg.failsafe_timeout_s - time_s
+        elif m.state is FcState.FAILSAFE_HOVER:
+            room = m.since_s + cfg.failsafe_hover_s - time_s
+        else:
+            return n_max
+        n_ok = int(room / dt_s) if room > 0 else 0
+        return n_max if n_max < n_ok else n_ok
+
+    def stepped_outside(self, last_step_s: float, z_m: float, vz_m_s: float, detect_landed: bool = True
+                        ) -> None:
+        """The bookkeeping `update` keeps, after steps flown outside it with this FC's loops (a batched
+        stepper): the last step began at ``last_step_s`` (s); with ``detect_landed``, the body's height
+        ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) after it update ``landed``; the throttles flown are
+        the inner loop's ``motor_cmd``."""
+        self._last_t = last_step_s
+        if detect_landed:
+            self.detect_landed(z_m, vz_m_s, last_step_s)
+        self.motor_cmd = self.inner.motor_cmd
 
     def _check_transitions(self, t: float) -> None:
         cfg, m, go = self.config, self.machine, self._go
@@ -245,7 +275,7 @@ class FlightController:
         elif m.state is FcState.FAILSAFE_HOVER and t - m.since_s >= cfg.failsafe_hover_s:
             go(FcState.FAILSAFE_LAND, t, f"no control for {cfg.failsafe_hover_s:g} s: land")
         elif (
-            m.state in (FcState.LAND, FcState.FAILSAFE_LAND)
+            m.state in LANDING_STATES
             and self._landed_since_s is not None
             and t - self._landed_since_s >= cfg.auto_disarm_s
         ):
@@ -258,8 +288,8 @@ class FlightController:
 
     def detect_landed(self, z_m: float, vz_m_s: float, t: float) -> None:
         """Update ``landed`` from the body height ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) at ``t``."""
-        near = z_m - self._rest_height_m <= self.config.landed_margin_m
-        landed = bool(near and abs(vz_m_s) < 0.3)
+        near = z_m - self.rest_height_m <= self.config.landed_margin_m
+        landed = bool(near and abs(vz_m_s) < LANDED_MAX_SPEED_M_S)
         if landed and not self.landed:
             self._landed_since_s = t
         elif not landed:

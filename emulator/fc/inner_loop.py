@@ -40,15 +40,23 @@ def allocation_matrix(profile: VehicleProfile) -> np.ndarray:
 
 
 class InnerLoop:
-    """Attitude and rate control plus mixing for one profile; `update` returns motor throttles (4,)."""
+    """Attitude and rate control plus mixing for one profile; `update` returns motor throttles (4,),
+    `update_batch` those of a batch of vehicles.
+
+    Contract for compiled callers that fuse the loop with physics (`emulator.fc.batched_steps`):
+    ``control(q, w, roll, pitch, yaw, thrust_n, params, mix_inv, out)`` (`control`, numba) with this
+    loop's ``params`` and ``mix_inv`` writes the throttles into ``out`` (4,), here ``motor_cmd``.
+    """
 
     def __init__(self, profile: VehicleProfile, gains: InnerLoopGains) -> None:
         if not 0.0 <= gains.idle_throttle < 1.0:
             raise ValueError(f"idle_throttle must be in [0, 1), got {gains.idle_throttle}")
         self.profile = profile
         self.gains = gains
-        self._mix_inv = np.ascontiguousarray(np.linalg.inv(allocation_matrix(profile)))
-        self._params = np.array(
+        #: inverse allocation (4, 4): [thrust (N), torque x, y, z (N m)] -> rotor thrusts (N)
+        self.mix_inv = np.ascontiguousarray(np.linalg.inv(allocation_matrix(profile)))
+        #: gains, tuned inertia (kg m^2), rate limit (rad/s), rotor thrust (N), idle throttle, packed
+        self.params = np.array(
             [
                 *gains.attitude_p_per_s,
                 *gains.rate_p_per_s,
@@ -58,7 +66,8 @@ class InnerLoop:
                 gains.idle_throttle,
             ]
         )
-        self._out = np.zeros(4)
+        #: the last throttles (4,) in [0, 1], written in place by every `update`
+        self.motor_cmd = np.zeros(4)
 
     def update(
         self,
@@ -71,18 +80,32 @@ class InnerLoop:
     ) -> np.ndarray:
         """Throttles (4,) in [0, 1] that steer the body (FLU->ENU ``quat_wxyz``, rates ``omega_rad_s``)
         toward NED Euler angles (roll, pitch, yaw heading) with total thrust ``thrust_n``."""
-        _control(
+        control(
             quat_wxyz,
             omega_rad_s,
             roll_rad,
             pitch_rad,
             yaw_rad,
             thrust_n,
-            self._params,
-            self._mix_inv,
-            self._out,
+            self.params,
+            self.mix_inv,
+            self.motor_cmd,
         )
-        return self._out
+        return self.motor_cmd
+
+    def update_batch(self, quat_wxyz: np.ndarray, omega_rad_s: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """`update` of N vehicles of this profile: attitudes (N, 4), rates (N, 3) and targets (N, 4) as
+        (roll, pitch, yaw (NED, rad), thrust (N)) rows; returns the throttles (N, 4)."""
+        q = np.ascontiguousarray(quat_wxyz, dtype=np.float64)
+        w = np.ascontiguousarray(omega_rad_s, dtype=np.float64)
+        tg = np.ascontiguousarray(target, dtype=np.float64)
+        n = len(q)
+        if q.shape != (n, 4) or w.shape != (n, 3) or tg.shape != (n, 4):
+            raise ValueError(f"update_batch: shapes (N, 4), (N, 3), (N, 4) wanted, got {q.shape}, {w.shape}, "
+                             f"{tg.shape}")
+        out = np.empty((n, 4))
+        _control_batch(q, w, tg, self.params, self.mix_inv, out)
+        return out
 
 
 @njit(cache=True)
@@ -115,8 +138,11 @@ def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
-def _control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):
+@njit(cache=True, nogil=True)
+def control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):  # pragma: no cover
+    """The inner loop's step (see the module doc): throttles into ``out`` (4,) for attitude ``q``
+    (FLU->ENU, wxyz) and rates ``w`` (rad/s) toward NED (``roll``, ``pitch``, ``yaw``) (rad) and
+    ``thrust_n`` (N); ``p`` and ``mix_inv`` are an `InnerLoop`'s ``params`` and ``mix_inv``."""
     qd = target_quat_enu_flu(roll, pitch, yaw)
     # error quaternion qe = conj(q) * qd (rotation from the body to the target, body frame)
     qw, qx, qy, qz = q[0], -q[1], -q[2], -q[3]
@@ -172,3 +198,9 @@ def _control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):
     for i in range(4):
         u = (f[i] + k * mix_inv[i, 3] * tz) / f_max
         out[i] = min(1.0, max(0.0, u))
+
+
+@njit(cache=True, nogil=True)
+def _control_batch(q, w, tg, p, mix_inv, out):  # pragma: no cover
+    for i in range(q.shape[0]):
+        control(q[i], w[i], tg[i, 0], tg[i, 1], tg[i, 2], tg[i, 3], p, mix_inv, out[i])

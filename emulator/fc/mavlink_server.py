@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
-from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, N3Setpoint, SetpointRejected
+from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
 from emulator.fc.telemetry import Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
@@ -28,6 +28,7 @@ from hil.link.mavlink import (
     decode_frame,
     euler_from_quat,
     mav,
+    message_from_payload,
 )
 
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
@@ -105,15 +106,11 @@ class MavlinkServer:
         #: called with (message, now_s) after a setpoint is applied (for latency measurements)
         self.on_setpoint: Callable[[MAVLinkMessage, float], None] | None = None
         self._senders: dict[int, Callable[[float], MAVLinkMessage]] = {
-            mav.MAVLINK_MSG_ID_HEARTBEAT: lambda t: self.telemetry.heartbeat(),
-            mav.MAVLINK_MSG_ID_ATTITUDE: self.telemetry.attitude,
             mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self.telemetry.attitude_quaternion,
-            mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self.telemetry.local_position_ned,
             mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.telemetry.global_position_int,
             mav.MAVLINK_MSG_ID_HIGHRES_IMU: self.telemetry.highres_imu,
             mav.MAVLINK_MSG_ID_SYS_STATUS: lambda t: self.telemetry.sys_status(self.codec.stats.errors),
             mav.MAVLINK_MSG_ID_BATTERY_STATUS: lambda t: self.telemetry.battery_status(),
-            mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda t: self.telemetry.extended_sys_state(),
             mav.MAVLINK_MSG_ID_HOME_POSITION: self.telemetry.home_position,
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda t: self.telemetry.autopilot_version(
                 self.codec.system_id
@@ -132,14 +129,18 @@ class MavlinkServer:
             mav.mavlink_map[getattr(mav, f"MAVLINK_MSG_ID_{name}")]: handler
             for name, handler in self._handlers.items()
         }
-        #: streams sent as payloads built without message objects (the same bytes as `_senders`')
+        #: streams the telemetry gives as payloads (built without message objects): the message, when
+        #: one is asked for, is read back from the payload
         t = self.telemetry
-        self._payloads: dict[int, Callable[[float, list[float] | None], bytes]] = {
+        self._payloads: dict[int, Callable[[float, Any], bytes]] = {
             mav.MAVLINK_MSG_ID_HEARTBEAT: lambda now_s, x: t.heartbeat_payload(),
             mav.MAVLINK_MSG_ID_ATTITUDE: t.attitude_payload,
             mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: t.local_position_ned_payload,
             mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda now_s, x: t.extended_sys_state_payload(),
         }
+        for msg_id, make in self._payloads.items():
+            self._senders[msg_id] = lambda now_s, i=msg_id, f=make: message_from_payload(
+                i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
 
@@ -228,8 +229,7 @@ class MavlinkServer:
                 else:
                     if x is None and msg_id in _STATE_STREAMS:
                         x = self.telemetry.state_values()
-                    codec = self.codec
-                    codec.transport.send(codec.pack_payload(msg_id, make(now_s, x)))
+                    self._send_payload(msg_id, make(now_s, x))
                 nxt = due + interval
                 due = next_due[msg_id] = nxt if nxt > now_s else now_s + interval
             if due < due_min:
@@ -248,7 +248,12 @@ class MavlinkServer:
             else:
                 self.statustext(mav.MAV_SEVERITY_INFO, ev.reason, now_s, key=f"ev:{ev.reason}")
         self._events_seen = len(events)
-        self.send(self.telemetry.heartbeat())  # let clients see the new mode now, not at the next 1 Hz beat
+        # let clients see the new mode now, not at the next 1 Hz beat
+        self._send_payload(mav.MAVLINK_MSG_ID_HEARTBEAT, self.telemetry.heartbeat_payload())
+
+    def _send_payload(self, msg_id: int, payload: bytes) -> None:
+        codec = self.codec
+        codec.transport.send(codec.pack_payload(msg_id, payload))
 
     # --- setpoints -------------------------------------------------------------------------
     def _for_me(self, target_system: int, target_component: int | None) -> bool:
@@ -428,11 +433,6 @@ def _mav_result(res: CommandResult) -> int:
     return mav.MAV_RESULT_ACCEPTED if res.accepted else mav.MAV_RESULT_DENIED
 
 
-def setpoint_from_attitude_target(msg: MAVLinkMessage) -> N3Setpoint:
-    """SET_ATTITUDE_TARGET -> N3Setpoint; raises SetpointRejected with the reason."""
-    return N3Setpoint(*attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate))
-
-
 def attitude_target_values(
     type_mask: int, q: Any, thrust: Any, body_yaw_rate: Any
 ) -> tuple[int, float, float, float, float]:
@@ -451,28 +451,13 @@ def attitude_target_values(
         raise SetpointRejected("non-finite attitude quaternion")
     if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
         raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    if len(qs) == 4:  # the message's own size: `euler_from_quat` written out, its yaw only when used
-        w, x, y, z = qs
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        w, x, y, z = w / norm, x / norm, y / norm, z / norm
-        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-        s = 2 * (w * y - z * x)
-        s = s if s < 1.0 else 1.0  # max(-1.0, min(1.0, s)), NaN included
-        pitch = math.asin(s if s > -1.0 else -1.0)
-        if mask & _YAW_RATE_IGNORE:
-            yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-            return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
-                math.degrees(yaw)
-    else:
-        norm = math.sqrt(sum(v * v for v in qs))
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
-        if mask & _YAW_RATE_IGNORE:
-            return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
-                math.degrees(yaw)
+    norm = math.sqrt(sum(v * v for v in qs))
+    if abs(norm - 1.0) > 0.1:
+        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+    roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
+    if mask & _YAW_RATE_IGNORE:
+        return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
+            math.degrees(yaw)
     rate = float(body_yaw_rate)
     if not math.isfinite(rate):
         raise SetpointRejected("non-finite yaw rate")

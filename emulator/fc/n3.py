@@ -72,18 +72,6 @@ class AttitudeThrustTarget:
     thrust_n: float
 
 
-def describe_flag(flag: int) -> str:
-    """Human-readable control flag, e.g. 'ANGLE|THRUST|YAW_RATE|GROUND'."""
-    return "|".join(
-        (
-            _HORIZONTAL_NAMES[flag & 0xC0],
-            _VERTICAL_NAMES[flag & 0x30],
-            "YAW_RATE" if flag & YAW_RATE else "YAW_ANGLE",
-            "BODY" if flag & FRAME_BODY else "GROUND",
-        )
-    )
-
-
 def check_flag(flag: int) -> None:
     """Raise SetpointRejected unless the flag selects a mode this N3 emulator flies."""
     if flag.__class__ is int and flag in _FLOWN_FLAGS:
@@ -149,13 +137,8 @@ def target_from_values(
         raise SetpointRejected(f"thrust {thrust_percent:.1f} % outside 0..100 %")
     if abs(roll_deg) > 90.0 or abs(pitch_deg) > 90.0:
         raise SetpointRejected(f"roll/pitch {roll_deg:.0f}/{pitch_deg:.0f} deg beyond 90")
-    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
     max_tilt = math.radians(profile.max_tilt_deg)
-    # `limit_tilt`: its bisection only when the tilt (`tilt_of`, its clamps written out) is over the limit
-    c = math.cos(roll) * math.cos(pitch)
-    c = c if c < 1.0 else 1.0
-    if not math.acos(c if c > -1.0 else -1.0) <= max_tilt:
-        roll, pitch = limit_tilt(roll, pitch, max_tilt)
+    roll, pitch = limit_tilt(math.radians(roll_deg), math.radians(pitch_deg), max_tilt)
     thrust_n = profile.thrust_percent_to_force_n(thrust_percent)
     if flag & YAW_RATE:
         limit = math.radians(profile.max_yaw_rate_deg_s)

@@ -73,12 +73,15 @@ class TelemetryEncoder:
             self.armed_time_s += max(0.0, now_s - self._last_t)
         self._last_t = now_s
 
-    # --- one method per message ------------------------------------------------------------
-    def heartbeat(self) -> MAVLinkMessage:
-        return self.mav.heartbeat_encode(*self._heartbeat_fields())
+    # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
+    # ``unpacker``, for `MavlinkCodec.pack_payload`), built without message objects
+    def state_values(self) -> list[float]:
+        """The vehicle's state now as plain floats (`VehicleState.to_vector` layout), read without
+        building a VehicleState (none is built between the batched steps of a lockstep run)."""
+        return self.vehicle.state_vector().tolist()
 
-    def _heartbeat_fields(self) -> tuple[int, int, int, int, int]:
-        """HEARTBEAT's fields, declaration order: type, autopilot, base_mode, custom_mode, system_status."""
+    def heartbeat_payload(self) -> bytes:
+        """HEARTBEAT now."""
         st = self.vehicle.fc.state
         custom = CUSTOM_MODE[st]
         if st is FcState.DISARMED and self.vehicle.fc.offboard_selected:
@@ -92,25 +95,31 @@ class TelemetryEncoder:
             status = mav.MAV_STATE_CRITICAL
         else:
             status = mav.MAV_STATE_ACTIVE if st.armed else mav.MAV_STATE_STANDBY
-        return mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, custom, status
+        kind, autopilot = mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4
+        return _HEARTBEAT.pack(custom, kind, autopilot, base, status, _MAVLINK_VERSION)  # wire order
 
     # the per-tick messages work in plain floats (FLU -> FRD and ENU -> NED are sign flips and swaps)
-    def attitude(self, now_s: float) -> MAVLinkMessage:
-        s = self.vehicle.state
-        fields = _attitude_fields(now_s, s.quat_wxyz.tolist(), s.omega_rad_s.tolist())
-        return self.mav.attitude_encode(*fields)
+    def attitude_payload(self, now_s: float, x: list[float]) -> bytes:
+        """ATTITUDE (FRD, NED) at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
+        roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*x[6:10]))
+        p, q, r = x[10:13]
+        return _ATTITUDE.pack(_ms(now_s), roll, pitch, yaw, p, -q, -r)
 
+    def local_position_ned_payload(self, now_s: float, x: list[float]) -> bytes:
+        """LOCAL_POSITION_NED at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
+        e, n, u, ve, vn, vu = x[0:6]
+        return _LOCAL_POSITION_NED.pack(_ms(now_s), n, e, -u, vn, ve, -vu)
+
+    def extended_sys_state_payload(self) -> bytes:
+        """EXTENDED_SYS_STATE now."""
+        return _EXTENDED_SYS_STATE.pack(mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value)
+
+    # --- the other messages, as pymavlink messages --------------------------------------------
     def attitude_quaternion(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
         q = quat_enu_flu_to_ned_frd_tuple(*s.quat_wxyz.tolist())
         p, qr, r = s.omega_rad_s.tolist()
         return self.mav.attitude_quaternion_encode(_ms(now_s), *q, p, -qr, -r, [0.0] * 4)
-
-    def local_position_ned(self, now_s: float) -> MAVLinkMessage:
-        s = self.vehicle.state
-        return self.mav.local_position_ned_encode(
-            *_local_position_ned_fields(now_s, s.pos_m.tolist(), s.vel_m_s.tolist())
-        )
 
     def global_position_int(self, now_s: float) -> MAVLinkMessage:
         s = self.vehicle.state
@@ -167,35 +176,6 @@ class TelemetryEncoder:
             0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LIPO, 32767, cells, -1, -1, -1, pct
         )
 
-    def extended_sys_state(self) -> MAVLinkMessage:
-        return self.mav.extended_sys_state_encode(
-            mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value
-        )
-
-    # --- payloads of the streamed messages, without message objects ----------------------------
-    # (the fields in wire order, packed by the message's own ``unpacker``: `MavlinkCodec.pack_payload`)
-    def state_values(self) -> list[float]:
-        """The vehicle's state now as plain floats (`VehicleState.to_vector` layout), read without
-        building a VehicleState (none is built between the batched steps of a lockstep run)."""
-        return self.vehicle.state_vector().tolist()
-
-    def heartbeat_payload(self) -> bytes:
-        """HEARTBEAT now (what `heartbeat` encodes)."""
-        kind, autopilot, base, custom, status = self._heartbeat_fields()
-        return _HEARTBEAT.pack(custom, kind, autopilot, base, status, _MAVLINK_VERSION)
-
-    def attitude_payload(self, now_s: float, x: list[float]) -> bytes:
-        """ATTITUDE at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
-        return _ATTITUDE.pack(*_attitude_fields(now_s, x[6:10], x[10:13]))
-
-    def local_position_ned_payload(self, now_s: float, x: list[float]) -> bytes:
-        """LOCAL_POSITION_NED at ``now_s`` (s) of the state values ``x`` (`state_values`)."""
-        return _LOCAL_POSITION_NED.pack(*_local_position_ned_fields(now_s, x[0:3], x[3:6]))
-
-    def extended_sys_state_payload(self) -> bytes:
-        """EXTENDED_SYS_STATE now (what `extended_sys_state` encodes)."""
-        return _EXTENDED_SYS_STATE.pack(mav.MAV_VTOL_STATE_UNDEFINED, self.vehicle.fc.landed_state.value)
-
     def home_position(self, now_s: float) -> MAVLinkMessage:
         h = self.home
         return self.mav.home_position_encode(
@@ -234,22 +214,6 @@ class TelemetryEncoder:
         frac = max(0.0, 1.0 - self.armed_time_s / BATTERY_ENDURANCE_S)
         volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
         return volts, round(100 * frac)
-
-
-def _attitude_fields(now_s: float, quat: list[float], omega: list[float]) -> tuple[int | float, ...]:
-    """ATTITUDE's fields (declaration order = wire order; FRD, NED) at ``now_s`` (s) of the attitude
-    ``quat`` (w, x, y, z; FLU -> ENU) and body rates ``omega`` (FLU, rad/s)."""
-    roll, pitch, yaw = euler_from_quat(quat_enu_flu_to_ned_frd_tuple(*quat))
-    p, q, r = omega
-    return _ms(now_s), roll, pitch, yaw, p, -q, -r
-
-
-def _local_position_ned_fields(now_s: float, pos: list[float], vel: list[float]) -> tuple[int | float, ...]:
-    """LOCAL_POSITION_NED's fields (declaration order = wire order; NED) at ``now_s`` (s) of the
-    position ``pos`` (m) and velocity ``vel`` (m/s), both world ENU."""
-    e, n, u = pos
-    ve, vn, vu = vel
-    return _ms(now_s), n, e, -u, vn, ve, -vu
 
 
 _HEARTBEAT = mav.MAVLink_heartbeat_message.unpacker  # wire order: custom_mode first

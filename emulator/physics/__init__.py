@@ -19,7 +19,9 @@ DEFAULT_DT_S = 0.001  # 1 kHz
 
 
 class PhysicsBackend(Protocol):
-    """One vehicle stepped at a fixed ``dt_s``."""
+    """One vehicle stepped at a fixed ``dt_s``. Everything outside the backend steps it through this
+    protocol; compiled callers that fuse per-step work with the native kernel (the FC's batched steps)
+    use the native backends' own ``kernel_arrays`` and ``advance_clock``."""
 
     name: str
     profile: VehicleProfile

@@ -34,11 +34,6 @@ def hover_state(profile: VehicleProfile, pos_m: tuple[float, float, float] = (0.
     return VehicleState(pos_m=np.array(pos_m, dtype=float), rotor_speed_rad_s=np.full(4, w))
 
 
-def ground_state(profile: VehicleProfile, x_m: float = 0.0, y_m: float = 0.0) -> VehicleState:
-    """A level vehicle resting on the ground (box bottom at z = 0), rotors stopped."""
-    return VehicleState(pos_m=np.array([x_m, y_m, 0.5 * profile.body_box_m[2]]))
-
-
 def _check_state_vector(v: np.ndarray, what: str) -> np.ndarray:
     """A validated copy of state rows (..., STATE_SIZE) with unit quaternions."""
     v = np.array(v, dtype=np.float64)
@@ -129,6 +124,17 @@ class NativeBackend:
         step_vehicle(self._x, self._aux, self._params, cmd, n_steps)
         self._steps += n_steps
 
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(state row (STATE_SIZE,), auxiliary row (AUX_SIZE,), parameters) as `step_vehicle` advances
+        them in place: for a compiled caller that fuses its own per-step work with the physics step
+        (`emulator.fc.batched_steps`); it reports the steps it took with `advance_clock`."""
+        return self._x, self._aux, self._params
+
+    def advance_clock(self, n_steps: int) -> None:
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
+        self._steps += n_steps
+
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""
         self._aux[AUX_FORCE] = _check_force(force_world_n, (3,))
@@ -199,6 +205,16 @@ class BatchPhysics:
         step_batch(self._x, self._aux, self._params, np.ascontiguousarray(cmd), _check_steps(n_steps))
         self._steps += n_steps
 
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`NativeBackend.kernel_arrays` of the batch: state rows (n, STATE_SIZE), auxiliary rows
+        (n, AUX_SIZE), parameters; a caller reports the steps it took with `advance_clock`."""
+        return self._x, self._aux, self._params
+
+    def advance_clock(self, n_steps: int) -> None:
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
+        self._steps += n_steps
+
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """Disturbance forces (N, world ENU): (n, 3) per vehicle or (3,) for all, held until changed."""
         self._aux[:, AUX_FORCE] = _check_force(force_world_n, (self.n, 3))
@@ -227,16 +243,6 @@ class BatchPhysics:
     def quaternions(self) -> np.ndarray:
         """(n, 4) attitudes body->world (w, x, y, z)."""
         return self._view(QUAT)
-
-    @property
-    def body_rates(self) -> np.ndarray:
-        """(n, 3) body angular rates FLU (rad/s)."""
-        return self._view(OMEGA)
-
-    @property
-    def rotor_speeds(self) -> np.ndarray:
-        """(n, 4) rotor speeds (rad/s)."""
-        return self._view(ROTOR)
 
     @property
     def accelerations(self) -> np.ndarray:

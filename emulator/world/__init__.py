@@ -9,9 +9,7 @@ from emulator.world.geometry import (
     DEFAULT_WALL_WIDTH_M,
     Gap,
     LabVolume,
-    matrix_to_euler_zyx,
     matrix_to_quat,
-    quat_to_matrix,
     rotation_zyx,
 )
 
@@ -28,8 +26,6 @@ __all__ = [
     "Obstacle",
     "ObstacleCode",
     "World",
-    "matrix_to_euler_zyx",
     "matrix_to_quat",
-    "quat_to_matrix",
     "rotation_zyx",
 ]

@@ -1,8 +1,7 @@
-"""Compiled single-pose kernel: one oriented box against the gap's wall, the ground and the lab.
+"""The compiled checks of `emulator.world.collision`: one oriented box against the gap's wall, the
+ground and the lab (definitions in that module's docstring), for one pose or a batch of them.
 
-The fast path behind `World.collision` and `World.clearance` (called at the physics rate, ~1 kHz). It
-follows the same definitions as the vectorised numpy code in `emulator.world.collision`, which tests
-compare it with.
+The only implementation: `World`'s queries, one pose or many, are views of it.
 """
 
 from __future__ import annotations
@@ -126,7 +125,7 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     return r
 
 
-#: layout of the packed world constants of `check_state_pose` (see `pack_world`)
+#: layout of the packed world constants of `check_packed` (see `pack_world`)
 _P_CENTRE, _P_AXES, _P_HALF, _P_WALL, _P_HW, _P_HH, _P_MIN, _P_MAX, _P_TOL = 0, 3, 12, 15, 18, 19, 20, 23, 26
 
 
@@ -134,7 +133,7 @@ def pack_world(
     centre: np.ndarray, axes: np.ndarray, h: np.ndarray, wall_half: np.ndarray, hw: float, hh: float,
     lab_min: np.ndarray, lab_max: np.ndarray, tol: float,
 ) -> np.ndarray:
-    """`check_pose`'s constant arguments in one float64 array (27,), for `check_state_pose`."""
+    """`check_pose`'s constant arguments in one float64 array (27,), for `check_packed`."""
     return np.concatenate([
         np.asarray(centre, np.float64).ravel(), np.asarray(axes, np.float64).ravel(),
         np.asarray(h, np.float64).ravel(), np.asarray(wall_half, np.float64).ravel(), [hw, hh],
@@ -143,11 +142,10 @@ def pack_world(
 
 
 @njit(cache=True)
-def check_state_pose(p: np.ndarray, q: np.ndarray, world: np.ndarray) -> tuple:
-    """`check_pose` of position ``p`` and quaternion ``q`` (w, x, y, z; non-zero, finite) with the world's
-    constants packed by `pack_world`: one compiled call instead of two."""
+def check_packed(p: np.ndarray, rot: np.ndarray, world: np.ndarray) -> tuple:
+    """`check_pose` of position ``p`` and rotation ``rot`` with the world constants of `pack_world`."""
     return check_pose(
-        p, quat_to_rot(q), world[_P_CENTRE:_P_AXES], world[_P_AXES:_P_HALF].reshape((3, 3)),
+        p, rot, world[_P_CENTRE:_P_AXES], world[_P_AXES:_P_HALF].reshape((3, 3)),
         world[_P_HALF:_P_WALL], world[_P_WALL:_P_HW], world[_P_HW], world[_P_HH], world[_P_MIN:_P_MAX],
         world[_P_MAX:_P_TOL], world[_P_TOL],
     )
@@ -157,10 +155,11 @@ def check_state_pose(p: np.ndarray, q: np.ndarray, world: np.ndarray) -> tuple:
 def check_states(
     p: np.ndarray, q: np.ndarray, world: np.ndarray, codes: np.ndarray, clr: np.ndarray, in_slab: np.ndarray
 ) -> None:
-    """`check_state_pose` of each row of positions ``p`` (N, 3) and quaternions ``q`` (N, 4), written to
-    ``codes``, ``clr`` and ``in_slab`` (N,): one compiled call for a batch of samples."""
+    """`check_packed` of each row of positions ``p`` (N, 3) and quaternions ``q`` (N, 4; non-zero) or
+    rotations (N, 3, 3), written to ``codes``, ``clr`` and ``in_slab`` (N,)."""
     for i in range(p.shape[0]):
-        c, cl, s, _ = check_state_pose(p[i], q[i], world)
+        rot = quat_to_rot(q[i]) if q.ndim == 2 else q[i]
+        c, cl, s, _ = check_packed(p[i], rot, world)
         codes[i] = c
         clr[i] = cl
         in_slab[i] = s

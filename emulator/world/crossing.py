@@ -9,13 +9,12 @@ time and point are interpolated linearly between the two samples on either side 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from emulator.world.collision import Clearance, Obstacle, World
+from emulator.world.collision import Obstacle, World
 
 
 @dataclass(frozen=True)
@@ -49,31 +48,15 @@ class CrossingTracker:
         self.first_collision: CollisionEvent | None = None
         self.samples = 0
 
-    def update(
-        self,
-        time_s: float,
-        pos_m: np.ndarray,
-        attitude: np.ndarray,
-        checked: tuple[Obstacle | None, Clearance] | None = None,
-    ) -> Crossing | None:
-        """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz); returns the
-        crossing completed by this sample, if any. Times must increase. ``checked``: the result of
-        ``world.check(pos_m, attitude)`` when the caller has it already (and has validated the pose)."""
-        t = self._check_time(time_s)
+    def update(self, time_s: float, pos_m: np.ndarray, attitude: np.ndarray) -> Crossing | None:
+        """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz), checked with
+        ``world.check``; returns the crossing completed by this sample, if any. Times must increase."""
         world = self.world
+        hit, clr = world.check(pos_m, attitude)  # validates the pose
         p = np.array(pos_m, dtype=np.float64)
-        hit, clr = world.check(p, attitude) if checked is None else checked  # validates the pose
-        n = float((world.gap_coords(p) if checked is None else world.gap_coords_unchecked(p))[1])
-        return self._add(t, p, n, hit, clr.clearance_m, clr.in_slab)
-
-    def add_checked(
-        self, time_s: float, pos_m: np.ndarray, hit: Obstacle | None, clearance_m: float, in_slab: bool
-    ) -> Crossing | None:
-        """`update` for a sample whose pose the caller has validated and checked already (``hit``,
-        ``clearance_m`` (m) and ``in_slab`` as ``world.check`` gives them); the same bookkeeping."""
-        t = self._check_time(time_s)
-        p = np.array(pos_m, dtype=np.float64)
-        return self._add(t, p, float(self.world.gap_coords_unchecked(p)[1]), hit, clearance_m, in_slab)
+        done = self.add_checked_batch([time_s], p[None], [hit], np.array([clr.clearance_m]),
+                                      np.array([clr.in_slab]), world.gap_coords(p)[1:2])
+        return done[0][1] if done else None
 
     def add_checked_batch(
         self,
@@ -84,20 +67,21 @@ class CrossingTracker:
         in_slab: np.ndarray,
         n_m: np.ndarray,
     ) -> list[tuple[int, Crossing]]:
-        """`add_checked` for N samples at once, times (N,) increasing, positions (N, 3), what each hit,
-        clearances (N,) (m), in_slab (N,) and offsets along e1 (N,) (m); the same bookkeeping as N
-        calls. Returns the crossings completed, each with the index of the sample that completed it."""
+        """Add N samples whose poses the caller has checked already: times (N,) (s) increasing, positions
+        (N, 3) (m), what each hit, clearances (N,) (m) and in_slab (N,) as ``world.check`` gives them,
+        and offsets along e1 (N,) (m). Returns the crossings completed, each with the index of the
+        sample that completed it."""
         t = np.asarray(time_s, dtype=np.float64)
         if len(t) == 0:
             return []
         if not np.all(np.isfinite(t)):
-            raise ValueError("time_s must be finite")
+            raise ValueError(f"time_s must be finite, got {time_s!r}")
         if (self._prev is not None and t[0] <= self._prev[0]) or np.any(np.diff(t) <= 0):
             raise ValueError("time_s must increase")
         p = np.array(pos_m, dtype=np.float64)
         if np.any(in_slab):
             idx = np.flatnonzero(in_slab)
-            j = int(idx[np.argmin(clearance_m[idx])])  # the first of equal minima, as one by one
+            j = int(idx[np.argmin(clearance_m[idx])])  # the first of equal minima
             if self.min_clearance_m is None or clearance_m[j] < self.min_clearance_m:
                 self.min_clearance_m, self.min_clearance_time_s = float(clearance_m[j]), float(t[j])
         if self.first_collision is None:
@@ -117,32 +101,6 @@ class CrossingTracker:
         self._prev = (float(t[-1]), p[-1], float(n[-1]))
         self.samples += len(t)
         return out
-
-    def _check_time(self, time_s: float) -> float:
-        t = float(time_s)
-        if not math.isfinite(t):
-            raise ValueError(f"time_s must be finite, got {time_s!r}")
-        if self._prev is not None and t <= self._prev[0]:
-            raise ValueError(f"time_s must increase: got {t} after {self._prev[0]}")
-        return t
-
-    def _add(
-        self, t: float, p: np.ndarray, n: float, hit: Obstacle | None, clearance_m: float, in_slab: bool
-    ) -> Crossing | None:
-        if in_slab and (self.min_clearance_m is None or clearance_m < self.min_clearance_m):
-            self.min_clearance_m, self.min_clearance_time_s = clearance_m, t
-        if hit is not None and self.first_collision is None:
-            self.first_collision = CollisionEvent(t, hit)
-        crossing = None
-        prev = self._prev
-        if prev is not None:
-            t0, p0, n0 = prev
-            if (n0 < 0) != (n < 0):
-                crossing = self._crossing(t0, p0, n0, t, p, n)
-                self._crossings.append(crossing)
-        self._prev = (t, p, n)
-        self.samples += 1
-        return crossing
 
     def _crossing(self, t0: float, p0: np.ndarray, n0: float, t: float, p: np.ndarray, n: float) -> Crossing:
         """The crossing between samples (t0, p0, n0) and (t, p, n) on either side of the plane."""

@@ -36,42 +36,6 @@ def rotation_zyx(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarra
     )
 
 
-def quat_to_matrix(quat_wxyz: np.ndarray) -> np.ndarray:
-    """Rotation matrices from quaternions (w, x, y, z), shape (..., 4) -> (..., 3, 3); normalised first.
-
-    Raises ValueError for a zero or non-finite quaternion."""
-    q = np.asarray(quat_wxyz, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if not np.all(np.isfinite(q)) or np.any(norm < 1e-9):
-        raise ValueError(f"quaternion must be finite and non-zero, got {quat_wxyz!r}")
-    q = q / norm
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty((*q.shape[:-1], 3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - w * z)
-    out[..., 0, 2] = 2 * (x * z + w * y)
-    out[..., 1, 0] = 2 * (x * y + w * z)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - w * x)
-    out[..., 2, 0] = 2 * (x * z - w * y)
-    out[..., 2, 1] = 2 * (y * z + w * x)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
-
-
-def matrix_to_euler_zyx(rot: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) in radians with rot = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-pi/2, pi/2]."""
-    r = np.asarray(rot, dtype=np.float64)
-    pitch = -math.asin(max(-1.0, min(1.0, float(r[2, 0]))))
-    if abs(r[2, 0]) < 1.0 - 1e-12:
-        roll = math.atan2(float(r[2, 1]), float(r[2, 2]))
-        yaw = math.atan2(float(r[1, 0]), float(r[0, 0]))
-    else:  # gimbal lock: put everything into yaw
-        roll = 0.0
-        yaw = math.atan2(-float(r[0, 1]), float(r[1, 1]))
-    return roll, pitch, yaw
-
-
 def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
     """Quaternion (w, x, y, z) with w >= 0 from a rotation matrix (3x3)."""
     r = np.asarray(rot, dtype=np.float64)
@@ -162,15 +126,6 @@ class Gap:
             **sizes,
         )
 
-    @classmethod
-    def from_pose(
-        cls, centre_m: tuple[float, float, float] | np.ndarray, quat_wxyz: np.ndarray, **sizes: float
-    ) -> Gap:
-        """A gap whose frame R is given as a quaternion (w, x, y, z), e.g. from motion capture."""
-        roll, pitch, yaw = matrix_to_euler_zyx(quat_to_matrix(quat_wxyz))
-        return cls(centre_m=_vec3("Gap.centre_m", centre_m), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
-                   **sizes)
-
     def rotation(self) -> np.ndarray:
         """R = Rz(yaw) Ry(pitch) Rx(roll) (3x3): columns e1, e0, -e2."""
         return rotation_zyx(self.roll_rad, self.pitch_rad, self.yaw_rad)
@@ -184,19 +139,6 @@ class Gap:
         r = self.rotation()
         e0, e1 = r[:, 1], r[:, 0]
         return np.stack([e0, e1, np.cross(e0, e1)])
-
-    def to_gap_coords(self, points_m: np.ndarray) -> np.ndarray:
-        """World points (..., 3) -> gap coordinates (u, n, v) (..., 3) in metres."""
-        p = np.asarray(points_m, dtype=np.float64)
-        return (p - np.asarray(self.centre_m)) @ self.axes().T
-
-    def corners_m(self) -> np.ndarray:
-        """The opening's four corners in world ENU (4, 3), in order (+u+v, -u+v, -u-v, +u-v)."""
-        e0, _, e2 = self.axes()
-        hw, hh = self.width_m / 2, self.height_m / 2
-        c = np.asarray(self.centre_m)
-        return np.stack([c + su * hw * e0 + sv * hh * e2 for su, sv in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
-
 
 @dataclass(frozen=True)
 class LabVolume:

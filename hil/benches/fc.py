@@ -9,7 +9,7 @@ from collections.abc import Iterable
 
 from emulator.fc import EmulatedVehicle, MavlinkServer, RealtimeRunner
 from emulator.profile import GRAVITY_M_S2, load_profile
-from hil.bench import BenchRow
+from hil.benches import BenchRow
 from hil.link import MemoryTransport, PtyTransport, SerialTransport, SimClock, WallClock
 from hil.link.mavlink import MavlinkCodec, quat_from_euler
 from hil.link.uart import UartModel

@@ -9,7 +9,7 @@ import numpy as np
 from emulator.physics import make_backend
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:

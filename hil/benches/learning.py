@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from hil.bench import BenchRow
+from hil.benches import BenchRow
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 from hil.link import (
     LinkError,
     MemoryTransport,

@@ -8,7 +8,7 @@ import statistics
 import time
 from collections.abc import Iterator
 
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 from hil.link.clock import SimClock
 from hil.link.linktrack import (
     BodySample,

@@ -8,7 +8,7 @@ import numpy as np
 
 from emulator.physics.native import BatchPhysics, NativeBackend, hover_state
 from emulator.profile import load_profile
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 
 BATCH_N = 4096
 

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 from policies.gap_planning import (
     GapPose,
     LabVolume,

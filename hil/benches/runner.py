@@ -9,7 +9,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from hil.bench import BenchRow
+from hil.benches import BenchRow
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
 

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from hil.bench import BenchRow, time_per_call
+from hil.benches import BenchRow, time_per_call
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
@@ -26,5 +26,5 @@ def collect(quick: bool) -> Iterator[BenchRow]:
     n = 4096
     pos = np.array([0.0, 0.0, 1.5]) + rng.uniform(-0.4, 0.4, size=(n, 3))
     quats = rng.normal(size=(n, 4))
-    per_batch = time_per_call(lambda: world.collision_batch(pos, quats), min_time)
+    per_batch = time_per_call(lambda: world.check_batch(pos, quats), min_time)
     yield BenchRow("world_collision_batch_us", 1e6 * per_batch / n, "us/pose", f"{n} poses near the gap")

@@ -12,6 +12,7 @@ from types import FrameType
 
 import numpy as np
 
+from emulator.assembly import assemble, warm_up
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
@@ -19,10 +20,10 @@ from emulator.mocap_link import MocapLinkServer
 from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
 from emulator.uwb import UwbConfig
-from emulator.world import CrossingTracker, Gap, LabVolume, World
+from emulator.world import CrossingTracker, Gap, World
 from hil.link.clock import GapStats, WallClock
 from hil.link.endpoint import open_link
-from hil.link.mavlink import MavlinkCodec, mav, parse_signing_key
+from hil.link.mavlink import mav, parse_signing_key
 from hil.link.tlog import TlogWriter
 
 #: built-in gaps and where the vehicle starts (x, y on the ground, m): the paper's test case (centre
@@ -175,35 +176,22 @@ def main(args: argparse.Namespace) -> int:
     try:
         gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
         start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
-        vehicle = EmulatedVehicle(profile, backend=args.physics, config=config, initial_state=start)
-        # compile the gap checks and the inner loop before the clock starts
-        world = None
-        s0 = vehicle.state
-        if gap is not None:
-            world = World.for_profile(gap, LabVolume(), profile)
-            world.check(s0.pos_m, s0.quat_wxyz)
-        vehicle.fc.inner.update(s0.quat_wxyz, s0.omega_rad_s, 0.0, 0.0, 0.0, 0.0)
+        warm_up(profile)  # before the clock starts
         clock, epoch_unix_s = WallClock(), time.time()  # clock zero in Unix time, for tlog and signing
         if tlog is not None:
             tlog.epoch_unix_s = epoch_unix_s
-        codec = MavlinkCodec(
-            link,
-            clock,
-            args.system_id,
-            mav.MAV_COMP_ID_AUTOPILOT1,
-            signing_key=key,
-            recorder=tlog,
+        emu = assemble(
+            profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
+            mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
+            uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
             signing_epoch_unix_s=epoch_unix_s,
         )
-        server = MavlinkServer(vehicle, codec)
+        vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         links: list = [server]
-        if world is not None:
-            links.append(GapWatch(vehicle, world, server))
+        if emu.world is not None:
+            links.append(GapWatch(vehicle, emu.world, server))
         endpoints = {"command_link": link.endpoint}
-        mocap = None
-        if mocap_link is not None:
-            rng = np.random.default_rng(args.seed)
-            mocap = MocapLinkServer(mocap_link, clock, rng, mocap_cfg, uwb_cfg)
+        if mocap is not None and mocap_link is not None:
             links.append(MocapPoll(vehicle, mocap, gap))
             endpoints["mocap_link"] = mocap_link.endpoint
         fds = [link.fileno()] if _has_fileno(link) else []

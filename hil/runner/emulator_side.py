@@ -18,17 +18,17 @@ from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
+from emulator.assembly import assemble
+from emulator.fc import FcConfig, ServerConfig
 from emulator.fc.batched_steps import FastStepper
 from emulator.fc.mavlink_server import RAW_MSG_IDS
 from emulator.mocap import MocapConfig, pose_of
-from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 from emulator.uwb import UwbConfig
-from emulator.world import Gap, LabVolume, World
+from emulator.world import Gap, LabVolume
 from hil.link.clock import SimClock
-from hil.link.mavlink import MavlinkCodec, mav
+from hil.link.mavlink import mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.runner.faults import FaultSchedule, corrupt
@@ -160,27 +160,28 @@ class EmulatorSide:
         self.faults = FaultSchedule(scenario.faults)
         cmd_rng, mocap_rng, corrupt_rng = rng.spawn(3)
         state, ground_z = initial_state(scenario, profile)
-        self.vehicle = EmulatedVehicle(
-            profile, backend=backend, config=FcConfig(ground_z_m=ground_z), initial_state=state
-        )
-        if not scenario.initial.on_ground:
-            self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.gap = make_gap(scenario)
         gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
         self._gap_pose = (*gap_pose.pos_m.tolist(), *gap_pose.quat_wxyz.tolist())
-        self.world = World.for_profile(self.gap, LabVolume(scenario.lab.min_m, scenario.lab.max_m), profile)
         self.wire = CommandWire(
             command_raw, clock, scenario.links.command, cmd_rng, self.faults
         )
-        # setpoints reach the server as frames (it unpacks them itself; see RAW_MSG_IDS)
-        self.codec = MavlinkCodec(self.wire, clock, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1, recorder=tlog,
-                                  raw_ids=RAW_MSG_IDS)
-        streams = ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S))
-        self.server = MavlinkServer(self.vehicle, self.codec, streams)
         m = scenario.links.mocap
         uwb = UwbConfig(**asdict(channel_model(m)), uart_baud=m.baud)
         self.mocap_link = _FaultyLink(mocap_raw, clock, self.faults, corrupt_rng)
-        self.mocap = MocapLinkServer(self.mocap_link, clock, mocap_rng, MocapConfig(rate_hz=m.rate_hz), uwb)
+        emu = assemble(
+            profile, self.wire, clock, initial_state=state, backend=backend,
+            fc_config=FcConfig(ground_z_m=ground_z),
+            gap=self.gap, lab=LabVolume(scenario.lab.min_m, scenario.lab.max_m), mocap_link=self.mocap_link,
+            mocap_rng=mocap_rng, mocap_config=MocapConfig(rate_hz=m.rate_hz), uwb_config=uwb,
+            server_config=ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S)), system_id=FC_SYSTEM_ID,
+            raw_ids=RAW_MSG_IDS, tlog=tlog,  # setpoints reach the server as frames (see RAW_MSG_IDS)
+        )
+        self.vehicle, self.codec, self.server = emu.vehicle, emu.codec, emu.server
+        self.world, self.mocap = emu.world, emu.mocap
+        assert self.world is not None and self.mocap is not None
+        if not scenario.initial.on_ground:
+            self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.recorder = Recorder(self.world, profile, duration_s)
         self.fast = FastStepper.for_vehicle(self.vehicle)
         self._frozen_truth: tuple[float, ...] | None = None

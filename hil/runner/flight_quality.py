@@ -28,12 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from hil.runner.recorder import FC_STATE_CODES
 from policies.gap_planning import MissionPlan, MissionRequest, Segment
 
 ATTITUDE_LAG_S = 0.09  # the n3_tx2's nominal attitude response, a first-order lag (s): 1 / its 11 /s loop
 SATURATED_PCT = 99.9  # a motor command at or above this (% of full throttle) is saturated
 SETTLE_BAND_M = 0.1  # settled: within this of the manoeuvre's end point (m)
-OFFBOARD_CODE = 2  # `recorder.FC_STATE_CODES["offboard"]`
+OFFBOARD_CODE = FC_STATE_CODES["offboard"]
 #: setpoints older than this (s; ten periods at 100 Hz): the program no longer flies the vehicle (killed,
 #: stalled, its link down) and the FC flies the last one until its failsafe: not a flight to the plan
 FRESH_SETPOINT_S = 0.1

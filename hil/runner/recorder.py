@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from emulator.fc import FlightController, MavlinkServer
+from emulator.fc import FcState, FlightController, MavlinkServer
 from emulator.fc.n3 import AttitudeThrustTarget
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
@@ -61,7 +61,14 @@ _Sample = tuple[
 ]
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
-FC_STATE_CODES = {"disarmed": 0, "hold": 1, "offboard": 2, "land": 3, "failsafe_hover": 4, "failsafe_land": 5}
+#: the `fc_state` column's code of each FC state: its place in `FcState`
+FC_STATE_CODES = {st.value: i for i, st in enumerate(FcState)}
+_COL = {name: i for i, name in enumerate(COLUMNS)}  # column positions by name
+_T, _POS_X, _ROLL, _PITCH, _YAW, _CLEARANCE, _THRUST, _BODY_RATE = (_COL[n] for n in (
+    "t_s", "pos_m_x", "roll_deg", "pitch_deg", "yaw_deg", "clearance_m", "thrust_n", "body_rate_rad_s"))
+_CMD = slice(_COL["roll_cmd_deg"], _COL["thrust_cmd_pct"] + 1)  # the FC target's four columns (`_command`)
+assert COLUMNS[_POS_X : _POS_X + 6] == tuple(f"{q}_{a}" for q in ("pos_m", "vel_m_s") for a in "xyz")
+assert COLUMNS[_CMD] == ("roll_cmd_deg", "pitch_cmd_deg", "yaw_cmd_deg", "thrust_cmd_pct")
 
 
 def _command(tg: AttitudeThrustTarget | None, full_thrust_n: float) -> tuple[float, float, float, float]:
@@ -83,23 +90,23 @@ def _state_columns(t: np.ndarray, x: np.ndarray, clr: np.ndarray, in_slab: np.nd
     s = math.sqrt(0.5)
     r2d = 180.0 / math.pi
     for i in range(x.shape[0]):
-        out[i, 0] = t[i]
-        for k in range(6):
-            out[i, 1 + k] = x[i, k]
+        out[i, _T] = t[i]
+        for k in range(6):  # position and velocity, in the state's order
+            out[i, _POS_X + k] = x[i, k]
         w, qx0, qy0, qz0 = x[i, 6], x[i, 7], x[i, 8], x[i, 9]
         qw, qx, qy, qz = -(s * w + s * qz0), -(s * qx0) - s * qy0, s * qy0 - s * qx0, -(s * w - s * qz0)
         n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         if qw < 0:
             n = -n
         qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n
-        out[i, 7] = math.atan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy)) * r2d
-        out[i, 8] = math.asin(max(-1.0, min(1.0, 2 * (qw * qy - qz * qx)))) * r2d
-        out[i, 9] = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)) * r2d
-        out[i, 14] = clr[i] if in_slab[i] else np.nan
+        out[i, _ROLL] = math.atan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy)) * r2d
+        out[i, _PITCH] = math.asin(max(-1.0, min(1.0, 2 * (qw * qy - qz * qx)))) * r2d
+        out[i, _YAW] = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)) * r2d
+        out[i, _CLEARANCE] = clr[i] if in_slab[i] else np.nan
         w0, w1, w2, w3 = x[i, 13], x[i, 14], x[i, 15], x[i, 16]
-        out[i, 20] = kf * (w0 * w0) + kf * (w1 * w1) + kf * (w2 * w2) + kf * (w3 * w3)
+        out[i, _THRUST] = kf * (w0 * w0) + kf * (w1 * w1) + kf * (w2 * w2) + kf * (w3 * w3)
         wx, wy, wz = x[i, 10], x[i, 11], x[i, 12]
-        out[i, 21] = math.sqrt(wx * wx + wy * wy + wz * wz)
+        out[i, _BODY_RATE] = math.sqrt(wx * wx + wy * wy + wz * wz)
 
 
 @dataclass(frozen=True)
@@ -270,13 +277,14 @@ class Recorder:
             if tg is not last:
                 last, row = tg, _command(tg, full)
             cmd.append(row)
-        block[:, 10:14] = cmd
-        block[:, 15], block[:, 16] = cmd_rate, mocap_rate
-        block[:, 17], block[:, 18] = cmd_lost[:m], mocap_lost[:m]
-        block[:, 19] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
-        block[:, 22] = np.degrees(yaw_sp[:m])
-        block[:, 23] = 100.0 * np.max(motors[:m], axis=1)
-        block[:, 24] = t - np.array(sp_s[:m])  # inf before the first setpoint
+        block[:, _CMD] = cmd
+        col = _COL
+        block[:, col["command_rate_hz"]], block[:, col["mocap_rate_hz"]] = cmd_rate, mocap_rate
+        block[:, col["command_lost"]], block[:, col["mocap_lost"]] = cmd_lost[:m], mocap_lost[:m]
+        block[:, col["fc_state"]] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
+        block[:, col["yaw_sp_deg"]] = np.degrees(yaw_sp[:m])
+        block[:, col["motor_max_pct"]] = 100.0 * np.max(motors[:m], axis=1)
+        block[:, col["setpoint_age_s"]] = t - np.array(sp_s[:m])  # inf before the first setpoint
         self._n = n1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:

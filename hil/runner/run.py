@@ -35,6 +35,7 @@ from hil.runner.onboard_side import (
     program_config,
 )
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
+from hil.runner.recorder import FC_STATE_CODES
 from hil.scenario.schema import Fault, Scenario
 from policies.onboard import pilot_names
 
@@ -292,7 +293,7 @@ def _finish(
     )
     checks = tuple(evaluate(s, obs))
     passed = all(c.passed for c in checks)
-    airborne = cols["fc_state"] > 0
+    airborne = cols["fc_state"] > FC_STATE_CODES["disarmed"]
     events = [
         {
             "time_s": e.time_s,
@@ -416,7 +417,7 @@ def _phase_column(cols: dict[str, np.ndarray], events: list[dict[str, Any]]) -> 
             phase[t >= t0] = code
         elif name == "abort":
             phase[t >= t0] = 4
-    failsafe = (cols["fc_state"] == 4) | (cols["fc_state"] == 5)
+    failsafe = np.isin(cols["fc_state"], (FC_STATE_CODES["failsafe_hover"], FC_STATE_CODES["failsafe_land"]))
     phase[failsafe] = 4
     return phase
 

@@ -1,4 +1,5 @@
-"""A made-up run through a tilted gap, to see the report without flying: ``python -m hil.report.demo OUT``.
+"""A made-up run through a tilted gap, to see the report without flying (``python -m
+hil.report.synthetic OUT``).
 
 The trajectory is a smooth curve (no physics): hover at the start, approach, pass the gap's centre
 along its crossing axis with the body rolled to the gap, then settle at a recovery point 2.5 m past
@@ -153,7 +154,7 @@ def write_demo(out_dir: str | Path, seed: int = 0) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hil.report.demo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m hil.report.synthetic", description=__doc__.split("(")[0])
     parser.add_argument("out_dir", help="folder for summary.json, timeseries.npz and report.html")
     parser.add_argument("--seed", type=int, default=0, help="noise seed")
     args = parser.parse_args(argv)

@@ -1,8 +1,6 @@
-"""The FC server's and the mocap radio chain's per-tick fast paths give what the general code gave:
-SET_ATTITUDE_TARGET -> FC target without setpoint objects (same targets, same rejection reasons), the
-same from undecoded frames, telemetry streams packed from payloads (pymavlink's bytes, signed links
-too), and the radio and UART queues on plain tuples. The references below are the code these paths
-replaced, kept verbatim."""
+"""The FC's setpoint intake: SET_ATTITUDE_TARGET -> N3 setpoint -> FC target, decoded or read from
+undecoded frames, against the rules they replaced (the references below, kept verbatim), and a whole
+arm-offboard-climb through the frame path."""
 
 from __future__ import annotations
 
@@ -11,10 +9,9 @@ import struct
 from dataclasses import astuple
 
 import numpy as np
-import pytest
 
 from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
-from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values, setpoint_from_attitude_target
+from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values
 from emulator.fc.n3 import (
     ATTITUDE_THRUST_YAW_ANGLE,
     ATTITUDE_THRUST_YAW_RATE,
@@ -28,9 +25,7 @@ from emulator.fc.n3 import (
     to_target,
     wrap_pi,
 )
-from emulator.physics.native import hover_state
 from emulator.profile import GRAVITY_M_S2, VehicleProfile, load_profile
-from emulator.uwb import UartWire, UwbConfig, UwbRadio
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import (
     PX4_MAIN_OFFBOARD,
@@ -45,7 +40,6 @@ from hil.link.mavlink import (
 PROFILE = load_profile("n3_tx2")
 HOVER = PROFILE.mass_kg * GRAVITY_M_S2 / PROFILE.n3_full_thrust_n
 SPECIAL = [math.nan, math.inf, -math.inf, 0.0, -0.0, 1.0, -1.0, 1e30, -1e30, 1e-300, 0.5, 90.0, 100.0]
-KEY = bytes(range(32))
 
 
 # --- references: the replaced code ---------------------------------------------------------------
@@ -118,31 +112,6 @@ def _ref_setpoint(msg: MAVLinkMessage) -> N3Setpoint:
     return N3Setpoint(flag, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, yaw_value)
 
 
-class _RefUart:
-    """`UartWire` as it was."""
-
-    def __init__(self, baud: int, bits_per_byte: int = 10) -> None:
-        self.baud, self.bits_per_byte = baud, bits_per_byte
-        self._busy_until_s = -math.inf
-        self._queue: list[tuple[float, bytes]] = []
-        self.bytes_written = 0
-
-    def write(self, now_s: float, data: bytes) -> float:
-        done = max(now_s, self._busy_until_s) + len(data) * self.bits_per_byte / self.baud
-        self._busy_until_s = done
-        self._queue.append((done, bytes(data)))
-        return done
-
-    def update(self, now_s: float) -> list[tuple[float, bytes]]:
-        n = 0
-        while n < len(self._queue) and self._queue[n][0] <= now_s + 1e-12:
-            n += 1
-        out, self._queue = self._queue[:n], self._queue[n:]
-        self.bytes_written += sum(len(d) for _, d in out)
-        return out
-
-
-# --- helpers ----------------------------------------------------------------------------------
 def _bits(v: object) -> object:
     """A value compared bit for bit (floats by their bytes: -0.0 and NaN payloads count)."""
     return struct.pack("<d", v) if v.__class__ is float else v
@@ -183,7 +152,6 @@ def _hostile_targets(rng: np.random.Generator, n: int) -> list[MAVLinkMessage]:
     return msgs
 
 
-# --- setpoints ------------------------------------------------------------------------------------
 def test_attitude_targets_give_the_reference_setpoints_and_targets():
     rng = np.random.default_rng(11)
     msgs = _hostile_targets(rng, 4000)
@@ -200,12 +168,11 @@ def test_attitude_targets_give_the_reference_setpoints_and_targets():
     kinds = set()
     for msg in msgs:
         ref = _outcome(_ref_setpoint, msg)
-        assert _outcome(setpoint_from_attitude_target, msg) == ref
         assert _outcome(attitude_target_values, msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate) == ref
         if ref[0] != "ok":
             kinds.add(ref[1].split(" ")[0])
             continue
-        sp = setpoint_from_attitude_target(msg)
+        sp = N3Setpoint(*attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate))
         want = _outcome(_ref_to_target, sp, PROFILE)
         if want[0] == "ok":
             over = tilt_of(math.radians(sp.roll_deg), math.radians(sp.pitch_deg)) > math.radians(
@@ -304,124 +271,6 @@ def test_setpoints_read_from_frames_act_as_decoded_messages():
     server = pair.sides[0][0]
     assert server.stats.setpoints_applied > 100 and server.stats.setpoints_rejected > 100
     assert server.stats.foreign_target > 30 and server.stats.statustext_suppressed > 100
-
-
-# --- telemetry ------------------------------------------------------------------------------------
-def _flown_pair(signing_key: bytes | None) -> tuple[list[bytes], list[bytes]]:
-    """Bytes two servers wrote over a flight with every FC state: one packing the streams from
-    payloads, the other (its `_payloads` emptied) from pymavlink messages."""
-    out = []
-    for fast in (True, False):
-        clock = SimClock()
-        fc_end, peer = MemoryTransport.pair()
-        vehicle = EmulatedVehicle(PROFILE, initial_state=hover_state(PROFILE, (0.5, -1.0, 1.5)))
-        codec = MavlinkCodec(fc_end, clock, 1, 1, signing_key=signing_key)
-        server = MavlinkServer(vehicle, codec)
-        if not fast:
-            server._payloads = {}
-        fc = vehicle.fc
-        got = []
-        for ms in range(1, 4000):
-            clock.advance_to(ms / 1000)
-            t = clock.now_s()
-            if ms == 300:
-                fc.request_offboard(t)  # refused: no stream yet
-                fc.arm(t)  # HOLD
-            if 400 <= ms < 1200 and ms % 20 == 0:
-                fc.set_setpoint(N3Setpoint(ATTITUDE_THRUST_YAW_ANGLE, 10.0, -5.0, 100 * HOVER * 1.1, 30.0), t)
-            if ms == 500:
-                fc.request_offboard(t)  # OFFBOARD, then the failsafe hover 1 s after the stream ends
-            if ms == 2500:
-                fc.request_land(t)
-            if ms == 3500:
-                fc.request_hold(t)
-            server.poll(t)
-            vehicle.step_to(t)
-            got.append(peer.recv())
-        assert {ev.to_state for ev in fc.events} >= {
-            FcState.HOLD, FcState.OFFBOARD, FcState.FAILSAFE_HOVER, FcState.LAND}
-        out.append(got)
-    return out[0], out[1]
-
-
-@pytest.mark.parametrize("signing_key", [None, KEY])
-def test_streams_from_payloads_are_the_message_bytes(signing_key):
-    fast, slow = _flown_pair(signing_key)
-    assert sum(len(b) for b in fast) > 10_000
-    assert fast == slow
-
-
-def test_telemetry_payloads_are_pymavlink_payloads_in_every_state():
-    vehicle = EmulatedVehicle(PROFILE, initial_state=hover_state(PROFILE, (0.5, -1.0, 1.5)))
-    vehicle.step(5)
-    codec = MavlinkCodec(MemoryTransport.pair()[0], SimClock(), 1, 1)
-    server = MavlinkServer(vehicle, codec)
-    t, fc = server.telemetry, vehicle.fc
-    x = t.state_values()
-    ref = mav.MAVLink(None, srcSystem=1, srcComponent=1)
-    for state in FcState:
-        for offboard_selected in (False, True):
-            for landed in (False, True):
-                fc.machine.state, fc.offboard_selected, fc.landed = state, offboard_selected, landed
-                for msg_id, payload, msg in (
-                    (mav.MAVLINK_MSG_ID_HEARTBEAT, t.heartbeat_payload(), t.heartbeat()),
-                    (mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, t.extended_sys_state_payload(),
-                     t.extended_sys_state()),
-                    (mav.MAVLINK_MSG_ID_ATTITUDE, t.attitude_payload(1.234, x), t.attitude(1.234)),
-                    (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, t.local_position_ned_payload(5e6, x),
-                     t.local_position_ned(5e6)),
-                ):
-                    ref.seq = codec.mav.seq
-                    assert codec.pack_payload(msg_id, payload) == bytes(msg.pack(ref)), (state, msg_id)
-
-
-# --- radio and UART ---------------------------------------------------------------------------
-@pytest.mark.parametrize(
-    "cfg",
-    [
-        UwbConfig(latency_s=0.01, jitter_s=0.004),
-        UwbConfig(loss_prob=0.1, burst_enter_prob=0.05, jitter_s=0.02, late_after_s=0.03, queue_packets=2),
-        UwbConfig(jitter_s=0.0, max_packet_bytes=60, air_rate_bps=1e5),
-    ],
-)
-def test_radio_data_and_deliveries_agree(cfg):
-    a, b = UwbRadio(cfg, np.random.default_rng(2)), UwbRadio(cfg, np.random.default_rng(2))
-    rng = np.random.default_rng(8)
-    got_a, got_b, sent = [], [], {}
-    for k in range(3000):
-        t = k / 120 + float(rng.uniform(0, 1e-3))
-        data = k.to_bytes(4, "little") + bytes(int(rng.integers(0, 80)))
-        payload = bytearray(data) if k % 3 == 0 else data
-        assert a.send(t, payload) == b.send(t, payload)
-        sent[k] = t
-        now = t + float(rng.uniform(0, 0.02))
-        got_a += a.update(now)
-        got_b += b.update_data(now)
-    got_a += a.update(math.inf)
-    got_b += b.update_data(math.inf)
-    assert a.stats == b.stats and a.stats.delivered == len(got_a) > 1000
-    assert [(d.arrival_s, d.data) for d in got_a] == got_b
-    assert all(d.data.__class__ is bytes and d.sent_s == sent[int.from_bytes(d.data[:4], "little")]
-               for d in got_a)
-
-
-def test_uart_wire_is_the_reference_wire():
-    rng = np.random.default_rng(4)
-    wire, ref = UartWire(115200), _RefUart(115200)
-    t = 0.0
-    for k in range(5000):
-        t += float(rng.choice([0.0, 1e-5, 1e-4, 1e-3, 5e-3]))
-        if rng.random() < 0.6:
-            data = bytes(int(rng.integers(1, 120)))
-            data = bytearray(data) if k % 4 == 0 else data
-            assert wire.write(t, data) == ref.write(t, data)
-        now = t + float(rng.choice([0.0, 1e-4, 2e-3, 1e-2]))
-        got = wire.update(now)
-        assert got == ref.update(now)
-        assert all(d.__class__ is bytes for _, d in got)
-        assert wire.bytes_written == ref.bytes_written
-        assert wire.next_event_s() == (ref._queue[0][0] if ref._queue else math.inf)
-    assert wire.bytes_written > 10_000
 
 
 def test_offboard_climb_through_the_frame_path():

@@ -1,0 +1,78 @@
+"""The emulator assembled: vehicle (physics + FC), the gap world, the FC's MAVLink server on the command
+link and mocap over UWB on the mocap link, one clock for all. `hil fc` (real time) and the runner's
+emulator side (simulated time) both build theirs here and add their own loop around it."""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass
+
+import numpy as np
+
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
+from emulator.mocap import MocapConfig
+from emulator.mocap_link import MocapLinkServer
+from emulator.physics.state import VehicleState
+from emulator.profile import VehicleProfile
+from emulator.uwb import UwbConfig
+from emulator.world import Gap, LabVolume, World
+from hil.link.clock import Clock
+from hil.link.mavlink import SIGNING_EPOCH_UNIX_S, MavlinkCodec, mav
+from hil.link.tlog import TlogWriter
+from hil.link.transport import Transport
+
+
+@dataclass(frozen=True)
+class Emulator:
+    """The parts of one assembled emulator."""
+
+    vehicle: EmulatedVehicle
+    world: World | None  # None: no gap to watch
+    codec: MavlinkCodec
+    server: MavlinkServer
+    mocap: MocapLinkServer | None  # None: no mocap link
+
+
+def warm_up(profile: VehicleProfile) -> None:
+    """Compile (or load from numba's cache) the kernels an emulator of ``profile`` runs first (the FC's
+    inner loop, the world check), so that a wall clock started afterwards does not pay for them."""
+    vehicle = EmulatedVehicle(profile)
+    s0 = vehicle.state
+    World.for_profile(Gap(), LabVolume(), profile).check(s0.pos_m, s0.quat_wxyz)
+    vehicle.fc.inner.update(s0.quat_wxyz, s0.omega_rad_s, 0.0, 0.0, 0.0, 0.0)
+
+
+def assemble(
+    profile: VehicleProfile,
+    command_link: Transport,
+    clock: Clock,
+    *,
+    initial_state: VehicleState,
+    backend: str = "native",
+    fc_config: FcConfig | None = None,
+    gap: Gap | None = None,
+    lab: LabVolume | None = None,
+    mocap_link: Transport | None = None,
+    mocap_rng: np.random.Generator | None = None,
+    mocap_config: MocapConfig | None = None,
+    uwb_config: UwbConfig | None = None,
+    server_config: ServerConfig | None = None,
+    system_id: int = 1,
+    raw_ids: Collection[int] = (),
+    tlog: TlogWriter | None = None,
+    signing_key: bytes | None = None,
+    signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
+) -> Emulator:
+    """Build the emulator (see the module doc); ``mocap_rng`` is needed with a mocap link. A wall
+    clock should start after `warm_up`."""
+    vehicle = EmulatedVehicle(profile, backend=backend, config=fc_config, initial_state=initial_state)
+    world = None if gap is None else World.for_profile(gap, lab or LabVolume(), profile)
+    codec = MavlinkCodec(command_link, clock, system_id, mav.MAV_COMP_ID_AUTOPILOT1, signing_key=signing_key,
+                         recorder=tlog, raw_ids=raw_ids, signing_epoch_unix_s=signing_epoch_unix_s)
+    server = MavlinkServer(vehicle, codec, server_config)
+    mocap = None
+    if mocap_link is not None:
+        if mocap_rng is None:
+            raise ValueError("a mocap link needs mocap_rng")
+        mocap = MocapLinkServer(mocap_link, clock, mocap_rng, mocap_config, uwb_config)
+    return Emulator(vehicle, world, codec, server, mocap)

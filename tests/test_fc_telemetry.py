@@ -1,0 +1,53 @@
+"""The FC's telemetry as a ground station reads it: pymavlink decodes the streamed frames to the vehicle's
+state in NED/FRD and to the mode, armed flag and landed state of every FC state."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
+from emulator.fc.telemetry import CUSTOM_MODE
+from emulator.physics.native import hover_state
+from emulator.profile import load_profile
+from hil.link import MemoryTransport, SimClock
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, px4_custom_mode
+
+PROFILE = load_profile("n3_tx2")
+
+
+def test_streamed_payloads_decode_to_the_state_and_mode_in_every_fc_state():
+    vehicle = EmulatedVehicle(PROFILE, initial_state=hover_state(PROFILE, (0.5, -1.0, 1.5)))
+    vehicle.step(5)
+    codec = MavlinkCodec(MemoryTransport.pair()[0], SimClock(), 1, 1)
+    t, fc = MavlinkServer(vehicle, codec).telemetry, vehicle.fc
+    x = t.state_values()
+    ground = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    s = vehicle.state
+    for state in FcState:
+        for offboard_selected in (False, True):
+            for landed in (False, True):
+                fc.machine.state, fc.offboard_selected, fc.landed = state, offboard_selected, landed
+                hb, att, pos, ext = (
+                    ground.decode(bytearray(codec.pack_payload(i, p))) for i, p in (
+                        (mav.MAVLINK_MSG_ID_HEARTBEAT, t.heartbeat_payload()),
+                        (mav.MAVLINK_MSG_ID_ATTITUDE, t.attitude_payload(1.234, x)),
+                        (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, t.local_position_ned_payload(5e6, x)),
+                        (mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, t.extended_sys_state_payload()),
+                    )
+                )
+                offboard_chosen = state is FcState.DISARMED and offboard_selected
+                assert hb.custom_mode == (px4_custom_mode(PX4_MAIN_OFFBOARD) if offboard_chosen
+                                          else CUSTOM_MODE[state])
+                assert bool(hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED) == state.armed
+                assert (hb.system_status == mav.MAV_STATE_CRITICAL) == state.failsafe
+                assert ext.landed_state == fc.landed_state.value
+    # ENU/FLU -> NED/FRD: north, east, down; a level hover with body x east: heading 90 deg
+    assert att.time_boot_ms == 1234 and pos.time_boot_ms == 5_000_000_000 % 2**32  # ms, wrapping
+    assert (pos.x, pos.y, pos.z) == pytest.approx((-1.0, 0.5, -s.pos_m[2]), abs=1e-6)
+    assert (pos.vx, pos.vy, pos.vz) == pytest.approx((s.vel_m_s[1], s.vel_m_s[0], -s.vel_m_s[2]), abs=1e-6)
+    assert s.quat_wxyz.tolist() == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-4)
+    assert (att.roll, att.pitch, att.yaw) == pytest.approx((0.0, 0.0, math.pi / 2), abs=1e-3)
+    assert (att.rollspeed, att.pitchspeed, att.yawspeed) == pytest.approx(
+        (s.omega_rad_s[0], -s.omega_rad_s[1], -s.omega_rad_s[2]), abs=1e-6)
