@@ -56,6 +56,12 @@ class FastStepper:
         self.batched_steps = 0
         self.single_steps = 0
         self._hold = np.zeros(5)
+        # the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner loop's), taken
+        # once: they stay the same objects for the backend's life, and a tick batches several times
+        if native:
+            inner = vehicle.fc.inner
+            self._arrays = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
+            self._loop = (inner.params, inner.mix_inv, inner.motor_cmd)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -103,34 +109,29 @@ class FastStepper:
         n_steps = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
         if n_steps <= 0:
             return 0
-        be = v.backend
-        assert isinstance(be, NativeBackend)
-        x, aux, p = be.kernel_arrays
-        inner, h = fc.inner, self._hold
+        x, aux, p = self._arrays
+        h = self._hold
         h[0] = fc.hold_climb_m_s()
         h[1] = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
         h[2], h[3], h[4] = fc.rest_height_m, fc.config.landed_margin_m, LANDED_MAX_SPEED_M_S
-        n = _hold_batch(x, aux, p, h, fc.hold_params, inner.params, inner.mix_inv, inner.motor_cmd, n_steps)
+        n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
             self._after_batch(n, detect_landed=False)
         return n
 
     def _fly(self, n: int, roll: float, pitch: float, yaw: float, thrust_n: float) -> None:
-        be, inner = self.vehicle.backend, self.vehicle.fc.inner
-        assert isinstance(be, NativeBackend)
-        x, aux, p = be.kernel_arrays
-        _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, inner.params, inner.mix_inv, inner.motor_cmd, n)
+        x, aux, p = self._arrays
+        _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, *self._loop, n)
         self._after_batch(n)
 
     def _after_batch(self, n: int, detect_landed: bool = True) -> None:
         v = self.vehicle
         be = v.backend
-        assert isinstance(be, NativeBackend)
-        be.advance_clock(n)
+        be.advance_clock(n)  # type: ignore[attr-defined]
         v.steps += n
         self.batched_steps += n
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
-        x = be.kernel_arrays[0]
+        x = self._arrays[0]
         # the FC's bookkeeping as its own per-step update would have left it (plain floats: the same
         # comparisons)
         v.fc.stepped_outside(be.time_s - be.dt_s, x.item(2), x.item(5), detect_landed)
