@@ -5,6 +5,9 @@ profile's FC tracks the attitude it is asked for, and the refusal of a vehicle t
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +18,7 @@ from emulator.profile import VehicleProfile, load_profile
 from hil.cli import main as hil_main
 from hil.runner import RunOptions, run_scenario
 from hil.runner.onboard_side import onboard_options
-from hil.runner.run import RunSetupError, for_vehicle
+from hil.runner.run import RunSetupError, for_vehicle, not_applicable
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 
 F450 = load_profile("f450")
@@ -180,3 +183,46 @@ def test_a_scenario_file_naming_an_unflyable_vehicle_is_refused_when_it_loads(tm
     f = tmp_path / "fine.scenario.yaml"
     f.write_text("description: x\nvehicle: fine.yaml\n")
     assert load_scenarios(f)[0].vehicle == str(tmp_path / "fine.yaml")
+
+
+def test_a_scenario_that_does_not_apply_to_another_vehicle_says_why():
+    steep = loads_scenarios("description: x\ngap: {roll_deg: -70, height_m: 0.65}\n", source="<test>")[0]
+    assert not_applicable(steep, "f450") == "gap tilted 70 deg, beyond f450's 65 deg tilt limit"
+    assert not_applicable(steep, "n3_tx2") is None  # its own vehicle (75 deg)
+    assert not_applicable(scenario(60.0, 2.5), "f450") is None  # within the f450's limit: flown
+    own = dataclasses.replace(scenario(30.0, 2.0), vehicle="scenarios/vehicles/n3_tx2_fc_inertia_low.yaml")
+    assert "about its own vehicle" in not_applicable(own, "f450")
+    assert not_applicable(own, own.vehicle) is None
+    assert not_applicable(steep, "no_such") is None  # (the run names what is wrong with it)
+    with pytest.raises(RunSetupError, match="not flown with vehicle f450: gap tilted 70 deg"):
+        run_scenario(steep, "/nonexistent/never-written", RunOptions(in_process=True, vehicle="f450"))
+
+
+def test_the_suite_skips_what_does_not_apply_to_the_vehicle_and_flies_the_rest(tmp_path, capsys):
+    """The pytest plugin and `hil suite --vehicle` skip (naming why) a gap beyond the vehicle's tilt
+    limit and a scenario about its own vehicle, and fly the others; `hil run --vehicle` refuses them."""
+    write_vehicle(tmp_path, F450.with_changes(name="own"), control_lead_s=0.09)
+    folder = tmp_path / "suite"
+    folder.mkdir()
+    (folder / "steep.scenario.yaml").write_text("description: x\ngap: {roll_deg: 70, height_m: 0.65}\n")
+    (folder / "own.scenario.yaml").write_text(f"description: x\nvehicle: {tmp_path / 'own.yaml'}\n")
+    (folder / "level.scenario.yaml").write_text(
+        "description: x\ngap: {roll_deg: 0}\nfaults: [{kind: command_link_down, start_s: 0.8}]\n"
+        "duration_s: 2.2\nexpect: {crosses_gap: false, recovery: false, failsafe_expected: hover}\n")
+    p = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", str(folder), "-rs",
+                        "--hil-in-process", "--hil-vehicle", "f450"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout
+    assert "1 passed, 2 skipped" in p.stdout
+    assert "not applicable to f450: gap tilted 70 deg, beyond f450's 65 deg tilt limit" in p.stdout
+    assert "not applicable to f450: the scenario is about its own vehicle" in p.stdout
+    out = tmp_path / "reports"
+    argv = ["suite", str(folder), "--in-process", "--vehicle", "f450", "--out", str(out), "-j", "1"]
+    assert hil_main(argv) == 0
+    assert "1/1 passed, 2 skipped" in capsys.readouterr().out
+    skipped = {s["id"]: s["skipped"] for s in json.loads((out / "index.json").read_text())["skipped"]}
+    assert skipped["steep"] == "not applicable to f450: gap tilted 70 deg, beyond f450's 65 deg tilt limit"
+    assert "about its own vehicle" in skipped["own"]
+    assert hil_main(["run", str(folder / "steep.scenario.yaml"), "--in-process", "--vehicle", "f450",
+                     "--out", str(tmp_path / "one")]) == 2
+    assert "beyond f450's 65 deg tilt limit" in capsys.readouterr().err
