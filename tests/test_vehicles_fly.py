@@ -20,6 +20,7 @@ from hil.runner import RunOptions, run_scenario
 from hil.runner.onboard_side import onboard_options
 from hil.runner.run import RunSetupError, for_vehicle, not_applicable
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
+from policies.vehicle import load_vehicle
 
 F450 = load_profile("f450")
 
@@ -54,7 +55,8 @@ def write_vehicle(folder: Path, profile: VehicleProfile, control_lead_s: float) 
     (folder / f"{profile.name}.onboard.yaml").write_text(yaml.safe_dump({
         "name": profile.name, "mass_kg": profile.mass_kg, "full_thrust_n": profile.n3_full_thrust_n,
         "max_tilt_deg": profile.max_tilt_deg, "control_lead_s": control_lead_s,
-        "body_box_m": list(profile.body_box_m)}))
+        "body_box_m": list(profile.body_box_m), "traverse_lead_m": load_vehicle("f450").traverse_lead_m,
+        "max_body_rate_rad_s": profile.max_body_rate_rad_s}))
     return path
 
 
@@ -81,7 +83,8 @@ def test_f450_crosses_a_0p95_by_0p5_m_opening_at_2p5_m_s(tmp_path, roll_deg, phy
     assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
     assert crossing_offset_m(r, s) < 0.03
     assert r.summary["min_clearance_m"] > 0.0
-    print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}")
+    print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}, crossing offset "
+          f"{crossing_offset_m(r, s):.4f} m, clearance {r.summary['min_clearance_m']:.4f} m")
     assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
 
 
@@ -111,12 +114,10 @@ def test_the_onboard_program_is_configured_for_the_vehicle_by_its_own_file():
     assert "--mass" not in opts and "--full-thrust" not in opts  # nothing read from the emulator's profile
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known defect: after the traverse the recovery asks for a 60 deg attitude change within 0.1 s at "
-    "minimum thrust; an F450 with 1.5x inertia loses control (climbs to 9 m) with the body-box planner, "
-    "and flew the same wild recovery before it, passing by a margin: the onboard configuration needs the "
-    "airframe's body-rate limit for the recovery's feasibility test"))
 def test_heavier_inertia_flies_the_30_deg_scenario(tmp_path):
+    """The recovery after the traverse keeps within the airframe's body rate (its onboard configuration
+    says 6 rad/s): asked for a 60 deg attitude change within 0.1 s at minimum thrust, as the planner's
+    own 15 rad/s allowed, this F450 lost control after the traverse."""
     heavy = F450.with_changes(name="f450_heavy", inertia_kgm2=tuple(1.5 * i for i in F450.inertia_kgm2))
     path = write_vehicle(tmp_path, heavy, control_lead_s=0.10)
     s = for_vehicle(scenario(30.0, 2.0), str(path))
@@ -133,15 +134,12 @@ def test_heavier_inertia_and_a_0p08_s_motor_flies_the_30_deg_scenario(tmp_path):
     path = write_vehicle(tmp_path, slow, control_lead_s=0.14)
     s = for_vehicle(scenario(30.0, 2.0), str(path))
     r, tracking = fly(s, tmp_path)
-    checks = {c.name: c for c in r.checks}
-    mission = ("crosses_gap", "collision", "recovery", "stays_in_lab", "failsafe", "onboard_abort")
-    assert all(checks[n].passed for n in mission), [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    # every check passes, flight quality included: with the recovery kept within its 6 rad/s body rate
+    # its attitude follows the command through its own lag (1 / 4.8 s) within the default 15 deg
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
     assert crossing_offset_m(r, s) < 0.05
-    # it flies the mission, and the flight-quality checks say how sluggishly: its attitude trails the
-    # command by more than the default allows (19 deg), where the F450 as built stays within it
-    quality = r.summary["flight_quality"]
-    assert not checks["attitude_tracking_deg"].passed and quality["attitude_tracking_deg"]["value"] > 15.0
-    print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}")
+    print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}, "
+          f"flight quality {r.summary['flight_quality']['attitude_tracking_deg']}")
 
 
 def test_a_vehicle_the_fc_cannot_stabilise_is_refused_before_it_flies(tmp_path, capsys):
