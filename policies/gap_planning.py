@@ -662,16 +662,18 @@ class MissionRequest:
 
     def plan(self) -> MissionPlan:
         """The mission `plan_mission` makes from this request (PlanningError, ValueError as it): the first
-        plan within the vehicle's body rate, or where there is none (the recovery from a steep traverse
-        of a slow vehicle), the first within `VehicleLimits`' (the planner's limits for any vehicle)."""
+        plan within the vehicle's body rate; where there is none (the recovery from a steep traverse of a
+        slow vehicle), the first within twice it, the FC trailing briefly; then the first within
+        `VehicleLimits`' (the planner's limits for any vehicle)."""
         plan = functools.partial(plan_mission, self.start_pos_m, self.gap, self.lab,
                                  start_vel_m_s=self.start_vel_m_s,
                                  approach_duration_s=self.approach_duration_s,
                                  crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
                                  body=self.body)
-        if self.max_body_rate_rad_s < VehicleLimits.max_body_rate_rad_s:
-            with contextlib.suppress(PlanningError):
-                return plan(limits=VehicleLimits(max_body_rate_rad_s=self.max_body_rate_rad_s))
+        for w in (self.max_body_rate_rad_s, 2 * self.max_body_rate_rad_s):
+            if w < VehicleLimits.max_body_rate_rad_s:
+                with contextlib.suppress(PlanningError):
+                    return plan(limits=VehicleLimits(max_body_rate_rad_s=w))
         return plan()
 
     def to_dict(self) -> dict[str, Any]:

@@ -345,8 +345,9 @@ def _f450_request(roll_deg: float, max_body_rate_rad_s: float) -> MissionRequest
 def test_a_request_prefers_plans_within_the_vehicles_body_rate_and_keeps_it_through_json() -> None:
     """A slow vehicle's request (6 rad/s, the f450's FC) gets the recovery it can turn through after a
     30 deg gap, where the planner's own 15 rad/s takes the first, 1.1 s one; after a 60 deg traverse no
-    recovery is within 6 rad/s and the plan is the planner's own. The limit goes through the plan event's
-    JSON, so the harness derives the same plan."""
+    recovery is within 6 rad/s and the plan is the first within twice it (a 1.7 s recovery, not the 1.4 s
+    one of 13.8 rad/s). The limit goes through the plan event's JSON, so the harness derives the same
+    plan."""
     slow, fast = _f450_request(30.0, 6.0).plan(), _f450_request(30.0, 15.0).plan()
     assert fast.recovery.duration_s == pytest.approx(1.1)
     assert slow.recovery.duration_s > fast.recovery.duration_s
@@ -360,7 +361,11 @@ def test_a_request_prefers_plans_within_the_vehicles_body_rate_and_keeps_it_thro
     with pytest.raises(PlanningError, match="no recovery duration"):
         plan_mission(steep.start_pos_m, steep.gap, steep.lab, approach_duration_s=2.6, crossing_speed_m_s=2.5,
                      d_min_m=0.4, body=steep.body, limits=limits)
-    assert steep.plan().recovery.duration_s == _f450_request(60.0, 15.0).plan().recovery.duration_s
+    twice = steep.plan().recovery
+    own = _f450_request(60.0, 15.0).plan().recovery
+    assert (twice.duration_s, own.duration_s) == pytest.approx((1.7, 1.4))
+    assert twice.trajectory.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, 12.0, limits.min_dt_s) == \
+        Feasibility.FEASIBLE
     again = MissionRequest.from_dict(json.loads(json.dumps(_f450_request(30.0, 6.0).to_dict())))
     assert again.max_body_rate_rad_s == 6.0 and again.plan().recovery.duration_s == slow.recovery.duration_s
     legacy = {k: v for k, v in _f450_request(30.0, 6.0).to_dict().items() if k != "max_body_rate_rad_s"}
