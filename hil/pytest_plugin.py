@@ -84,12 +84,17 @@ class ScenarioFile(pytest.File):
             scenarios = loads_scenarios(self.path.read_text(encoding="utf-8"), source=str(self.path))
         except ScenarioError as exc:
             raise ScenarioFileError(str(exc)) from None
+        vehicle = self.config.getoption("--hil-vehicle")
+        if vehicle:
+            from hil.runner.run import not_applicable  # (the runner only when a vehicle is given)
         for s in scenarios:
             item = ScenarioItem.from_parent(self, name=s.id, scenario=s)
             for marker in s.markers:
                 item.add_marker(marker)
             if s.skip:
                 item.add_marker(pytest.mark.skip(reason=s.skip))
+            elif vehicle and (why := not_applicable(s, vehicle)):
+                item.add_marker(pytest.mark.skip(reason=f"not applicable to {vehicle}: {why}"))
             yield item
 
     def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException], style: Any = None) -> str:

@@ -29,6 +29,7 @@ and the wall wins. Every test is a `FloatTrajectory.planes_ok` plane test or the
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import time
@@ -609,13 +610,24 @@ class MissionRequest:
     crossing_speed_m_s: float
     d_min_m: float
     body: BodyClearance = field(default_factory=BodyClearance)
+    #: the body rate the vehicle's FC turns it at, at most (rad/s; `VehicleLimits`' by default)
+    max_body_rate_rad_s: float = VehicleLimits.max_body_rate_rad_s
 
     def plan(self) -> MissionPlan:
-        """The mission `plan_mission` makes from this request (PlanningError, ValueError as it)."""
-        return plan_mission(self.start_pos_m, self.gap, self.lab, start_vel_m_s=self.start_vel_m_s,
-                            approach_duration_s=self.approach_duration_s,
-                            crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
-                            body=self.body)
+        """The mission `plan_mission` makes from this request (PlanningError, ValueError as it): the first
+        plan within the vehicle's body rate; where there is none (the recovery from a steep traverse of a
+        slow vehicle), the first within twice it, the FC trailing briefly; then the first within
+        `VehicleLimits`' (the planner's limits for any vehicle)."""
+        plan = functools.partial(plan_mission, self.start_pos_m, self.gap, self.lab,
+                                 start_vel_m_s=self.start_vel_m_s,
+                                 approach_duration_s=self.approach_duration_s,
+                                 crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
+                                 body=self.body)
+        for w in (self.max_body_rate_rad_s, 2 * self.max_body_rate_rad_s):
+            if w < VehicleLimits.max_body_rate_rad_s:
+                with contextlib.suppress(PlanningError):
+                    return plan(limits=VehicleLimits(max_body_rate_rad_s=w))
+        return plan()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready numbers (full precision: the same plan comes back from `from_dict`)."""
@@ -627,5 +639,6 @@ class MissionRequest:
         return cls(_vec3("start_pos_m", data["start_pos_m"]), _vec3("start_vel_m_s", data["start_vel_m_s"]),
                    GapPose(**data["gap"]), LabVolume(**data["lab"]), float(data["approach_duration_s"]),
                    float(data["crossing_speed_m_s"]), float(data["d_min_m"]),
-                   BodyClearance(**data["body"]) if "body" in data else BodyClearance())
+                   BodyClearance(**data["body"]) if "body" in data else BodyClearance(),
+                   float(data.get("max_body_rate_rad_s", VehicleLimits.max_body_rate_rad_s)))
 

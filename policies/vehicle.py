@@ -9,15 +9,19 @@ file): the onboard side never reads the emulator's profile, as the real onboard 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 from importlib import resources
 from pathlib import Path
 
 import yaml
 
 from policies.frames import GRAVITY_M_S2
+from policies.gap_planning import VehicleLimits
 
 DEFAULT_VEHICLE = "n3_tx2"
+#: the traverse's least start distance before the gap plane (m) unless a vehicle's file says otherwise:
+#: the n3_tx2's (its FC finishes most of the roll into the gap's tilt before its 0.52 m body reaches the wall)
+TRAVERSE_LEAD_M = 0.25
 
 
 @dataclass(frozen=True)
@@ -30,6 +34,12 @@ class OnboardVehicle:
     max_tilt_deg: float  # the expert's tilt limit (the FC's own limit or less)
     control_lead_s: float  # commands are computed this far ahead: the FC's attitude lag
     body_box_m: tuple[float, float, float]  # the collision box the plans keep clear (length, width, height)
+    #: the traverse starts at least this far before the gap plane (m): far enough for the FC to finish
+    #: the roll into the gap's tilt before the body reaches the wall (optional, `TRAVERSE_LEAD_M`)
+    traverse_lead_m: float = TRAVERSE_LEAD_M
+    #: the body rate its FC turns it at, at most (rad/s): the planner prefers plans within it (optional,
+    #: the planner's own limit for any vehicle, `VehicleLimits`)
+    max_body_rate_rad_s: float = VehicleLimits.max_body_rate_rad_s
 
     def __post_init__(self) -> None:
         for name in ("mass_kg", "full_thrust_n", "max_tilt_deg"):
@@ -38,6 +48,12 @@ class OnboardVehicle:
                 raise ValueError(f"vehicle {self.name}: {name} must be a positive number, got {v!r}")
         if not 0 < self.max_tilt_deg < 90:
             raise ValueError(f"vehicle {self.name}: max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
+        w = self.max_body_rate_rad_s
+        if isinstance(w, bool) or not isinstance(w, int | float) or not (math.isfinite(w) and w > 0):
+            raise ValueError(f"vehicle {self.name}: max_body_rate_rad_s must be a positive number, got {w!r}")
+        tl = self.traverse_lead_m
+        if isinstance(tl, bool) or not isinstance(tl, int | float) or not (0 < tl <= 1.0):
+            raise ValueError(f"vehicle {self.name}: traverse_lead_m must be in (0, 1] m, got {tl!r}")
         lead = self.control_lead_s
         if isinstance(lead, bool) or not isinstance(lead, int | float) or not (0 <= lead <= 0.2):
             raise ValueError(f"vehicle {self.name}: control_lead_s must be in [0, 0.2] s, got {lead!r}")
@@ -80,7 +96,7 @@ def load_vehicle(name_or_path: str | Path) -> OnboardVehicle:
     if not isinstance(data, dict):
         raise ValueError(f"{source}: expected a mapping of field: value ({', '.join(known)})")
     unknown = sorted(set(data) - set(known))
-    missing = [k for k in known if k not in data]
+    missing = [f.name for f in fields(OnboardVehicle) if f.name not in data and f.default is MISSING]
     if unknown or missing:
         raise ValueError(
             f"{source}: unknown fields {unknown}, missing fields {missing} (fields: {', '.join(known)})"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from policies.gap_planning import (
     BodyClearance,
     GapPose,
     LabVolume,
+    MissionRequest,
     PlanningError,
     RecoveryResult,
     Segment,
@@ -321,3 +323,41 @@ def test_recovery_search_picks_the_first_duration_that_passes_every_check(start)
         return
     res = search_recovery(start, vel, np.zeros(3), hover, LAB5, wall=wall_arg, margin_m=0.2)
     assert res.tried == good[0] + 1 and res.duration_s == float(RECOVERY_DURATIONS_S[good[0]])
+
+
+def _f450_request(roll_deg: float, max_body_rate_rad_s: float) -> MissionRequest:
+    gap = GapPose.from_deg((0.0, 0.5, 2.1), roll_deg, width_m=0.85, height_m=0.57)
+    lab = LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0))
+    return MissionRequest((-2.0, -1.0, 0.5), (0.0, 0.0, 0.0), gap, lab,
+                          2.6, 2.0 if abs(roll_deg) < 50 else 2.5, 0.4, BodyClearance((0.569, 0.569, 0.3048)),
+                          max_body_rate_rad_s)
+
+
+def test_a_request_prefers_plans_within_the_vehicles_body_rate_and_keeps_it_through_json() -> None:
+    """A slow vehicle's request (6 rad/s, the f450's FC) gets the recovery it can turn through after a
+    30 deg gap, where the planner's own 15 rad/s takes the first, 1.1 s one; after a 60 deg traverse no
+    recovery is within 6 rad/s and the plan is the first within twice it (a 1.7 s recovery, not the 1.4 s
+    one of 13.8 rad/s). The limit goes through the plan event's JSON, so the harness derives the same
+    plan."""
+    slow, fast = _f450_request(30.0, 6.0).plan(), _f450_request(30.0, 15.0).plan()
+    assert fast.recovery.duration_s == pytest.approx(1.1)
+    assert slow.recovery.duration_s > fast.recovery.duration_s
+    limits = VehicleLimits(max_body_rate_rad_s=6.0)
+    for traj in (slow.approach, slow.recovery.trajectory):
+        assert traj.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, 6.0, limits.min_dt_s) == \
+            Feasibility.FEASIBLE
+    assert fast.recovery.trajectory.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, 6.0,
+                                                   limits.min_dt_s) != Feasibility.FEASIBLE
+    steep = _f450_request(60.0, 6.0)
+    with pytest.raises(PlanningError, match="no recovery duration"):
+        plan_mission(steep.start_pos_m, steep.gap, steep.lab, approach_duration_s=2.6, crossing_speed_m_s=2.5,
+                     d_min_m=0.4, body=steep.body, limits=limits)
+    twice = steep.plan().recovery
+    own = _f450_request(60.0, 15.0).plan().recovery
+    assert (twice.duration_s, own.duration_s) == pytest.approx((1.7, 1.4))
+    assert twice.trajectory.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, 12.0, limits.min_dt_s) == \
+        Feasibility.FEASIBLE
+    again = MissionRequest.from_dict(json.loads(json.dumps(_f450_request(30.0, 6.0).to_dict())))
+    assert again.max_body_rate_rad_s == 6.0 and again.plan().recovery.duration_s == slow.recovery.duration_s
+    legacy = {k: v for k, v in _f450_request(30.0, 6.0).to_dict().items() if k != "max_body_rate_rad_s"}
+    assert MissionRequest.from_dict(legacy).max_body_rate_rad_s == VehicleLimits().max_body_rate_rad_s

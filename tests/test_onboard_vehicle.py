@@ -31,9 +31,18 @@ def test_the_command_line_takes_the_vehicle_and_overrides_single_fields():
         0.9, 24.0, 75.0, 0.06)
     f450 = config("--vehicle", "f450")
     assert (f450.mass_kg, f450.full_thrust_n, f450.max_tilt_deg, f450.control_lead_s) == (
-        1.4, 62.88, 65.0, 0.09)
+        1.4, 62.88, 65.0, 0.0925)
     c = config("--vehicle", "f450", "--mass", "1.5", "--max-tilt", "50", "--control-lead-ms", "70")
     assert (c.mass_kg, c.full_thrust_n, c.max_tilt_deg, c.control_lead_s) == (1.5, 62.88, 50.0, 0.07)
+
+
+def test_the_traverse_lead_comes_from_the_vehicle_where_its_file_gives_one(tmp_path):
+    assert config().traverse_lead_m == 0.25  # the n3_tx2's (its file gives none: the default)
+    assert config("--vehicle", "f450").traverse_lead_m == 0.4  # its slower attitude loop, longer body
+    assert config("--vehicle", "f450", "--traverse-lead", "0.3").traverse_lead_m == 0.3
+    f = tmp_path / "v.yaml"
+    f.write_text(GOOD + "traverse_lead_m: 0.35\n")
+    assert load_vehicle(f).traverse_lead_m == 0.35
 
 
 GOOD = ("name: x\nmass_kg: 1\nfull_thrust_n: 30\nmax_tilt_deg: 60\ncontrol_lead_s: 0.1\n"
@@ -50,6 +59,7 @@ GOOD = ("name: x\nmass_kg: 1\nfull_thrust_n: 30\nmax_tilt_deg: 60\ncontrol_lead_
         (GOOD.replace("mass_kg: 1", "mass_kg: heavy"), "mass_kg"),
         (GOOD.replace("control_lead_s: 0.1", "control_lead_s: 0.5"), "control_lead_s"),
         (GOOD.replace("[0.5, 0.5, 0.2]", "[0.5, 0.5]"), "body_box_m must be 3 positive lengths"),
+        (GOOD + "traverse_lead_m: 0\n", "traverse_lead_m must be in \\(0, 1\\] m"),
         ("[1, 2]\n", "expected a mapping"),
     ],
 )

@@ -5,6 +5,9 @@ profile's FC tracks the attitude it is asked for, and the refusal of a vehicle t
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +18,9 @@ from emulator.profile import VehicleProfile, load_profile
 from hil.cli import main as hil_main
 from hil.runner import RunOptions, run_scenario
 from hil.runner.onboard_side import onboard_options
-from hil.runner.run import RunSetupError, for_vehicle
+from hil.runner.run import RunSetupError, for_vehicle, not_applicable
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
+from policies.vehicle import load_vehicle
 
 F450 = load_profile("f450")
 
@@ -51,7 +55,8 @@ def write_vehicle(folder: Path, profile: VehicleProfile, control_lead_s: float) 
     (folder / f"{profile.name}.onboard.yaml").write_text(yaml.safe_dump({
         "name": profile.name, "mass_kg": profile.mass_kg, "full_thrust_n": profile.n3_full_thrust_n,
         "max_tilt_deg": profile.max_tilt_deg, "control_lead_s": control_lead_s,
-        "body_box_m": list(profile.body_box_m)}))
+        "body_box_m": list(profile.body_box_m), "traverse_lead_m": load_vehicle("f450").traverse_lead_m,
+        "max_body_rate_rad_s": profile.max_body_rate_rad_s}))
     return path
 
 
@@ -78,7 +83,8 @@ def test_f450_crosses_a_0p95_by_0p5_m_opening_at_2p5_m_s(tmp_path, roll_deg, phy
     assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
     assert crossing_offset_m(r, s) < 0.03
     assert r.summary["min_clearance_m"] > 0.0
-    print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}")
+    print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}, crossing offset "
+          f"{crossing_offset_m(r, s):.4f} m, clearance {r.summary['min_clearance_m']:.4f} m")
     assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
 
 
@@ -108,12 +114,10 @@ def test_the_onboard_program_is_configured_for_the_vehicle_by_its_own_file():
     assert "--mass" not in opts and "--full-thrust" not in opts  # nothing read from the emulator's profile
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known defect: after the traverse the recovery asks for a 60 deg attitude change within 0.1 s at "
-    "minimum thrust; an F450 with 1.5x inertia loses control (climbs to 9 m) with the body-box planner, "
-    "and flew the same wild recovery before it, passing by a margin: the onboard configuration needs the "
-    "airframe's body-rate limit for the recovery's feasibility test"))
 def test_heavier_inertia_flies_the_30_deg_scenario(tmp_path):
+    """The recovery after the traverse keeps within the airframe's body rate (its onboard configuration
+    says 6 rad/s): asked for a 60 deg attitude change within 0.1 s at minimum thrust, as the planner's
+    own 15 rad/s allowed, this F450 lost control after the traverse."""
     heavy = F450.with_changes(name="f450_heavy", inertia_kgm2=tuple(1.5 * i for i in F450.inertia_kgm2))
     path = write_vehicle(tmp_path, heavy, control_lead_s=0.10)
     s = for_vehicle(scenario(30.0, 2.0), str(path))
@@ -130,15 +134,12 @@ def test_heavier_inertia_and_a_0p08_s_motor_flies_the_30_deg_scenario(tmp_path):
     path = write_vehicle(tmp_path, slow, control_lead_s=0.14)
     s = for_vehicle(scenario(30.0, 2.0), str(path))
     r, tracking = fly(s, tmp_path)
-    checks = {c.name: c for c in r.checks}
-    mission = ("crosses_gap", "collision", "recovery", "stays_in_lab", "failsafe", "onboard_abort")
-    assert all(checks[n].passed for n in mission), [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    # every check passes, flight quality included: with the recovery kept within its 6 rad/s body rate
+    # its attitude follows the command through its own lag (1 / 4.8 s) within the default 15 deg
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
     assert crossing_offset_m(r, s) < 0.05
-    # it flies the mission, and the flight-quality checks say how sluggishly: its attitude trails the
-    # command by more than the default allows (19 deg), where the F450 as built stays within it
-    quality = r.summary["flight_quality"]
-    assert not checks["attitude_tracking_deg"].passed and quality["attitude_tracking_deg"]["value"] > 15.0
-    print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}")
+    print(f"f450 x1.5 inertia, 0.08 s motor: attitude tracking {tracking}, "
+          f"flight quality {r.summary['flight_quality']['attitude_tracking_deg']}")
 
 
 def test_a_vehicle_the_fc_cannot_stabilise_is_refused_before_it_flies(tmp_path, capsys):
@@ -180,3 +181,46 @@ def test_a_scenario_file_naming_an_unflyable_vehicle_is_refused_when_it_loads(tm
     f = tmp_path / "fine.scenario.yaml"
     f.write_text("description: x\nvehicle: fine.yaml\n")
     assert load_scenarios(f)[0].vehicle == str(tmp_path / "fine.yaml")
+
+
+def test_a_scenario_that_does_not_apply_to_another_vehicle_says_why():
+    steep = loads_scenarios("description: x\ngap: {roll_deg: -70, height_m: 0.65}\n", source="<test>")[0]
+    assert not_applicable(steep, "f450") == "gap tilted 70 deg, beyond f450's 65 deg tilt limit"
+    assert not_applicable(steep, "n3_tx2") is None  # its own vehicle (75 deg)
+    assert not_applicable(scenario(60.0, 2.5), "f450") is None  # within the f450's limit: flown
+    own = dataclasses.replace(scenario(30.0, 2.0), vehicle="scenarios/vehicles/n3_tx2_fc_inertia_low.yaml")
+    assert "about its own vehicle" in not_applicable(own, "f450")
+    assert not_applicable(own, own.vehicle) is None
+    assert not_applicable(steep, "no_such") is None  # (the run names what is wrong with it)
+    with pytest.raises(RunSetupError, match="not flown with vehicle f450: gap tilted 70 deg"):
+        run_scenario(steep, "/nonexistent/never-written", RunOptions(in_process=True, vehicle="f450"))
+
+
+def test_the_suite_skips_what_does_not_apply_to_the_vehicle_and_flies_the_rest(tmp_path, capsys):
+    """The pytest plugin and `hil suite --vehicle` skip (naming why) a gap beyond the vehicle's tilt
+    limit and a scenario about its own vehicle, and fly the others; `hil run --vehicle` refuses them."""
+    write_vehicle(tmp_path, F450.with_changes(name="own"), control_lead_s=0.09)
+    folder = tmp_path / "suite"
+    folder.mkdir()
+    (folder / "steep.scenario.yaml").write_text("description: x\ngap: {roll_deg: 70, height_m: 0.65}\n")
+    (folder / "own.scenario.yaml").write_text(f"description: x\nvehicle: {tmp_path / 'own.yaml'}\n")
+    (folder / "level.scenario.yaml").write_text(
+        "description: x\ngap: {roll_deg: 0}\nfaults: [{kind: command_link_down, start_s: 0.8}]\n"
+        "duration_s: 2.2\nexpect: {crosses_gap: false, recovery: false, failsafe_expected: hover}\n")
+    p = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", str(folder), "-rs",
+                        "--hil-in-process", "--hil-vehicle", "f450"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout
+    assert "1 passed, 2 skipped" in p.stdout
+    assert "not applicable to f450: gap tilted 70 deg, beyond f450's 65 deg tilt limit" in p.stdout
+    assert "not applicable to f450: the scenario is about its own vehicle" in p.stdout
+    out = tmp_path / "reports"
+    argv = ["suite", str(folder), "--in-process", "--vehicle", "f450", "--out", str(out), "-j", "1"]
+    assert hil_main(argv) == 0
+    assert "1/1 passed, 2 skipped" in capsys.readouterr().out
+    skipped = {s["id"]: s["skipped"] for s in json.loads((out / "index.json").read_text())["skipped"]}
+    assert skipped["steep"] == "not applicable to f450: gap tilted 70 deg, beyond f450's 65 deg tilt limit"
+    assert "about its own vehicle" in skipped["own"]
+    assert hil_main(["run", str(folder / "steep.scenario.yaml"), "--in-process", "--vehicle", "f450",
+                     "--out", str(tmp_path / "one")]) == 2
+    assert "beyond f450's 65 deg tilt limit" in capsys.readouterr().err

@@ -15,6 +15,7 @@ from typing import Any
 
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.runner.run import not_applicable
 from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
 from hil.scenario.schema import Scenario
 
@@ -70,8 +71,12 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     options = options_from(args)
-    todo = [s for s in scenarios if not s.skip]
-    skipped = [{"id": s.id, "skipped": s.skip, "source": s.source} for s in scenarios if s.skip]
+    skip = {s.id: s.skip for s in scenarios if s.skip}
+    if options.vehicle is not None:  # scenarios that do not apply to the vehicle flown in their place
+        skip.update({s.id: f"not applicable to {options.vehicle}: {why}" for s in scenarios
+                     if s.id not in skip and (why := not_applicable(s, options.vehicle))})
+    todo = [s for s in scenarios if s.id not in skip]
+    skipped = [{"id": s.id, "skipped": skip[s.id], "source": s.source} for s in scenarios if s.id in skip]
     wall0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     work = [(s, str(out / s.id), options) for s in todo]

@@ -36,7 +36,7 @@ from hil.runner.onboard_side import (
 )
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.runner.recorder import FC_STATE_CODES
-from hil.scenario.schema import Fault, Scenario
+from hil.scenario.schema import DEFAULT_VEHICLE, Fault, Scenario
 from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
@@ -98,6 +98,9 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
     if options.backend is not None:
         s = replace(s, physics=options.backend)
     if options.vehicle is not None and options.vehicle != s.vehicle:
+        why = not_applicable(s, options.vehicle)
+        if why is not None:
+            raise RunSetupError(f"{s.id} is not flown with vehicle {options.vehicle}: {why}")
         s = for_vehicle(s, options.vehicle)
     if s.pilot not in pilot_names():
         raise RunSetupError(f"unknown pilot {s.pilot!r}; known: {', '.join(pilot_names())}")
@@ -118,6 +121,26 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
             f"({options.tick_s * 1e3:g} ms): expected 0..{options.tick_s * 1e3:g} or null (one tick)"
         )
     return s, in_process, realtime
+
+
+def not_applicable(scenario: Scenario, vehicle: str) -> str | None:
+    """Why ``scenario`` cannot be flown by ``vehicle`` in place of its own (the pytest plugin and
+    `hil suite --vehicle` skip it, `hil run --vehicle` refuses it), or None when it can: a scenario that
+    names a vehicle of its own is about that vehicle, and a gap tilted beyond the new vehicle's tilt
+    limit is one it cannot cross (a scenario file naming such a vehicle is refused when it loads).
+    None too for a vehicle that does not load: the run names what is wrong with it."""
+    if vehicle == scenario.vehicle:
+        return None
+    if scenario.vehicle != DEFAULT_VEHICLE:
+        return f"the scenario is about its own vehicle {scenario.vehicle}"
+    try:
+        profile = load_profile(vehicle)
+    except ValueError:
+        return None
+    if scenario.gap.tilt_deg > profile.max_tilt_deg:
+        return (f"gap tilted {scenario.gap.tilt_deg:.0f} deg, beyond {profile.name}'s "
+                f"{profile.max_tilt_deg:g} deg tilt limit")
+    return None
 
 
 def for_vehicle(scenario: Scenario, vehicle: str) -> Scenario:

@@ -41,8 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"speed through the gap centre (m/s, default {d.approach_speed_m_s:g})")
     p.add_argument("--approach-duration", type=float, default=d.approach_duration_s, metavar="S",
                    help=f"approach primitive duration (s, default {d.approach_duration_s:g})")
-    p.add_argument("--traverse-lead", type=float, default=d.traverse_lead_m, metavar="M",
-                   help=f"min. traverse start distance before the gap (m, default {d.traverse_lead_m:g})")
+    p.add_argument("--traverse-lead", type=float, default=None, metavar="M",
+                   help="min. traverse start distance before the gap (m), instead of the vehicle's")
     p.add_argument("--stale-mocap-ms", type=float, default=d.stale_mocap_s * 1e3, metavar="MS",
                    help=f"safe hover when the pose is older (ms, default {d.stale_mocap_s * 1e3:g})")
     p.add_argument("--mocap-latency-ms", type=float, default=EstimatorConfig().latency_s * 1e3, metavar="MS",
@@ -90,9 +90,10 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
     """A ProgramConfig from parsed options; ValueError with the reason when one is out of range."""
     v = load_vehicle(args.vehicle)
     lead_s = v.control_lead_s if args.control_lead_ms is None else args.control_lead_ms / 1e3
+    traverse_lead_m = v.traverse_lead_m if args.traverse_lead is None else args.traverse_lead
     return ProgramConfig(
         pilot=args.pilot, rate_hz=args.rate_hz, approach_speed_m_s=args.approach_speed,
-        approach_duration_s=args.approach_duration, traverse_lead_m=args.traverse_lead,
+        approach_duration_s=args.approach_duration, traverse_lead_m=traverse_lead_m,
         stale_mocap_s=args.stale_mocap_ms / 1e3,
         mass_kg=v.mass_kg if args.mass is None else args.mass,
         full_thrust_n=v.full_thrust_n if args.full_thrust is None else args.full_thrust,
@@ -100,6 +101,7 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
         gap_width_m=args.gap_size[0], gap_height_m=args.gap_size[1], lab_min_m=args.lab_min,
         lab_max_m=args.lab_max, takeoff_height_m=args.takeoff_height, hover_s=args.hover_time,
         body_box_m=v.body_box_m if args.body_box is None else tuple(args.body_box),
+        max_body_rate_rad_s=v.max_body_rate_rad_s,
         clearance_margin_m=args.clearance_margin,
         estimator=EstimatorConfig(latency_s=args.mocap_latency_ms / 1e3),
         lockstep_spin_s=args.lockstep_spin_us * 1e-6,

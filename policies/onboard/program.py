@@ -52,12 +52,14 @@ from policies.gap_planning import (
     MissionRequest,
     PlanningError,
     Segment,
+    VehicleLimits,
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
 from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
 from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
+from policies.vehicle import TRAVERSE_LEAD_M
 
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
 HEARTBEAT_REQUEST_S = 0.1  # how often the FC's heartbeat is asked for until one comes (s)
@@ -103,9 +105,10 @@ class ProgramConfig:
     rate_hz: float = 100.0  # control rate; >= 50 Hz (the N3's minimum)
     approach_speed_m_s: float = 2.0  # speed through the gap centre
     approach_duration_s: float = 2.6
-    # the traverse starts at least this far before the gap plane (d_min; the paper: 0.1 m): 0.25 m lets the
-    # FC finish most of the roll into the gap's tilt before the 0.52 m body reaches the wall
-    traverse_lead_m: float = 0.25
+    # the traverse starts at least this far before the gap plane (d_min; the paper: 0.1 m): the vehicle's
+    # (policies.vehicle: 0.25 m lets the n3_tx2's FC finish most of the roll into the gap's tilt before
+    # its 0.52 m body reaches the wall)
+    traverse_lead_m: float = TRAVERSE_LEAD_M
     stale_mocap_s: float = 0.1  # vehicle pose older than this: abort to a safe hover
     # the vehicle as the onboard side knows it (its own configuration, policies.vehicle; n3_tx2's here)
     mass_kg: float = 0.9
@@ -131,6 +134,8 @@ class ProgramConfig:
     heartbeat_period_s: float = 1.0
     max_catch_up_steps: int = 3  # control steps run at once after a stall; later ones are skipped
     control_lead_s: float = 0.06  # state and reference taken this far ahead (the FC's attitude lag)
+    #: the body rate the vehicle's FC turns it at, at most (rad/s): plans within it are preferred
+    max_body_rate_rad_s: float = VehicleLimits.max_body_rate_rad_s
     #: lockstep: wall time (s) to poll for the next tick before sleeping (it usually comes within it)
     lockstep_spin_s: float = 1e-3
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
@@ -143,8 +148,9 @@ class ProgramConfig:
         if not (math.isfinite(self.approach_speed_m_s) and 0 < self.approach_speed_m_s <= 6):
             raise ValueError(f"approach speed must be in (0, 6] m/s, got {self.approach_speed_m_s}")
         for name in ("approach_duration_s", "traverse_lead_m", "stale_mocap_s", "mass_kg", "full_thrust_n",
-                     "gap_width_m", "gap_height_m", "takeoff_duration_s", "wait_timeout_s",
-                     "command_timeout_s", "command_retry_s", "fc_lost_s", "heartbeat_period_s"):
+                     "max_body_rate_rad_s", "gap_width_m", "gap_height_m", "takeoff_duration_s",
+                     "wait_timeout_s", "command_timeout_s", "command_retry_s", "fc_lost_s",
+                     "heartbeat_period_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
@@ -515,7 +521,8 @@ class OnboardProgram:
         body box (its `plan` is the plan; its `to_dict` goes into the plan event)."""
         cfg = self.config
         return MissionRequest(tuple(pos_m.tolist()), tuple(vel_m_s.tolist()), gap, self.lab,
-                              cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m, self.body)
+                              cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m, self.body,
+                              cfg.max_body_rate_rad_s)
 
     def _mission_progress(self, now_s: float) -> None:
         assert self.plan is not None
