@@ -39,7 +39,7 @@ def test_realtime_run_follows_the_wall_clock_and_the_onboard_takes_control(tmp_p
     assert "authority" in texts and "takeoff" in texts, texts
     assert sm["fc_final_state"] == "offboard"
     check = next(c for c in r.checks if c.name == "realtime")
-    assert check.passed == (health["loop"]["late_worst_ms"] <= 20.0) and "ms late" in check.observed
+    assert check.passed == (health["loop"]["late_worst_ms"] <= 50.0) and "ms late" in check.observed
     assert health["loop"]["iterations"] > 1000 and health["loop"]["skipped_steps"] == 0
     assert 90 <= health["setpoints_at_fc"]["rate_hz"] <= 110  # the onboard's 100 Hz, as the FC saw it
     assert 110 <= health["mocap_frames_written"]["rate_hz"] <= 130  # the mocap's 120 Hz
@@ -54,7 +54,7 @@ class CpuHog:
     callback (the onboard program is running by then, on whichever CPU it likes) with the emulator's
     loop moved to CPU 0 beside them; the other CPUs stay free for anything else running."""
 
-    def __init__(self, n: int = 3) -> None:
+    def __init__(self, n: int = 4) -> None:
         self.n, self.hogs, self.before = n, [], os.sched_getaffinity(0)
 
     def __call__(self, sim_s: float, duration_s: float) -> None:
@@ -72,7 +72,10 @@ class CpuHog:
 
 
 def test_a_cpu_hog_beside_a_realtime_run_fails_its_realtime_check(tmp_path):
-    s = loads_scenarios(SHORT)[0]
+    # a scenario may state a tighter bound than the default 50 ms: 20 ms here, which the hog (60-120 ms
+    # of lateness on this machine) always breaks, while a quiet loop stays within a few ms
+    tight = "expect: {crosses_gap: false, recovery: false, realtime_max_late_ms: 20}"
+    s = loads_scenarios(SHORT.replace("expect: {crosses_gap: false, recovery: false}", tight))[0]
     hog = CpuHog()
     try:
         r = run_scenario(s, tmp_path, RunOptions(realtime=True, in_process=False), progress=hog)
@@ -83,4 +86,5 @@ def test_a_cpu_hog_beside_a_realtime_run_fails_its_realtime_check(tmp_path):
     loop = r.summary["realtime"]["loop"]
     assert not check.passed and not r.passed, (check, loop)
     assert loop["late_worst_ms"] > 20.0 and loop["caught_up_steps"] > 0
+    assert "at most 20 ms late" in check.expected
     assert "ms late" in check.observed and check.time_s is not None

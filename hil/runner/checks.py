@@ -84,7 +84,8 @@ def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
     if e.stays_in_lab:
         checks.append(check_stays_in_lab(obs))
     checks.append(check_failsafe(e.failsafe_expected, obs))
-    checks.append(check_abort(e.onboard_abort_expected, obs))
+    if e.onboard_abort_expected is not None:
+        checks.append(check_abort(e.onboard_abort_expected, obs))
     lk = e.link
     for name, limit, key, unit in (
         ("mocap_delivered_fraction", lk.mocap_delivered_fraction_min, "mocap_delivered_fraction", ""),
