@@ -30,10 +30,14 @@ def run_realtime(
     onboard: OnboardSide,
     duration_s: float,
     progress: Callable[[float], None] | None = None,
+    compute_s: float = 0.0,
 ) -> LoopReport:
     """Fly ``duration_s`` seconds of wall time from the onboard program's first frame; returns what the
-    loop saw, its real-time health in ``realtime``."""
+    loop saw, its real-time health in ``realtime``. ``compute_s`` (s) is the onboard computer's modelled
+    compute time, as in lockstep: its outputs reach the link that long after the program wrote them (the
+    program runs on the harness's machine, faster than the TX2 it stands for)."""
     rep = LoopReport()
+    emu.wire.compute_s = compute_s
     faults = emu.faults
     faults.count_from(CONTACT_EVENT)
     pacing = PacingStats(POLL_S, emu.vehicle.dt_s)

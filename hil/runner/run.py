@@ -236,10 +236,11 @@ def run_scenario(
             if progress is not None:
                 progress(t, s.duration_s)
 
-        if realtime:
-            loop = run_realtime(emu, onboard, s.duration_s, progress=tell)
+        compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
+        if realtime:  # the modelled compute time as lockstep's (default: one tick)
+            compute = options.tick_s if compute_s is None else compute_s
+            loop = run_realtime(emu, onboard, s.duration_s, progress=tell, compute_s=compute)
         else:
-            compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
             loop = run_lockstep(
                 emu,
                 onboard,

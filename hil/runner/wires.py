@@ -96,6 +96,9 @@ class CommandWire(Transport):
         self.to_onboard = DirectionStats()
         self.to_fc = DirectionStats()
         self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
+        #: real time: the onboard computer's modelled compute time (s); what the program writes is handed
+        #: to the link this long after it is read, as lockstep hands a tick's outputs over (`read_onboard`)
+        self.compute_s = 0.0
         self._backlog: deque[bytes] = deque()  # onboard frames read, not yet handed to the link
         #: wall time `read_raw` polls before it sleeps (lockstep: the answer is expected within it)
         self.spin_s = 0.0
@@ -171,10 +174,10 @@ class CommandWire(Transport):
 
     def read_onboard(self, timeout_s: float = 0.0) -> bool:
         """Read what the onboard program wrote and queue all of it for the FC, handed to the link now
-        (real time; a lockstep answer is the harness's, not the FC's: dropped). False when nothing
-        came in time."""
+        plus ``compute_s`` (real time; a lockstep answer is the harness's, not the FC's: dropped). False
+        when nothing came in time."""
         got = self.read_raw(timeout_s)
-        now = self.clock.now_s()
+        now = self.clock.now_s() + self.compute_s
         backlog = self._backlog
         while backlog:
             frame = backlog.popleft()
