@@ -21,10 +21,11 @@ from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
 from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, World
-from hil.link.clock import GapStats, WallClock
+from hil.link.clock import WallClock
 from hil.link.endpoint import open_link
 from hil.link.mavlink import mav, parse_signing_key
 from hil.link.tlog import TlogWriter
+from hil.runner.realtime import WireWatch
 
 #: built-in gaps and where the vehicle starts (x, y on the ground, m): the paper's test case (centre
 #: (0, 0.5, 2.1) m, rolled -60 deg, start (-2, -1)), or a level gap at (0, 0, 1.5) m
@@ -78,23 +79,6 @@ class MocapPoll:
     def poll(self, now_s: float) -> None:
         if now_s >= self.server.next_event_s():
             self.server.update(now_s, self.vehicle.state, self.gap)
-
-
-class WireWatch:
-    """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
-
-    def __init__(self, server: MavlinkServer, mocap: MocapLinkServer | None) -> None:
-        self.server, self.mocap = server, mocap
-        self.setpoints, self.mocap_frames = GapStats(), GapStats()
-
-    def poll(self, now_s: float) -> None:
-        self.setpoints.update(now_s, self.server.stats.setpoints_applied)
-        if self.mocap is not None:
-            self.mocap_frames.update(now_s, self.mocap.frames_written)
-
-    def as_dict(self) -> dict[str, object]:
-        return {"setpoints_at_fc": self.setpoints.as_dict(),
-                "mocap_frames_written": self.mocap_frames.as_dict()}
 
 
 def _serial_stats(link: object) -> dict[str, int] | None:

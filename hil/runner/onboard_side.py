@@ -16,7 +16,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Protocol
+from typing import IO, Any, Protocol
 
 from hil.link.transport import Transport
 from hil.scenario.loader import onboard_vehicle
@@ -137,6 +137,7 @@ class ProcessOnboard:
         self.paused = False
         self._cursor = _EventCursor()
         self._log_offset = 0  # bytes of the event log read by `new_events`
+        self._log: IO[bytes] | None = None  # the event log, open for `new_events`
         #: real time: the harness's time zero on the monotonic clock (s); the program's events, stamped
         #: on its own clock, are put on the harness's time line with it (see `_on_harness_time`)
         self.harness_zero_monotonic_s: float | None = None
@@ -192,15 +193,20 @@ class ProcessOnboard:
         line before it answers the tick it happened at, so the log holds every event up to a tick
         answered; a line still being written waits for the next call."""
         data = b""
-        with contextlib.suppress(OSError), open(self.log_path, "rb") as f:
-            f.seek(self._log_offset)
-            data = f.read()
+        with contextlib.suppress(OSError):
+            if self._log is None:  # opened once the program has made it, read on from where it was
+                self._log = open(self.log_path, "rb")  # noqa: SIM115 - closed in close()
+            self._log.seek(self._log_offset)
+            data = self._log.read()
         whole = data[: data.rfind(b"\n") + 1]
         self._log_offset += len(whole)
         return self._cursor.take(self._on_harness_time(_parse_events(whole)), up_to_s)
 
     def close(self, timeout_s: float = 5.0) -> int | None:
         """End the process (SIGTERM, then SIGKILL) and return its exit code."""
+        if self._log is not None:
+            self._log.close()
+            self._log = None
         if self.paused:
             self.resume()
         if self.proc.poll() is None:

@@ -14,6 +14,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+from emulator.fc import MavlinkServer
+from emulator.mocap_link import MocapLinkServer
 from hil.link.clock import GapStats, PacingStats
 from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
 from hil.runner.lockstep import RECORD_BATCH, LoopReport, apply_process_faults, note_divergence
@@ -21,6 +23,23 @@ from hil.runner.mission import CONTACT_EVENT
 from hil.runner.onboard_side import InProcessOnboard, OnboardSide, ProcessOnboard
 
 POLL_S = 0.001  # the loop wakes at least this often (s)
+
+
+class WireWatch:
+    """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
+
+    def __init__(self, server: MavlinkServer, mocap: MocapLinkServer | None) -> None:
+        self.server, self.mocap = server, mocap
+        self.setpoints, self.mocap_frames = GapStats(), GapStats()
+
+    def poll(self, now_s: float) -> None:
+        self.setpoints.update(now_s, self.server.stats.setpoints_applied)
+        if self.mocap is not None:
+            self.mocap_frames.update(now_s, self.mocap.frames_written)
+
+    def as_dict(self) -> dict[str, object]:
+        return {"setpoints_at_fc": self.setpoints.as_dict(),
+                "mocap_frames_written": self.mocap_frames.as_dict()}
 #: the longest the loop waits for the onboard program's first frame before flying ``duration_s`` anyway
 CONTACT_WAIT_S = 10.0
 
@@ -41,8 +60,7 @@ def run_realtime(
     faults = emu.faults
     faults.count_from(CONTACT_EVENT)
     pacing = PacingStats(POLL_S, emu.vehicle.dt_s)
-    setpoints, mocap = GapStats(), GapStats()
-    server_stats, mocap_link = emu.server.stats, emu.mocap
+    streams = WireWatch(emu.server, emu.mocap)
     wire = emu.wire
     contact_s: float | None = None
     end_s = CONTACT_WAIT_S + duration_s  # until the first frame
@@ -75,8 +93,7 @@ def run_realtime(
             rep.events.append({"time_s": t, "source": "runner", "text": "onboard program's first frame"})
             emu.mission_events([{"event": CONTACT_EVENT, "t_s": t}])
         emu.recorder.flush(RECORD_BATCH)  # (checks and rows in batches, as in lockstep)
-        setpoints.update(t, server_stats.setpoints_applied)
-        mocap.update(t, mocap_link.frames_written)
+        streams.poll(t)
         if progress is not None and t >= next_progress:
             progress(t)
             next_progress = t + 0.5
@@ -90,7 +107,6 @@ def run_realtime(
     rep.realtime = {
         "contact_s": None if contact_s is None else round(contact_s, 4),
         "loop": pacing.as_dict(),
-        "setpoints_at_fc": setpoints.as_dict(),
-        "mocap_frames_written": mocap.as_dict(),
+        **streams.as_dict(),
     }
     return rep
