@@ -8,12 +8,14 @@ import math
 import signal
 import sys
 import time
+from pathlib import Path
 from types import FrameType
 
 import numpy as np
 
 from emulator.assembly import assemble, warm_up
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
+from emulator.fc.params import describe, param_def, read_param_file
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -63,9 +65,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
     p.add_argument(
-        "--failsafe-timeout", type=float, default=1.0, metavar="S", help="setpoint loss before failsafe (1.0)"
+        "--failsafe-timeout", type=float, default=None, metavar="S",
+        help="setpoint loss before failsafe (parameter COM_OF_LOSS_T; default 1.0)",
+    )
+    p.add_argument(
+        "--params", default=None, metavar="FILE",
+        help="FC parameters to load (NAME VALUE lines, MAVProxy's or QGroundControl's files); "
+        "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
+    p.add_argument("--list-params", action="store_true", help="print the FC's parameter table and exit")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.set_defaults(func=main)
 
@@ -119,12 +128,20 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil fc: {msg}", file=sys.stderr)
         return 2
 
+    if args.list_params:
+        print("\n".join(describe()))
+        return 0
     try:
         profile = load_profile(args.profile)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused with the reason
-        config = FcConfig(failsafe_timeout_s=args.failsafe_timeout)
+        config = FcConfig()
+        params: dict[str, float | int] = {}
+        if args.params is not None and Path(args.params).exists():
+            params = read_param_file(args.params)
+        if args.failsafe_timeout is not None:  # the flag wins over the file
+            params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
-    except (ProfileError, ValueError) as exc:
+    except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         return fail(f"--duration must be a positive number of seconds, got {args.duration}")
@@ -168,8 +185,9 @@ def main(args: argparse.Namespace) -> int:
             profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
             mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
-            signing_epoch_unix_s=epoch_unix_s,
+            signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
         )
+        emu.server.params.set_many(params)
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         links: list = [server]
         if emu.world is not None:

@@ -22,6 +22,7 @@ from emulator.assembly import assemble
 from emulator.fc import FcConfig, ServerConfig
 from emulator.fc.batched_steps import FastStepper
 from emulator.fc.mavlink_server import RAW_MSG_IDS
+from emulator.fc.params import ParamError
 from emulator.mocap import MocapConfig, pose_of
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
@@ -35,7 +36,7 @@ from hil.runner.faults import FaultSchedule, corrupt
 from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, channel_model
-from hil.scenario.schema import Scenario
+from hil.scenario.schema import ParamSetParams, Scenario
 
 FC_SYSTEM_ID = 1
 #: the FC's telemetry in a run (s between messages): what the onboard program acts on (HEARTBEAT) and
@@ -180,6 +181,9 @@ class EmulatorSide:
         self.vehicle, self.codec, self.server = emu.vehicle, emu.codec, emu.server
         self.world, self.mocap = emu.world, emu.mocap
         assert self.world is not None and self.mocap is not None
+        # the scenario's FC parameters, set as a ground station would (each change in the .tlog)
+        self.server.params.set_many(dict(scenario.params))
+        self._params_before: dict[int, float | int] = {}  # param_set fault index -> value it replaced
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.recorder = Recorder(self.world, profile, duration_s)
@@ -289,7 +293,26 @@ class EmulatorSide:
             self._frozen_truth = self.vehicle.pose_values()
         elif not frozen:
             self._frozen_truth = None
+        if faults.has_param_faults:
+            self._switch_params(t)
         self._next_boundary_s = faults.next_boundary_s(t)
+
+    def _switch_params(self, t: float) -> None:
+        """param_set faults: set the parameter when one starts, put the value back when it ends."""
+        params = self.server.params
+        for i, f in enumerate(self.faults.faults):
+            p = f.params
+            if f.kind != "param_set" or not isinstance(p, ParamSetParams):
+                continue
+            on = f.active(t)
+            try:
+                if on and i not in self._params_before:
+                    self._params_before[i] = params.get(p.name)
+                    params.set(p.name, p.value)
+                elif not on and i in self._params_before:
+                    params.set(p.name, self._params_before.pop(i))
+            except ParamError as exc:  # a combination the FC refuses: said on the link, the run goes on
+                self.server.statustext(mav.MAV_SEVERITY_WARNING, f"param_set: {exc.reason}", t)
 
     def close(self) -> None:
         self.vehicle.close()

@@ -27,6 +27,7 @@ FAULT_KINDS = (
     "onboard_killed",
     "onboard_stalled",
     "wind_gust",
+    "param_set",
 )
 LINK_NAMES = ("command", "mocap")
 #: how late the emulator loop of a real-time run may wake at worst (ms): half the onboard program's
@@ -197,7 +198,16 @@ class WindGustParams:
     )
 
 
-FaultParams = NoParams | CorruptBytesParams | WindGustParams
+@dataclass(frozen=True)
+class ParamSetParams:
+    """Set one FC parameter (by its MAVLink name, `emulator.fc.params`) while the fault acts; the value
+    in force before comes back when it ends."""
+
+    name: str = spec(MISSING, doc="the parameter's name, e.g. COM_OF_LOSS_T")
+    value: float = spec(MISSING, lo=-1e9, hi=1e9, doc="its value, within the parameter's own range")
+
+
+FaultParams = NoParams | CorruptBytesParams | WindGustParams | ParamSetParams
 FAULT_PARAMS: dict[str, type] = {
     "command_link_down": NoParams,
     "mocap_frozen": NoParams,
@@ -206,6 +216,7 @@ FAULT_PARAMS: dict[str, type] = {
     "onboard_killed": NoParams,
     "onboard_stalled": NoParams,
     "wind_gust": WindGustParams,
+    "param_set": ParamSetParams,
 }
 
 
@@ -397,6 +408,8 @@ class Scenario:
     pilot: str = "traditional"
     approach: ApproachSpec = field(default_factory=ApproachSpec)
     links: LinksSpec = field(default_factory=LinksSpec)
+    #: FC parameters set before the flight (name, value), by their MAVLink names (`emulator.fc.params`)
+    params: tuple[tuple[str, float], ...] = ()
     faults: tuple[Fault, ...] = ()
     seed: int = 0
     duration_s: float = 8.0
@@ -417,6 +430,8 @@ class Scenario:
             value = getattr(self, f.name)
             if f.name == "faults":
                 out["faults"] = [fault.to_dict() for fault in value]
+            elif f.name == "params":
+                out["params"] = dict(value)
             else:
                 out[f.name] = _plain(value)
         return out
