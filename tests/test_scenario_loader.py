@@ -255,6 +255,7 @@ links:
     loss: 0.02
     burst: {p_gb: 0.001, p_bg: 0.5}
     rate_hz: 200
+  esc_bus: {bitrate_bps: 500000, command_rate_hz: 250, status_rate_hz: 20, loss: 0.001, corruption: 0.001}
 faults:
   - kind: wind_gust
     start_s: 2.0
@@ -268,6 +269,9 @@ faults:
   - {kind: onboard_stalled, start_s: 7.5, end_s: 7.6}
   - {kind: onboard_killed, at_s: 8.5}
   - {kind: param_set, start_s: 3.0, end_s: 5.0, params: {name: COM_OF_LOSS_T, value: 0.5}}
+  - {kind: esc_silent, start_s: 7.7, params: {esc: 3}}
+  - {kind: can_frame_loss, start_s: 2.0, end_s: 2.5, params: {fraction: 0.1}}
+  - {kind: can_bus_off, start_s: 4.0, end_s: 4.05}
 params: {MPC_TILTMAX_AIR: 25, COM_OBL_RC_ACT: 4}
 seed: 1234
 duration_s: 9.0
@@ -344,6 +348,9 @@ def test_the_format_document_names_every_field() -> None:
         schema.CorruptBytesParams,
         schema.WindGustParams,
         schema.ParamSetParams,
+        schema.EscSilentParams,
+        schema.CanFrameLossParams,
+        schema.EscBusSpec,
         schema.EventTime,
         schema.RecoveryExpectation,
         schema.LinkExpectations,
@@ -392,3 +399,13 @@ def test_fc_parameters_are_checked_against_the_fc_table(tmp_path: Path) -> None:
         with pytest.raises(ScenarioError, match=re.escape(f"{where}: ")) as info:
             loads_scenarios(MINIMAL + extra + "\n", source="x.scenario.yaml")
         assert why in str(info.value), (extra, str(info.value))
+
+
+def test_esc_faults_need_the_esc_bus() -> None:
+    with pytest.raises(ScenarioError, match=re.escape("faults[0].kind: esc_silent needs the motors on an")):
+        loads_scenarios(MINIMAL + "faults:\n  - {kind: esc_silent, start_s: 1, params: {esc: 1}}\n")
+    with pytest.raises(ScenarioError, match=re.escape("faults[0].params.esc: expected a whole number")):
+        loads_scenarios(MINIMAL + "links: {esc_bus: {}}\nfaults:\n"
+                        "  - {kind: esc_silent, start_s: 1, params: {esc: 4}}\n")
+    [s] = loads_scenarios(MINIMAL + "links: {esc_bus: {}}\n")
+    assert s.links.esc_bus == schema.EscBusSpec()

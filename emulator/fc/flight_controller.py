@@ -224,6 +224,17 @@ class FlightController:
             self._go(FcState.LAND, time_s, "land requested")
         return ACCEPTED
 
+    def motor_failsafe(self, action: str, time_s: float, reason: str) -> None:
+        """A motor path failed (an ESC silent on its bus): ``action`` "land" lands (FAILSAFE_LAND),
+        "disarm" stops the motors; nothing when disarmed."""
+        if not self.state.armed:
+            return
+        if action == "disarm":
+            self.offboard_selected = False
+            self._go(FcState.DISARMED, time_s, f"{reason}: disarm")
+        elif action == "land" and self.state is not FcState.FAILSAFE_LAND:
+            self._go(FcState.FAILSAFE_LAND, time_s, f"{reason}: land")
+
     def _go(self, to_state: FcState, time_s: float, reason: str) -> None:
         """Change state; entering the FC's own hover/land from anything else releases the held heading
         (the next step latches the heading it finds, see `hold_heading_rad`)."""

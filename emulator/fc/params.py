@@ -3,7 +3,7 @@ force, read from and written to the parts that use them.
 
 A parameter has PX4's name where PX4 has the setting, and the prefix ``N3_`` where it is this N3-style
 FC's own. Its default is not written here: it is the default of the setting it stands for (an `FcConfig`
-field, the vehicle profile's limit, the telemetry's `DEFAULT_INTERVALS_S`), so
+field, the vehicle profile's limit, the telemetry's `DEFAULT_INTERVALS_S`, an `EscBusConfig` field), so
 `ParamDef.default` reads it from there. Values in force are read from the live objects at each request
 (`Parameters.get`), so a change made any other way (SET_MESSAGE_INTERVAL, say) shows too.
 """
@@ -16,6 +16,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from emulator.esc_bus import EscBusConfig
 from emulator.fc.flight_controller import FcConfig, FlightController
 from hil.link.mavlink import mav
 
@@ -37,7 +38,7 @@ class ParamDef:
     """One parameter: ``applies`` says where it acts and ``key`` which setting there:
     ``fc`` (an `FcConfig` field, in flight from the next step), ``limit`` (a setpoint limit of the FC's
     vehicle profile, from the next setpoint), ``stream`` (the rate of the telemetry message with id
-    ``key``, 0 Hz: off)."""
+    ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on)."""
 
     name: str
     kind: str  # FLOAT or INT (MAV_PARAM_TYPE_REAL32 / INT32 on the wire)
@@ -89,7 +90,7 @@ class ParamDef:
 
             interval = DEFAULT_INTERVALS_S.get(int(self.key))
             return 0.0 if interval is None else 1.0 / interval
-        raise AssertionError(f"{self.name}: applies to {self.applies!r}")  # (every kind is above)
+        return self._to_wire(_ESC_DEFAULTS[str(self.key)])
 
     def _to_wire(self, value: Any) -> float | int:
         for wire, meant in self.choices:
@@ -102,6 +103,7 @@ class ParamDef:
 
 
 _FC_DEFAULTS = {f.name: f.default for f in fields(FcConfig)}
+_ESC_DEFAULTS = {f.name: f.default for f in fields(EscBusConfig)}
 
 
 
@@ -141,6 +143,11 @@ PARAMS: tuple[ParamDef, ...] = (
     _rate("N3_RATE_SYS", "SYS_STATUS"),
     _rate("N3_RATE_BAT", "BATTERY_STATUS"),
     _rate("N3_RATE_EXT", "EXTENDED_SYS_STATE"),
+    ParamDef("N3_ESC_TOUT", FLOAT, 0.01, 10.0, "s", "esc", "status_timeout_s",
+             "ESC bus: an ESC without esc.Status this long is reported failed"),
+    ParamDef("N3_ESC_FS_ACT", INT, 0, 2, "", "esc", "failsafe_action",
+             "ESC bus, an ESC failed: 0 report only, 1 land, 2 disarm",
+             choices=((0, "report"), (1, "land"), (2, "disarm"))),
 )
 BY_NAME: dict[str, int] = {p.name: i for i, p in enumerate(PARAMS)}
 assert all(len(p.name) <= NAME_MAX_CHARS for p in PARAMS)
@@ -162,7 +169,8 @@ def describe(fc: FlightController | None = None) -> list[str]:
     """The table as Markdown rows (name, type, range, unit, default, applies to, meaning); defaults that
     depend on the vehicle read "vehicle" without ``fc``."""
     rows = ["| name | type | range | unit | default | applies to | meaning |", "|---" * 7 + "|"]
-    where = {"fc": "FC, next step", "limit": "FC, next setpoint", "stream": "telemetry, at once"}
+    where = {"fc": "FC, next step", "limit": "FC, next setpoint", "stream": "telemetry, at once",
+             "esc": "ESC bus, at once"}
     for p in PARAMS:
         if fc is None and (p.applies == "limit" or (p.applies == "fc" and _FC_DEFAULTS[str(p.key)] is None)):
             default = "vehicle"
@@ -180,11 +188,14 @@ def check_values(values: Mapping[str, Any]) -> dict[str, float | int]:
 
 
 class Parameters:
-    """The parameters of one FC and its MAVLink server's streams."""
+    """The parameters of one FC, its MAVLink server's streams and its ESC bus."""
 
     def __init__(self, fc: FlightController, streams: Any) -> None:
-        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``."""
+        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``; ``esc`` (set
+        when an ESC bus is on): has ``config`` and ``reconfigure(**changes)``."""
         self.fc, self.streams = fc, streams
+        self.esc: Any = None
+        self._esc_values: dict[str, Any] = {}  # ESC settings set while no bus is on
         #: called with (name, value in force) after every accepted change
         self.on_change: Callable[[str, float | int], None] | None = None
 
@@ -204,7 +215,9 @@ class Parameters:
             return float(getattr(self.fc.profile, key))
         if p.applies == "stream":
             return float(self.streams.stream_rate_hz(int(p.key)))
-        raise AssertionError(f"{p.name}: applies to {p.applies!r}")
+        if self.esc is not None:
+            return p._to_wire(getattr(self.esc.config, key))
+        return self._esc_values.get(key, p.default(self.fc))
 
     def items(self) -> Iterable[tuple[int, ParamDef, float | int]]:
         """(index, definition, value in force) of every parameter."""
@@ -222,14 +235,22 @@ class Parameters:
                 self.fc.reconfigure(**{key: meant})
             elif p.applies == "limit":
                 self.fc.set_limits(**{key: meant})
-            else:
+            elif p.applies == "stream":
                 self.streams.set_stream_rate(int(p.key), meant)
+            elif self.esc is not None:
+                self.esc.reconfigure(**{key: meant})
+            else:
+                self._esc_values[key] = v
         except ValueError as exc:  # the setting's own validation (a combination it refuses)
             raise ParamError(f"{name}: {exc}", "invalid") from None
         now = self._get(p)
         if self.on_change is not None:
             self.on_change(name, now)
         return now
+
+    def esc_settings(self) -> dict[str, Any]:
+        """The ESC bus settings these parameters hold (`EscBusConfig` fields), for a bus built now."""
+        return {str(p.key): p._from_wire(self._get(p)) for p in PARAMS if p.applies == "esc"}
 
     def set_many(self, values: Mapping[str, Any]) -> None:
         """Set several (all checked first: ParamError naming the first bad one, nothing changed)."""

@@ -10,10 +10,12 @@ import sys
 import time
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import numpy as np
 
 from emulator.assembly import assemble, warm_up
+from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
 from emulator.fc.params import describe, param_def, read_param_file
 from emulator.fc.tuning import fc_gains
@@ -74,6 +76,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
+    p.add_argument(
+        "--esc-bus", default=None, metavar="SPEC",
+        help="the motors behind DroneCAN ESCs on a CAN bus: sim (the model alone), virtual:CHANNEL, "
+        "udp_multicast[:GROUP], socketcan:IFACE, mcast[:N] (dronecan's multicast); default: off",
+    )
+    p.add_argument("--external-esc", type=int, action="append", default=[], metavar="NODE_ID",
+                   help="an ESC node served by another node on the bus (20-23: ESC 0-3); repeatable")
     p.add_argument("--list-params", action="store_true", help="print the FC's parameter table and exit")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.set_defaults(func=main)
@@ -167,6 +176,7 @@ def main(args: argparse.Namespace) -> int:
         except (ValueError, OSError) as exc:
             link.close()
             return fail(f"--mocap-link: {exc}")
+    esc_stepper: EscBusStepper | None = None
     tlog = None
     if args.tlog:
         try:
@@ -178,6 +188,8 @@ def main(args: argparse.Namespace) -> int:
         gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
         start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
         warm_up(profile)  # before the clock starts
+        if args.esc_bus is not None:
+            import dronecan  # noqa: F401 (its message types load here, not on the clock)
         clock, epoch_unix_s = WallClock(), time.time()  # clock zero in Unix time, for tlog and signing
         if tlog is not None:
             tlog.epoch_unix_s = epoch_unix_s
@@ -188,6 +200,11 @@ def main(args: argparse.Namespace) -> int:
             signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
         )
         emu.server.params.set_many(params)
+        if args.esc_bus is not None:
+            try:
+                esc_stepper = _esc_bus(args, emu)
+            except (ValueError, OSError) as exc:
+                return fail(f"--esc-bus: {exc}")
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         links: list = [server]
         if emu.world is not None:
@@ -214,6 +231,8 @@ def main(args: argparse.Namespace) -> int:
             "server": server.stats.as_dict(),
             "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
         }
+        if esc_stepper is not None:
+            summary["esc_bus"] = esc_stepper.summary(clock.now_s())
         if mocap is not None:
             st = mocap.stats
             summary["mocap"] = {
@@ -225,11 +244,21 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(summary), flush=True)
         return 0
     finally:
+        if esc_stepper is not None:
+            esc_stepper.esc.close()
         if tlog is not None:
             tlog.close()
         link.close()
         if mocap_link is not None:
             mocap_link.close()
+
+
+def _esc_bus(args: argparse.Namespace, emu: Any) -> EscBusStepper:
+    """The ESC bus ``--esc-bus`` names, with the FC's ESC parameters; ValueError or OSError say why not."""
+    spec = parse_bus_spec(args.esc_bus)
+    config = EscBusConfig(external=tuple(args.external_esc), **emu.server.params.esc_settings())
+    bridge = None if spec == "sim" else Bridge(spec, config.bitrate_bps)
+    return attach(emu.vehicle, emu.server, config, np.random.default_rng(args.seed), bridge)
 
 
 def _has_fileno(link: object) -> bool:

@@ -585,6 +585,12 @@ class _Builder:
 
     def check_across(self, s: Scenario, doc_line: int) -> None:
         """Rules that involve several fields; errors point at the field most likely wrong."""
+        if s.links.esc_bus is None:
+            for i, f in enumerate(s.faults):
+                if f.kind in ("esc_silent", "can_frame_loss", "can_bus_off"):
+                    raise self.error(self.line_of(f"faults[{i}].kind", doc_line), f"faults[{i}].kind",
+                                     f"{f.kind} needs the motors on an ESC bus: give links.esc_bus ({{}} "
+                                     f"for its defaults)")
         lab = s.lab
         for axis in range(3):
             if lab.max_m[axis] <= lab.min_m[axis]:

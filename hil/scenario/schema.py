@@ -28,6 +28,9 @@ FAULT_KINDS = (
     "onboard_stalled",
     "wind_gust",
     "param_set",
+    "esc_silent",
+    "can_frame_loss",
+    "can_bus_off",
 )
 LINK_NAMES = ("command", "mocap")
 #: how late the emulator loop of a real-time run may wake at worst (ms): half the onboard program's
@@ -165,11 +168,25 @@ class MocapLinkSpec(LinkSpec):
 
 
 @dataclass(frozen=True)
+class EscBusSpec:
+    """The motors behind DroneCAN ESCs on a CAN bus (`emulator.esc_bus`); the FC's watch over them is
+    set by its parameters N3_ESC_TOUT and N3_ESC_FS_ACT."""
+
+    bitrate_bps: int = spec(1_000_000, lo=10_000, hi=1_000_000, doc="CAN bit rate")
+    command_rate_hz: float = spec(400.0, lo=50.0, hi=2000.0, doc="RawCommand rate (the FC's loop rate)")
+    status_rate_hz: float = spec(50.0, lo=1.0, hi=1000.0, doc="esc.Status rate of each ESC")
+    loss: float = spec(0.0, lo=0.0, hi=1.0, hi_open=True, doc="fraction of frames lost")
+    corruption: float = spec(0.0, lo=0.0, hi=1.0, hi_open=True,
+                             doc="fraction of frames hit by a bit error (error frame, then resent)")
+
+
+@dataclass(frozen=True)
 class LinksSpec:
-    """Both links of a run."""
+    """Both links of a run, and the ESC bus when the motors are behind one."""
 
     command: LinkSpec = spec(factory=LinkSpec, doc="onboard computer <-> flight controller (MAVLink)")
     mocap: MocapLinkSpec = spec(factory=MocapLinkSpec, doc="mocap -> onboard computer (UWB radio)")
+    esc_bus: EscBusSpec | None = spec(None, doc="FC -> ESCs over DroneCAN; null: the FC drives the motors")
 
 
 @dataclass(frozen=True)
@@ -207,7 +224,22 @@ class ParamSetParams:
     value: float = spec(MISSING, lo=-1e9, hi=1e9, doc="its value, within the parameter's own range")
 
 
-FaultParams = NoParams | CorruptBytesParams | WindGustParams | ParamSetParams
+@dataclass(frozen=True)
+class EscSilentParams:
+    """One ESC stops answering and stops its motor (needs ``links.esc_bus``)."""
+
+    esc: int = spec(MISSING, lo=0, hi=3, doc="the ESC's index (the FC's motor 0-3)")
+
+
+@dataclass(frozen=True)
+class CanFrameLossParams:
+    """A fraction of the ESC bus's frames lost (needs ``links.esc_bus``)."""
+
+    fraction: float = spec(MISSING, lo=0.0, hi=1.0, lo_open=True, doc="fraction of frames lost")
+
+
+FaultParams = (NoParams | CorruptBytesParams | WindGustParams | ParamSetParams | EscSilentParams
+               | CanFrameLossParams)
 FAULT_PARAMS: dict[str, type] = {
     "command_link_down": NoParams,
     "mocap_frozen": NoParams,
@@ -217,6 +249,9 @@ FAULT_PARAMS: dict[str, type] = {
     "onboard_stalled": NoParams,
     "wind_gust": WindGustParams,
     "param_set": ParamSetParams,
+    "esc_silent": EscSilentParams,
+    "can_frame_loss": CanFrameLossParams,
+    "can_bus_off": NoParams,
 }
 
 
