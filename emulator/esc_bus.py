@@ -396,6 +396,8 @@ class FcEscNode(_Node):
         if h.failed:
             h.failed = False
             self.report("info", f"ESC {p.esc_index} answers again", t)
+            if not any(e.failed for e in self.escs):
+                self.health = HEALTH_OK
 
     def poll(self, t: float, armed: bool) -> None:
         self.node_status(t)

@@ -169,3 +169,16 @@ def _int_wire(value: int) -> float:
     import struct
 
     return struct.unpack("<f", struct.pack("<i", value))[0]
+
+
+def test_hil_fc_refuses_bad_esc_bus_options(capsys):
+    from hil.cli import main
+
+    assert main(["fc", "--external-esc", "23"]) == 2
+    assert "--external-esc needs --esc-bus" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "sim", "--external-esc", "23", "--mocap-link", "none"]) == 2
+    assert "needs a bus other processes reach" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "can0", "--mocap-link", "none"]) == 2
+    assert "--esc-bus: ESC bus 'can0': expected one of" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "mcast:0", "--external-esc", "5", "--mocap-link", "none"]) == 2
+    assert "external ESC node 5" in capsys.readouterr().err

@@ -152,6 +152,8 @@ def main(args: argparse.Namespace) -> int:
         key = parse_signing_key(args.signing_key) if args.signing_key else None
     except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
+    if args.external_esc and args.esc_bus is None:
+        return fail("--external-esc needs --esc-bus")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         return fail(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.system_id <= 255:
@@ -256,6 +258,8 @@ def main(args: argparse.Namespace) -> int:
 def _esc_bus(args: argparse.Namespace, emu: Any) -> EscBusStepper:
     """The ESC bus ``--esc-bus`` names, with the FC's ESC parameters; ValueError or OSError say why not."""
     spec = parse_bus_spec(args.esc_bus)
+    if spec == "sim" and args.external_esc:
+        raise ValueError("--external-esc needs a bus other processes reach (mcast, udp_multicast, socketcan)")
     config = EscBusConfig(external=tuple(args.external_esc), **emu.server.params.esc_settings())
     bridge = None if spec == "sim" else Bridge(spec, config.bitrate_bps)
     return attach(emu.vehicle, emu.server, config, np.random.default_rng(args.seed), bridge)
