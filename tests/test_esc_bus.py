@@ -5,6 +5,8 @@ reported and failed safe; the lockstep run deterministic with the bus on and unc
 from __future__ import annotations
 
 import math
+import os
+import time
 
 import can
 import numpy as np
@@ -81,6 +83,32 @@ def test_a_python_can_virtual_bus_sees_rawcommand_and_esc_status_at_their_rates(
     assert last.rpm > 1000 and 10 < last.voltage < 17 and last.current > 0 and last.temperature > 290
     assert {t.source_node_id for t in nodes} == {10, 20, 21, 22, 23}  # NodeStatus at 1 Hz, every node
     assert len(nodes) == pytest.approx(5 * sim_s, abs=5)
+
+
+def test_python_can_udp_multicast_carries_the_frames_out_and_an_outside_status_in():
+    group = f"239.74.{os.getpid() % 200 + 20}.7"  # (a group of its own: tests may run side by side)
+    bridge = Bridge(f"udp_multicast:{group}", 1_000_000)
+    other = can.Bus(interface="udp_multicast", channel=group)  # another python-can node on the bus
+    try:
+        b, stepper = flying_bench(EscBusConfig(external=(23,)), bridge=bridge)
+        b.run(0.2)
+        frames = []
+        while (m := other.recv(0.05)) is not None:
+            frames.append(m)
+        raw = [t for t in decode(frames) if t.payload._type is uavcan.equipment.esc.RawCommand]
+        assert len(raw) == pytest.approx(80, abs=8)  # 0.2 s at 400 Hz
+        # ESC 3 answers from outside: its status reaches the FC, and its motor follows the rpm
+        w = 0.5 * b.vehicle.profile.max_rotor_speed_rad_s
+        status = uavcan.equipment.esc.Status(rpm=int(w * 60 / (2 * math.pi)), esc_index=3)
+        for frame in Transfer(payload=status, source_node_id=23, transfer_id=0).to_frames():
+            other.send(can.Message(arbitration_id=frame.message_id, data=frame.bytes, is_extended_id=True))
+        time.sleep(0.1)
+        b.run(0.01)
+        assert stepper.esc.bus.stats.external_in >= 2
+        assert stepper.esc.throttle[3] == pytest.approx(0.25, abs=1e-3)
+    finally:
+        other.shutdown()
+        stepper.esc.close()
 
 
 def test_the_vehicle_flies_on_its_escs_throttles():
