@@ -327,8 +327,12 @@ class EmulatedEsc(_Node):
             self.last_command_s = t
 
     def poll(self, t: float, rotor_speed_rad_s: float) -> None:
-        if self.silent:
+        if self.silent:  # its slots pass unused (a stepper waits for the next one, not for this one)
             self.throttle[self.index] = 0.0
+            while t >= self.next_status_s - 1e-12:
+                self.next_status_s += self.period_s
+            while t >= self.next_node_status_s - 1e-12:
+                self.next_node_status_s += NODE_STATUS_PERIOD_S
             return
         if t - self.last_command_s > ESC_COMMAND_TIMEOUT_S and self.throttle[self.index] != 0.0:
             self.throttle[self.index] = 0.0  # the command stream stopped: the motor stops
@@ -470,6 +474,7 @@ class EscBusStepper:
         esc.max_rotor_speed_rad_s = vehicle.profile.max_rotor_speed_rad_s
         self.fc_steps = 0
         self.physics_steps = 0
+        self.polls = 0  # times the bus and its nodes were polled (at their events only)
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
@@ -481,6 +486,7 @@ class EscBusStepper:
             t = v.time_s
             if t >= esc.next_event_s() - 1e-9:
                 esc.poll(t, v.state_vector()[rotor], fc.state.armed)
+                self.polls += 1
             if t >= self.next_command_s - 1e-9:
                 esc.fc_node.send_command(fc.update(v.state), t)
                 self.fc_steps += 1

@@ -210,3 +210,13 @@ def test_hil_fc_refuses_bad_esc_bus_options(capsys):
     assert "--esc-bus: ESC bus 'can0': expected one of" in capsys.readouterr().err
     assert main(["fc", "--esc-bus", "mcast:0", "--external-esc", "5", "--mocap-link", "none"]) == 2
     assert "external ESC node 5" in capsys.readouterr().err
+
+
+def test_a_silent_esc_does_not_make_the_stepper_poll_every_step():
+    b, stepper = flying_bench()
+    take_off(b)
+    stepper.esc.set_silent(0, True)
+    n0 = stepper.polls
+    b.stream(0.5, thrust=1.3 * HOVER)
+    # three ESCs at 50 Hz and the bus's deliveries: a few hundred polls in 0.5 s, not one a step (500)
+    assert stepper.polls - n0 < 400
