@@ -5,7 +5,8 @@ and read back from CAN frames by its transport (multi-frame transfers with their
 
 `CanBus` is the bus in the clock's time (simulated in lockstep, the wall clock in real time): each
 frame takes its time on the wire at the bitrate (29-bit id, stuff bits), frames queue behind each other
-(lower id first), and loss, corruption (an error frame, then the controller's retransmission) and bus-off
+in the order they are sent (arbitration by id between frames ready at the same instant is not
+modelled), and loss, corruption (an error frame, then the controller's retransmission) and bus-off
 windows act on them. Every frame can also go out to, and come in from, a real bus through python-can
 (`virtual`, `udp_multicast`, `socketcan`, ...) or dronecan's own multicast driver (``mcast:N``), so a
 separate process's dronecan node sees the traffic and may stand in for any ESC (``external``: the motor
