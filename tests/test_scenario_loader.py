@@ -255,6 +255,7 @@ links:
     loss: 0.02
     burst: {p_gb: 0.001, p_bg: 0.5}
     rate_hz: 200
+  esc_bus: {bitrate_bps: 500000, command_rate_hz: 250, status_rate_hz: 20, loss: 0.001, corruption: 0.001}
 faults:
   - kind: wind_gust
     start_s: 2.0
@@ -267,6 +268,11 @@ faults:
   - {kind: command_link_down, start_s: 7.0, end_s: 7.2}
   - {kind: onboard_stalled, start_s: 7.5, end_s: 7.6}
   - {kind: onboard_killed, at_s: 8.5}
+  - {kind: param_set, start_s: 3.0, end_s: 5.0, params: {name: COM_OF_LOSS_T, value: 0.5}}
+  - {kind: esc_silent, start_s: 7.7, params: {esc: 3}}
+  - {kind: can_frame_loss, start_s: 2.0, end_s: 2.5, params: {fraction: 0.1}}
+  - {kind: can_bus_off, start_s: 4.0, end_s: 4.05}
+params: {MPC_TILTMAX_AIR: 25, COM_OBL_RC_ACT: 4}
 seed: 1234
 duration_s: 9.0
 onboard_compute_ms: 4.5
@@ -341,6 +347,10 @@ def test_the_format_document_names_every_field() -> None:
         schema.LinksSpec,
         schema.CorruptBytesParams,
         schema.WindGustParams,
+        schema.ParamSetParams,
+        schema.EscSilentParams,
+        schema.CanFrameLossParams,
+        schema.EscBusSpec,
         schema.EventTime,
         schema.RecoveryExpectation,
         schema.LinkExpectations,
@@ -368,3 +378,34 @@ def test_a_pilot_added_as_one_module_is_accepted_by_scenario_files(tmp_path, mon
     (s,) = load_scenarios(write(tmp_path, MINIMAL + "pilot: hover_only\n"))
     assert s.pilot == "hover_only"
     assert "hover_only" in str(error_of(write(tmp_path, MINIMAL + "pilot: magic\n", "y.scenario.yaml")))
+
+
+def test_fc_parameters_are_checked_against_the_fc_table(tmp_path: Path) -> None:
+    [s] = loads_scenarios(MINIMAL + "params: {COM_OF_LOSS_T: 0.5}\nfaults:\n"
+                          "  - {kind: param_set, start_s: 1, params: {name: COM_OBL_RC_ACT, value: 4}}\n")
+    assert s.params == (("COM_OF_LOSS_T", 0.5),)
+    assert s.faults[0].params == schema.ParamSetParams("COM_OBL_RC_ACT", 4.0)
+    for extra, where, why in (
+        ("params: {COM_OF_LOS_T: 0.5}", "params.COM_OF_LOS_T", "did you mean COM_OF_LOSS_T?"),
+        ("params: {COM_OF_LOSS_T: 99}", "params.COM_OF_LOSS_T", "99 outside 0.1..60 s"),
+        ("params: {COM_OBL_RC_ACT: 4.5}", "params.COM_OBL_RC_ACT", "expected an integer"),
+        ("params: {COM_OF_LOSS_T: fast}", "params.COM_OF_LOSS_T", "expected a number"),
+        ("params: [COM_OF_LOSS_T]", "params", "expected a mapping"),
+        ("faults:\n  - {kind: param_set, start_s: 1, params: {name: NOPE, value: 1}}", "faults[0].params",
+         "unknown parameter 'NOPE'"),
+        ("faults:\n  - {kind: param_set, start_s: 1, params: {name: COM_OF_LOSS_T}}",
+         "faults[0].params.value", "required field missing"),
+    ):
+        with pytest.raises(ScenarioError, match=re.escape(f"{where}: ")) as info:
+            loads_scenarios(MINIMAL + extra + "\n", source="x.scenario.yaml")
+        assert why in str(info.value), (extra, str(info.value))
+
+
+def test_esc_faults_need_the_esc_bus() -> None:
+    with pytest.raises(ScenarioError, match=re.escape("faults[0].kind: esc_silent needs the motors on an")):
+        loads_scenarios(MINIMAL + "faults:\n  - {kind: esc_silent, start_s: 1, params: {esc: 1}}\n")
+    with pytest.raises(ScenarioError, match=re.escape("faults[0].params.esc: expected a whole number")):
+        loads_scenarios(MINIMAL + "links: {esc_bus: {}}\nfaults:\n"
+                        "  - {kind: esc_silent, start_s: 1, params: {esc: 4}}\n")
+    [s] = loads_scenarios(MINIMAL + "links: {esc_bus: {}}\n")
+    assert s.links.esc_bus == schema.EscBusSpec()

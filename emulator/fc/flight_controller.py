@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -29,6 +29,8 @@ from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 
 PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
+#: what the FC does when the setpoints stop: hover (``failsafe_hover_s``, then land) or land at once
+FAILSAFE_ACTIONS = ("hover", "land")
 #: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
 HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
@@ -54,9 +56,18 @@ class FcConfig:
     ground_z_m: float = 0.0  # ground height (world ENU z)
     landed_margin_m: float = 0.05  # body within this of its resting height counts as on the ground
     auto_disarm_s: float = 1.0  # on the ground this long in a landing state: disarm
+    failsafe_action: str = "hover"  # on setpoint loss: one of FAILSAFE_ACTIONS
+    #: the throttle (0..1 per rotor) the FC's own hover controller takes to balance the weight; None:
+    #: the profile's true hover throttle (a wrong one makes the hover sag or climb until corrected)
+    hover_throttle: float | None = None
     gains: FcGains | None = None  # None: tuned from the vehicle profile (emulator.fc.tuning)
 
     def __post_init__(self) -> None:
+        if self.failsafe_action not in FAILSAFE_ACTIONS:
+            raise ValueError(f"FcConfig.failsafe_action must be one of {FAILSAFE_ACTIONS}, "
+                             f"got {self.failsafe_action!r}")
+        if self.hover_throttle is not None and not 0.0 < self.hover_throttle < 1.0:
+            raise ValueError(f"FcConfig.hover_throttle must be in (0, 1), got {self.hover_throttle!r}")
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, float | int) and not (math.isfinite(v) and (v > 0 or f.name == "ground_z_m")):
@@ -67,14 +78,15 @@ class FlightController:
     """One N3-style flight controller for ``profile`` (see the module docstring)."""
 
     def __init__(self, profile: VehicleProfile, config: FcConfig | None = None) -> None:
-        self.profile = profile
+        self.profile = profile  # the setpoint limits are this one's (`set_limits` changes them)
+        self.base_profile = profile  # the vehicle's, as built
         self.config = config or FcConfig()
         self.machine = StateMachine()
         #: the FC's loop gains; ProfileError when the FC cannot stabilise ``profile``
         self.gains = self.config.gains or fc_gains(profile)
         self.inner = InnerLoop(profile, self.gains.inner)
         #: the velocity hold's parameters as `emulator.fc.hold.hold_command` reads them
-        self.hold_params = pack_hold(self.gains.hold, profile, self.config.hover_max_tilt_deg)
+        self.hold_params = self._pack_hold()
         self.offboard_selected = False  # OFFBOARD chosen while disarmed: arming goes straight to it
         self.target: AttitudeThrustTarget | None = None
         self.last_setpoint_s = -math.inf
@@ -93,6 +105,27 @@ class FlightController:
         self._off = np.zeros(4)
         self._idle = np.full(4, self.gains.inner.idle_throttle)
         self.motor_cmd = self._off
+
+    def _pack_hold(self) -> np.ndarray:
+        cfg = self.config
+        return pack_hold(self.gains.hold, self.profile, cfg.hover_max_tilt_deg, cfg.hover_throttle)
+
+    def reconfigure(self, **changes: object) -> None:
+        """Change settings in flight (`FcConfig` fields, validated: ValueError with the reason); they
+        act from the next step. ``gains`` and ``ground_z_m`` are fixed once built."""
+        for name in changes:
+            if name in ("gains", "ground_z_m"):
+                raise ValueError(f"FcConfig.{name} cannot change in flight")
+        self.config = replace(self.config, **changes)
+        self.hold_params[:] = self._pack_hold()  # in place: a batched stepper holds the array
+
+    def set_limits(self, **changes: float) -> None:
+        """Change the setpoint limits taken from the profile (``max_tilt_deg``, ``max_yaw_rate_deg_s``,
+        validated as a profile: ValueError with the reason); they act on the next setpoint."""
+        for name in changes:
+            if name not in ("max_tilt_deg", "max_yaw_rate_deg_s"):
+                raise ValueError(f"{name} is not a setpoint limit")
+        self.profile = self.profile.with_changes(**changes)
 
     # --- read-outs -------------------------------------------------------------------------
     @property
@@ -191,6 +224,17 @@ class FlightController:
             self._go(FcState.LAND, time_s, "land requested")
         return ACCEPTED
 
+    def motor_failsafe(self, action: str, time_s: float, reason: str) -> None:
+        """A motor path failed (an ESC silent on its bus): ``action`` "land" lands (FAILSAFE_LAND),
+        "disarm" stops the motors; nothing when disarmed."""
+        if not self.state.armed:
+            return
+        if action == "disarm":
+            self.offboard_selected = False
+            self._go(FcState.DISARMED, time_s, f"{reason}: disarm")
+        elif action == "land" and self.state is not FcState.FAILSAFE_LAND:
+            self._go(FcState.FAILSAFE_LAND, time_s, f"{reason}: land")
+
     def _go(self, to_state: FcState, time_s: float, reason: str) -> None:
         """Change state; entering the FC's own hover/land from anything else releases the held heading
         (the next step latches the heading it finds, see `hold_heading_rad`)."""
@@ -271,7 +315,10 @@ class FlightController:
     def _check_transitions(self, t: float) -> None:
         cfg, m, go = self.config, self.machine, self._go
         if m.state is FcState.OFFBOARD and t - self.last_setpoint_s > cfg.failsafe_timeout_s:
-            go(FcState.FAILSAFE_HOVER, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: hover")
+            if cfg.failsafe_action == "land":
+                go(FcState.FAILSAFE_LAND, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: land")
+            else:
+                go(FcState.FAILSAFE_HOVER, t, f"setpoints lost for {cfg.failsafe_timeout_s:g} s: hover")
         elif m.state is FcState.FAILSAFE_HOVER and t - m.since_s >= cfg.failsafe_hover_s:
             go(FcState.FAILSAFE_LAND, t, f"no control for {cfg.failsafe_hover_s:g} s: land")
         elif (

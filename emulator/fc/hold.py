@@ -29,16 +29,22 @@ class HoldGains:
                 raise ValueError(f"HoldGains.{name} must be a positive finite number, got {v!r}")
 
 
-def pack_hold(gains: HoldGains, profile: VehicleProfile, max_tilt_deg: float) -> np.ndarray:
+def pack_hold(
+    gains: HoldGains, profile: VehicleProfile, max_tilt_deg: float, hover_throttle: float | None = None
+) -> np.ndarray:
     """The float64 array `hold_command` reads: gains, limits, mass (kg), tan of the tilt limit,
-    largest total thrust (N)."""
+    largest total thrust (N). ``hover_throttle``: the per-rotor throttle (0..1) the FC believes holds
+    the weight (None: the profile's own); the mass it flies with follows from it."""
+    mass_kg = profile.mass_kg
+    if hover_throttle is not None:
+        mass_kg = hover_throttle * profile.max_total_thrust_n / GRAVITY_M_S2
     return np.array(
         [
             gains.horizontal_p_per_s,
             gains.vertical_p_per_s,
             gains.max_horizontal_accel_m_s2,
             gains.max_vertical_accel_m_s2,
-            profile.mass_kg,
+            mass_kg,
             math.tan(math.radians(max_tilt_deg)),
             profile.max_total_thrust_n,
         ]

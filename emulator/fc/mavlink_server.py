@@ -10,12 +10,14 @@ and answered where MAVLink has a way (COMMAND_ACK, STATUSTEXT); it never raises 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
+from emulator.fc.params import BY_NAME, INT, PARAMS, ParamError, Parameters, read_param_file
 from emulator.fc.telemetry import Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
@@ -63,6 +65,8 @@ class ServerConfig:
     home: Home = field(default_factory=Home)
     statustext_interval_s: float = 1.0  # repeats of one kind of STATUSTEXT at most this often
     stream_intervals_s: dict[int, float] = field(default_factory=lambda: dict(DEFAULT_INTERVALS_S))
+    #: the parameter file MAV_CMD_PREFLIGHT_STORAGE reads (param1 0) and writes (param1 1); None: none
+    param_file: str | None = None
 
 
 @dataclass
@@ -78,6 +82,10 @@ class ServerStats:
     statustext_sent: int = 0
     statustext_suppressed: int = 0
     handler_errors: int = 0
+    params_sent: int = 0  # PARAM_VALUEs
+    params_set: int = 0  # PARAM_SETs that changed a value (or set the same)
+    params_refused: int = 0  # PARAM_SETs refused: unknown name, wrong type, out of range
+    ftp_nak: int = 0  # MAVLink FTP requests answered NAK (this FC has no file system)
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -123,6 +131,11 @@ class MavlinkServer:
             "SET_MODE": self._on_set_mode,
             "PING": self._on_ping,
             "TIMESYNC": self._on_timesync,
+            "PARAM_REQUEST_LIST": self._on_param_request_list,
+            "PARAM_REQUEST_READ": self._on_param_request_read,
+            "PARAM_SET": self._on_param_set,
+            "FILE_TRANSFER_PROTOCOL": self._on_ftp,
+            "MISSION_REQUEST_LIST": self._on_mission_request_list,
         }
         #: the same by message class (a class's messages all have its type name): one lookup per message
         self._class_handlers: dict[type, Callable[[MAVLinkMessage, float], None]] = {
@@ -143,6 +156,9 @@ class MavlinkServer:
                 i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
+        #: the FC's parameters (`emulator.fc.params`); every change is broadcast as a PARAM_VALUE
+        self.params = Parameters(self.fc, self)
+        self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -368,6 +384,8 @@ class MavlinkServer:
             return CommandResult(True), mav.MAV_RESULT_ACCEPTED, sender(now_s)
         if command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._set_interval(p[0], p[1])
+        if command == mav.MAV_CMD_PREFLIGHT_STORAGE:
+            return self._param_storage(p[0], now_s)
         return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
 
     def _set_interval(self, id_param: float, interval_us: float) -> tuple[CommandResult, int, None]:
@@ -381,24 +399,38 @@ class MavlinkServer:
         if msg_id not in self._senders or msg_id in ON_REQUEST:
             return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
         if interval_us == -1:
-            self._intervals.pop(msg_id, None)
+            hz = 0.0
         elif interval_us == 0:
             default = DEFAULT_INTERVALS_S.get(msg_id)
-            if default is None:
-                self._intervals.pop(msg_id, None)
-            else:
-                self._intervals[msg_id] = default
+            hz = 0.0 if default is None else 1.0 / default
         elif interval_us > 0:
-            self._intervals[msg_id] = max(MIN_INTERVAL_S, interval_us * 1e-6)
+            hz = 1e6 / interval_us
         else:
             return (
                 CommandResult(False, f"message interval {interval_us:g} us invalid"),
                 mav.MAV_RESULT_DENIED,
                 None,
             )
+        self.set_stream_rate(msg_id, hz)
+        return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
+
+    def stream_rate_hz(self, msg_id: int) -> float:
+        """The rate (Hz) message ``msg_id`` is streamed at now (0: not streamed)."""
+        interval = self._intervals.get(msg_id)
+        return 0.0 if interval is None else 1.0 / interval
+
+    def set_stream_rate(self, msg_id: int, rate_hz: float) -> None:
+        """Stream message ``msg_id`` at ``rate_hz`` (Hz; at most 1 / `MIN_INTERVAL_S`; 0: stop), from now."""
+        if msg_id not in self._senders or msg_id in ON_REQUEST:
+            raise ValueError(f"message {msg_id} cannot be streamed")
+        if not (math.isfinite(rate_hz) and rate_hz >= 0):
+            raise ValueError(f"stream rate must be a finite number >= 0 Hz, got {rate_hz!r}")
+        if rate_hz == 0:
+            self._intervals.pop(msg_id, None)
+        else:
+            self._intervals[msg_id] = max(MIN_INTERVAL_S, 1.0 / rate_hz)
         self._next_due.pop(msg_id, None)
         self._streams_due_s = -math.inf
-        return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
 
     def _set_mode(self, base_mode: int, main: int, sub: int, now_s: float) -> CommandResult:
         if not base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -423,6 +455,118 @@ class MavlinkServer:
     def _on_timesync(self, msg: MAVLinkMessage, now_s: float) -> None:
         if msg.tc1 == 0:
             self.send(self.codec.mav.timesync_encode(int(now_s * 1e9), msg.ts1))
+
+    # --- parameters (PX4's parameter protocol; integers encoded bytewise, as PX4 does) -----------
+    def _send_param(self, index: int, value: float | int) -> None:
+        p = PARAMS[index]
+        if p.kind == INT:
+            wire, ptype = _INT_AS_FLOAT.unpack(_INT_BYTES.pack(int(value)))[0], mav.MAV_PARAM_TYPE_INT32
+        else:
+            wire, ptype = float(value), mav.MAV_PARAM_TYPE_REAL32
+        self.send(self.codec.mav.param_value_encode(p.name.encode(), wire, ptype, len(PARAMS), index))
+        self.stats.params_sent += 1
+
+    def _on_param_request_list(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        for index, _, value in self.params.items():
+            self._send_param(index, value)
+
+    def _on_param_request_read(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        name = _param_name(msg.param_id)
+        index = msg.param_index if msg.param_index >= 0 else BY_NAME.get(name, -1)
+        if not 0 <= index < len(PARAMS):
+            what = name if msg.param_index < 0 else f"index {msg.param_index}"
+            self._param_refused(msg, name, index, mav.MAV_PARAM_ERROR_DOES_NOT_EXIST,
+                                f"unknown parameter {what}", now_s)
+            return
+        self._send_param(index, self.params.get(PARAMS[index].name))
+
+    def _on_param_set(self, msg: MAVLinkMessage, now_s: float) -> None:
+        """Set a parameter; the answer is always the PARAM_VALUE in force (the old one when refused),
+        with a PARAM_ERROR and a STATUSTEXT saying why it was refused."""
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        name = _param_name(msg.param_id)
+        index = BY_NAME.get(name)
+        if index is None:
+            self._param_refused(msg, name, -1, mav.MAV_PARAM_ERROR_DOES_NOT_EXIST,
+                                f"unknown parameter {name}", now_s)
+            return
+        p = PARAMS[index]
+        want = mav.MAV_PARAM_TYPE_INT32 if p.kind == INT else mav.MAV_PARAM_TYPE_REAL32
+        try:
+            if msg.param_type != want:
+                raise ParamError(f"{name} is {'INT32' if p.kind == INT else 'REAL32'}", "type")
+            value: float | int = msg.param_value
+            if p.kind == INT:
+                value = _INT_BYTES.unpack(_INT_AS_FLOAT.pack(value))[0]
+            self.params.set(name, value)  # broadcasts the new value
+        except ParamError as exc:
+            error = mav.MAV_PARAM_ERROR_PERMISSION_DENIED if exc.kind == "invalid" else \
+                mav.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE  # (a wrong type: a value it cannot take)
+            self._param_refused(msg, name, index, error, exc.reason, now_s)
+            self._send_param(index, self.params.get(name))
+            return
+        self.stats.params_set += 1
+
+    def _param_refused(self, msg: MAVLinkMessage, name: str, index: int, error: int, reason: str,
+                       now_s: float) -> None:
+        self.stats.params_refused += 1
+        self.send(self.codec.mav.param_error_encode(
+            msg.get_srcSystem(), msg.get_srcComponent(), name.encode(), index, error))
+        self.statustext(mav.MAV_SEVERITY_WARNING, reason, now_s, key=f"param:{reason}")
+
+    def _param_storage(self, action: float, now_s: float) -> tuple[CommandResult, int, None]:
+        """MAV_CMD_PREFLIGHT_STORAGE's parameter action: 0 read the parameter file, 1 write it,
+        2 every parameter back to its default."""
+        path = self.config.param_file
+        try:
+            if action == 2:
+                self.params.reset()
+            elif action not in (0, 1):
+                return CommandResult(True), mav.MAV_RESULT_UNSUPPORTED, None
+            elif path is None:
+                return CommandResult(False, "no parameter file (hil fc --params FILE)"), \
+                    mav.MAV_RESULT_DENIED, None
+            elif action == 0:
+                self.params.set_many(read_param_file(path))
+            else:
+                self.params.save(path)
+        except (OSError, ValueError) as exc:
+            return CommandResult(False, f"parameter file: {exc}"[:50]), mav.MAV_RESULT_FAILED, None
+        return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
+
+    # --- what a ground station asks while it connects --------------------------------------------
+    def _on_ftp(self, msg: MAVLinkMessage, now_s: float) -> None:
+        """MAVLink FTP: NAK every request at once (no file system here), so a client falls back to the
+        parameter protocol without waiting for its time-out."""
+        if not self._for_me(msg.target_system, msg.target_component) or len(msg.payload) < 12:
+            return
+        seq, session, opcode = msg.payload[0] | msg.payload[1] << 8, msg.payload[2], msg.payload[3]
+        if opcode in (mav.MAV_FTP_OPCODE_ACK, mav.MAV_FTP_OPCODE_NAK):
+            return
+        if opcode in (mav.MAV_FTP_OPCODE_TERMINATESESSION, mav.MAV_FTP_OPCODE_RESETSESSION,
+                      mav.MAV_FTP_OPCODE_READFILE, mav.MAV_FTP_OPCODE_WRITEFILE,
+                      mav.MAV_FTP_OPCODE_BURSTREADFILE):
+            error = mav.MAV_FTP_ERR_INVALIDSESSION
+        else:
+            error = mav.MAV_FTP_ERR_FILENOTFOUND
+        reply = bytearray(251)
+        reply[0:2] = ((seq + 1) & 0xFFFF).to_bytes(2, "little")
+        reply[2], reply[3], reply[4], reply[5], reply[12] = session, mav.MAV_FTP_OPCODE_NAK, 1, opcode, error
+        self.send(self.codec.mav.file_transfer_protocol_encode(
+            0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply)))
+        self.stats.ftp_nak += 1
+
+    def _on_mission_request_list(self, msg: MAVLinkMessage, now_s: float) -> None:
+        """No mission on board: MISSION_COUNT 0 of the type asked for, so a connection completes."""
+        if not self._for_me(msg.target_system, msg.target_component):
+            return
+        self.send(self.codec.mav.mission_count_encode(
+            msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
 
     @property
     def state(self) -> FcState:
@@ -463,6 +607,16 @@ def attitude_target_values(
         raise SetpointRejected("non-finite yaw rate")
     roll_deg, pitch_deg = math.degrees(roll), math.degrees(pitch)
     return ATTITUDE_THRUST_YAW_RATE, roll_deg, pitch_deg, 100.0 * thrust, math.degrees(rate)
+
+
+_INT_BYTES, _INT_AS_FLOAT = struct.Struct("<i"), struct.Struct("<f")  # PX4's bytewise int32 encoding
+
+
+def _param_name(param_id: str | bytes) -> str:
+    """A PARAM_* message's name field as text (pymavlink gives str or bytes, NUL-padded)."""
+    if isinstance(param_id, bytes):
+        param_id = param_id.decode("ascii", "replace")
+    return param_id.split("\x00", 1)[0]
 
 
 _ATTITUDE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE

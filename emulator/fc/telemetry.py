@@ -197,6 +197,7 @@ class TelemetryEncoder:
             mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
             | mav.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
             | mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+            | mav.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE  # PX4's integer parameters
         )
         version = (1 << 24) | (14 << 16) | (0 << 8) | 255  # reports itself as PX4 1.14.0 release
         return self.mav.autopilot_version_encode(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import numpy as np
 
@@ -25,6 +26,12 @@ def resting_state(
     return VehicleState(pos_m=np.array([x_m, y_m, ground_z_m + 0.5 * profile.body_box_m[2]]), quat_wxyz=quat)
 
 
+class MotorPath(Protocol):
+    """Something that steps a vehicle's physics and FC its own way (`EmulatedVehicle.motor_path`)."""
+
+    def step(self, n_steps: int) -> None: ...
+
+
 class EmulatedVehicle:
     """Physics at ``dt_s`` (1 kHz by default) with the FC's inner loop run before every step."""
 
@@ -43,6 +50,9 @@ class EmulatedVehicle:
         self.backend.reset(initial_state or resting_state(profile, ground_z_m=self.fc.config.ground_z_m))
         self._state: VehicleState | None = self.backend.state
         self.steps = 0
+        #: steps the vehicle instead of `step`'s own loop when set (the motors behind an ESC bus,
+        #: `emulator.esc_bus.EscBusStepper`); it counts ``steps`` itself
+        self.motor_path: MotorPath | None = None
 
     @property
     def state(self) -> VehicleState:
@@ -89,6 +99,9 @@ class EmulatedVehicle:
 
     def step(self, n_steps: int = 1) -> None:
         """Run ``n_steps`` physics steps, the FC deciding the throttles before each."""
+        if self.motor_path is not None:
+            self.motor_path.step(n_steps)
+            return
         backend, fc = self.backend, self.fc
         for _ in range(n_steps):
             backend.step(fc.update(self.state), 1)

@@ -8,12 +8,16 @@ import math
 import signal
 import sys
 import time
+from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import numpy as np
 
 from emulator.assembly import assemble, warm_up
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
+from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
+from emulator.fc.params import describe, param_def, read_param_file
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -63,9 +67,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
     p.add_argument(
-        "--failsafe-timeout", type=float, default=1.0, metavar="S", help="setpoint loss before failsafe (1.0)"
+        "--failsafe-timeout", type=float, default=None, metavar="S",
+        help="setpoint loss before failsafe (parameter COM_OF_LOSS_T; default 1.0)",
+    )
+    p.add_argument(
+        "--params", default=None, metavar="FILE",
+        help="FC parameters to load (NAME VALUE lines, MAVProxy's or QGroundControl's files); "
+        "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
+    p.add_argument(
+        "--esc-bus", default=None, metavar="SPEC",
+        help="the motors behind DroneCAN ESCs on a CAN bus: sim (the model alone), virtual:CHANNEL, "
+        "udp_multicast[:GROUP], socketcan:IFACE, mcast[:N] (dronecan's multicast); default: off",
+    )
+    p.add_argument("--external-esc", type=int, action="append", default=[], metavar="NODE_ID",
+                   help="an ESC node served by another node on the bus (20-23: ESC 0-3); repeatable")
+    p.add_argument("--list-params", action="store_true", help="print the FC's parameter table and exit")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.set_defaults(func=main)
 
@@ -119,13 +137,23 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil fc: {msg}", file=sys.stderr)
         return 2
 
+    if args.list_params:
+        print("\n".join(describe()))
+        return 0
     try:
         profile = load_profile(args.profile)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused with the reason
-        config = FcConfig(failsafe_timeout_s=args.failsafe_timeout)
+        config = FcConfig()
+        params: dict[str, float | int] = {}
+        if args.params is not None and Path(args.params).exists():
+            params = read_param_file(args.params)
+        if args.failsafe_timeout is not None:  # the flag wins over the file
+            params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
-    except (ProfileError, ValueError) as exc:
+    except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
+    if args.external_esc and args.esc_bus is None:
+        return fail("--external-esc needs --esc-bus")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         return fail(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.system_id <= 255:
@@ -150,6 +178,7 @@ def main(args: argparse.Namespace) -> int:
         except (ValueError, OSError) as exc:
             link.close()
             return fail(f"--mocap-link: {exc}")
+    esc_stepper: EscBusStepper | None = None
     tlog = None
     if args.tlog:
         try:
@@ -161,6 +190,8 @@ def main(args: argparse.Namespace) -> int:
         gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
         start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
         warm_up(profile)  # before the clock starts
+        if args.esc_bus is not None:
+            import dronecan  # noqa: F401 (its message types load here, not on the clock)
         clock, epoch_unix_s = WallClock(), time.time()  # clock zero in Unix time, for tlog and signing
         if tlog is not None:
             tlog.epoch_unix_s = epoch_unix_s
@@ -168,8 +199,14 @@ def main(args: argparse.Namespace) -> int:
             profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
             mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
-            signing_epoch_unix_s=epoch_unix_s,
+            signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
         )
+        emu.server.params.set_many(params)
+        if args.esc_bus is not None:
+            try:
+                esc_stepper = _esc_bus(args, emu)
+            except (ValueError, OSError) as exc:
+                return fail(f"--esc-bus: {exc}")
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         links: list = [server]
         if emu.world is not None:
@@ -196,6 +233,8 @@ def main(args: argparse.Namespace) -> int:
             "server": server.stats.as_dict(),
             "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
         }
+        if esc_stepper is not None:
+            summary["esc_bus"] = esc_stepper.summary(clock.now_s())
         if mocap is not None:
             st = mocap.stats
             summary["mocap"] = {
@@ -207,11 +246,23 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(summary), flush=True)
         return 0
     finally:
+        if esc_stepper is not None:
+            esc_stepper.esc.close()
         if tlog is not None:
             tlog.close()
         link.close()
         if mocap_link is not None:
             mocap_link.close()
+
+
+def _esc_bus(args: argparse.Namespace, emu: Any) -> EscBusStepper:
+    """The ESC bus ``--esc-bus`` names, with the FC's ESC parameters; ValueError or OSError say why not."""
+    spec = parse_bus_spec(args.esc_bus)
+    if spec == "sim" and args.external_esc:
+        raise ValueError("--external-esc needs a bus other processes reach (mcast, udp_multicast, socketcan)")
+    config = EscBusConfig(external=tuple(args.external_esc), **emu.server.params.esc_settings())
+    bridge = None if spec == "sim" else Bridge(spec, config.bitrate_bps)
+    return attach(emu.vehicle, emu.server, config, np.random.default_rng(args.seed), bridge)
 
 
 def _has_fileno(link: object) -> bool:

@@ -19,9 +19,12 @@ from typing import Any
 import numpy as np
 
 from emulator.assembly import assemble
+from emulator.esc_bus import EscBusConfig, EscBusStepper
+from emulator.esc_bus import attach as attach_esc_bus
 from emulator.fc import FcConfig, ServerConfig
 from emulator.fc.batched_steps import FastStepper
 from emulator.fc.mavlink_server import RAW_MSG_IDS
+from emulator.fc.params import ParamError
 from emulator.mocap import MocapConfig, pose_of
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
@@ -35,7 +38,7 @@ from hil.runner.faults import FaultSchedule, corrupt
 from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, channel_model
-from hil.scenario.schema import Scenario
+from hil.scenario.schema import CanFrameLossParams, EscSilentParams, ParamSetParams, Scenario
 
 FC_SYSTEM_ID = 1
 #: the FC's telemetry in a run (s between messages): what the onboard program acts on (HEARTBEAT) and
@@ -180,10 +183,20 @@ class EmulatorSide:
         self.vehicle, self.codec, self.server = emu.vehicle, emu.codec, emu.server
         self.world, self.mocap = emu.world, emu.mocap
         assert self.world is not None and self.mocap is not None
+        # the scenario's FC parameters, set as a ground station would (each change in the .tlog)
+        self.server.params.set_many(dict(scenario.params))
+        self._params_before: dict[int, float | int] = {}  # param_set fault index -> value it replaced
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.recorder = Recorder(self.world, profile, duration_s)
-        self.fast = FastStepper.for_vehicle(self.vehicle)
+        self.esc: EscBusStepper | None = None
+        if scenario.links.esc_bus is not None:  # the motors behind ESCs on a DroneCAN bus
+            b = scenario.links.esc_bus
+            config = EscBusConfig(bitrate_bps=b.bitrate_bps, command_rate_hz=b.command_rate_hz,
+                                  status_rate_hz=b.status_rate_hz, loss=b.loss, corruption=b.corruption,
+                                  **self.server.params.esc_settings())
+            self.esc = attach_esc_bus(self.vehicle, self.server, config, rng.spawn(1)[0])
+        self.fast: FastStepper | EscBusStepper = self.esc or FastStepper.for_vehicle(self.vehicle)
         self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
         #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)
@@ -289,7 +302,37 @@ class EmulatorSide:
             self._frozen_truth = self.vehicle.pose_values()
         elif not frozen:
             self._frozen_truth = None
+        if faults.has_param_faults:
+            self._switch_params(t)
+        if self.esc is not None:
+            esc = self.esc.esc
+            silent = {f.params.esc for f in faults.active("esc_silent", t)
+                      if isinstance(f.params, EscSilentParams)}
+            for i in range(len(esc.config.esc_node_ids)):
+                esc.set_silent(i, i in silent)
+            loss = [f.params.fraction for f in faults.active("can_frame_loss", t)
+                    if isinstance(f.params, CanFrameLossParams)]
+            esc.bus.extra_loss = max(loss, default=0.0)
+            off = faults.active("can_bus_off", t)
+            esc.bus.bus_off_until_s = max((f.end_s or math.inf for f in off), default=-math.inf)
         self._next_boundary_s = faults.next_boundary_s(t)
+
+    def _switch_params(self, t: float) -> None:
+        """param_set faults: set the parameter when one starts, put the value back when it ends."""
+        params = self.server.params
+        for i, f in enumerate(self.faults.faults):
+            p = f.params
+            if f.kind != "param_set" or not isinstance(p, ParamSetParams):
+                continue
+            on = f.active(t)
+            try:
+                if on and i not in self._params_before:
+                    self._params_before[i] = params.get(p.name)
+                    params.set(p.name, p.value)
+                elif not on and i in self._params_before:
+                    params.set(p.name, self._params_before.pop(i))
+            except ParamError as exc:  # a combination the FC refuses: said on the link, the run goes on
+                self.server.statustext(mav.MAV_SEVERITY_WARNING, f"param_set: {exc.reason}", t)
 
     def close(self) -> None:
         self.vehicle.close()

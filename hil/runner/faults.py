@@ -38,6 +38,7 @@ class FaultSchedule:
         #: schedule when none does)
         self.has_mocap_faults = any(self._on_link(f, "mocap", "mocap_dropped") for f in self.faults)
         self.has_command_faults = any(self._on_link(f, "command", "command_link_down") for f in self.faults)
+        self.has_param_faults = any(f.kind == "param_set" for f in self.faults)
 
     @staticmethod
     def _on_link(f: Fault, link: str, drop_kind: str) -> bool:

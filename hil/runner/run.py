@@ -385,6 +385,7 @@ def _finish(
         "nonfinite_state_s": obs.nonfinite_state_s,
         "realtime": loop.realtime,
         "links": links,
+        "esc_bus": None if emu.esc is None else emu.esc.summary(sim_time),
         "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
         "faults": [_fault_as_flown(f, obs.phases) for f in emu.faults.faults],
         "fc_final_state": emu.vehicle.fc.state.value,

@@ -31,6 +31,7 @@ from hil.scenario.schema import (
     Expectations,
     Fault,
     NoParams,
+    ParamSetParams,
     RecoveryExpectation,
     Scenario,
     WindGustParams,
@@ -334,6 +335,7 @@ class _Builder:
             "physics": self.physics,
             "pilot": self.pilot,
             "faults": self.faults,
+            "params": self.params,
             "markers": self.markers,
             "expect": self.expectations,
             "skip": lambda n, p: None if self.value(n) is None else self.convert(str, n, p, {}),
@@ -518,8 +520,36 @@ class _Builder:
             raise self.error(node, f"{path}.params", f"required for {kind}")
         if isinstance(params, WindGustParams):
             params = self.wind(params, items["params"], f"{path}.params")
+        if isinstance(params, ParamSetParams):
+            sub = self.mapping(items["params"], f"{path}.params", ("name", "value"))
+            self.fc_param(params.name, params.value, sub["value"], f"{path}.params")
         return Fault(kind=kind, start_s=start, end_s=end, params=params, after=after,
                      duration_s=duration if after is not None else None, phase=phase)
+
+    def params(self, node: Node, path: str) -> tuple[tuple[str, float], ...]:
+        """``params:``, a mapping of FC parameter name: value, each checked against the FC's table."""
+        if isinstance(node, ScalarNode) and self.value(node) is None:
+            return ()
+        if not isinstance(node, MappingNode):
+            raise self.error(node, path, "expected a mapping of PARAMETER_NAME: value")
+        out: dict[str, float] = {}
+        for key_node, value_node in node.value:
+            name = self.value(key_node)
+            if not isinstance(name, str) or name in out:
+                what = "given twice" if name in out else f"expected a parameter name, got {name!r}"
+                raise self.error(key_node, path, what)
+            value = self.value(value_node)
+            out[name] = self.fc_param(name, value, value_node, f"{path}.{name}")
+        return tuple(out.items())
+
+    def fc_param(self, name: str, value: Any, node: Node, path: str) -> float:
+        """``value`` for the FC parameter ``name``, checked against its table (name, type, range)."""
+        from emulator.fc.params import ParamError, param_def
+
+        try:
+            return float(param_def(name).check(value))
+        except ParamError as exc:
+            raise self.error(node, path, exc.reason) from None
 
     def wind(self, params: WindGustParams, node: Node, path: str) -> WindGustParams:
         if (params.force_n is None) == (params.speed_m_s is None):
@@ -555,6 +585,12 @@ class _Builder:
 
     def check_across(self, s: Scenario, doc_line: int) -> None:
         """Rules that involve several fields; errors point at the field most likely wrong."""
+        if s.links.esc_bus is None:
+            for i, f in enumerate(s.faults):
+                if f.kind in ("esc_silent", "can_frame_loss", "can_bus_off"):
+                    raise self.error(self.line_of(f"faults[{i}].kind", doc_line), f"faults[{i}].kind",
+                                     f"{f.kind} needs the motors on an ESC bus: give links.esc_bus ({{}} "
+                                     f"for its defaults)")
         lab = s.lab
         for axis in range(3):
             if lab.max_m[axis] <= lab.min_m[axis]:

@@ -27,6 +27,10 @@ FAULT_KINDS = (
     "onboard_killed",
     "onboard_stalled",
     "wind_gust",
+    "param_set",
+    "esc_silent",
+    "can_frame_loss",
+    "can_bus_off",
 )
 LINK_NAMES = ("command", "mocap")
 #: how late the emulator loop of a real-time run may wake at worst (ms): half the onboard program's
@@ -164,11 +168,25 @@ class MocapLinkSpec(LinkSpec):
 
 
 @dataclass(frozen=True)
+class EscBusSpec:
+    """The motors behind DroneCAN ESCs on a CAN bus (`emulator.esc_bus`); the FC's watch over them is
+    set by its parameters N3_ESC_TOUT and N3_ESC_FS_ACT."""
+
+    bitrate_bps: int = spec(1_000_000, lo=10_000, hi=1_000_000, doc="CAN bit rate")
+    command_rate_hz: float = spec(400.0, lo=50.0, hi=2000.0, doc="RawCommand rate (the FC's loop rate)")
+    status_rate_hz: float = spec(50.0, lo=1.0, hi=1000.0, doc="esc.Status rate of each ESC")
+    loss: float = spec(0.0, lo=0.0, hi=1.0, hi_open=True, doc="fraction of frames lost")
+    corruption: float = spec(0.0, lo=0.0, hi=1.0, hi_open=True,
+                             doc="fraction of frames hit by a bit error (error frame, then resent)")
+
+
+@dataclass(frozen=True)
 class LinksSpec:
-    """Both links of a run."""
+    """Both links of a run, and the ESC bus when the motors are behind one."""
 
     command: LinkSpec = spec(factory=LinkSpec, doc="onboard computer <-> flight controller (MAVLink)")
     mocap: MocapLinkSpec = spec(factory=MocapLinkSpec, doc="mocap -> onboard computer (UWB radio)")
+    esc_bus: EscBusSpec | None = spec(None, doc="FC -> ESCs over DroneCAN; null: the FC drives the motors")
 
 
 @dataclass(frozen=True)
@@ -197,7 +215,31 @@ class WindGustParams:
     )
 
 
-FaultParams = NoParams | CorruptBytesParams | WindGustParams
+@dataclass(frozen=True)
+class ParamSetParams:
+    """Set one FC parameter (by its MAVLink name, `emulator.fc.params`) while the fault acts; the value
+    in force before comes back when it ends."""
+
+    name: str = spec(MISSING, doc="the parameter's name, e.g. COM_OF_LOSS_T")
+    value: float = spec(MISSING, lo=-1e9, hi=1e9, doc="its value, within the parameter's own range")
+
+
+@dataclass(frozen=True)
+class EscSilentParams:
+    """One ESC stops answering and stops its motor (needs ``links.esc_bus``)."""
+
+    esc: int = spec(MISSING, lo=0, hi=3, doc="the ESC's index (the FC's motor 0-3)")
+
+
+@dataclass(frozen=True)
+class CanFrameLossParams:
+    """A fraction of the ESC bus's frames lost (needs ``links.esc_bus``)."""
+
+    fraction: float = spec(MISSING, lo=0.0, hi=1.0, lo_open=True, doc="fraction of frames lost")
+
+
+FaultParams = (NoParams | CorruptBytesParams | WindGustParams | ParamSetParams | EscSilentParams
+               | CanFrameLossParams)
 FAULT_PARAMS: dict[str, type] = {
     "command_link_down": NoParams,
     "mocap_frozen": NoParams,
@@ -206,6 +248,10 @@ FAULT_PARAMS: dict[str, type] = {
     "onboard_killed": NoParams,
     "onboard_stalled": NoParams,
     "wind_gust": WindGustParams,
+    "param_set": ParamSetParams,
+    "esc_silent": EscSilentParams,
+    "can_frame_loss": CanFrameLossParams,
+    "can_bus_off": NoParams,
 }
 
 
@@ -397,6 +443,8 @@ class Scenario:
     pilot: str = "traditional"
     approach: ApproachSpec = field(default_factory=ApproachSpec)
     links: LinksSpec = field(default_factory=LinksSpec)
+    #: FC parameters set before the flight (name, value), by their MAVLink names (`emulator.fc.params`)
+    params: tuple[tuple[str, float], ...] = ()
     faults: tuple[Fault, ...] = ()
     seed: int = 0
     duration_s: float = 8.0
@@ -417,6 +465,8 @@ class Scenario:
             value = getattr(self, f.name)
             if f.name == "faults":
                 out["faults"] = [fault.to_dict() for fault in value]
+            elif f.name == "params":
+                out["params"] = dict(value)
             else:
                 out[f.name] = _plain(value)
         return out

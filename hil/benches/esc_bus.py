@@ -1,0 +1,62 @@
+"""ESC bus figures: frames per second through the DroneCAN bus model (dronecan's encoder and decoder
+included), and the full stack's real-time factor with the motors on the bus beside the one without it,
+measured in the same run."""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from hil.benches import BenchRow, time_per_call
+from hil.benches.runner import RTF_SCENARIO
+from hil.runner import RunOptions, run_scenario
+from hil.scenario import loads_scenarios
+from hil.scenario.schema import EscBusSpec
+
+RUNS = 3  # runs of each stack; the figure is their median
+
+
+def collect(quick: bool) -> Iterator[BenchRow]:
+    from dronecan import uavcan
+
+    from emulator.esc_bus import CanBus, EscBusConfig
+
+    bus = CanBus(EscBusConfig(), np.random.default_rng(0))
+    got: list[float] = []
+    bus.attach(99, lambda tr, t: got.append(t))
+    msg = uavcan.equipment.esc.RawCommand(cmd=[1000, 2000, 3000, 4000])
+    clock = [0.0]
+
+    def one_frame() -> None:
+        clock[0] += 1e-3
+        msg.cmd[3] = int(clock[0] * 1e3) & 0x1FFF
+        bus.send_transfer(msg, 10, int(clock[0] * 1e3) & 31, 8, clock[0])
+        bus.advance_to(clock[0] + 1e-3)
+
+    per_frame = time_per_call(one_frame, 0.2 if quick else 1.0)
+    yield BenchRow("can_frames_per_s", 1.0 / per_frame, "frames/s",
+                   "RawCommand (one frame) through the bus model: dronecan encode, wire time, decode")
+    base = loads_scenarios(RTF_SCENARIO)[0]
+    on_bus = replace(base, links=replace(base.links, esc_bus=EscBusSpec()))
+    runs = 1 if quick else RUNS
+    rtf: dict[str, list[float]] = {"full_stack_rtf": [], "full_stack_rtf_esc_bus": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(runs):  # alternated, so that a busy spell of the machine meets both alike
+            for name, s in (("full_stack_rtf", base), ("full_stack_rtf_esc_bus", on_bus)):
+                r = run_scenario(s, Path(tmp) / f"{name}_{k}", RunOptions())
+                if not r.passed:
+                    failed = "; ".join(f"{c.name}: {c.observed}" for c in r.failed_checks)
+                    raise RuntimeError(f"bench scenario failed its checks ({name}): {failed}")
+                rtf[name].append(r.summary["real_time_factor"])
+    med = {name: float(np.median(v)) for name, v in rtf.items()}
+    for name, row in (("full_stack_rtf", "full_stack_rtf_beside_esc_bus"),
+                      ("full_stack_rtf_esc_bus", "full_stack_rtf_esc_bus")):
+        spread = ", ".join(f"{x:.1f}" for x in rtf[name])
+        yield BenchRow(row, med[name], "x real time",
+                       f"60 deg gap over ptys, lockstep, median of {runs} ({spread})")
+    yield BenchRow("esc_bus_rtf_ratio", med["full_stack_rtf_esc_bus"] / med["full_stack_rtf"], "x",
+                   "full stack with the motors on the DroneCAN bus / without it, same run")

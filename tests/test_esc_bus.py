@@ -1,0 +1,222 @@
+"""The motors on a DroneCAN bus: RawCommand and esc.Status as dronecan encodes them, seen by a python-can
+`virtual` bus in this process; the bus model's timing, loss, corruption and bus-off; a silent ESC
+reported and failed safe; the lockstep run deterministic with the bus on and unchanged without it."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import can
+import numpy as np
+import pytest
+from dronecan import uavcan
+from dronecan.transport import Frame, Transfer, TransferManager
+from test_fc_mavlink import HOVER, Bench, of_type
+
+from emulator.esc_bus import (
+    RAW_COMMAND_MAX,
+    Bridge,
+    CanBus,
+    EscBusConfig,
+    EscBusStepper,
+    attach,
+    frame_bits,
+    parse_bus_spec,
+)
+from emulator.fc import FcState
+from emulator.fc.batched_steps import FastStepper
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, mav
+
+
+def flying_bench(config: EscBusConfig | None = None, bridge: Bridge | None = None
+                 ) -> tuple[Bench, EscBusStepper]:
+    b = Bench()
+    stepper = attach(b.vehicle, b.server, config or EscBusConfig(), np.random.default_rng(1), bridge)
+    return b, stepper
+
+
+def take_off(b: Bench, thrust: float = 1.3 * HOVER) -> None:
+    b.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    b.stream(0.3, thrust=thrust)
+    b.command(mav.MAV_CMD_DO_SET_MODE, 129, PX4_MAIN_OFFBOARD)
+    b.stream(1.0, thrust=thrust)
+
+
+def decode(frames: list[can.Message]) -> list[Transfer]:
+    tm, out = TransferManager(), []
+    for m in frames:
+        got = tm.receive_frame(Frame(m.arbitration_id, m.data))
+        if got:
+            tr = Transfer()
+            tr.from_frames(got)
+            out.append(tr)
+    return out
+
+
+def test_a_python_can_virtual_bus_sees_rawcommand_and_esc_status_at_their_rates():
+    bridge = Bridge("virtual:escs-test-1", 1_000_000)
+    listener = can.Bus(interface="virtual", channel="escs-test-1")
+    try:
+        b, stepper = flying_bench(bridge=bridge)
+        take_off(b)
+        frames = []
+        while (m := listener.recv(0)) is not None:
+            frames.append(m)
+    finally:
+        listener.shutdown()
+        stepper.esc.close()
+    transfers = decode(frames)
+    raw = [t for t in transfers if t.payload._type is uavcan.equipment.esc.RawCommand]
+    status = [t for t in transfers if t.payload._type is uavcan.equipment.esc.Status]
+    nodes = [t for t in transfers if t.payload._type is uavcan.protocol.NodeStatus]
+    sim_s = b.clock.now_s()
+    assert len(raw) == pytest.approx(400 * sim_s, rel=0.02)  # the FC's motor rate
+    assert {t.source_node_id for t in raw} == {10} and len(raw[-1].payload.cmd) == 4
+    assert all(0 <= c <= RAW_COMMAND_MAX for c in raw[-1].payload.cmd)
+    by_index = {i: [t for t in status if t.payload.esc_index == i] for i in range(4)}
+    for i, got in by_index.items():
+        assert len(got) == pytest.approx(50 * sim_s, rel=0.05), i
+        assert {t.source_node_id for t in got} == {20 + i}
+    last = by_index[0][-1].payload
+    assert last.rpm > 1000 and 10 < last.voltage < 17 and last.current > 0 and last.temperature > 290
+    assert {t.source_node_id for t in nodes} == {10, 20, 21, 22, 23}  # NodeStatus at 1 Hz, every node
+    assert len(nodes) == pytest.approx(5 * sim_s, abs=5)
+
+
+def test_python_can_udp_multicast_carries_the_frames_out_and_an_outside_status_in():
+    group = f"239.74.{os.getpid() % 200 + 20}.7"  # (a group of its own: tests may run side by side)
+    bridge = Bridge(f"udp_multicast:{group}", 1_000_000)
+    other = can.Bus(interface="udp_multicast", channel=group)  # another python-can node on the bus
+    try:
+        b, stepper = flying_bench(EscBusConfig(external=(23,)), bridge=bridge)
+        b.run(0.2)
+        frames = []
+        while (m := other.recv(0.05)) is not None:
+            frames.append(m)
+        raw = [t for t in decode(frames) if t.payload._type is uavcan.equipment.esc.RawCommand]
+        assert len(raw) == pytest.approx(80, abs=8)  # 0.2 s at 400 Hz
+        # ESC 3 answers from outside: its status reaches the FC, and its motor follows the rpm
+        w = 0.5 * b.vehicle.profile.max_rotor_speed_rad_s
+        status = uavcan.equipment.esc.Status(rpm=int(w * 60 / (2 * math.pi)), esc_index=3)
+        for frame in Transfer(payload=status, source_node_id=23, transfer_id=0).to_frames():
+            other.send(can.Message(arbitration_id=frame.message_id, data=frame.bytes, is_extended_id=True))
+        time.sleep(0.1)
+        b.run(0.01)
+        assert stepper.esc.bus.stats.external_in >= 2
+        assert stepper.esc.throttle[3] == pytest.approx(0.25, abs=1e-3)
+    finally:
+        other.shutdown()
+        stepper.esc.close()
+
+
+def test_the_vehicle_flies_on_its_escs_throttles():
+    b, stepper = flying_bench()
+    take_off(b)
+    assert b.vehicle.state.pos_m[2] > 0.5 and b.vehicle.fc.state is FcState.OFFBOARD
+    # each motor runs at the throttle its ESC took from the last RawCommand (int14 steps)
+    np.testing.assert_allclose(stepper.esc.throttle, b.vehicle.fc.motor_cmd, atol=2.0 / RAW_COMMAND_MAX)
+    assert stepper.fc_steps == pytest.approx(400 * b.clock.now_s(), abs=2)  # the FC at the motor rate
+    assert b.vehicle.steps == pytest.approx(1000 * b.clock.now_s(), abs=2)  # physics at 1 kHz
+
+
+def test_a_silent_esc_is_reported_its_motor_stops_and_the_fc_lands_when_told():
+    b, stepper = flying_bench()
+    b.send(b.client.mav.param_set_encode(1, 1, b"N3_ESC_FS_ACT", _int_wire(1), mav.MAV_PARAM_TYPE_INT32))
+    take_off(b)
+    assert stepper.esc.config.failsafe_action == "land"
+    stepper.esc.set_silent(2, True)
+    t_silent = b.clock.now_s()
+    got = b.stream(0.3, thrust=1.3 * HOVER)
+    texts = [m.text for m in of_type(got, "STATUSTEXT")]
+    assert "ESC 2 silent for 0.1 s" in texts and any("ESC failed: land" in t for t in texts)
+    assert stepper.esc.throttle[2] == 0.0
+    [ev] = [e for e in b.vehicle.fc.events if e.to_state is FcState.FAILSAFE_LAND]
+    # the timeout after its last esc.Status, which came up to one status period (20 ms) before
+    assert 0.1 - 0.021 <= ev.time_s - t_silent <= 0.1 + 0.003
+
+
+def test_report_only_by_default_and_the_timeout_is_a_parameter():
+    b, stepper = flying_bench()
+    b.send(b.client.mav.param_set_encode(1, 1, b"N3_ESC_TOUT", 0.05, mav.MAV_PARAM_TYPE_REAL32))
+    take_off(b)
+    assert stepper.esc.config.status_timeout_s == pytest.approx(0.05)
+    stepper.esc.set_silent(1, True)
+    got = b.stream(0.2, thrust=1.3 * HOVER)
+    assert "ESC 1 silent for 0.05 s" in [m.text for m in of_type(got, "STATUSTEXT")]
+    assert b.vehicle.fc.state is FcState.OFFBOARD  # told, not acted on
+    stepper.esc.set_silent(1, False)
+    got = b.stream(0.2, thrust=1.3 * HOVER)
+    assert "ESC 1 answers again" in [m.text for m in of_type(got, "STATUSTEXT")]
+
+
+def test_the_bus_model_times_frames_and_counts_loss_corruption_and_bus_off():
+    assert frame_bits(8) == 67 + 64 + (54 + 64) // 5
+    cfg = EscBusConfig()
+    bus = CanBus(cfg, np.random.default_rng(0))
+    seen: list[float] = []
+    bus.attach(99, lambda tr, t: seen.append(t))
+    msg = uavcan.equipment.esc.RawCommand(cmd=[1, 2, 3, 4])
+    bus.send_transfer(msg, 10, 0, 8, 0.0)
+    bus.send_transfer(msg, 10, 1, 8, 0.0)  # queued behind the first
+    bus.advance_to(1.0)
+    bits = frame_bits(8)
+    assert seen == pytest.approx([bits * 1e-6, 2 * bits * 1e-6])
+    assert bus.load(1.0) == pytest.approx(2 * bits * 1e-6)
+    lossy = CanBus(EscBusConfig(loss=0.2, corruption=0.1), np.random.default_rng(0))
+    got: list[float] = []
+    lossy.attach(99, lambda tr, t: got.append(t))
+    for i in range(2000):
+        lossy.send_transfer(msg, 10, i & 31, 8, i * 1e-3)
+    lossy.advance_to(10.0)
+    assert len(got) == 2000 - lossy.stats.lost and lossy.stats.lost == pytest.approx(400, rel=0.15)
+    assert lossy.stats.error_frames == pytest.approx(222, rel=0.2)  # 0.1 / 0.9 per frame, resent
+    lossy.bus_off_until_s = 11.0
+    lossy.send_transfer(msg, 10, 0, 8, 10.5)
+    assert lossy.stats.bus_off_dropped == 1
+
+
+def test_bad_bus_specs_and_configs_are_refused():
+    for spec in ("can0", "virtual", "socketcan"):
+        with pytest.raises(ValueError, match="expected one of"):
+            parse_bus_spec(spec)
+    with pytest.raises(ValueError, match="external ESC node 5"):
+        EscBusConfig(external=(5,))
+    with pytest.raises(ValueError, match="bitrate"):
+        EscBusConfig(bitrate_bps=5_000_000)
+
+
+def test_the_default_path_has_no_bus():
+    b = Bench()
+    assert b.vehicle.motor_path is None and isinstance(FastStepper.for_vehicle(b.vehicle), FastStepper)
+    assert math.isfinite(b.server.params.get("N3_ESC_TOUT"))  # the bus's parameters exist all the same
+
+
+def _int_wire(value: int) -> float:
+    import struct
+
+    return struct.unpack("<f", struct.pack("<i", value))[0]
+
+
+def test_hil_fc_refuses_bad_esc_bus_options(capsys):
+    from hil.cli import main
+
+    assert main(["fc", "--external-esc", "23"]) == 2
+    assert "--external-esc needs --esc-bus" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "sim", "--external-esc", "23", "--mocap-link", "none"]) == 2
+    assert "needs a bus other processes reach" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "can0", "--mocap-link", "none"]) == 2
+    assert "--esc-bus: ESC bus 'can0': expected one of" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "mcast:0", "--external-esc", "5", "--mocap-link", "none"]) == 2
+    assert "external ESC node 5" in capsys.readouterr().err
+
+
+def test_a_silent_esc_does_not_make_the_stepper_poll_every_step():
+    b, stepper = flying_bench()
+    take_off(b)
+    stepper.esc.set_silent(0, True)
+    n0 = stepper.polls
+    b.stream(0.5, thrust=1.3 * HOVER)
+    # three ESCs at 50 Hz and the bus's deliveries: a few hundred polls in 0.5 s, not one a step (500)
+    assert stepper.polls - n0 < 400

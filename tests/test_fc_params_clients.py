@@ -1,0 +1,163 @@
+"""`hil fc`'s parameters with real clients in real time: MAVProxy (from PyPI, headless) downloads the
+whole table over UDP and sets COM_OF_LOSS_T, a pymavlink client behind MAVProxy's output sees the bad
+sets refused and the failsafe fire at the new timeout, and `--params FILE` over a pty."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from test_fc_mavsdk import HOVER, start_fc, stop_fc, wait_for
+
+from emulator.fc.params import PARAMS, read_param_file
+from hil.link import SerialTransport, WallClock
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, decode_frame, mav, quat_from_euler
+from hil.link.tlog import read_tlog
+
+MAVPROXY = shutil.which("mavproxy.py") or str(Path(sys.executable).parent / "mavproxy.py")
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Lines:
+    """A process's stdout lines, collected by a thread."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self._t = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._t.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            self.lines.append(line.rstrip())
+
+    def seen(self, text: str) -> bool:
+        return any(text in line for line in self.lines)
+
+
+def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(tmp_path: Path):
+    tlog = tmp_path / "fc.tlog"
+    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--tlog", str(tlog), "--mocap-link", "none")
+    out_port = free_udp_port()
+    _, host, port = endpoint.split(":")
+    gcs = subprocess.Popen(
+        [sys.executable, MAVPROXY, f"--master=udpout:{host}:{port}", f"--out=udpin:127.0.0.1:{out_port}",
+         "--non-interactive", f"--state-basedir={tmp_path}",
+         "--cmd=repeat add 1 param set COM_OF_LOSS_T 0.5"],  # (each second: it waits for the table)
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    out = Lines(gcs)
+    codec = None
+    try:
+        t0 = time.monotonic()
+        wait_for(lambda: out.seen("Detected vehicle"), 15.0, "MAVProxy to see the FC")
+        wait_for(lambda: out.seen(f"Received {len(PARAMS)} parameters"), 10.0, "the parameter download")
+        download_s = time.monotonic() - t0
+        # a pymavlink client on MAVProxy's output, as a second tool beside a ground station
+        from pymavlink import mavutil
+
+        client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{out_port}", source_system=254)
+        codec = client
+
+        def recv_all(seconds: float) -> list:
+            got, end = [], time.monotonic() + seconds
+            while time.monotonic() < end:
+                m = client.recv_match(blocking=True, timeout=0.05)
+                if m is not None:
+                    got.append(m)
+            return got
+
+        def value_of(name: str, seconds: float = 3.0):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                client.mav.param_request_read_send(1, 1, name.encode(), -1)
+                for m in recv_all(0.3):
+                    if m.get_type() == "PARAM_VALUE" and m.param_id == name:
+                        return m.param_value
+            raise AssertionError(f"no PARAM_VALUE {name}")
+
+        client.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        wait_for(lambda: value_of("COM_OF_LOSS_T") == 0.5, 10.0, "MAVProxy's set of COM_OF_LOSS_T")
+        # bad sets are refused with the value in force echoed
+        client.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 99.0, mav.MAV_PARAM_TYPE_REAL32)
+        got = recv_all(0.5)
+        echoed = [m.param_value for m in got
+                  if m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OF_LOSS_T"]
+        assert echoed and echoed[0] == 0.5
+        assert any(m.get_type() == "STATUSTEXT" and "outside" in m.text for m in got)
+        # arm, stream, offboard, stop: the failsafe at the new timeout
+        q = list(quat_from_euler(0.0, 0.0, 0.0))
+        client.mav.command_long_send(1, 1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        end = time.monotonic() + 1.2
+        requested = False
+        while time.monotonic() < end:
+            client.mav.set_attitude_target_send(0, 1, 1, 7, q, 0, 0, 0, 1.1 * HOVER)
+            if not requested and time.monotonic() > end - 0.9:
+                client.mav.command_long_send(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 129, PX4_MAIN_OFFBOARD,
+                                             0, 0, 0, 0, 0)
+                requested = True
+            recv_all(0.02)
+        got = recv_all(2.0)
+        assert any(m.get_type() == "STATUSTEXT" and "Failsafe" in m.text for m in got)
+    finally:
+        gcs.terminate()
+        try:
+            gcs.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            gcs.kill()
+        if codec is not None:
+            codec.close()
+        summary = stop_fc(proc)
+    assert download_s < 10.0
+    assert summary["server"]["ftp_nak"] >= 1  # MAVProxy asked by FTP first, and fell back
+    # the whole table MAVProxy saved, with the value it set
+    saved = read_param_file(tmp_path / "mav.parm")
+    assert set(saved) == {p.name for p in PARAMS}
+    # the failsafe, in the FC's own time (its .tlog): 0.5 s (+ 0.1 s) after the last setpoint
+    frames = [(t / 1e6, decode_frame(f)) for t, f in read_tlog(tlog)]
+    text_s = next(t for t, m in frames if m.get_type() == "STATUSTEXT" and "Failsafe" in m.text)
+    last_sp_s = max(t for t, m in frames if m.get_type() == "SET_ATTITUDE_TARGET" and t < text_s)
+    assert 0.5 <= text_s - last_sp_s <= 0.6
+    assert [e["to"] for e in summary["events"]][-2:] == ["offboard", "failsafe_hover"]
+
+
+def test_hil_fc_params_file_loads_and_is_written_back_over_a_pty(tmp_path: Path):
+    path = tmp_path / "vehicle.params"
+    path.write_text("COM_OF_LOSS_T 0.7\nN3_RATE_ATT 5\n")
+    proc, dev = start_fc("--params", str(path), "--mocap-link", "none")
+    link = SerialTransport(dev, 921600)
+    codec = MavlinkCodec(link, WallClock(), 255, 190)
+    try:
+        codec.send(codec.mav.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
+        got = wait_for(lambda: [m for m in codec.receive(0.1) if m.get_type() == "PARAM_VALUE"
+                                and m.param_id == "COM_OF_LOSS_T"], 5.0, "COM_OF_LOSS_T")
+        assert got[0].param_value == pytest.approx(0.7)
+        codec.send(codec.mav.param_set_encode(1, 1, b"MPC_LAND_SPEED", 0.4, mav.MAV_PARAM_TYPE_REAL32))
+        codec.send(codec.mav.command_long_encode(1, 1, mav.MAV_CMD_PREFLIGHT_STORAGE, 0, 1, 0, 0, 0, 0, 0, 0))
+        acks = wait_for(lambda: [m for m in codec.receive(0.1) if m.get_type() == "COMMAND_ACK"], 5.0, "ack")
+        assert acks[0].result == mav.MAV_RESULT_ACCEPTED
+    finally:
+        link.close()
+        stop_fc(proc)
+    saved = read_param_file(path)
+    assert saved["MPC_LAND_SPEED"] == pytest.approx(0.4) and saved["N3_RATE_ATT"] == 5.0
+    assert len(saved) == len(PARAMS)
+
+
+def test_hil_fc_refuses_a_bad_params_file(tmp_path: Path, capsys):
+    from hil.cli import main
+
+    path = tmp_path / "bad.params"
+    path.write_text("COM_OF_LOSS_T 120\n")
+    assert main(["fc", "--params", str(path)]) == 2
+    assert "bad.params:1: COM_OF_LOSS_T: 120 outside 0.1..60 s" in capsys.readouterr().err
