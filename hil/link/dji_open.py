@@ -19,6 +19,7 @@ from dataclasses import dataclass, fields
 import crcmod
 
 from hil.link.clock import Clock
+from hil.link.mavlink import FrameSplitter as _Splitter
 from hil.link.transport import Transport
 
 SOF = 0xAA
@@ -55,8 +56,8 @@ CMD_CONTROL_LOST = 0x01  # pushed when the onboard device loses control authorit
 #: the harness's lockstep ticks (`hil.link.lockstep`): a command set DJI does not use, so an Onboard SDK
 #: program never sees one (its protocol layer drops frames of sets it does not know)
 SET_HIL = 0xFE
-CMD_HIL_TICK = 0x00  # payload: i64 tick time (ns), u32 mocap byte total (mod 2^31)
-CMD_HIL_ANSWER = 0x01  # payload: i64 tick time (ns) answered
+CMD_HIL_TICK = 0x00  # the tick request and the mocap byte total (layout: `hil.link.lockstep`)
+CMD_HIL_ANSWER = 0x01  # the answer
 
 # ACK codes (u16)
 ACK_SUCCESS = 0x0000
@@ -72,8 +73,8 @@ ACTIVATE_SDK_VERSION = 0x0008
 CONTROL_NEEDS_F_MODE = 0x0000
 CONTROL_RELEASED = 0x0001
 CONTROL_OBTAINED = 0x0002
-CONTROL_OBTAIN_RUNNING = 0x0003
-CONTROL_RELEASE_RUNNING = 0x0004
+CONTROL_OBTAIN_FAILED = 0x0003
+CONTROL_RELEASE_FAILED = 0x0004
 # arm/disarm (0x01 0x05)
 ARM_SUCCESS = 0x0000
 ARM_NEEDS_CONTROL = 0x0001
@@ -125,8 +126,6 @@ _U16 = struct.Struct("<H")
 _HEAD = struct.Struct("<BHBB3xH")  # SOF, LEN | VER << 10, SESSION | ACK << 5, PADDING | ENC << 5, SEQ
 _CRC16 = struct.Struct("<H")
 _CRC32 = struct.Struct("<I")
-_TICK = struct.Struct("<qI")
-_ANSWER = struct.Struct("<q")
 
 
 @dataclass(frozen=True)
@@ -204,33 +203,15 @@ def read_setpoint(payload: bytes) -> tuple[int, float, float, float, float] | No
     return _SETPOINT.unpack(payload) if len(payload) == _SETPOINT.size else None
 
 
-def tick_payload(t_s: float, mocap_total: int) -> bytes:
-    """The harness's lockstep tick (`SET_HIL`, `CMD_HIL_TICK`) at ``t_s`` (s)."""
-    return _TICK.pack(round(t_s * 1e9), mocap_total & 0x7FFFFFFF)
-
-
-def read_tick(payload: bytes) -> tuple[int, int] | None:
-    """(tick ns, mocap byte total) of a tick payload, None when malformed."""
-    return _TICK.unpack(payload) if len(payload) == _TICK.size else None
-
-
-def answer_payload(tick_ns: int) -> bytes:
-    """The answer (`CMD_HIL_ANSWER`) to the tick at ``tick_ns``."""
-    return _ANSWER.pack(tick_ns)
-
-
-def read_answer(payload: bytes) -> int | None:
-    return _ANSWER.unpack(payload)[0] if len(payload) == _ANSWER.size else None
-
-
 def frame_size(buf: bytes | bytearray, i: int) -> int:
-    """The LEN of a frame that starts at ``buf[i]`` by its header bytes 1-2 (0 when they are not in
-    ``buf``; -1 when ``buf[i]`` is no SOF)."""
+    """The LEN of the frame that starts at ``buf[i]``, by its header: 0 when the header is not complete
+    in ``buf``, -1 when ``buf[i]`` starts no frame (no SOF, a bad header, a LEN under 16)."""
     if buf[i] != SOF:
         return -1
-    if i + 3 > len(buf):
+    if i + HEADER_BYTES > len(buf):
         return 0
-    return (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
+    size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
+    return size if size >= MIN_FRAME_BYTES and _header_ok(buf, i) else -1
 
 
 @dataclass
@@ -318,6 +299,12 @@ class FrameParser:
     @property
     def pending_bytes(self) -> int:
         return len(self._buf)
+
+
+def FrameSplitter() -> _Splitter:
+    """Cuts an OPEN-protocol byte stream into frames by their checked headers and LEN (no CRC32 check:
+    a codec does that); bytes that start no frame are passed on as they are."""
+    return _Splitter(frame_size, bytes((SOF,)))
 
 
 def decode(frame: bytes) -> Frame:
