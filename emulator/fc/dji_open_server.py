@@ -133,6 +133,8 @@ class DjiOpenServer:
             self.stats.handler_errors += 1
 
     def _handle(self, f: dj.Frame, now_s: float) -> None:
+        if f.is_ack:  # (the codec keeps ACKs apart; the FC waits for none)
+            return
         if f.enc != dj.ENC_NONE:
             self.stats.encrypted_refused += 1
             self._ack(f, dj.ack_code(dj.ACK_KEY_ERROR))

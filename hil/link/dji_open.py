@@ -59,6 +59,25 @@ SET_HIL = 0xFE
 CMD_HIL_TICK = 0x00  # the tick request and the mocap byte total (layout: `hil.link.lockstep`)
 CMD_HIL_ANSWER = 0x01  # the answer
 
+# the setpoint's control flag byte: horizontal (bits 7:6) | vertical (5:4) | yaw (3) | frame (2:1) |
+# stable (0)
+HORIZONTAL_ANGLE = 0x00
+HORIZONTAL_VELOCITY = 0x40
+HORIZONTAL_POSITION = 0x80
+HORIZONTAL_ANGULAR_RATE = 0xC0
+VERTICAL_VELOCITY = 0x00
+VERTICAL_POSITION = 0x10
+VERTICAL_THRUST = 0x20
+YAW_ANGLE = 0x00
+YAW_RATE = 0x08
+FRAME_GROUND = 0x00
+FRAME_BODY = 0x02
+STABLE_DISABLE = 0x00
+STABLE_ENABLE = 0x01
+#: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle (or rate), ground frame
+ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
+ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
+
 # ACK codes (u16)
 ACK_SUCCESS = 0x0000
 # activation (0x00 0x01)
@@ -339,7 +358,7 @@ class OpenCodec:
     ACKs and keeps the ACKs' values, by (command set, command id), in ``acks``."""
 
     def __init__(self, transport: Transport, clock: Clock, *, recorder: object | None = None,
-                 retry_s: float = 0.1, tries: int = 3) -> None:
+                 retry_s: float = 0.1, tries: int = 3, keep_acks: bool = False) -> None:
         if not (math.isfinite(retry_s) and retry_s > 0 and tries >= 1):
             raise ValueError(f"retries need retry_s > 0 and tries >= 1, got {retry_s}, {tries}")
         self.transport = transport
@@ -348,6 +367,7 @@ class OpenCodec:
         self.stats = OpenStats()
         self.parser = FrameParser(self.stats)
         self.retry_s, self.tries = retry_s, tries
+        self.keep_acks = keep_acks  # see `feed`
         self._seq = 0
         self._pending: dict[int, _Pending] = {}  # session -> command waiting for its ACK
         self._once: dict[int, tuple[int, int]] = {}  # seq -> command of a session-1 frame
@@ -375,16 +395,22 @@ class OpenCodec:
             sess = SESSION_NO_ACK if session is None else session
             frame = self.pack_command(cmd_set, cmd_id, payload, sess)
         else:
-            key = (cmd_set, cmd_id)
-            self.acks.pop(key, None)
-            for s, p in list(self._pending.items()):
-                if p.key == key:
-                    del self._pending[s]
-            sess = session if session is not None else self._free_session()
-            seq = self.next_seq()
-            frame = self._sent(encode_command(cmd_set, cmd_id, payload, sess, seq))
-            self._pending[sess] = _Pending(key, frame, seq, self.clock.now_s() + self.retry_s, 1)
+            frame = self.pack_reliable(cmd_set, cmd_id, payload, session)
         self.transport.send(frame)
+        return frame
+
+    def pack_reliable(self, cmd_set: int, cmd_id: int, payload: bytes, session: int | None = None) -> bytes:
+        """`send_command`'s reliable frame, kept for its ACK and retries, not written (the caller
+        writes it)."""
+        key = (cmd_set, cmd_id)
+        self.acks.pop(key, None)
+        for s, p in list(self._pending.items()):
+            if p.key == key:
+                del self._pending[s]
+        sess = session if session is not None else self._free_session()
+        seq = self.next_seq()
+        frame = self._sent(encode_command(cmd_set, cmd_id, payload, sess, seq))
+        self._pending[sess] = _Pending(key, frame, seq, self.clock.now_s() + self.retry_s, 1)
         return frame
 
     def _free_session(self) -> int:
@@ -435,7 +461,10 @@ class OpenCodec:
         return self.feed(data) if data else []
 
     def feed(self, data: bytes) -> list[Frame]:
-        """Parse ``data``: the good frames that are not ACKs (ACKs go to ``acks``)."""
+        """Parse ``data``: the good frames that are not ACKs (ACKs are matched into ``acks`` at once);
+        with ``keep_acks``, the ACK frames too, in stream order, for the caller to `match_ack` when it
+        acts on them (a lockstep reader acts on what came before a tick only)."""
+        keep_acks = self.keep_acks
         out = []
         now = self.clock.now_s()
         rec = self.recorder
@@ -445,16 +474,27 @@ class OpenCodec:
                 rec.record(raw, now)  # type: ignore[attr-defined]
             f = decode(raw)
             if f.is_ack:
-                self._on_ack(f, now)
-            else:
-                out.append(f)
+                self.stats.acks_received += 1
+                if not keep_acks:
+                    self.match_ack(f, now)
+                    continue
+            out.append(f)
         return out
 
-    def _on_ack(self, f: Frame, now_s: float) -> None:
-        self.stats.acks_received += 1
+    def match_ack(self, f: Frame, now_s: float) -> tuple[int, int] | None:
+        """The (command set, id) the ACK ``f`` answers, its value kept in ``acks`` (None: it answers
+        nothing this codec waits for)."""
         p = self._pending.get(f.session)
         if p is not None and p.seq == f.seq:
             del self._pending[f.session]
-            self.acks[p.key] = (f.data, now_s)
+            key = p.key
         elif f.session == SESSION_ACK_ONCE and f.seq in self._once:
-            self.acks[self._once.pop(f.seq)] = (f.data, now_s)
+            key = self._once.pop(f.seq)
+        else:
+            return None
+        self.acks[key] = (f.data, now_s)
+        return key
+
+    def is_waiting(self, cmd_set: int, cmd_id: int) -> bool:
+        """Whether a reliable command of this set and id waits for its ACK."""
+        return any(p.key == (cmd_set, cmd_id) for p in self._pending.values())
