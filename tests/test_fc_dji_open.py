@@ -196,10 +196,10 @@ def test_control_needs_the_rc_in_f_mode_and_release_hands_back_to_the_fc():
     assert rig.vehicle.fc.state is FcState.OFFBOARD
     assert rig.ask(0x01, 0x00, b"\x00") == 0x0001
     assert rig.vehicle.fc.state is FcState.HOLD
-    applied = rig.server.stats.setpoints_applied
-    rig.run(0.2, setpoint=(0x20, 20.0, 0.0, 80.0, 0.0))
-    assert rig.server.stats.setpoints_applied == applied  # no authority: setpoints dropped
+    rig.run(0.5, setpoint=(0x20, 20.0, 0.0, 80.0, 0.0))
+    assert rig.server.stats.setpoints_without_control >= 24  # no authority: not flown
     assert rig.vehicle.fc.state is FcState.HOLD
+    assert abs(rig.vehicle.state.vel_m_s[2]) < 0.3  # the FC holds; 80 % thrust is not flown
 
 
 def test_tasks_land_and_stop_motors():
@@ -288,3 +288,48 @@ def test_100k_hostile_frames_are_counted_and_answered_and_the_setpoints_still_fl
     z0 = rig.vehicle.state.pos_m[2]
     rig.run(1.5, setpoint=(0x20, 0.0, 0.0, HOVER_PERCENT * 1.25, 0.0))
     assert rig.vehicle.fc.state is FcState.OFFBOARD and rig.vehicle.state.pos_m[2] > z0 + 0.3
+
+
+def test_hil_fc_answers_the_open_protocol_on_a_pty_and_hil_decode_prints_its_capture(tmp_path):
+    import json
+    import subprocess
+    import sys
+    import time
+
+    from hil.link import SerialTransport
+
+    capture = tmp_path / "fc.tlog"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil.cli", "fc", "--protocol", "dji-open", "--rc-mode", "A", "--gap", "none",
+         "--mocap-link", "none", "--duration", "20", "--tlog", str(capture)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        first = json.loads(proc.stdout.readline())
+        assert first["protocol"] == "dji_open"
+        link = SerialTransport(first["command_link"], 921600)
+        client = Client(link)
+        deadline = time.monotonic() + 10.0
+        seq = client.command(0x00, 0x01, ACTIVATION)
+        while seq not in client.acks and time.monotonic() < deadline:
+            client.read()
+            time.sleep(0.01)
+        assert client.code(seq) == 0x0000
+        seq = client.command(0x01, 0x00, b"\x01")
+        while (seq not in client.acks or not client.flight_data) and time.monotonic() < deadline:
+            client.read()
+            time.sleep(0.01)
+        assert client.code(seq) == 0x0000  # the RC is in A mode: not in F mode
+        assert client.latest(7, "<6h")[4] == 0  # the RC item's mode channel: A
+        link.close()
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["server"]["commands_denied"] == 1 and summary["link"]["bad_crc"] == 0
+    decoded = subprocess.run([sys.executable, "-m", "hil.cli", "decode", str(capture)], capture_output=True,
+                             text=True, check=True).stdout.splitlines()
+    assert "0x00 0x01 activation" in decoded[0] and "ACK 0x0000" in decoded[1]
+    assert any("0x01 0x00 control authority: 01" in line for line in decoded)
+    assert any("flight data: time, quaternion" in line for line in decoded)

@@ -63,7 +63,7 @@ class DjiServerStats:
 
     setpoints_applied: int = 0
     setpoints_rejected: int = 0
-    setpoints_without_control: int = 0  # setpoints while the onboard device has no authority: dropped
+    setpoints_without_control: int = 0  # setpoints taken while the onboard device has no authority: not flown
     commands_accepted: int = 0
     commands_denied: int = 0
     commands_unknown: int = 0  # command sets or ids this FC does not answer (ACK 0xFF02)
@@ -290,9 +290,8 @@ class DjiOpenServer:
         if values is None:
             self.stats.malformed += 1
             return
-        if not self.sdk_control or not self.activated:
-            self.stats.setpoints_without_control += 1
-            return
+        # validated and taken as MAVLink's are (the FC core flies a target in OFFBOARD only): without
+        # authority a setpoint is not flown, as the N3 ignores it, and the stream is counted as PX4's is
         try:
             self.fc.set_setpoint_values(*values, now_s)
         except SetpointRejected:
@@ -300,7 +299,9 @@ class DjiOpenServer:
             return
         self.stats.setpoints_applied += 1
         fc = self.fc
-        if fc.state is FcState.HOLD or (fc.state is FcState.DISARMED and not fc.offboard_selected):
+        if not self.sdk_control:
+            self.stats.setpoints_without_control += 1
+        elif fc.state is FcState.HOLD or (fc.state is FcState.DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)

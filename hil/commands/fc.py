@@ -1,4 +1,5 @@
-"""`hil fc`: the N3-style flight-controller emulator standalone, in real time, behind a MAVLink link."""
+"""`hil fc`: the N3-style flight-controller emulator standalone, in real time, behind a MAVLink link or,
+with ``--protocol dji-open``, DJI's OPEN protocol (docs/dji-open-link.md)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import numpy as np
 
 from emulator.assembly import assemble, warm_up
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, resting_state
+from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -61,10 +63,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--uwb-loss", type=float, default=0.0, metavar="P", help="UWB independent loss 0..1 (0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mocap noise and the radio (default 0)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
+    p.add_argument("--tlog", default=None, metavar="PATH",
+                   help="record every frame of the command link, both ways and timestamped, to PATH "
+                        "(a .tlog; `hil decode PATH` prints it)")
     p.add_argument(
         "--failsafe-timeout", type=float, default=1.0, metavar="S", help="setpoint loss before failsafe (1.0)"
     )
+    p.add_argument("--protocol", default="mavlink", choices=("mavlink", "dji-open"),
+                   help="what the command link speaks: MAVLink 2 (default) or DJI's OPEN protocol (as an N3)")
+    p.add_argument("--activation-code", type=int, default=0, metavar="CODE",
+                   help="dji-open: answer every activation with this documented code (0 accepts, default; "
+                        "1-8 refuse)")
+    p.add_argument("--rc-mode", default="F", choices=("P", "A", "F"),
+                   help="dji-open: the RC's mode switch; only F lets the onboard device obtain control")
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.set_defaults(func=main)
@@ -91,7 +102,7 @@ def _serial_stats(link: object) -> dict[str, int] | None:
 class GapWatch:
     """Samples the vehicle against the gap world and reports crossings and collisions as STATUSTEXT."""
 
-    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer) -> None:
+    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer | DjiOpenServer) -> None:
         self.vehicle, self.server = vehicle, server
         self.tracker = CrossingTracker(world)
         self._next_s = 0.0
@@ -124,6 +135,10 @@ def main(args: argparse.Namespace) -> int:
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused with the reason
         config = FcConfig(failsafe_timeout_s=args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
+        protocol = args.protocol.replace("-", "_")
+        if key is not None and protocol != "mavlink":
+            raise ValueError("--signing-key signs MAVLink: the OPEN protocol has no signing")
+        dji_config = DjiServerConfig(activation_code=args.activation_code, rc_mode=args.rc_mode)
     except (ProfileError, ValueError) as exc:
         return fail(str(exc))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
@@ -168,13 +183,13 @@ def main(args: argparse.Namespace) -> int:
             profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
             mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
-            signing_epoch_unix_s=epoch_unix_s,
+            signing_epoch_unix_s=epoch_unix_s, protocol=protocol, dji_config=dji_config,
         )
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         links: list = [server]
         if emu.world is not None:
             links.append(GapWatch(vehicle, emu.world, server))
-        endpoints = {"command_link": link.endpoint}
+        endpoints = {"command_link": link.endpoint, "protocol": protocol}
         if mocap is not None and mocap_link is not None:
             links.append(MocapPoll(vehicle, mocap, gap))
             endpoints["mocap_link"] = mocap_link.endpoint

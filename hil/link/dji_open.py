@@ -498,3 +498,42 @@ class OpenCodec:
     def is_waiting(self, cmd_set: int, cmd_id: int) -> bool:
         """Whether a reliable command of this set and id waits for its ACK."""
         return any(p.key == (cmd_set, cmd_id) for p in self._pending.values())
+
+
+#: the commands' names, by (command set, command id), for decoders and logs
+COMMAND_NAMES: dict[tuple[int, int], str] = {
+    (SET_ACTIVATION, CMD_VERSION): "version query",
+    (SET_ACTIVATION, CMD_ACTIVATE): "activation",
+    (SET_ACTIVATION, CMD_BROADCAST_FREQ): "flight data rates",
+    (SET_CONTROL, CMD_CONTROL_AUTHORITY): "control authority",
+    (SET_CONTROL, CMD_TASK): "flight task",
+    (SET_CONTROL, CMD_SETPOINT): "setpoint",
+    (SET_CONTROL, CMD_ARM): "arm/disarm",
+    (SET_BROADCAST, CMD_FLIGHT_DATA): "flight data",
+    (SET_BROADCAST, CMD_CONTROL_LOST): "control lost",
+    (SET_HIL, CMD_HIL_TICK): "hil tick",
+    (SET_HIL, CMD_HIL_ANSWER): "hil tick answer",
+}
+
+
+def describe(frame: bytes) -> str:
+    """One line about a good frame: session, SEQ, what it is and its fields."""
+    f = decode(frame)
+    head = f"session {f.session:2d} seq {f.seq:5d} "
+    if f.enc != ENC_NONE:
+        return head + f"encrypted (ENC {f.enc}, {len(f.data)} bytes)"
+    if f.is_ack:
+        code = read_ack_code(f.data)
+        extra = f" +{len(f.data) - 2} bytes" if len(f.data) > 2 else ""
+        return head + (f"ACK 0x{code:04X}{extra}" if code is not None else f"ACK {f.data.hex()}")
+    name = COMMAND_NAMES.get((f.cmd_set, f.cmd_id), "unknown")
+    what = f"0x{f.cmd_set:02X} 0x{f.cmd_id:02X} {name}"
+    p = f.payload
+    if (f.cmd_set, f.cmd_id) == (SET_CONTROL, CMD_SETPOINT) and (sp := read_setpoint(p)) is not None:
+        flag, x, y, z, yaw = sp
+        return head + f"{what}: flag 0x{flag:02X} roll {x:.2f} pitch {y:.2f} thrust {z:.2f} yaw {yaw:.2f}"
+    if (f.cmd_set, f.cmd_id) == (SET_BROADCAST, CMD_FLIGHT_DATA) and len(p) >= 2:
+        flags = p[0] | p[1] << 8
+        items = [n for i, (n, _) in enumerate(BROADCAST_ITEMS) if flags >> i & 1]
+        return head + f"{what}: {', '.join(items)}"
+    return head + f"{what}: {p.hex(' ')}" if p else head + what
