@@ -31,6 +31,7 @@ DEFAULT_RATES_HZ: tuple[float, ...] = (100.0, 100.0, 100.0, 100.0, 100.0, 100.0,
                                        0.0)
 CONTROL_LOST_CODE = 0x04  # the payload of the pushed "control lost" (0x02 0x01)
 _SEC_TICKS = 400  # the time item counts 1/400 s
+_STATE_FLAGS = 1 << dj.BROADCAST_BIT["status"] | 1 << dj.BROADCAST_BIT["control_device"]
 _TASKS = frozenset({dj.TASK_TAKEOFF, dj.TASK_LAND, dj.TASK_GO_HOME, dj.TASK_START_MOTORS,
                     dj.TASK_STOP_MOTORS})
 
@@ -94,6 +95,7 @@ class DjiOpenServer:
         self._rates_hz = list(self.config.broadcast_rates_hz)
         self._next_due = [0.0] * len(self._rates_hz)
         self._next_push_s = 0.0
+        self._urgent = 0  # flag bits pushed at the next push whether due or not
         self._last_ack: dict[int, tuple[int, bytes]] = {}  # session -> (seq, ACK frame) of reliable ones
         self._events_seen = 0
         self._statustexts: list[str] = []
@@ -238,11 +240,13 @@ class DjiOpenServer:
                 self._count(False)
                 return dj.ack_code(dj.CONTROL_NEEDS_F_MODE)
             self.sdk_control = True
+            self._push_state_now(now_s)  # the onboard side sees its authority at once
             if self.fc.state.armed and self.fc.state is not FcState.OFFBOARD:
                 self.fc.request_offboard(now_s)  # flies the setpoints once they stream (`_on_setpoint`)
             self._count(True)
             return dj.ack_code(dj.CONTROL_OBTAINED)
         self.sdk_control = False
+        self._push_state_now(now_s)
         self.fc.request_hold(now_s, "control authority released")
         self._count(True)
         return dj.ack_code(dj.CONTROL_RELEASED)
@@ -290,6 +294,9 @@ class DjiOpenServer:
         if values is None:
             self.stats.malformed += 1
             return
+        if not self.activated:
+            self.stats.commands_unactivated += 1
+            return
         # validated and taken as MAVLink's are (the FC core flies a target in OFFBOARD only): without
         # authority a setpoint is not flown, as the N3 ignores it, and the stream is counted as PX4's is
         try:
@@ -316,17 +323,24 @@ class DjiOpenServer:
                 self.codec.transport.send(self.codec.pack_command(
                     dj.SET_BROADCAST, dj.CMD_CONTROL_LOST, bytes((CONTROL_LOST_CODE,))))
         self._events_seen = len(events)
-        if self.activated:
-            self._next_push_s = now_s  # let the onboard side see the new state now
+        self._push_state_now(now_s)  # let the onboard side see the new state now
 
     # --- broadcast ------------------------------------------------------------------------------
+    def _push_state_now(self, now_s: float) -> None:
+        """Push the flight status and control device items (those with a rate) at the next poll."""
+        if self.activated:
+            self._urgent = _STATE_FLAGS
+            self._next_push_s = now_s
+
     def _push(self, now_s: float) -> None:
-        """One flight-data frame of the items due at ``now_s``; the next push at the earliest due."""
-        flags = 0
+        """One flight-data frame of the items due at ``now_s`` (and the state items after a change); the
+        next push at the earliest due."""
+        flags, self._urgent = self._urgent, 0
         nxt = math.inf
         due, rates = self._next_due, self._rates_hz
         for i, hz in enumerate(rates):
             if hz <= 0.0:
+                flags &= ~(1 << i)
                 continue
             if now_s >= due[i] - 1e-9:
                 flags |= 1 << i

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import crcmod
 
@@ -147,10 +148,9 @@ _CRC16 = struct.Struct("<H")
 _CRC32 = struct.Struct("<I")
 
 
-@dataclass(frozen=True)
-class Frame:
+class Frame(NamedTuple):
     """One good frame: its header fields and its data (a command's set, id and payload, or an ACK's
-    value)."""
+    value). (A named tuple: one is made per frame received.)"""
 
     session: int
     is_ack: bool
@@ -258,12 +258,11 @@ class OpenStats:
 
 def _header_ok(buf: bytes | bytearray, i: int) -> bool:
     """Whether the 12 bytes at ``buf[i]`` are a header: CRC16 good, VER 0, reserved bits and bytes 0."""
-    head = bytes(buf[i : i + HEADER_BYTES])
     return (
-        crc16(head) == 0  # the CRC over the header including its own CRC field is 0
-        and head[2] >> 2 == 0
-        and head[3] & 0xC0 == 0
-        and head[5] == head[6] == head[7] == 0
+        buf[i + 2] >> 2 == 0
+        and buf[i + 3] & 0xC0 == 0
+        and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
+        and crc16(buf[i : i + HEADER_BYTES]) == 0  # over the header with its own CRC field: 0
     )
 
 

@@ -29,8 +29,9 @@ from policies.onboard.command_link import CommandAck, CommandLink
 APP_ID = 1069806
 SDK_VERSION = 0x03010A00
 APP_BUNDLE = b"12345678901234567890123456789012"
-#: the flight data the program reads: flight status and control device at 50 Hz, battery at 1 Hz
-BROADCAST_RATES = bytes([0, 0, 0, 0, 0, 0, 0, 0, 0, 3, 1, 3, 0, 0, 0, 0])
+#: the flight data the program reads: flight status and control device at 10 Hz (the FC pushes them at
+#: once on a change of state or authority besides), battery at 1 Hz
+BROADCAST_RATES = bytes([0, 0, 0, 0, 0, 0, 0, 0, 0, 2, 1, 2, 0, 0, 0, 0])
 ACTIVATION_RETRY_S = 0.5  # a refused or unanswered activation is asked again this often (s)
 _OBTAIN, _RELEASE = b"\x01", b"\x00"
 _STATUS_BIT = dj.BROADCAST_BIT["status"]
