@@ -414,7 +414,8 @@ class OnboardProgram:
             self._next_heartbeat_request_s = now_s + HEARTBEAT_REQUEST_S
         if now_s - self._phase_since_s > cfg.wait_timeout_s:
             self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="timed out waiting for mocap and the FC",
-                         vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok)
+                         vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok,
+                         status_texts=self.link.status_texts[-3:])  # (a refused activation says so)
 
     def _authority(self, now_s: float) -> None:
         if self._request is None:
