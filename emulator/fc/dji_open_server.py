@@ -89,7 +89,8 @@ class DjiOpenServer:
         self.codec = codec
         self.config = config or DjiServerConfig()
         self.stats = DjiServerStats()
-        self.telemetry = TelemetryEncoder(vehicle, None, self.config.home)  # (battery, lat/lon)
+        # the MAVLink side's battery model and flat-Earth position, without its MAVLink packer
+        self.telemetry = TelemetryEncoder(vehicle, None, self.config.home)  # type: ignore[arg-type]
         self.activated = False
         self.sdk_control = False  # the onboard device holds control authority
         self._rates_hz = list(self.config.broadcast_rates_hz)

@@ -31,7 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The program's options (units in the help)."""
     d = ProgramConfig()
     p.add_argument("--command-link", required=True, metavar="SPEC",
-                   help="MAVLink link to the FC, e.g. serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
+                   help="link to the FC (MAVLink, or DJI OPEN with --fc-protocol dji-open), e.g. "
+                        "serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
     p.add_argument("--fc-protocol", default=d.fc_protocol, choices=("mavlink", "dji-open", "dji_open"),
                    help="what the FC speaks on the command link: MAVLink 2 (default) or DJI's OPEN protocol")
     p.add_argument("--mocap-link", required=True, metavar="SPEC",
