@@ -231,6 +231,7 @@ def test_encrypted_unknown_and_resent_commands_get_their_documented_answers():
     rig.run(0.02)
     assert c.code(seq) == 0x0002 and rig.server.stats.retries_answered == 1
     assert rig.server.stats.encrypted_refused == 1 and rig.server.stats.commands_unknown == 2
+    assert rig.server.codec.stats.encrypted == 1
 
 
 _LONG = frame(0, 1, b"\x01\x03" + bytes(1003))[:-7]  # a good header of LEN 1023, the frame cut short

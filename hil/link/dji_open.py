@@ -472,6 +472,8 @@ class OpenCodec:
             if rec is not None:
                 rec.record(raw, now)  # type: ignore[attr-defined]
             f = decode(raw)
+            if f.enc != ENC_NONE:
+                self.stats.encrypted += 1
             if f.is_ack:
                 self.stats.acks_received += 1
                 if not keep_acks:
