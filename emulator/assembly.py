@@ -1,5 +1,6 @@
-"""The emulator assembled: vehicle (physics + FC), the gap world, the FC's MAVLink server on the command
-link and mocap over UWB on the mocap link, one clock for all. `hil fc` (real time) and the runner's
+"""The emulator assembled: vehicle (physics + FC), the gap world, the FC's server on the command link
+(MAVLink, or DJI's OPEN protocol with ``protocol="dji_open"``) and mocap over UWB on the mocap link, one
+clock for all. `hil fc` (real time) and the runner's
 emulator side (simulated time) both build theirs here and add their own loop around it."""
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
+from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
@@ -17,6 +19,7 @@ from emulator.profile import VehicleProfile
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume, World
 from hil.link.clock import Clock
+from hil.link.dji_open import OpenCodec
 from hil.link.mavlink import SIGNING_EPOCH_UNIX_S, MavlinkCodec, mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
@@ -28,8 +31,8 @@ class Emulator:
 
     vehicle: EmulatedVehicle
     world: World | None  # None: no gap to watch
-    codec: MavlinkCodec
-    server: MavlinkServer
+    codec: MavlinkCodec | OpenCodec
+    server: MavlinkServer | DjiOpenServer
     mocap: MocapLinkServer | None  # None: no mocap link
 
 
@@ -62,14 +65,25 @@ def assemble(
     tlog: TlogWriter | None = None,
     signing_key: bytes | None = None,
     signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
+    protocol: str = "mavlink",
+    dji_config: DjiServerConfig | None = None,
 ) -> Emulator:
     """Build the emulator (see the module doc); ``mocap_rng`` is needed with a mocap link. A wall
     clock should start after `warm_up`."""
     vehicle = EmulatedVehicle(profile, backend=backend, config=fc_config, initial_state=initial_state)
     world = None if gap is None else World.for_profile(gap, lab or LabVolume(), profile)
-    codec = MavlinkCodec(command_link, clock, system_id, mav.MAV_COMP_ID_AUTOPILOT1, signing_key=signing_key,
-                         recorder=tlog, raw_ids=raw_ids, signing_epoch_unix_s=signing_epoch_unix_s)
-    server = MavlinkServer(vehicle, codec, server_config)
+    codec: MavlinkCodec | OpenCodec
+    server: MavlinkServer | DjiOpenServer
+    if protocol == "dji_open":
+        codec = OpenCodec(command_link, clock, recorder=tlog)
+        server = DjiOpenServer(vehicle, codec, dji_config)
+    elif protocol == "mavlink":
+        codec = MavlinkCodec(command_link, clock, system_id, mav.MAV_COMP_ID_AUTOPILOT1,
+                             signing_key=signing_key, recorder=tlog, raw_ids=raw_ids,
+                             signing_epoch_unix_s=signing_epoch_unix_s)
+        server = MavlinkServer(vehicle, codec, server_config)
+    else:
+        raise ValueError(f"command-link protocol must be mavlink or dji_open, got {protocol!r}")
     mocap = None
     if mocap_link is not None:
         if mocap_rng is None:

@@ -40,6 +40,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="fly every scenario on the wall clock (a pilot's dry run) instead of in lockstep",
     )
     group.addoption(
+        "--hil-protocol",
+        default=None,
+        choices=("mavlink", "dji_open"),
+        help="the command link's protocol for every scenario (default: each scenario's, mavlink)",
+    )
+    group.addoption(
         "--hil-vehicle",
         default=None,
         metavar="NAME|PATH",
@@ -134,6 +140,7 @@ class ScenarioItem(pytest.Item):
             backend=cfg.getoption("--hil-backend"),
             realtime=True if cfg.getoption("--hil-realtime") else None,
             vehicle=cfg.getoption("--hil-vehicle"),
+            protocol=cfg.getoption("--hil-protocol"),
         )
         result = run_scenario(self.scenario, out, options)
         self.user_properties.append(("report", str(result.report_path)))

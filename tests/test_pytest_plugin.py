@@ -72,3 +72,15 @@ def test_pilot_option_reaches_the_runner(tmp_path):
     (tmp_path / "one.scenario.yaml").write_text(FAILSAFE.format(name="one", fs="hover"))
     p = pytest_run([str(tmp_path), "--hil-in-process", "--pilot", "no_such_pilot"], tmp_path)
     assert p.returncode == 1 and "unknown pilot 'no_such_pilot'" in p.stdout
+
+
+def test_protocol_option_flies_the_scenario_over_djis_open_protocol(tmp_path):
+    (tmp_path / "one.scenario.yaml").write_text(FAILSAFE.format(name="one", fs="hover"))
+    out = tmp_path / "out"
+    p = pytest_run([str(tmp_path), "--hil-in-process", "--hil-protocol", "dji_open", "--hil-out", str(out)],
+                   tmp_path)
+    assert p.returncode == 0, p.stdout
+    capture = (out / "one" / "run.tlog").read_bytes()
+    assert capture[8] == 0xAA  # after the first stamp: an OPEN-protocol frame, not MAVLink's 0xFD
+    p = pytest_run([str(tmp_path), "--hil-protocol", "dji"], tmp_path)
+    assert p.returncode != 0 and "invalid choice: 'dji'" in p.stderr

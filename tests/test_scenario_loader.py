@@ -247,6 +247,7 @@ links:
     jitter_ms: 0.5
     loss: 0.01
     burst: {p_gb: 0.002, p_bg: 0.3}
+    protocol: dji_open
   mocap:
     transport: memory
     baud: 460800
@@ -344,6 +345,7 @@ def test_the_format_document_names_every_field() -> None:
         schema.ApproachSpec,
         schema.BurstLoss,
         schema.MocapLinkSpec,
+        schema.CommandLinkSpec,
         schema.LinksSpec,
         schema.CorruptBytesParams,
         schema.WindGustParams,

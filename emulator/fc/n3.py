@@ -13,27 +13,28 @@ from dataclasses import dataclass
 
 from emulator.profile import VehicleProfile
 
-# control flag byte: horizontal (bits 7:6) | vertical (5:4) | yaw (3) | frame (2:1) | stable (0)
-HORIZONTAL_ANGLE = 0x00
-HORIZONTAL_VELOCITY = 0x40
-HORIZONTAL_POSITION = 0x80
-HORIZONTAL_ANGULAR_RATE = 0xC0
-VERTICAL_VELOCITY = 0x00
-VERTICAL_POSITION = 0x10
-VERTICAL_THRUST = 0x20
-YAW_ANGLE = 0x00
-YAW_RATE = 0x08
-FRAME_GROUND = 0x00
-FRAME_BODY = 0x02
-STABLE_DISABLE = 0x00
-STABLE_ENABLE = 0x01
+# the control flag byte is the OPEN protocol's (`hil.link.dji_open` owns it)
+from hil.link.dji_open import (  # noqa: F401 (re-exported: the N3 interface's names)
+    ATTITUDE_THRUST_YAW_ANGLE,
+    ATTITUDE_THRUST_YAW_RATE,
+    FRAME_BODY,
+    FRAME_GROUND,
+    HORIZONTAL_ANGLE,
+    HORIZONTAL_ANGULAR_RATE,
+    HORIZONTAL_POSITION,
+    HORIZONTAL_VELOCITY,
+    STABLE_DISABLE,
+    STABLE_ENABLE,
+    VERTICAL_POSITION,
+    VERTICAL_THRUST,
+    VERTICAL_VELOCITY,
+    YAW_ANGLE,
+    YAW_RATE,
+)
 
 _HORIZONTAL_NAMES = {0x00: "ANGLE", 0x40: "VELOCITY", 0x80: "POSITION", 0xC0: "ANGULAR_RATE"}
 _VERTICAL_NAMES = {0x00: "VELOCITY", 0x10: "POSITION", 0x20: "THRUST", 0x30: "RESERVED"}
 
-#: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle, ground frame
-ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
-ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
 #: every control flag `check_flag` lets through (either yaw mode, stable mode on or off)
 _FLOWN_FLAGS = frozenset(
     flag | stable

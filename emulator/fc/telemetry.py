@@ -151,7 +151,7 @@ class TelemetryEncoder:
         )
 
     def sys_status(self, errors_comm: int) -> MAVLinkMessage:
-        volts, pct = self._battery()
+        volts, pct = self.battery()
         return self.mav.sys_status_encode(
             SENSORS,
             SENSORS,
@@ -169,7 +169,7 @@ class TelemetryEncoder:
         )
 
     def battery_status(self) -> MAVLinkMessage:
-        volts, pct = self._battery()
+        volts, pct = self.battery()
         cell_mv = round(volts * 1000 / BATTERY_CELLS)
         cells = [cell_mv] * BATTERY_CELLS + [65535] * (10 - BATTERY_CELLS)
         return self.mav.battery_status_encode(
@@ -211,7 +211,8 @@ class TelemetryEncoder:
         lon = self.home.lon_deg + math.degrees(pos_enu_m[0] / (EARTH_RADIUS_M * math.cos(math.radians(lat))))
         return lat, lon
 
-    def _battery(self) -> tuple[float, int]:
+    def battery(self) -> tuple[float, int]:
+        """(pack voltage (V), charge (%)) of the battery model now."""
         frac = max(0.0, 1.0 - self.armed_time_s / BATTERY_ENDURANCE_S)
         volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
         return volts, round(100 * frac)

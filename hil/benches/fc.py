@@ -5,41 +5,53 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from typing import Protocol
 
 from emulator.fc import EmulatedVehicle, MavlinkServer, RealtimeRunner
+from emulator.fc.realtime_runner import Pollable
 from emulator.profile import GRAVITY_M_S2, load_profile
 from hil.benches import BenchRow
 from hil.link import MemoryTransport, PtyTransport, SerialTransport, SimClock, WallClock
 from hil.link.mavlink import MavlinkCodec, quat_from_euler
+from hil.link.transport import Transport
 from hil.link.uart import UartModel
 
 BAUD = 921600
 
 
-def _setpoint_latency(n: int) -> tuple[float, int]:
-    """Median seconds from the onboard side's write of SET_ATTITUDE_TARGET to the FC applying it, and the
-    frame's length (bytes). The FC runs its real-time loop in a thread, the writer in this one."""
+class LatencyRig(Protocol):
+    """One protocol's side of `setpoint_latency`: its FC server and its onboard writer."""
+
+    def serve(self, vehicle: EmulatedVehicle, link: Transport, clock: WallClock,
+              applied: Callable[[int], None]) -> Pollable:
+        """The FC's server on ``link``, calling ``applied(i)`` when it applies setpoint number ``i``."""
+        ...
+
+    def write(self, link: Transport, clock: WallClock, i: int, thrust_fraction: float) -> int:
+        """Write setpoint number ``i`` (1..n) on the onboard end and read what came; the frame's bytes."""
+        ...
+
+
+def setpoint_latency(n: int, baud: int, rig: LatencyRig) -> tuple[float, int]:
+    """Median seconds from the onboard side's write of a setpoint to the FC applying it over a pty at
+    ``baud``, and the frame's length (bytes). The FC runs its real-time loop in a thread, the writer in
+    this one."""
     profile = load_profile("n3_tx2")
     clock = WallClock()
-    fc_link = PtyTransport.create(BAUD)
-    onboard_link = SerialTransport(fc_link.endpoint, BAUD)
+    fc_link = PtyTransport.create(baud)
+    onboard_link = SerialTransport(fc_link.endpoint, baud)
     vehicle = EmulatedVehicle(profile)
-    server = MavlinkServer(vehicle, MavlinkCodec(fc_link, clock, 1, 1))
     applied: dict[int, float] = {}
-    server.on_setpoint = lambda msg, now: applied.setdefault(msg.time_boot_ms, time.perf_counter())
+    server = rig.serve(vehicle, fc_link, clock, lambda i: applied.setdefault(i, time.perf_counter()))
     runner = RealtimeRunner(vehicle, [server], clock=clock, wait_fds=[fc_link.fileno()]).start()
-    onboard = MavlinkCodec(onboard_link, clock, 255, 190)
-    q = list(quat_from_euler(0.0, 0.0, 0.0))
     thrust = 0.3 * profile.mass_kg * GRAVITY_M_S2 / profile.n3_full_thrust_n
     sent: dict[int, float] = {}
     frame_len = 0
     try:
         for i in range(1, n + 1):
-            msg = onboard.mav.set_attitude_target_encode(i, 1, 1, 7, q, 0.0, 0.0, 0.0, thrust)
             sent[i] = time.perf_counter()
-            frame_len = len(onboard.send(msg))
-            onboard.receive(0.0)  # keep the telemetry flowing
+            frame_len = rig.write(onboard_link, clock, i, thrust)
             time.sleep(0.01)
         time.sleep(0.05)
     finally:
@@ -50,6 +62,29 @@ def _setpoint_latency(n: int) -> tuple[float, int]:
     if len(lat) < n // 2:
         raise RuntimeError(f"only {len(lat)} of {n} setpoints reached the FC")
     return statistics.median(lat), frame_len
+
+
+class _MavlinkRig:
+    """SET_ATTITUDE_TARGET, its number in time_boot_ms."""
+
+    def __init__(self) -> None:
+        self._codec: MavlinkCodec | None = None
+
+    def serve(self, vehicle: EmulatedVehicle, link: Transport, clock: WallClock,
+              applied: Callable[[int], None]) -> Pollable:
+        server = MavlinkServer(vehicle, MavlinkCodec(link, clock, 1, 1))
+        server.on_setpoint = lambda msg, now: applied(msg.time_boot_ms)
+        return server
+
+    def write(self, link: Transport, clock: WallClock, i: int, thrust_fraction: float) -> int:
+        if self._codec is None or self._codec.transport is not link:
+            self._codec = MavlinkCodec(link, clock, 255, 190)
+        codec = self._codec
+        q = list(quat_from_euler(0.0, 0.0, 0.0))
+        msg = codec.mav.set_attitude_target_encode(i, 1, 1, 7, q, 0.0, 0.0, 0.0, thrust_fraction)
+        n = len(codec.send(msg))
+        codec.receive(0.0)  # keep the telemetry flowing
+        return n
 
 
 def _realtime_factor(sim_s: float) -> float:
@@ -76,7 +111,7 @@ def _realtime_factor(sim_s: float) -> float:
 
 
 def collect(quick: bool) -> Iterable[BenchRow]:
-    median_s, frame_len = _setpoint_latency(50 if quick else 300)
+    median_s, frame_len = setpoint_latency(50 if quick else 300, BAUD, _MavlinkRig())
     yield BenchRow(
         "setpoint_latency_us",
         median_s * 1e6,

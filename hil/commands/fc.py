@@ -1,4 +1,5 @@
-"""`hil fc`: the N3-style flight-controller emulator standalone, in real time, behind a MAVLink link."""
+"""`hil fc`: the N3-style flight-controller emulator standalone, in real time, behind a MAVLink link or,
+with ``--protocol dji-open``, DJI's OPEN protocol (docs/dji-open-link.md)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ import numpy as np
 from emulator.assembly import assemble, warm_up
 from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
-from emulator.fc.params import describe, param_def, read_param_file
+from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.fc.params import Parameters, describe, param_def, read_param_file
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -65,7 +67,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--uwb-loss", type=float, default=0.0, metavar="P", help="UWB independent loss 0..1 (0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the mocap noise and the radio (default 0)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--tlog", default=None, metavar="PATH", help="record every MAVLink frame to a .tlog")
+    p.add_argument("--tlog", default=None, metavar="PATH",
+                   help="record every frame of the command link, both ways and timestamped, to PATH "
+                        "(a .tlog; `hil decode PATH` prints it)")
     p.add_argument(
         "--failsafe-timeout", type=float, default=None, metavar="S",
         help="setpoint loss before failsafe (parameter COM_OF_LOSS_T; default 1.0)",
@@ -75,6 +79,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="FC parameters to load (NAME VALUE lines, MAVProxy's or QGroundControl's files); "
         "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
+    p.add_argument("--protocol", default="mavlink", choices=("mavlink", "dji-open"),
+                   help="what the command link speaks: MAVLink 2 (default) or DJI's OPEN protocol (as an N3)")
+    p.add_argument("--activation-code", type=int, default=0, metavar="CODE",
+                   help="dji-open: answer every activation with this documented code (0 accepts, default; "
+                        "1-8 refuse)")
+    p.add_argument("--rc-mode", default="F", choices=("P", "A", "F"),
+                   help="dji-open: the RC's mode switch; only F lets the onboard device obtain control")
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
     p.add_argument(
         "--esc-bus", default=None, metavar="SPEC",
@@ -109,7 +120,7 @@ def _serial_stats(link: object) -> dict[str, int] | None:
 class GapWatch:
     """Samples the vehicle against the gap world and reports crossings and collisions as STATUSTEXT."""
 
-    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer) -> None:
+    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer | DjiOpenServer) -> None:
         self.vehicle, self.server = vehicle, server
         self.tracker = CrossingTracker(world)
         self._next_s = 0.0
@@ -150,10 +161,16 @@ def main(args: argparse.Namespace) -> int:
         if args.failsafe_timeout is not None:  # the flag wins over the file
             params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
+        protocol = args.protocol.replace("-", "_")
+        if key is not None and protocol != "mavlink":
+            raise ValueError("--signing-key signs MAVLink: the OPEN protocol has no signing")
+        dji_config = DjiServerConfig(activation_code=args.activation_code, rc_mode=args.rc_mode)
     except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
     if args.external_esc and args.esc_bus is None:
         return fail("--external-esc needs --esc-bus")
+    if args.esc_bus is not None and protocol != "mavlink":
+        return fail("--esc-bus: the ESC bus is watched and set through MAVLink parameters; use --protocol mavlink")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         return fail(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.system_id <= 255:
@@ -200,8 +217,15 @@ def main(args: argparse.Namespace) -> int:
             mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
             signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
+            protocol=protocol, dji_config=dji_config,
         )
-        emu.server.params.set_many(params)
+        # the table is the MAVLink server's; over the OPEN protocol (no parameter messages) the FC's own
+        # settings still load from --params / --failsafe-timeout
+        table = getattr(emu.server, "params", None) or Parameters(emu.vehicle.fc, streams=None)
+        if table.streams is None and (rates := [n for n in params if param_def(n).applies == "stream"]):
+            return fail(f"{', '.join(rates)}: MAVLink telemetry rates; the OPEN protocol's are set by the "
+                        "onboard side")
+        table.set_many(params)
         if args.esc_bus is not None:
             try:
                 esc_stepper = _esc_bus(args, emu)
@@ -211,7 +235,7 @@ def main(args: argparse.Namespace) -> int:
         links: list = [server]
         if emu.world is not None:
             links.append(GapWatch(vehicle, emu.world, server))
-        endpoints = {"command_link": link.endpoint}
+        endpoints = {"command_link": link.endpoint, "protocol": protocol}
         if mocap is not None and mocap_link is not None:
             links.append(MocapPoll(vehicle, mocap, gap))
             endpoints["mocap_link"] = mocap_link.endpoint

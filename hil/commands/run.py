@@ -36,6 +36,12 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
         help="fly this vehicle profile instead of the scenario's (an opening narrower than its body grows)",
     )
     p.add_argument(
+        "--protocol",
+        default=None,
+        choices=("mavlink", "dji_open"),
+        help="the command link's protocol instead of the scenario's (docs/dji-open-link.md)",
+    )
+    p.add_argument(
         "--in-process",
         action="store_true",
         default=None,
@@ -51,6 +57,7 @@ def options_from(args: argparse.Namespace) -> RunOptions:
         seed=args.seed,
         backend=args.backend,
         vehicle=args.vehicle,
+        protocol=args.protocol,
     )
 
 

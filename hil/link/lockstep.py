@@ -15,12 +15,21 @@ drops what was written before) is sent again after `RESEND_FILLER`; the program 
 acts on a tick once.
 
 The convention's logic is in plain values (`tick_request_s`, `tick_answer_ns`, `mocap_count`); its
-MAVLink frames are at the end of this module, so a second codec can carry the same ticks.
+frames on each command-link protocol are at the end of this module (`FRAMINGS`): MAVLink 2 as above,
+and DJI's OPEN protocol, where the tick is one frame of command set `SET_HIL` (0xFE, which DJI does not
+use, so an Onboard SDK program never sees it) on session 0: id 0x00 carries the tick time (i64 ns) and
+the mocap total (u32), id 0x01 the answer (i64 ns), read through the same plain-value functions.
 """
 
 from __future__ import annotations
 
-from hil.link.mavlink import MAX_FRAME_BYTES, encode_frame, mav
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from hil.link import dji_open
+from hil.link.mavlink import MAX_FRAME_BYTES, FrameSplitter, encode_frame, mav
 
 MOCAP_COUNT_NAME = "mocap_n"
 MOCAP_COUNT_MASK = 0x7FFFFFFF  # the count is mod 2^31 (a non-negative int32)
@@ -102,3 +111,77 @@ def read_tick_frame(frame: bytes) -> tuple[float | None, int | None]:
         return tick_request_s(*_TIMESYNC.unpack(_payload(frame, _TIMESYNC.size))), None
     _, value, name = _NAMED_INT.unpack(_payload(frame, _NAMED_INT.size))
     return None, mocap_count(name, value)
+
+
+def is_mavlink_setpoint(frame: bytes) -> bool:
+    """Whether a frame is a MAVLink 2 SET_ATTITUDE_TARGET (id 82)."""
+    return len(frame) > 9 and frame[0] == 0xFD and frame[7] == 82 and frame[8] == frame[9] == 0
+
+
+# --- on DJI's OPEN protocol ----------------------------------------------------------------------
+_DJI_TICK = struct.Struct("<qI")
+_DJI_ANSWER = struct.Struct("<q")
+#: written before a repeated tick: as long as the longest frame; zeros are never a SOF
+DJI_RESEND_FILLER = bytes(dji_open.MAX_FRAME_BYTES)
+_DJI_ANSWER_LEN = dji_open.MIN_FRAME_BYTES + 2 + _DJI_ANSWER.size
+
+
+def dji_tick_frames(t_s: float, mocap_total: int) -> bytes:
+    """The tick at ``t_s`` (s) as one OPEN-protocol frame (session 0, SEQ 0)."""
+    payload = _DJI_TICK.pack(round(t_s * NS_PER_S), mocap_total & MOCAP_COUNT_MASK)
+    return dji_open.encode_command(dji_open.SET_HIL, dji_open.CMD_HIL_TICK, payload, 0, 0)
+
+
+def dji_read_tick(payload: bytes) -> tuple[float | None, int | None]:
+    """(tick request time (s), mocap count) of a tick frame's payload; (None, None) when malformed."""
+    if len(payload) != _DJI_TICK.size:
+        return None, None
+    ns, total = _DJI_TICK.unpack(payload)
+    return tick_request_s(0, ns), mocap_count(MOCAP_COUNT_NAME, total)
+
+
+def dji_answer_payload(tick_s: float) -> bytes:
+    """The payload of the answer (`dji_open.CMD_HIL_ANSWER`) to the tick at ``tick_s`` (s)."""
+    return _DJI_ANSWER.pack(round(tick_s * NS_PER_S))
+
+
+def dji_answered_ns(frame: bytes) -> int | None:
+    """The tick time (ns) an OPEN-protocol frame answers, else None (no CRC check, as `answered_ns`)."""
+    if len(frame) != _DJI_ANSWER_LEN or frame[0] != dji_open.SOF or frame[12] != dji_open.SET_HIL \
+            or frame[13] != dji_open.CMD_HIL_ANSWER:
+        return None
+    (ns,) = _DJI_ANSWER.unpack_from(frame, 14)
+    return tick_answer_ns(ns, ns)
+
+
+def is_dji_setpoint(frame: bytes) -> bool:
+    """Whether a frame is an OPEN-protocol flight-control setpoint (0x01 0x03)."""
+    return len(frame) > 14 and frame[0] == dji_open.SOF and frame[12] == dji_open.SET_CONTROL \
+        and frame[13] == dji_open.CMD_SETPOINT
+
+
+# --- the framings, by protocol -----------------------------------------------------------------------
+class Splitter(Protocol):
+    def feed(self, data: bytes) -> list[bytes]: ...
+
+
+@dataclass(frozen=True)
+class Framing:
+    """How the harness's ticks and the onboard program's frames look on one command-link protocol."""
+
+    tick_frames: Callable[[float, int], bytes]  # (t (s), mocap byte total) -> the tick's bytes
+    answered_ns: Callable[[bytes], int | None]
+    resend_filler: bytes
+    splitter: Callable[[], Splitter]  # a new frame cutter of the onboard program's bytes
+    is_setpoint: Callable[[bytes], bool]
+
+
+def framing(protocol: str, system_id: int = 1, component_id: int = mav.MAV_COMP_ID_AUTOPILOT1) -> Framing:
+    """The framing of ``protocol`` ("mavlink" with the FC's ids, "dji_open"); ValueError otherwise."""
+    if protocol == "mavlink":
+        return Framing(lambda t, n: tick_frames(t, n, system_id, component_id), answered_ns, RESEND_FILLER,
+                       FrameSplitter, is_mavlink_setpoint)
+    if protocol == "dji_open":
+        return Framing(dji_tick_frames, dji_answered_ns, DJI_RESEND_FILLER, dji_open.FrameSplitter,
+                       is_dji_setpoint)
+    raise ValueError(f"command-link protocol must be mavlink or dji_open, got {protocol!r}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import binascii
 import math
 import struct
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
@@ -75,10 +75,14 @@ def frame_size(buf: bytes | bytearray, i: int) -> int:
 
 class FrameSplitter:
     """Cuts a MAVLink byte stream into frames by their length fields (no CRC check: a codec does
-    that); bytes before a frame start are passed on as they are."""
+    that); bytes before a frame start are passed on as they are. Another protocol's stream is cut the
+    same way with its own ``size_of`` (`frame_size`'s contract) and start bytes ``starts``."""
 
-    def __init__(self) -> None:
+    def __init__(self, size_of: Callable[[bytes | bytearray, int], int] | None = None,
+                 starts: bytes = bytes((MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC))) -> None:
         self._buf = bytearray()
+        self._size_of = size_of or frame_size
+        self._starts = starts
 
     def feed(self, data: bytes) -> list[bytes]:
         """The complete frames (and runs of other bytes) of what has come so far, in order."""
@@ -86,11 +90,12 @@ class FrameSplitter:
         buf += data
         out: list[bytes] = []
         i, n = 0, len(buf)
+        size_of, starts = self._size_of, self._starts
         while i < n:
-            size = frame_size(buf, i)
+            size = size_of(buf, i)
             if size < 0:
                 j = i + 1
-                while j < n and buf[j] != MAVLINK_V2_MAGIC and buf[j] != MAVLINK_V1_MAGIC:
+                while j < n and buf[j] not in starts:
                     j += 1
                 out.append(bytes(buf[i:j]))
                 i = j

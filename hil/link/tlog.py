@@ -1,4 +1,5 @@
-"""Recording MAVLink frames to a .tlog (pymavlink's format: 8-byte big-endian microseconds, raw frame)."""
+"""Recording a command link's frames to a .tlog (pymavlink's format: 8-byte big-endian microseconds, raw
+frame): MAVLink 2 and 1 frames, or DJI OPEN-protocol frames, both directions."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
+from hil.link import dji_open
 from hil.link.mavlink import frame_size
 
 FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
@@ -67,16 +69,17 @@ class TlogWriter:
 
 
 def read_tlog(path: str | Path) -> list[tuple[int, bytes]]:
-    """(timestamp_us, frame) pairs of a .tlog written by TlogWriter (MAVLink 2 and 1 frames)."""
+    """(timestamp_us, frame) pairs of a .tlog written by TlogWriter (MAVLink 2 and 1 frames, DJI OPEN
+    frames)."""
     data = Path(path).read_bytes()
     out: list[tuple[int, bytes]] = []
     i = 0
     while i + 8 < len(data):
         (stamp,) = struct.unpack_from(">Q", data, i)
         i += 8
-        n = frame_size(data, i)
-        if n <= 0:
-            raise ValueError(f"{path}: no MAVLink frame at byte {i}")
+        n = dji_open.frame_size(data, i) if data[i] == dji_open.SOF else frame_size(data, i)
+        if n <= 0 or i + n > len(data):
+            raise ValueError(f"{path}: no MAVLink or DJI OPEN frame at byte {i}")
         out.append((stamp, data[i : i + n]))
         i += n
     return out

@@ -31,6 +31,7 @@ from emulator.profile import VehicleProfile
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume
 from hil.link.clock import SimClock
+from hil.link.lockstep import framing
 from hil.link.mavlink import mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
@@ -166,8 +167,10 @@ class EmulatorSide:
         self.gap = make_gap(scenario)
         gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
         self._gap_pose = (*gap_pose.pos_m.tolist(), *gap_pose.quat_wxyz.tolist())
+        protocol = scenario.links.command.protocol
         self.wire = CommandWire(
-            command_raw, clock, scenario.links.command, cmd_rng, self.faults
+            command_raw, clock, scenario.links.command, cmd_rng, self.faults,
+            framing(protocol, FC_SYSTEM_ID, mav.MAV_COMP_ID_AUTOPILOT1),
         )
         m = scenario.links.mocap
         uwb = UwbConfig(**asdict(channel_model(m)), uart_baud=m.baud)
@@ -179,6 +182,7 @@ class EmulatorSide:
             mocap_rng=mocap_rng, mocap_config=MocapConfig(rate_hz=m.rate_hz), uwb_config=uwb,
             server_config=ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S)), system_id=FC_SYSTEM_ID,
             raw_ids=RAW_MSG_IDS, tlog=tlog,  # setpoints reach the server as frames (see RAW_MSG_IDS)
+            protocol=protocol,
         )
         self.vehicle, self.codec, self.server = emu.vehicle, emu.codec, emu.server
         self.world, self.mocap = emu.world, emu.mocap

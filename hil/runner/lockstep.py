@@ -23,9 +23,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from hil.link.lockstep import MOCAP_COUNT_MASK, RESEND_FILLER, RESEND_S, STARTUP_RESEND_S, tick_frames
-from hil.link.mavlink import mav
-from hil.runner.emulator_side import CHECK_OVERRUN_S, FC_SYSTEM_ID, EmulatorSide
+from hil.link.lockstep import MOCAP_COUNT_MASK, RESEND_S, STARTUP_RESEND_S
+from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
 from hil.runner.faults import FaultSchedule
 from hil.runner.onboard_side import OnboardSide
 
@@ -35,7 +34,6 @@ STARTUP_GUARD_S = 60.0  # the first answer may wait for a process to start
 #: wall time the loop polls for an answer before it sleeps: the answer usually comes within it, and a
 #: sleeping CPU of a virtual machine takes tens to hundreds of microseconds to wake
 SPIN_S = 1e-3
-FC_COMPONENT_ID = mav.MAV_COMP_ID_AUTOPILOT1
 #: samples the recorder gathers before it checks and records them together (about half a second)
 RECORD_BATCH = 64
 #: wall time the loop waits on a silent onboard program before asking whether it has exited (the spin,
@@ -115,6 +113,7 @@ def run_lockstep(
     next_progress = wall0 + 0.5
     first = True
     wire = emu.wire
+    tick_frames = wire.framing.tick_frames  # (the command link's protocol)
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
     wire.spin_s = SPIN_S
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
@@ -150,7 +149,7 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
-                wire.send_sync(tick_frames(t, mocap_total, FC_SYSTEM_ID, FC_COMPONENT_ID))
+                wire.send_sync(tick_frames(t, mocap_total))
                 onboard.service()
                 emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
                 if first:  # wait for the new process, then the loop proper starts
@@ -244,7 +243,7 @@ def _await_answer(
             # lost on a port opened after it was written, or to corrupt bytes in front of it (a later
             # tick has been answered): the same tick again, after enough filler bytes to complete any
             # frame the program's parser is still collecting on a corrupt length
-            wire.send_sync(RESEND_FILLER + tick_frames(t, mocap_total, FC_SYSTEM_ID, FC_COMPONENT_ID))
+            wire.send_sync(wire.framing.resend_filler + wire.framing.tick_frames(t, mocap_total))
             resend_at = now + resend_s
         # the process is asked whether it has exited each time it has been silent for EXIT_POLL_S: a
         # program that finished its mission while ticks were in flight leaves them unanswered

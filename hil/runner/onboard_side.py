@@ -236,6 +236,8 @@ def onboard_options(s: Scenario) -> list[str]:
     emulator's profile."""
     lab_min, lab_max = (",".join(repr(float(v)) for v in c) for c in (s.lab.min_m, s.lab.max_m))
     return [
+        "--fc-protocol",
+        s.links.command.protocol,
         "--pilot",
         s.pilot,
         "--approach-speed",

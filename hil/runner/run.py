@@ -36,7 +36,7 @@ from hil.runner.onboard_side import (
 )
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.runner.recorder import FC_STATE_CODES
-from hil.scenario.schema import DEFAULT_VEHICLE, Fault, Scenario
+from hil.scenario.schema import COMMAND_PROTOCOLS, DEFAULT_VEHICLE, Fault, Scenario
 from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
@@ -60,6 +60,7 @@ class RunOptions:
     seed: int | None = None
     backend: str | None = None
     vehicle: str | None = None  # a profile name or file; the opening grows with its body box (`for_vehicle`)
+    protocol: str | None = None  # the command link's protocol ("mavlink", "dji_open")
     tick_s: float = DEFAULT_TICK_S
     guard_s: float = DEFAULT_GUARD_S
 
@@ -97,6 +98,12 @@ def resolve(scenario: Scenario, options: RunOptions) -> tuple[Scenario, bool, bo
         s = replace(s, seed=options.seed)
     if options.backend is not None:
         s = replace(s, physics=options.backend)
+    if options.protocol is not None:
+        if options.protocol not in COMMAND_PROTOCOLS:
+            raise RunSetupError(f"command-link protocol must be one of {', '.join(COMMAND_PROTOCOLS)}, "
+                                f"got {options.protocol!r}")
+        command = replace(s.links.command, protocol=options.protocol)
+        s = replace(s, links=replace(s.links, command=command))
     if options.vehicle is not None and options.vehicle != s.vehicle:
         why = not_applicable(s, options.vehicle)
         if why is not None:

@@ -4,9 +4,9 @@ directions, on simulated time.
 
 `CommandWire` is the Transport under the FC's MAVLink codec. Frames the FC sends are queued with their
 arrival time and written to the real link (memory end or pty master) by `pump()`; bytes the onboard
-program wrote are split into frames (`hil.link.mavlink.FrameSplitter`), each given an arrival time, and
-read by the FC's codec once the SimClock has reached it. Lockstep ticks and their answers are the
-harness's own traffic: they bypass the model, the faults and the FC (`send_sync`).
+program wrote are split into frames (the protocol's splitter, `hil.link.lockstep.framing`), each given
+an arrival time, and read by the FC's codec once the SimClock has reached it. Lockstep ticks and their
+answers are the harness's own traffic: they bypass the model, the faults and the FC (`send_sync`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ import numpy as np
 
 from hil.link.channel import Channel, ChannelModel, UartWire
 from hil.link.clock import SimClock
-from hil.link.lockstep import answered_ns
-from hil.link.mavlink import MAVLINK_V2_MAGIC, FrameSplitter
+from hil.link.lockstep import Framing, framing
 from hil.link.transport import Transport, wait_readable
 from hil.runner.faults import FaultSchedule, corrupt
 from hil.scenario.schema import LinkSpec
@@ -79,8 +78,12 @@ class CommandWire(Transport):
         spec: LinkSpec,
         rng: np.random.Generator,
         faults: FaultSchedule,
+        wire_framing: Framing | None = None,
     ) -> None:
+        """``wire_framing``: the command link's protocol as the harness cuts and reads it (default
+        MAVLink with the FC's ids 1, 1)."""
         super().__init__()
+        self.framing = wire_framing or framing("mavlink")
         self.raw = raw
         self.clock = clock
         self.faults = faults
@@ -92,10 +95,12 @@ class CommandWire(Transport):
         self._out_queue: list[tuple[float, int, bytes]] = []
         self._in_queue: list[tuple[float, int, bytes]] = []
         self._seq = 0
-        self.splitter = FrameSplitter()
+        self.splitter = self.framing.splitter()
+        self._answered_ns = self.framing.answered_ns
+        self._is_setpoint = self.framing.is_setpoint
         self.to_onboard = DirectionStats()
         self.to_fc = DirectionStats()
-        self.setpoints_sent = 0  # SET_ATTITUDE_TARGET frames the onboard program wrote
+        self.setpoints_sent = 0  # setpoint frames the onboard program wrote
         #: real time: the onboard computer's modelled compute time (s); what the program writes is handed
         #: to the link this long after it is read, as lockstep hands a tick's outputs over (`read_onboard`)
         self.compute_s = 0.0
@@ -181,7 +186,7 @@ class CommandWire(Transport):
         backlog = self._backlog
         while backlog:
             frame = backlog.popleft()
-            if answered_ns(frame) is None:
+            if self._answered_ns(frame) is None:
                 self._queue_for_fc(frame, now)
         return got
 
@@ -198,7 +203,7 @@ class CommandWire(Transport):
         backlog, frames = self._backlog, self._unanswered
         while backlog:
             frame = backlog.popleft()
-            answered = answered_ns(frame)
+            answered = self._answered_ns(frame)
             if answered is None:
                 frames.append(frame)
                 continue
@@ -218,7 +223,7 @@ class CommandWire(Transport):
         return any(k > tick_ns for k in self._answered_later)
 
     def _queue_for_fc(self, frame: bytes, handed_s: float) -> None:
-        if len(frame) > 9 and frame[0] == MAVLINK_V2_MAGIC and frame[7] == 82 and frame[8] == frame[9] == 0:
+        if self._is_setpoint(frame):
             self.setpoints_sent += 1
         self.to_fc.frames_sent += 1
         arrival = self._in.arrival_s(handed_s, len(frame))

@@ -160,6 +160,18 @@ class LinkSpec:
     burst: BurstLoss | None = spec(None, doc="burst loss on top of `loss`; null: none")
 
 
+#: the command link's protocols: MAVLink 2 (PX4-flavoured) or DJI's OPEN protocol (Onboard SDK 3.x)
+COMMAND_PROTOCOLS = ("mavlink", "dji_open")
+
+
+@dataclass(frozen=True)
+class CommandLinkSpec(LinkSpec):
+    """The link between the onboard computer and the flight controller, with the protocol it speaks."""
+
+    protocol: str = spec("mavlink", choices=COMMAND_PROTOCOLS,
+                         doc="what the FC and the onboard program speak (docs/dji-open-link.md)")
+
+
 @dataclass(frozen=True)
 class MocapLinkSpec(LinkSpec):
     """The motion-capture radio link, with the tracker's frame rate."""
@@ -184,7 +196,8 @@ class EscBusSpec:
 class LinksSpec:
     """Both links of a run, and the ESC bus when the motors are behind one."""
 
-    command: LinkSpec = spec(factory=LinkSpec, doc="onboard computer <-> flight controller (MAVLink)")
+    command: CommandLinkSpec = spec(factory=CommandLinkSpec,
+                                    doc="onboard computer <-> flight controller (MAVLink or DJI OPEN)")
     mocap: MocapLinkSpec = spec(factory=MocapLinkSpec, doc="mocap -> onboard computer (UWB radio)")
     esc_bus: EscBusSpec | None = spec(None, doc="FC -> ESCs over DroneCAN; null: the FC drives the motors")
 

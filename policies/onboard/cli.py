@@ -31,7 +31,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The program's options (units in the help)."""
     d = ProgramConfig()
     p.add_argument("--command-link", required=True, metavar="SPEC",
-                   help="MAVLink link to the FC, e.g. serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
+                   help="link to the FC (MAVLink, or DJI OPEN with --fc-protocol dji-open), e.g. "
+                        "serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
+    p.add_argument("--fc-protocol", default=d.fc_protocol, choices=("mavlink", "dji-open", "dji_open"),
+                   help="what the FC speaks on the command link: MAVLink 2 (default) or DJI's OPEN protocol")
     p.add_argument("--mocap-link", required=True, metavar="SPEC",
                    help="mocap (LinkTrack) link, e.g. serial:/dev/pts/6:921600 or udp:127.0.0.1:14660")
     p.add_argument("--pilot", default=d.pilot, help=f"pilot by name: {', '.join(PILOTS.names())}")
@@ -92,7 +95,8 @@ def config_from_args(args: argparse.Namespace) -> ProgramConfig:
     lead_s = v.control_lead_s if args.control_lead_ms is None else args.control_lead_ms / 1e3
     traverse_lead_m = v.traverse_lead_m if args.traverse_lead is None else args.traverse_lead
     return ProgramConfig(
-        pilot=args.pilot, rate_hz=args.rate_hz, approach_speed_m_s=args.approach_speed,
+        pilot=args.pilot, fc_protocol=args.fc_protocol.replace("-", "_"), rate_hz=args.rate_hz,
+        approach_speed_m_s=args.approach_speed,
         approach_duration_s=args.approach_duration, traverse_lead_m=traverse_lead_m,
         stale_mocap_s=args.stale_mocap_ms / 1e3,
         mass_kg=v.mass_kg if args.mass is None else args.mass,

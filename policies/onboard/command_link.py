@@ -15,6 +15,7 @@ import contextlib
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 from hil.link.clock import Clock
 from hil.link.lockstep import (
@@ -96,9 +97,15 @@ class FcStatus:
 class CommandLink:
     """MAVLink client of the FC on ``transport``, stamped with ``clock`` (s)."""
 
-    def __init__(self, transport: Transport, clock: Clock, target_system: int = 1) -> None:
-        self.codec = MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID,
-                                  accept_ids=USED_MSG_IDS, raw_ids=RAW_MSG_IDS)
+    #: the protocol, as the onboard program's options name it
+    protocol = "mavlink"
+
+    def __init__(self, transport: Transport, clock: Clock, target_system: int = 1, *,
+                 codec: Any = None) -> None:
+        """``codec``: another protocol's codec (a subclass's: `DjiCommandLink`), whose ``feed`` gives
+        the items `_handle` acts on; None: MAVLink 2."""
+        self.codec = codec or MavlinkCodec(transport, clock, ONBOARD_SYSTEM_ID, ONBOARD_COMPONENT_ID,
+                                           accept_ids=USED_MSG_IDS, raw_ids=RAW_MSG_IDS)
         self.clock = clock
         self.target_system = target_system
         self.status: FcStatus | None = None
@@ -288,10 +295,14 @@ class CommandLink:
 
     def answer_tick(self, tick_s: float) -> None:
         """Lockstep "done with this tick" (`hil.link.lockstep`)."""
-        self._send_frame(self.codec.pack_payload(TIMESYNC_ID, answer_payload(tick_s)))
+        self._send_frame(self._answer_frame(tick_s))
         self._open_ticks = max(0, self._open_ticks - 1)
         if self._open_ticks == 0:
             self.flush()
+
+    def _answer_frame(self, tick_s: float) -> bytes:
+        """The frame that answers the tick at ``tick_s`` (s) on this link's protocol."""
+        return self.codec.pack_payload(TIMESYNC_ID, answer_payload(tick_s))
 
     def close(self) -> None:
         with contextlib.suppress(OSError):

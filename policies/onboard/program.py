@@ -56,11 +56,14 @@ from policies.gap_planning import (
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
+from policies.onboard.dji_command_link import DjiCommandLink
 from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
 from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
+#: the command link's protocols (what the FC speaks) -> the program's client of it
+COMMAND_LINKS: dict[str, type[CommandLink]] = {"mavlink": CommandLink, "dji_open": DjiCommandLink}
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
 HEARTBEAT_REQUEST_S = 0.1  # how often the FC's heartbeat is asked for until one comes (s)
 VEHICLE_BODY_ID = BODY_IDS["vehicle"]  # the mocap body whose poses feed the estimator
@@ -102,6 +105,7 @@ class ProgramConfig:
     """Settings of the onboard program (SI units)."""
 
     pilot: str = "traditional"
+    fc_protocol: str = "mavlink"  # what the FC speaks on the command link (`COMMAND_LINKS`)
     rate_hz: float = 100.0  # control rate; >= 50 Hz (the N3's minimum)
     approach_speed_m_s: float = 2.0  # speed through the gap centre
     approach_duration_s: float = 2.6
@@ -141,6 +145,9 @@ class ProgramConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
 
     def __post_init__(self) -> None:
+        if self.fc_protocol not in COMMAND_LINKS:
+            raise ValueError(f"FC protocol must be one of {', '.join(COMMAND_LINKS)}, "
+                             f"got {self.fc_protocol!r}")
         if not (math.isfinite(self.lockstep_spin_s) and 0.0 <= self.lockstep_spin_s <= 0.1):
             raise ValueError(f"lockstep spin must be 0..100000 us, got {self.lockstep_spin_s * 1e6:g}")
         if not (math.isfinite(self.rate_hz) and self.rate_hz >= MIN_RATE_HZ):
@@ -254,7 +261,7 @@ class OnboardProgram:
                  events: EventLog | None = None) -> None:
         self.config = cfg = config or ProgramConfig()
         self.clock = ProgramClock()
-        self.link = CommandLink(command_transport, self.clock)
+        self.link = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
         self.estimator = PoseEstimator(cfg.estimator)
         self.pilot = pilot or make_pilot(
@@ -407,7 +414,8 @@ class OnboardProgram:
             self._next_heartbeat_request_s = now_s + HEARTBEAT_REQUEST_S
         if now_s - self._phase_since_s > cfg.wait_timeout_s:
             self._finish(Phase.FAILED, EXIT_ERROR, "error", reason="timed out waiting for mocap and the FC",
-                         vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok)
+                         vehicle_mocap=self.estimator.ready, gap_mocap=gap_ok, fc_heartbeat=fc_ok,
+                         status_texts=self.link.status_texts[-3:])  # (a refused activation says so)
 
     def _authority(self, now_s: float) -> None:
         if self._request is None:
@@ -743,7 +751,7 @@ class OnboardProgram:
         """Counters for the end of a run."""
         return {"phase": str(self.phase), "exit_code": self.exit_code, "control_steps": self.control_steps,
                 "skipped_steps": self.skipped_steps, "commands_refused": self.commands_refused,
-                "mavlink": self.link.codec.stats.as_dict(), "foreign": dict(self.link.foreign),
+                self.link.protocol: self.link.codec.stats.as_dict(), "foreign": dict(self.link.foreign),
                 "mocap": asdict(self.mocap.counters), "estimator_updates": self.estimator.updates,
                 "estimator_rejected": self.estimator.rejected}
 

@@ -1,0 +1,540 @@
+"""DJI's OPEN protocol (Onboard SDK 3.x, the N3/A3's UART protocol): frames, CRCs, a streaming parser,
+sessions, ACKs, and the command sets and ids this project speaks. One module owns the protocol: the
+emulator's server (`emulator.fc.dji_open_server`) and the onboard client (`policies.onboard`) both
+frame and read through it. Layout and codes: docs/dji-open-link.md.
+
+A frame: a 12-byte header (SOF 0xAA; LEN, 10 bits: the whole frame's length; VER, 6 bits, 0; SESSION,
+5 bits; ACK flag; 2 reserved bits; PADDING, 5 bits; ENC, 3 bits; 3 reserved bytes; SEQ, u16; CRC16 over
+bytes 0-9), the data (a command: command set, command id, payload; an ACK: the ACK value), and a CRC32
+over everything before it. Both CRCs are DJI's: reflected (CRC-16/ARC's polynomial 0x8005, CRC-32's
+0x04C11DB7), started from 0x3AA3, no final XOR; all fields little endian.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import crcmod
+
+from hil.link.clock import Clock
+from hil.link.mavlink import FrameSplitter as _Splitter
+from hil.link.transport import Transport
+
+SOF = 0xAA
+HEADER_BYTES = 12
+CRC32_BYTES = 4
+MIN_FRAME_BYTES = HEADER_BYTES + CRC32_BYTES  # a frame with no data
+MAX_FRAME_BYTES = 1023  # LEN is 10 bits (12 header + 1007 data + 4 CRC32)
+MAX_DATA_BYTES = MAX_FRAME_BYTES - MIN_FRAME_BYTES
+CRC_INIT = 0x3AA3
+#: DJI's CRC16 of ``data`` (reflected 0x8005, init 0x3AA3, no final XOR)
+crc16 = crcmod.mkCrcFun(0x18005, initCrc=CRC_INIT, rev=True, xorOut=0)
+#: DJI's CRC32 of ``data`` (reflected 0x04C11DB7, init 0x3AA3, no final XOR)
+crc32 = crcmod.mkCrcFun(0x104C11DB7, initCrc=CRC_INIT, rev=True, xorOut=0)
+
+# sessions: 0 no ACK; 1 ACK wanted, loss tolerated; 2-31 reliable (a retry resends SESSION and SEQ)
+SESSION_NO_ACK = 0
+SESSION_ACK_ONCE = 1
+RELIABLE_SESSIONS = range(2, 32)
+ENC_NONE, ENC_AES = 0, 1
+
+# --- command sets and ids (Onboard SDK 3.x) ------------------------------------------------------
+SET_ACTIVATION = 0x00
+CMD_VERSION = 0x00  # payload: one arbitrary byte; ACK: u16 code, u32 version CRC, 32-byte version name
+CMD_ACTIVATE = 0x01  # payload: u32 app id, u32 reserved, u32 SDK version, 32-byte bundle id; ACK u16
+CMD_BROADCAST_FREQ = 0x10  # payload: 16 bytes, one rate code per broadcast item; ACK u16
+SET_CONTROL = 0x01
+CMD_CONTROL_AUTHORITY = 0x00  # payload: 1 obtain, 0 release; ACK u16
+CMD_TASK = 0x01  # payload: one task code; ACK u16
+CMD_SETPOINT = 0x03  # payload: control flag + 4 float32 (roll, pitch, thrust/z, yaw); no ACK
+CMD_ARM = 0x05  # payload: 1 arm, 0 disarm; ACK u16
+SET_BROADCAST = 0x02
+CMD_FLIGHT_DATA = 0x00  # the pushed flight data (`BROADCAST_ITEMS`)
+CMD_CONTROL_LOST = 0x01  # pushed when the onboard device loses control authority; payload 0x04
+#: the harness's lockstep ticks (`hil.link.lockstep`): a command set DJI does not use, so an Onboard SDK
+#: program never sees one (its protocol layer drops frames of sets it does not know)
+SET_HIL = 0xFE
+CMD_HIL_TICK = 0x00  # the tick request and the mocap byte total (layout: `hil.link.lockstep`)
+CMD_HIL_ANSWER = 0x01  # the answer
+
+# the setpoint's control flag byte: horizontal (bits 7:6) | vertical (5:4) | yaw (3) | frame (2:1) |
+# stable (0)
+HORIZONTAL_ANGLE = 0x00
+HORIZONTAL_VELOCITY = 0x40
+HORIZONTAL_POSITION = 0x80
+HORIZONTAL_ANGULAR_RATE = 0xC0
+VERTICAL_VELOCITY = 0x00
+VERTICAL_POSITION = 0x10
+VERTICAL_THRUST = 0x20
+YAW_ANGLE = 0x00
+YAW_RATE = 0x08
+FRAME_GROUND = 0x00
+FRAME_BODY = 0x02
+STABLE_DISABLE = 0x00
+STABLE_ENABLE = 0x01
+#: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle (or rate), ground frame
+ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
+ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
+
+# ACK codes (u16)
+ACK_SUCCESS = 0x0000
+# activation (0x00 0x01)
+ACTIVATE_SUCCESS = 0x0000
+ACTIVATE_BAD_PARAMETERS = 0x0001
+ACTIVATE_ENCRYPTION_ERROR = 0x0002
+ACTIVATE_NEW_APP = 0x0003
+ACTIVATE_SERVER_REFUSED = 0x0006
+ACTIVATE_ACCESS_LEVEL = 0x0007
+ACTIVATE_SDK_VERSION = 0x0008
+# control authority (0x01 0x00)
+CONTROL_NEEDS_F_MODE = 0x0000
+CONTROL_RELEASED = 0x0001
+CONTROL_OBTAINED = 0x0002
+CONTROL_OBTAIN_FAILED = 0x0003
+CONTROL_RELEASE_FAILED = 0x0004
+# arm/disarm (0x01 0x05)
+ARM_SUCCESS = 0x0000
+ARM_NEEDS_CONTROL = 0x0001
+ARM_ALREADY = 0x0002
+ARM_CANNOT = 0x0003
+# flight tasks (0x01 0x01), the N3/A3's codes, and their ACKs
+TASK_TAKEOFF = 1
+TASK_LAND = 2
+TASK_GO_HOME = 6
+TASK_START_MOTORS = 7
+TASK_STOP_MOTORS = 8
+TASK_FAILED = 0x0001
+TASK_STARTED = 0x0002
+# common codes (any command)
+ACK_KEY_ERROR = 0xFF00  # an encrypted frame the FC cannot read
+ACK_NO_AUTHORISATION = 0xFF01  # not activated
+ACK_NO_RIGHTS = 0xFF02  # a command set or id this FC does not answer
+ACK_NO_RESPONSE = 0xFFFF
+
+#: broadcast rate codes (0x00 0x10) -> Hz; 5 keeps the item's rate
+BROADCAST_RATES_HZ: dict[int, float] = {0: 0.0, 1: 1.0, 2: 10.0, 3: 50.0, 4: 100.0}
+BROADCAST_KEEP = 5
+#: the broadcast items (0x02 0x00) in flag-bit order: (name, bytes, struct layout after the flag word)
+BROADCAST_ITEMS: tuple[tuple[str, str], ...] = (
+    ("time", "<IIB"),  # 400 Hz ticks, ns, sync flag
+    ("quaternion", "<4f"),  # q0..q3 (w, x, y, z): body FRD -> ground NED
+    ("acceleration", "<3f"),  # ground frame north, east, up (m/s^2)
+    ("velocity", "<3fB"),  # ground frame north, east, up (m/s), health (bit 0: valid)
+    ("angular_rate", "<3f"),  # body FRD (rad/s)
+    ("position", "<ddffB"),  # latitude, longitude (rad), altitude, height (m), GPS health 0-5
+    ("magnetometer", "<3h"),
+    ("rc", "<6h"),  # roll, pitch, yaw, throttle, mode, gear (-10000..10000; mode P -8000, A 0, F 8000)
+    ("gimbal", "<3fB"),
+    ("status", "<B"),  # flight status: 1 standby, 2 take-off, 3 in air, 4 landing, 5 finished landing
+    ("battery", "<B"),  # percent
+    ("control_device", "<BB"),  # API control mode, device (bits 0-2: 0 RC, 1 app, 2 onboard) | flags
+)
+BROADCAST_STRUCTS = tuple(struct.Struct(layout) for _, layout in BROADCAST_ITEMS)
+BROADCAST_BIT = {name: i for i, (name, _) in enumerate(BROADCAST_ITEMS)}
+RC_MODE_P, RC_MODE_A, RC_MODE_F = -8000, 0, 8000
+FLIGHT_STANDBY, FLIGHT_TAKEOFF, FLIGHT_IN_AIR, FLIGHT_LANDING, FLIGHT_LANDED = 1, 2, 3, 4, 5
+DEVICE_RC, DEVICE_APP, DEVICE_ONBOARD = 0, 1, 2
+DEVICE_MASK = 0x07
+#: the version the emulator reports (0x00 0x00): a 32-byte name
+FC_VERSION_NAME = b"SDK-v1.0 N3-EMU-03.01.10.00"
+
+_SETPOINT = struct.Struct("<B4f")
+_U16 = struct.Struct("<H")
+_HEAD = struct.Struct("<BHBB3xH")  # SOF, LEN | VER << 10, SESSION | ACK << 5, PADDING | ENC << 5, SEQ
+_CRC16 = struct.Struct("<H")
+_CRC32 = struct.Struct("<I")
+
+
+class Frame(NamedTuple):
+    """One good frame: its header fields and its data (a command's set, id and payload, or an ACK's
+    value). (A named tuple: one is made per frame received.)"""
+
+    session: int
+    is_ack: bool
+    seq: int
+    data: bytes
+    enc: int = ENC_NONE
+    padding: int = 0
+
+    @property
+    def cmd_set(self) -> int:
+        return self.data[0] if self.data else -1
+
+    @property
+    def cmd_id(self) -> int:
+        return self.data[1] if len(self.data) > 1 else -1
+
+    @property
+    def payload(self) -> bytes:
+        return self.data[2:]
+
+    @property
+    def wants_ack(self) -> bool:
+        return not self.is_ack and self.session != SESSION_NO_ACK
+
+
+def encode(session: int, seq: int, data: bytes, *, is_ack: bool = False, enc: int = ENC_NONE,
+           padding: int = 0) -> bytes:
+    """One frame of ``data``; ValueError for a field out of range."""
+    if not 0 <= session <= 31:
+        raise ValueError(f"session must be 0..31, got {session}")
+    if len(data) > MAX_DATA_BYTES:
+        raise ValueError(f"data of {len(data)} bytes: at most {MAX_DATA_BYTES} fit a frame")
+    if not (0 <= enc <= 7 and 0 <= padding <= 31):
+        raise ValueError(f"ENC must be 0..7 and PADDING 0..31, got {enc}, {padding}")
+    n = MIN_FRAME_BYTES + len(data)
+    head = _HEAD.pack(SOF, n, session | is_ack << 5, padding | enc << 5, seq & 0xFFFF)
+    head += _CRC16.pack(crc16(head))
+    body = head + data
+    return body + _CRC32.pack(crc32(body))
+
+
+def encode_command(cmd_set: int, cmd_id: int, payload: bytes, session: int, seq: int) -> bytes:
+    """A command frame."""
+    return encode(session, seq, bytes((cmd_set, cmd_id)) + payload)
+
+
+def encode_ack(session: int, seq: int, value: bytes) -> bytes:
+    """The ACK frame that answers the command of ``session`` and ``seq``."""
+    return encode(session, seq, value, is_ack=True)
+
+
+def ack_code(code: int) -> bytes:
+    """An ACK value of one u16 return code."""
+    return _U16.pack(code)
+
+
+def read_ack_code(value: bytes) -> int | None:
+    """The u16 return code an ACK value starts with (None: too short)."""
+    return _U16.unpack_from(value)[0] if len(value) >= 2 else None
+
+
+def setpoint_payload(flag: int, x: float, y: float, z: float, yaw: float) -> bytes:
+    """The flight-control setpoint (0x01 0x03): control flag, roll/x, pitch/y, thrust/z, yaw (float32)."""
+    return _SETPOINT.pack(flag, x, y, z, yaw)
+
+
+def read_setpoint(payload: bytes) -> tuple[int, float, float, float, float] | None:
+    """(flag, x, y, z, yaw) of a setpoint payload; None when it is not 17 bytes."""
+    return _SETPOINT.unpack(payload) if len(payload) == _SETPOINT.size else None
+
+
+def frame_size(buf: bytes | bytearray, i: int) -> int:
+    """The LEN of the frame that starts at ``buf[i]``, by its header: 0 when the header is not complete
+    in ``buf``, -1 when ``buf[i]`` starts no frame (no SOF, a bad header, a LEN under 16)."""
+    if buf[i] != SOF:
+        return -1
+    if i + HEADER_BYTES > len(buf):
+        return 0
+    size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
+    return size if size >= MIN_FRAME_BYTES and _header_ok(buf, i) else -1
+
+
+@dataclass
+class OpenStats:
+    """What a parser and codec saw on the wire (counts)."""
+
+    frames_received: int = 0
+    frames_sent: int = 0
+    acks_received: int = 0
+    garbage_bytes: int = 0  # bytes skipped while looking for a frame start
+    bad_header: int = 0  # a CRC16 that does not match, a VER that is not 0, reserved bits set
+    bad_length: int = 0  # LEN shorter than a header and CRC32
+    bad_crc: int = 0  # a good header, a CRC32 that does not match
+    encrypted: int = 0  # good frames with ENC set (the FC has no key: answered, not read)
+    retries: int = 0  # reliable commands sent again (same SESSION and SEQ)
+    timeouts: int = 0  # reliable commands given up on
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @property
+    def errors(self) -> int:
+        return self.garbage_bytes + self.bad_header + self.bad_length + self.bad_crc
+
+
+def _header_ok(buf: bytes | bytearray, i: int) -> bool:
+    """Whether the 12 bytes at ``buf[i]`` are a header: CRC16 good, VER 0, reserved bits and bytes 0."""
+    return (
+        buf[i + 2] >> 2 == 0
+        and buf[i + 3] & 0xC0 == 0
+        and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
+        and crc16(buf[i : i + HEADER_BYTES]) == 0  # over the header with its own CRC field: 0
+    )
+
+
+class FrameParser:
+    """Cuts a byte stream into good frames, counting the rest in ``stats``.
+
+    It resynchronises on the next SOF after garbage, a bad header or a bad CRC32, one byte after the
+    start it gave up on: a frame that follows a bad one, even inside the bad one's claimed length, is
+    found. It waits for a frame's bytes only once its header (and so its LEN) has checked out."""
+
+    def __init__(self, stats: OpenStats | None = None) -> None:
+        self.stats = stats or OpenStats()
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """The good frames (as bytes) of what has come so far, in order."""
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        st = self.stats
+        i, n = 0, len(buf)
+        while i < n:
+            if buf[i] != SOF:
+                j = buf.find(SOF, i + 1)
+                j = n if j < 0 else j
+                st.garbage_bytes += j - i
+                i = j
+                continue
+            if i + HEADER_BYTES > n:
+                break
+            if not _header_ok(buf, i):
+                st.bad_header += 1
+                i += 1
+                continue
+            size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
+            if size < MIN_FRAME_BYTES:
+                st.bad_length += 1
+                i += 1
+                continue
+            if i + size > n:
+                break
+            frame = bytes(buf[i : i + size])
+            if crc32(frame) != 0:  # (the CRC over the frame including its own CRC field is 0)
+                st.bad_crc += 1
+                i += 1
+                continue
+            out.append(frame)
+            i += size
+        del buf[:i]
+        return out
+
+    @property
+    def pending_bytes(self) -> int:
+        return len(self._buf)
+
+
+def FrameSplitter() -> _Splitter:
+    """Cuts an OPEN-protocol byte stream into frames by their checked headers and LEN (no CRC32 check:
+    a codec does that); bytes that start no frame are passed on as they are."""
+    return _Splitter(frame_size, bytes((SOF,)))
+
+
+def decode(frame: bytes) -> Frame:
+    """The fields of one good frame (as `FrameParser` hands them over)."""
+    return Frame(
+        session=frame[3] & 0x1F,
+        is_ack=bool(frame[3] & 0x20),
+        seq=frame[8] | frame[9] << 8,
+        data=frame[HEADER_BYTES:-CRC32_BYTES],
+        enc=frame[4] >> 5,
+        padding=frame[4] & 0x1F,
+    )
+
+
+@dataclass
+class _Pending:
+    """A reliable command waiting for its ACK."""
+
+    key: tuple[int, int]  # (command set, command id)
+    frame: bytes
+    seq: int
+    next_try_s: float
+    tries: int
+
+
+class OpenCodec:
+    """OPEN-protocol frames over a byte-stream Transport, stamped by a Clock.
+
+    Sending: `send_command` frames a command on a session: 0 (no ACK), 1 (ACK wanted, not resent), or a
+    free reliable session 2-31, kept until its ACK comes and resent with the same SESSION and SEQ every
+    ``retry_s`` up to ``tries`` times (`service`). `receive` hands back the good frames that are not
+    ACKs and keeps the ACKs' values, by (command set, command id), in ``acks``."""
+
+    def __init__(self, transport: Transport, clock: Clock, *, recorder: object | None = None,
+                 retry_s: float = 0.1, tries: int = 3, keep_acks: bool = False) -> None:
+        if not (math.isfinite(retry_s) and retry_s > 0 and tries >= 1):
+            raise ValueError(f"retries need retry_s > 0 and tries >= 1, got {retry_s}, {tries}")
+        self.transport = transport
+        self.clock = clock
+        self.recorder = recorder
+        self.stats = OpenStats()
+        self.parser = FrameParser(self.stats)
+        self.retry_s, self.tries = retry_s, tries
+        self.keep_acks = keep_acks  # see `feed`
+        self._seq = 0
+        self._pending: dict[int, _Pending] = {}  # session -> command waiting for its ACK
+        self._once: dict[int, tuple[int, int]] = {}  # seq -> command of a session-1 frame
+        #: ACK values received, by (command set, command id), with the clock time (s) they came
+        self.acks: dict[tuple[int, int], tuple[bytes, float]] = {}
+
+    def next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return self._seq
+
+    def pack_command(self, cmd_set: int, cmd_id: int, payload: bytes, session: int = SESSION_NO_ACK) -> bytes:
+        """A command frame on ``session`` (0 or 1) with the next SEQ, counted and recorded as sent."""
+        seq = self.next_seq()
+        if session == SESSION_ACK_ONCE:
+            self._once[seq] = (cmd_set, cmd_id)
+            if len(self._once) > 64:
+                self._once.pop(next(iter(self._once)))
+        return self._sent(encode_command(cmd_set, cmd_id, payload, session, seq))
+
+    def send_command(self, cmd_set: int, cmd_id: int, payload: bytes, *, reliable: bool = True,
+                     session: int | None = None) -> bytes:
+        """Frame and write a command; ``reliable``: on a free session 2-31, resent until ACKed (a
+        command of the same set and id still waiting is replaced). Returns the frame."""
+        if not reliable:
+            sess = SESSION_NO_ACK if session is None else session
+            frame = self.pack_command(cmd_set, cmd_id, payload, sess)
+        else:
+            frame = self.pack_reliable(cmd_set, cmd_id, payload, session)
+        self.transport.send(frame)
+        return frame
+
+    def pack_reliable(self, cmd_set: int, cmd_id: int, payload: bytes, session: int | None = None) -> bytes:
+        """`send_command`'s reliable frame, kept for its ACK and retries, not written (the caller
+        writes it)."""
+        key = (cmd_set, cmd_id)
+        self.acks.pop(key, None)
+        for s, p in list(self._pending.items()):
+            if p.key == key:
+                del self._pending[s]
+        sess = session if session is not None else self._free_session()
+        seq = self.next_seq()
+        frame = self._sent(encode_command(cmd_set, cmd_id, payload, sess, seq))
+        self._pending[sess] = _Pending(key, frame, seq, self.clock.now_s() + self.retry_s, 1)
+        return frame
+
+    def _free_session(self) -> int:
+        for s in RELIABLE_SESSIONS:
+            if s not in self._pending:
+                return s
+        oldest = min(self._pending, key=lambda s: self._pending[s].next_try_s)
+        del self._pending[oldest]
+        self.stats.timeouts += 1
+        return oldest
+
+    def send_ack(self, session: int, seq: int, value: bytes) -> bytes:
+        frame = self._sent(encode_ack(session, seq, value))
+        self.transport.send(frame)
+        return frame
+
+    def _sent(self, frame: bytes) -> bytes:
+        self.stats.frames_sent += 1
+        rec = self.recorder
+        if rec is not None:
+            rec.record(frame, self.clock.now_s())  # type: ignore[attr-defined]
+        return frame
+
+    def service(self, now_s: float) -> list[bytes]:
+        """Resend the reliable commands whose ACK is overdue (same SESSION, SEQ, bytes); those out of
+        tries are dropped (``stats.timeouts``). Returns the frames to write (the caller writes them)."""
+        out = []
+        for s, p in list(self._pending.items()):
+            if now_s < p.next_try_s:
+                continue
+            if p.tries >= self.tries:
+                del self._pending[s]
+                self.stats.timeouts += 1
+                continue
+            p.tries += 1
+            p.next_try_s = now_s + self.retry_s
+            self.stats.retries += 1
+            out.append(p.frame)
+        return out
+
+    @property
+    def waiting(self) -> int:
+        """Reliable commands waiting for their ACK."""
+        return len(self._pending)
+
+    def receive(self, timeout_s: float = 0.0) -> list[Frame]:
+        data = self.transport.recv(timeout_s)
+        return self.feed(data) if data else []
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Parse ``data``: the good frames that are not ACKs (ACKs are matched into ``acks`` at once);
+        with ``keep_acks``, the ACK frames too, in stream order, for the caller to `match_ack` when it
+        acts on them (a lockstep reader acts on what came before a tick only)."""
+        keep_acks = self.keep_acks
+        out = []
+        now = self.clock.now_s()
+        rec = self.recorder
+        for raw in self.parser.feed(data):
+            self.stats.frames_received += 1
+            if rec is not None:
+                rec.record(raw, now)  # type: ignore[attr-defined]
+            f = decode(raw)
+            if f.enc != ENC_NONE:
+                self.stats.encrypted += 1
+            if f.is_ack:
+                self.stats.acks_received += 1
+                if not keep_acks:
+                    self.match_ack(f, now)
+                    continue
+            out.append(f)
+        return out
+
+    def match_ack(self, f: Frame, now_s: float) -> tuple[int, int] | None:
+        """The (command set, id) the ACK ``f`` answers, its value kept in ``acks`` (None: it answers
+        nothing this codec waits for)."""
+        p = self._pending.get(f.session)
+        if p is not None and p.seq == f.seq:
+            del self._pending[f.session]
+            key = p.key
+        elif f.session == SESSION_ACK_ONCE and f.seq in self._once:
+            key = self._once.pop(f.seq)
+        else:
+            return None
+        self.acks[key] = (f.data, now_s)
+        return key
+
+    def is_waiting(self, cmd_set: int, cmd_id: int) -> bool:
+        """Whether a reliable command of this set and id waits for its ACK."""
+        return any(p.key == (cmd_set, cmd_id) for p in self._pending.values())
+
+
+#: the commands' names, by (command set, command id), for decoders and logs
+COMMAND_NAMES: dict[tuple[int, int], str] = {
+    (SET_ACTIVATION, CMD_VERSION): "version query",
+    (SET_ACTIVATION, CMD_ACTIVATE): "activation",
+    (SET_ACTIVATION, CMD_BROADCAST_FREQ): "flight data rates",
+    (SET_CONTROL, CMD_CONTROL_AUTHORITY): "control authority",
+    (SET_CONTROL, CMD_TASK): "flight task",
+    (SET_CONTROL, CMD_SETPOINT): "setpoint",
+    (SET_CONTROL, CMD_ARM): "arm/disarm",
+    (SET_BROADCAST, CMD_FLIGHT_DATA): "flight data",
+    (SET_BROADCAST, CMD_CONTROL_LOST): "control lost",
+    (SET_HIL, CMD_HIL_TICK): "hil tick",
+    (SET_HIL, CMD_HIL_ANSWER): "hil tick answer",
+}
+
+
+def describe(frame: bytes) -> str:
+    """One line about a good frame: session, SEQ, what it is and its fields."""
+    f = decode(frame)
+    head = f"session {f.session:2d} seq {f.seq:5d} "
+    if f.enc != ENC_NONE:
+        return head + f"encrypted (ENC {f.enc}, {len(f.data)} bytes)"
+    if f.is_ack:
+        code = read_ack_code(f.data)
+        extra = f" +{len(f.data) - 2} bytes" if len(f.data) > 2 else ""
+        return head + (f"ACK 0x{code:04X}{extra}" if code is not None else f"ACK {f.data.hex()}")
+    name = COMMAND_NAMES.get((f.cmd_set, f.cmd_id), "unknown")
+    what = f"0x{f.cmd_set:02X} 0x{f.cmd_id:02X} {name}"
+    p = f.payload
+    if (f.cmd_set, f.cmd_id) == (SET_CONTROL, CMD_SETPOINT) and (sp := read_setpoint(p)) is not None:
+        flag, x, y, z, yaw = sp
+        return head + f"{what}: flag 0x{flag:02X} roll {x:.2f} pitch {y:.2f} thrust {z:.2f} yaw {yaw:.2f}"
+    if (f.cmd_set, f.cmd_id) == (SET_BROADCAST, CMD_FLIGHT_DATA) and len(p) >= 2:
+        flags = p[0] | p[1] << 8
+        items = [n for i, (n, _) in enumerate(BROADCAST_ITEMS) if flags >> i & 1]
+        return head + f"{what}: {', '.join(items)}"
+    return head + f"{what}: {p.hex(' ')}" if p else head + what

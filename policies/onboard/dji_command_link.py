@@ -1,0 +1,220 @@
+"""The onboard computer's DJI OPEN-protocol client of the FC (Onboard SDK 3.x, as on the paper's TX2 and
+N3): activation, the flight-data rates it needs, control authority, arming, the attitude-thrust setpoint,
+and the harness's lockstep ticks (`hil.link.lockstep`'s, on command set 0xFE).
+
+It is a `CommandLink` to the onboard program: the same requests (`request_offboard` obtains control
+authority, `request_hold` releases it, `request_arm` arms), their answers in ``acks`` under the same
+request keys (the MAVLink command ids the program waits on), and the FC's state in ``status`` (from the
+flight data: armed is the flight status past standby, offboard is the onboard device holding control).
+The lockstep's reading (actions up to the next tick, outputs held until the tick is answered) is
+`CommandLink`'s. Commands go on reliable sessions (resent with the same SESSION and SEQ until their ACK);
+setpoints and the tick answers on session 0. World ENU / body FLU inside; NED Euler angles in degrees
+on the wire (`hil.link.dji_open`, docs/dji-open-link.md).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+from hil.link import dji_open as dj
+from hil.link.clock import Clock
+from hil.link.lockstep import dji_answer_payload, dji_read_tick
+from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
+from hil.link.transport import Transport
+from policies.onboard.command_link import CommandAck, CommandLink
+
+#: the Onboard SDK app's activation: app id, reserved, SDK version 3.1.10, the bundle id (32 bytes)
+APP_ID = 1069806
+SDK_VERSION = 0x03010A00
+APP_BUNDLE = b"12345678901234567890123456789012"
+#: the flight data the program reads: flight status and control device at 10 Hz (the FC pushes them at
+#: once on a change of state or authority besides), battery at 1 Hz
+BROADCAST_RATES = bytes([0, 0, 0, 0, 0, 0, 0, 0, 0, 2, 1, 2, 0, 0, 0, 0])
+ACTIVATION_RETRY_S = 0.5  # a refused or unanswered activation is asked again this often (s)
+_OBTAIN, _RELEASE = b"\x01", b"\x00"
+_STATUS_BIT = dj.BROADCAST_BIT["status"]
+_DEVICE_BIT = dj.BROADCAST_BIT["control_device"]
+_SIZES = tuple(s.size for s in dj.BROADCAST_STRUCTS)
+_CONTROL = (dj.SET_CONTROL, dj.CMD_CONTROL_AUTHORITY)
+_ARM = (dj.SET_CONTROL, dj.CMD_ARM)
+_ACTIVATE = (dj.SET_ACTIVATION, dj.CMD_ACTIVATE)
+_RATES = (dj.SET_ACTIVATION, dj.CMD_BROADCAST_FREQ)
+
+
+@dataclass(frozen=True)
+class DjiStatus:
+    """What the FC's flight data last said: flight status, control device byte, when it came (s)."""
+
+    flight_status: int
+    device: int
+    time_s: float
+
+    @property
+    def armed(self) -> bool:
+        return self.flight_status != dj.FLIGHT_STANDBY
+
+    @property
+    def offboard(self) -> bool:
+        """The onboard device holds control authority (the FC flies its setpoints)."""
+        return self.device & dj.DEVICE_MASK == dj.DEVICE_ONBOARD
+
+    @property
+    def holding(self) -> bool:
+        """The FC flies on its own (authority released or taken back)."""
+        return not self.offboard
+
+
+class DjiCommandLink(CommandLink):
+    """OPEN-protocol client of the FC on ``transport``, stamped with ``clock`` (s)."""
+
+    protocol = "dji_open"
+
+    def __init__(self, transport: Transport, clock: Clock, target_system: int = 1) -> None:
+        codec = dj.OpenCodec(transport, clock, keep_acks=True)
+        super().__init__(transport, clock, target_system, codec=codec)
+        self.activated = False
+        self.activation_code: int | None = None  # the FC's last answer to the activation
+        self._rates_set = False
+        self._next_activation_s = -math.inf
+        self._flight_status = dj.FLIGHT_STANDBY
+        self._device = dj.DEVICE_RC
+        self._last_data_s: float | None = None
+        self.control_lost = 0  # times the FC pushed "control lost"
+
+    # --- input --------------------------------------------------------------------------------
+    def _poll(self, timeout_s: float) -> list:
+        out = super()._poll(timeout_s)
+        for frame in self.codec.service(self.clock.now_s()):  # reliable commands overdue: again
+            self._send_frame(frame)
+        return out
+
+    def _handle(self, f: dj.Frame) -> None:  # type: ignore[override]
+        now = self.clock.now_s()
+        if f.is_ack:
+            if self.codec.match_ack(f, now) is not None:
+                self._take_acks(now)
+            return
+        key = (f.cmd_set, f.cmd_id)
+        if key == (dj.SET_HIL, dj.CMD_HIL_TICK):
+            tick_s, mocap_total = dji_read_tick(f.payload)
+            self._on_tick(None, mocap_total)
+            self._on_tick(tick_s, None)
+        elif key == (dj.SET_BROADCAST, dj.CMD_FLIGHT_DATA):
+            self._on_flight_data(f.payload, now)
+        elif key == (dj.SET_BROADCAST, dj.CMD_CONTROL_LOST):
+            self.control_lost += 1
+            self._device = dj.DEVICE_RC
+            self.status_texts.append("control authority lost")
+
+    def _take_acks(self, now_s: float) -> None:
+        """The ACKs the codec has matched: the program's answers under its request keys."""
+        acks = self.codec.acks
+        if not acks:
+            return
+        for key, (value, t) in list(acks.items()):
+            code = dj.read_ack_code(value)
+            del acks[key]
+            if key == _ACTIVATE:
+                self.activation_code = code
+                self.activated = code == dj.ACTIVATE_SUCCESS
+                if not self.activated:
+                    self.status_texts.append(f"activation refused: code {code}")
+                elif not self._rates_set:
+                    self._command(_RATES, BROADCAST_RATES)  # the flight data the program reads
+            elif key == _RATES:
+                self._rates_set = code == dj.ACK_SUCCESS
+                if not self._rates_set:
+                    self.status_texts.append(f"flight data rates refused: code {code}")
+            elif key == _CONTROL:
+                ok = code in (dj.CONTROL_OBTAINED, dj.CONTROL_RELEASED)
+                if code == dj.CONTROL_NEEDS_F_MODE:
+                    self.status_texts.append("control refused: the RC is not in F mode")
+                self._ack(mav.MAV_CMD_DO_SET_MODE, ok, t)
+            elif key == _ARM:
+                ok = code in (dj.ARM_SUCCESS, dj.ARM_ALREADY)
+                if not ok:
+                    self.status_texts.append(f"arm refused: code {code}")
+                self._ack(mav.MAV_CMD_COMPONENT_ARM_DISARM, ok, t)
+
+    def _ack(self, request: int, ok: bool, t_s: float) -> None:
+        result = mav.MAV_RESULT_ACCEPTED if ok else mav.MAV_RESULT_DENIED
+        self.acks[request] = CommandAck(request, result, t_s)
+
+    def _on_flight_data(self, payload: bytes, now_s: float) -> None:
+        if len(payload) < 2:
+            return
+        (flags,) = struct.unpack_from("<H", payload)
+        off = 2
+        for bit, size in enumerate(_SIZES):
+            if not flags >> bit & 1:
+                continue
+            if off + size > len(payload):
+                return
+            if bit == _STATUS_BIT:
+                self._flight_status = payload[off]
+            elif bit == _DEVICE_BIT:
+                self._device = payload[off + 1]
+            off += size
+        self._last_data_s = now_s
+        self.status = DjiStatus(self._flight_status, self._device, now_s)  # type: ignore[assignment]
+
+    def heartbeat_age_s(self, now_s: float) -> float:
+        """Seconds since the FC's last flight data (inf if none yet): the OPEN protocol's sign of life."""
+        return math.inf if self._last_data_s is None else now_s - self._last_data_s
+
+    # --- output -------------------------------------------------------------------------------
+    def _command(self, key: tuple[int, int], payload: bytes) -> None:
+        self._send_frame(self.codec.pack_reliable(*key, payload))
+
+    def send_heartbeat(self) -> None:
+        """The OPEN protocol has no heartbeat of the onboard device: nothing to send."""
+
+    def request_heartbeat(self) -> None:
+        """Until the flight data comes: activate (again after a refusal, every `ACTIVATION_RETRY_S`),
+        then ask for the flight data's rates."""
+        now = self.clock.now_s()
+        if not self.activated:
+            if now >= self._next_activation_s:
+                self._next_activation_s = now + ACTIVATION_RETRY_S
+                self._command(_ACTIVATE, struct.pack("<III", APP_ID, 0, SDK_VERSION) + APP_BUNDLE)
+        elif not self._rates_set and not self.codec.is_waiting(*_RATES):
+            self._command(_RATES, BROADCAST_RATES)
+
+    def request_offboard(self) -> None:
+        """Obtain control authority (0x01 0x00, 1)."""
+        self.acks.pop(mav.MAV_CMD_DO_SET_MODE, None)
+        self._command(_CONTROL, _OBTAIN)
+
+    def request_hold(self) -> None:
+        """Release control authority (0x01 0x00, 0): the FC flies on its own."""
+        self.acks.pop(mav.MAV_CMD_DO_SET_MODE, None)
+        self._command(_CONTROL, _RELEASE)
+
+    def request_arm(self) -> None:
+        self.acks.pop(mav.MAV_CMD_COMPONENT_ARM_DISARM, None)
+        self._command(_ARM, b"\x01")
+
+    def send_command(self, command: int, *params: float) -> None:
+        raise NotImplementedError("MAVLink commands do not go over the OPEN protocol")
+
+    def send_attitude_target(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
+                             thrust_fraction: float) -> None:
+        """One attitude-thrust setpoint (0x01 0x03): ZYX Euler angles of body FLU -> world ENU (rad) as the
+        N3's NED roll, pitch, heading (deg), thrust 0..1 of full thrust as 0..100 % (clipped). ValueError,
+        nothing sent, when a value is not finite."""
+        thrust = float(thrust_fraction)
+        if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
+            raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
+                             f"yaw {yaw_rad} rad, thrust {thrust}")
+        q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
+        roll, pitch, yaw = euler_from_quat(q)
+        percent = 100.0 * min(1.0, max(0.0, thrust))
+        payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
+                                      percent, math.degrees(yaw))
+        self._send_frame(self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload))
+        self.setpoints_sent += 1
+
+    def _answer_frame(self, tick_s: float) -> bytes:
+        return self.codec.pack_command(dj.SET_HIL, dj.CMD_HIL_ANSWER, dji_answer_payload(tick_s))
