@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields
 
 from emulator.fc.modes import FcState
 from emulator.fc.n3 import SetpointRejected
+from emulator.fc.params import Parameters
 from emulator.fc.telemetry import Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link import dji_open as dj
@@ -87,6 +88,9 @@ class DjiOpenServer:
         self.vehicle = vehicle
         self.fc = vehicle.fc
         self.codec = codec
+        #: the FC's parameters (`emulator.fc.params`), set from files and scenarios: the OPEN protocol
+        #: has no parameter messages, and no MAVLink telemetry whose rates they would set
+        self.params = Parameters(self.fc, streams=None)
         self.config = config or DjiServerConfig()
         self.stats = DjiServerStats()
         # the MAVLink side's battery model and flat-Earth position, without its MAVLink packer

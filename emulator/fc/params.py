@@ -191,7 +191,8 @@ class Parameters:
     """The parameters of one FC, its MAVLink server's streams and its ESC bus."""
 
     def __init__(self, fc: FlightController, streams: Any) -> None:
-        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``; ``esc`` (set
+        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``, or None on a
+        link without MAVLink telemetry (the rates then refuse to be set); ``esc`` (set
         when an ESC bus is on): has ``config`` and ``reconfigure(**changes)``."""
         self.fc, self.streams = fc, streams
         self.esc: Any = None
@@ -214,6 +215,8 @@ class Parameters:
         if p.applies == "limit":
             return float(getattr(self.fc.profile, key))
         if p.applies == "stream":
+            if self.streams is None:  # a link without MAVLink telemetry: the rate nobody sends at
+                return p._to_wire(p.default(self.fc))
             return float(self.streams.stream_rate_hz(int(p.key)))
         if self.esc is not None:
             return p._to_wire(getattr(self.esc.config, key))
@@ -236,6 +239,9 @@ class Parameters:
             elif p.applies == "limit":
                 self.fc.set_limits(**{key: meant})
             elif p.applies == "stream":
+                if self.streams is None:
+                    raise ParamError(f"{name}: a MAVLink telemetry rate, and this link has no MAVLink "
+                                     "telemetry", "invalid")
                 self.streams.set_stream_rate(int(p.key), meant)
             elif self.esc is not None:
                 self.esc.reconfigure(**{key: meant})

@@ -19,7 +19,7 @@ from emulator.assembly import assemble, warm_up
 from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
 from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
 from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.fc.params import Parameters, describe, param_def, read_param_file
+from emulator.fc.params import describe, param_def, read_param_file
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -170,7 +170,7 @@ def main(args: argparse.Namespace) -> int:
     if args.external_esc and args.esc_bus is None:
         return fail("--external-esc needs --esc-bus")
     if args.esc_bus is not None and protocol != "mavlink":
-        return fail("--esc-bus: the ESC bus is watched and set through MAVLink parameters; use --protocol mavlink")
+        return fail("--esc-bus: the FC reports its ESCs over MAVLink; use --protocol mavlink")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         return fail(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 1 <= args.system_id <= 255:
@@ -219,13 +219,10 @@ def main(args: argparse.Namespace) -> int:
             signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
             protocol=protocol, dji_config=dji_config,
         )
-        # the table is the MAVLink server's; over the OPEN protocol (no parameter messages) the FC's own
-        # settings still load from --params / --failsafe-timeout
-        table = getattr(emu.server, "params", None) or Parameters(emu.vehicle.fc, streams=None)
-        if table.streams is None and (rates := [n for n in params if param_def(n).applies == "stream"]):
-            return fail(f"{', '.join(rates)}: MAVLink telemetry rates; the OPEN protocol's are set by the "
-                        "onboard side")
-        table.set_many(params)
+        try:
+            emu.server.params.set_many(params)
+        except ValueError as exc:
+            return fail(str(exc))
         if args.esc_bus is not None:
             try:
                 esc_stepper = _esc_bus(args, emu)
