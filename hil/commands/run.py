@@ -79,15 +79,21 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
     return result
 
 
+def read_scenario_file(path: Path, prog: str) -> list[Scenario] | None:
+    """The scenarios of ``path``; None after printing why it cannot be read or is invalid (exit 2)."""
+    try:
+        return load_scenarios(path)
+    except ScenarioError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+    except OSError as exc:
+        print(f"{prog}: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
     path = Path(args.scenario)
-    try:
-        scenarios = load_scenarios(path)
-    except ScenarioError as exc:
-        print(f"hil run: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        print(f"hil run: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+    scenarios = read_scenario_file(path, "hil run")
+    if scenarios is None:
         return EXIT_BAD_INPUT
     if not scenarios:
         print(f"hil run: {path} holds no scenario", file=sys.stderr)

@@ -23,7 +23,7 @@ from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
-from hil.runner.emulator_side import EmulatorSide
+from hil.runner.emulator_side import EmulatorSide, flown_profile
 from hil.runner.flight_quality import measure
 from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
 from hil.runner.mission import phase_intervals, window_hits
@@ -175,7 +175,7 @@ def run_scenario(
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
     try:
-        profile = load_profile(s.vehicle)
+        profile = flown_profile(load_profile(s.vehicle), s.airframe)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused here, with the reason
         ob_options = onboard_options(s)
         config = program_config(ob_options)
