@@ -169,3 +169,30 @@ def test_hil_dryrun_exits_by_go_or_no_go(tmp_path):
     p = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(bad)], capture_output=True, text=True,
                        timeout=60, cwd=tmp_path)
     assert p.returncode == 2 and "dispersions" in p.stderr
+
+
+def test_a_worker_killed_mid_sweep_loses_no_result(tmp_path, local_ray):
+    import os
+    import signal
+
+    path = tmp_path / "t.scenario.yaml"
+    path.write_text(SWEPT)
+    [s] = load_scenarios(path)
+    killed: list[int] = []
+
+    def kill_first_worker(rec, done, total):  # the worker that flew the first run is flying another now
+        if not killed:
+            pid = int(rec.worker.rsplit(":", 1)[1])
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    records = run_sweep(plan_sweep(s, tmp_path / "k"), progress=kill_first_worker)
+    assert killed and len(records) == 8
+    assert sum(r.worker.endswith(f":{killed[0]}") for r in records) == 1  # its later runs flown elsewhere
+    assert [r.index for r in records] == list(range(8))
+    assert all(r.error is None and r.report is not None for r in records), [r.error for r in records]
+    lines = (tmp_path / "k" / "results.jsonl").read_text().splitlines()
+    assert sorted(json.loads(x)["index"] for x in lines) == list(range(8))
+    # the same answers as a sweep no worker died in
+    clean = run_sweep(plan_sweep(s, tmp_path / "c"))
+    assert _fingerprint(records) == _fingerprint(clean)
