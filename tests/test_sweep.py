@@ -196,3 +196,17 @@ def test_a_worker_killed_mid_sweep_loses_no_result(tmp_path, local_ray):
     # the same answers as a sweep no worker died in
     clean = run_sweep(plan_sweep(s, tmp_path / "c"))
     assert _fingerprint(records) == _fingerprint(clean)
+
+
+def test_hil_suite_flies_on_ray_given_an_address(tmp_path, local_ray, capsys):
+    from hil.cli import main
+
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "a.scenario.yaml").write_text(BASE)
+    (tmp_path / "s" / "b.scenario.yaml").write_text(BASE + "mocap_bias: {gap_pos_m: [0, 0, 0.25]}\n")
+    code = main(["suite", str(tmp_path / "s"), "--in-process", "--ray-address", "auto", "--out",
+                 str(tmp_path / "o")])
+    out = capsys.readouterr().out
+    assert code == 1 and "PASSED a" in out and "FAILED b" in out and "1/2 passed" in out
+    index = json.loads((tmp_path / "o" / "index.json").read_text())
+    assert {r["id"]: r["passed"] for r in index["results"]} == {"a": True, "b": False}

@@ -5,10 +5,11 @@ same plan flies only the runs not yet there."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,14 +85,49 @@ def finished(plan: SweepPlan) -> dict[int, RunRecord]:
 Progress = Callable[[RunRecord, int, int], None]
 
 
+@contextlib.contextmanager
+def ray_session(address: str | None, jobs: int) -> Iterator[None]:
+    """Ray for the duration of the block: the cluster at ``address``, else ``jobs`` CPUs on this
+    machine; a Ray already running (started by the caller) is used as it is and left running."""
+    import ray
+
+    if ray.is_initialized():
+        yield
+        return
+    kwargs: dict[str, Any] = (
+        {"address": address} if address else {"num_cpus": jobs, "include_dashboard": False})
+    ray.init(logging_level=logging.WARNING, log_to_driver=False, **kwargs)
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def ray_imap(fn: Callable[..., Any], common: tuple[Any, ...], calls: list[tuple[Any, ...]],
+             ) -> Iterator[tuple[int, Any]]:
+    """``fn(*common, *calls[k])`` for every k as Ray tasks (run again, up to `TASK_RETRIES` times, when
+    their worker dies), as ``(k, result)`` in the order they finish; the result is the exception when a
+    task failed for good. ``common`` goes to Ray's object store once. Needs a Ray session (`ray_session`)."""
+    import ray
+
+    task = ray.remote(max_retries=TASK_RETRIES)(fn)
+    refs = [ray.put(a) for a in common]
+    pending = {task.remote(*refs, *args): k for k, args in enumerate(calls)}
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        k = pending.pop(ready[0])
+        try:
+            yield k, ray.get(ready[0])
+        except ray.exceptions.RayError as exc:
+            yield k, exc
+
+
 def run_sweep(plan: SweepPlan, *, address: str | None = None, jobs: int = 2, in_process: bool = True,
               progress: Progress | None = None) -> list[RunRecord]:
     """Fly every run of ``plan`` not finished yet as a Ray task and return all its records.
 
     Ray is started here (``jobs`` CPUs on this machine, or the cluster at ``address``) unless it is
     running already; ``progress(record, done, total)`` is called as each run finishes."""
-    import ray
-
     plan.out.mkdir(parents=True, exist_ok=True)
     done = finished(plan)
     if not done:  # a new plan: its results start afresh
@@ -106,32 +142,16 @@ def run_sweep(plan: SweepPlan, *, address: str | None = None, jobs: int = 2, in_
             progress(rec, k + 1, plan.runs)
     if not todo:
         return [records[i] for i in range(plan.runs)]
-    started = False
-    if not ray.is_initialized():
-        kwargs: dict[str, Any] = {"address": address} if address else {
-            "num_cpus": jobs, "include_dashboard": False}
-        ray.init(logging_level=logging.WARNING, log_to_driver=False, **kwargs)
-        started = True
-    try:
-        task = ray.remote(max_retries=TASK_RETRIES)(fly)
-        scenario_ref = ray.put(plan.scenario)
-        pending = {task.remote(scenario_ref, i, plan.seeds[i], plan.values[i], str(plan.out.resolve()),
-                               in_process): i for i in todo}
-        with (plan.out / RESULTS_NAME).open("a", encoding="utf-8") as sink:
-            while pending:
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                i = pending.pop(ready[0])
-                try:
-                    rec = ray.get(ready[0])
-                except ray.exceptions.RayError as exc:  # retries spent, or the task raised
-                    rec = RunRecord(i, plan.seeds[i], plan.values[i], False,
-                                    error=f"the run's task failed: {type(exc).__name__}: {exc}"[:2000])
-                records[i] = rec
-                sink.write(json.dumps(rec.to_dict(), default=str) + "\n")
-                sink.flush()
-                if progress is not None:
-                    progress(rec, len(records), plan.runs)
-    finally:
-        if started:
-            ray.shutdown()
+    calls = [(i, plan.seeds[i], plan.values[i], str(plan.out.resolve()), in_process) for i in todo]
+    with ray_session(address, jobs), (plan.out / RESULTS_NAME).open("a", encoding="utf-8") as sink:
+        for k, rec in ray_imap(fly, (plan.scenario,), calls):
+            if isinstance(rec, BaseException):  # retries spent, or the task raised
+                i = todo[k]
+                rec = RunRecord(i, plan.seeds[i], plan.values[i], False,
+                                error=f"the run's task failed: {type(rec).__name__}: {rec}"[:2000])
+            records[rec.index] = rec
+            sink.write(json.dumps(rec.to_dict(), default=str) + "\n")
+            sink.flush()
+            if progress is not None:
+                progress(rec, len(records), plan.runs)
     return [records[i] for i in range(plan.runs)]
