@@ -144,3 +144,38 @@ def test_hil_fc_view_streams_the_standalone_fc(tmp_path):
 def _quiet_cwd(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the runs write reports/ where they are started
     monkeypatch.setenv("PYTHONPATH", str(Path(__file__).resolve().parents[1]))
+
+
+def test_a_run_folder_as_mcap_for_foxglove(tmp_path):
+    import math
+
+    from mcap.reader import make_reader
+
+    from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd
+    from hil.report.timeseries import read_timeseries
+
+    path = tmp_path / "m.scenario.yaml"
+    path.write_text("description: m\ngap: {roll_deg: 45}\nduration_s: 9\n")
+    p = subprocess.run([*HIL, "run", str(path), "--in-process", "--mcap", "--out", str(tmp_path / "r")],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "mcap:" in p.stdout, p.stdout + p.stderr
+    cols = read_timeseries(tmp_path / "r")
+    with (tmp_path / "r" / "run.mcap").open("rb") as f:
+        msgs = [(ch.topic, json.loads(m.data)) for _, ch, m in make_reader(f).iter_messages()]
+    poses = [d for topic, d in msgs if topic == "/vehicle/pose"]
+    assert len(poses) == len(cols["t_s"])
+    assert len([1 for topic, _ in msgs if topic == "/state"]) == len(poses)
+    assert any("offboard" in d["message"] for topic, d in msgs if topic == "/events")
+    # the pose's orientation (body FLU -> world ENU) is the recorded attitude, the steepest one too
+    i = int(cols["roll_deg"].__abs__().argmax())
+    o = poses[i]["pose"]["orientation"]
+    q = quat_enu_flu_to_ned_frd([o["w"], o["x"], o["y"], o["z"]])
+    rpy = [math.degrees(a) for a in euler_from_quat(q)]
+    assert abs(cols["roll_deg"][i]) > 30
+    assert rpy == pytest.approx([cols["roll_deg"][i], cols["pitch_deg"][i], cols["yaw_deg"][i]], abs=1e-6)
+    assert poses[i]["pose"]["position"]["x"] == pytest.approx(cols["pos_m_x"][i])
+    # hil view --mcap writes the same from a folder
+    (tmp_path / "r" / "run.mcap").unlink()
+    p = subprocess.run([*HIL, "view", str(tmp_path / "r"), "--mcap"], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 0 and (tmp_path / "r" / "run.mcap").stat().st_size > 10_000

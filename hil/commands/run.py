@@ -29,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="serve a live view on 127.0.0.1 (URL printed); then the run's replay until Ctrl-C")
     p.add_argument("--view-port", type=int, default=0, metavar="PORT",
                    help="the view's port (default: a free one)")
+    p.add_argument("--mcap", action="store_true", help="also write run.mcap beside run.tlog (Foxglove)")
     p.set_defaults(func=main)
 
 
@@ -142,6 +143,14 @@ def main(args: argparse.Namespace) -> int:
             print(f"hil run: {s.source}:{s.line}: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         failed = failed or not result.passed
+        if args.mcap:
+            from hil.report.mcap_log import write_mcap
+
+            try:
+                print(f"  mcap: {write_mcap(out)}")
+            except ValueError as exc:
+                print(f"hil run: --mcap: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
     if view is not None:
         from hil.view.server import serve_until_stopped
 
