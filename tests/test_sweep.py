@@ -66,6 +66,12 @@ def test_the_envelope_names_paths_that_are_dispersed():
     assert e.field == "dispersions.envelope[1]" and "expected a path of vary" in e.message
 
 
+def test_the_envelope_is_mapped_over_numbers_not_vectors():
+    e = error_of(BASE + "dispersions:\n  envelope: [gap.roll_deg, initial.pos_m]\n  vary:\n    gap.roll_deg: "
+                        "{uniform: [0, 10]}\n    initial.pos_m: {normal: [0, 0.1], offset: true}\n")
+    assert e.field == "dispersions.envelope" and "initial.pos_m[0]" in e.message, str(e)
+
+
 def test_draws_follow_each_runs_seed_and_land_in_the_scenario():
     [s] = loads_scenarios(SWEPT)
     assert s.dispersions is not None

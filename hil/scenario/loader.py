@@ -534,6 +534,10 @@ class _Builder:
                 current = value_at(doc, key)
             except PathError as exc:
                 raise self.error(line, full, str(exc)) from None
+            if isinstance(current, list) and key in (s.dispersions.envelope or ()):
+                raise self.error(self.line_of("dispersions.envelope", doc_line), "dispersions.envelope",
+                                 f"expected fields with one number each, {key} is a vector: name one of "
+                                 f"its components ({key}[0])")
             for value in dist.extremes():
                 if isinstance(current, list):
                     drawn: Any = [c + value if dist.offset else value for c in current]
