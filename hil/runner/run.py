@@ -62,6 +62,8 @@ class RunOptions:
     vehicle: str | None = None  # a profile name or file; the opening grows with its body box (`for_vehicle`)
     tick_s: float = DEFAULT_TICK_S
     guard_s: float = DEFAULT_GUARD_S
+    #: report.html for every run, or only for a failed one (a sweep's passed runs need none: 15 % of a run)
+    html_report: bool | str = True  # True, or "failed"
 
 
 @dataclass(frozen=True)
@@ -257,7 +259,8 @@ def run_scenario(
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
-        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime)
+        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime,
+                       options.html_report)
     finally:
         if onboard is not None:
             onboard.close()
@@ -278,6 +281,7 @@ def _finish(
     wall_s: float,
     in_process: bool,
     realtime: bool,
+    html_report: bool | str = True,
 ) -> RunResult:
     rec = emu.recorder
     cols = rec.columns()
@@ -409,7 +413,8 @@ def _finish(
     }
     write_summary(out, summary)
     write_timeseries(out, cols)
-    write_report_html(out, summary, cols, s)
+    if html_report is True or (html_report == "failed" and not passed):
+        write_report_html(out, summary, cols, s)
     return RunResult(passed, checks, out, summary)
 
 

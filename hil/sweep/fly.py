@@ -23,7 +23,8 @@ _PHASE_NAMES = {code: name for name, code in SEGMENT_PHASES.items() if code} | {
 @dataclass(frozen=True)
 class RunRecord:
     """What one dispersed run gave: its draws and seed, the verdict, each failed check with the flight
-    phase it failed in, the smallest clearance (m) and where its report is (relative to the sweep)."""
+    phase it failed in, the smallest clearance (m) and where a failed run's report is (relative to the
+    sweep; a passed run's folder ``runs/NNNN`` holds its summary.json, run.tlog and timeseries.npz)."""
 
     index: int
     seed: int
@@ -73,7 +74,7 @@ def fly(scenario: Scenario, index: int, seed: int, values: dict[str, Any], sweep
     out = Path(sweep_dir) / rel
     t0 = time.perf_counter()
     try:
-        r = run_scenario(s, out, RunOptions(in_process=in_process, realtime=False))
+        r = run_scenario(s, out, RunOptions(in_process=in_process, realtime=False, html_report="failed"))
     except (RunSetupError, ValueError) as exc:
         return RunRecord(index, seed, values, False, error=str(exc), worker=worker,
                          wall_time_s=time.perf_counter() - t0)
@@ -85,7 +86,7 @@ def fly(scenario: Scenario, index: int, seed: int, values: dict[str, Any], sweep
     sm = r.summary
     return RunRecord(
         index, seed, values, r.passed, failed=failed, min_clearance_m=sm.get("min_clearance_m"),
-        crossed_gap=sm.get("crossed_gap"), report=str(rel / "report.html"),
+        crossed_gap=sm.get("crossed_gap"), report=None if r.passed else str(rel / "report.html"),
         wall_time_s=time.perf_counter() - t0, worker=worker,
     )
 
