@@ -98,7 +98,11 @@ def test_the_live_page_follows_a_realtime_run_then_replays_it(tmp_path):
     finally:
         b.close()
         code = _stop(proc)
-    assert code == 0, proc.stderr.read() if proc.stderr else ""
+    # the exit code is the run's verdict, the view's Ctrl-C notwithstanding (on a busy host a real-time
+    # run may fail its `realtime` check: the view does not decide that)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert code == (0 if summary["passed"] else 1), proc.stderr.read() if proc.stderr else ""
+    assert {c["name"] for c in summary["checks"] if not c["passed"]} <= {"realtime"}
     # and `hil view` replays the folder the same way
     view = subprocess.Popen([*HIL, "view", str(tmp_path / "run")], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -72,8 +73,9 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
     if view is not None:
         from hil.view.live import run_source
 
-        def watch(emu: EmulatorSide, events: Path) -> None:
+        def watch(emu: EmulatorSide, events: Path) -> Callable[[], None]:
             view.live(run_source(emu, events, f"{scenario.id} (live)"))
+            return view.hold  # before the emulator closes
 
     def progress(t: float, duration: float) -> None:
         if tty:

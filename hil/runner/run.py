@@ -169,12 +169,13 @@ def run_scenario(
     out_dir: str | Path,
     options: RunOptions | None = None,
     progress: Callable[[float, float], None] | None = None,
-    watch: Callable[[EmulatorSide, Path], None] | None = None,
+    watch: Callable[[EmulatorSide, Path], Callable[[], None] | None] | None = None,
 ) -> RunResult:
     """Fly ``scenario`` and write its results to ``out_dir``; RunSetupError (or ValueError) for bad input.
 
     ``progress(sim_time_s, duration_s)`` is called about twice a second of wall time; ``watch(emulator
-    side, onboard event log)`` once before the flight starts (a live view reads them from its own thread).
+    side, onboard event log)`` once before the flight starts (a live view reads them from its own
+    thread), and what it returns (if anything) once the flight is over, before the emulator closes.
     """
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
@@ -240,8 +241,7 @@ def run_scenario(
             if progress is not None:
                 progress(t, s.duration_s)
 
-        if watch is not None:
-            watch(emu, log_path)
+        unwatch = None if watch is None else watch(emu, log_path)
         compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
         if realtime:  # the modelled compute time as lockstep's (default: one tick)
             compute = options.tick_s if compute_s is None else compute_s
@@ -256,6 +256,8 @@ def run_scenario(
                 guard_s=options.guard_s,
                 progress=tell,
             )
+        if unwatch is not None:
+            unwatch()
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0

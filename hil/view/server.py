@@ -45,6 +45,7 @@ class ViewServer:
         self._replay: dict[str, Any] | None = None
         self._replay_dir: Path | None = None
         self._done = False
+        self._holding = False
         self._closed = False
         self._sampler: threading.Thread | None = None
         self.frames_sampled = 0
@@ -64,21 +65,27 @@ class ViewServer:
         """Stream ``source``'s frames from now on."""
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = source, False, None, None
-            self._frame = None
+            self._frame, self._holding = None, False
         self._sampler = threading.Thread(target=self._sample, args=(source,), name="hil-view-sampler",
                                          daemon=True)
         self._sampler.start()
 
+    def hold(self) -> None:
+        """Stop sampling the source (its emulator is about to close); the last frame stays."""
+        sampler, self._sampler = self._sampler, None
+        with self._cond:
+            self._holding = True
+        if sampler is not None:
+            sampler.join(timeout=2.0)
+
     def finish(self, run_dir: str | Path | None) -> None:
         """The run is over: stop sampling, end the stream; the page then replays ``run_dir`` (if given)."""
+        self.hold()
         with self._cond:
             self._done = True
             self._replay_dir = None if run_dir is None else Path(run_dir)
             self._replay = None
             self._cond.notify_all()
-        if self._sampler is not None:
-            self._sampler.join(timeout=2.0)
-            self._sampler = None
 
     def replay(self, run_dir: str | Path) -> None:
         """Serve the finished run in ``run_dir`` (ReplayError when it is none)."""
@@ -102,7 +109,7 @@ class ViewServer:
         next_t = time.monotonic()
         while True:
             with self._cond:
-                if self._done or self._source is not source:
+                if self._done or self._holding or self._source is not source:
                     return
             try:
                 frame = source.frame()
