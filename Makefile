@@ -12,6 +12,9 @@ $(STAMP): pyproject.toml
 	@# socat's linked ptys stand in for a USB-serial cable in the tests (Debian's package; needs root)
 	command -v socat >/dev/null || (apt-get update -qq && apt-get install -y -qq socat) \
 		|| echo "warning: install socat (apt-get install socat) for the serial-adapter test"
+	@# a headless Chromium opens the live view's page in its tests (Debian's package; needs root)
+	command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium) \
+		|| echo "warning: install chromium (apt-get install chromium) for the live view's browser test"
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "torch==2.13.0"

@@ -302,6 +302,19 @@ expect:
     thrust_saturation_s: 0.1
     settling_time_s: 0.4
     expected_failures: [settling_time_s]
+mocap_bias: {gap_pos_m: [0.01, -0.02, 0.005], gap_roll_deg: 1.5, gap_yaw_deg: -2}
+airframe: {mass_scale: 1.1, thrust_scale: 0.95}
+dispersions:
+  runs: 50
+  seed: 9
+  go: {min_success: 0.9, confidence: 0.9}
+  envelope: [approach.speed_m_s, gap.roll_deg]
+  bins: 4
+  vary:
+    gap.roll_deg: {uniform: [40, 50]}
+    approach.speed_m_s: {normal: [2.0, 0.1], clip: [1.8, 2.2]}
+    links.command.baud: {choice: [115200, 921600]}
+    initial.pos_m: {normal: [0, 0.02], offset: true}
 """
 
 
@@ -360,6 +373,11 @@ def test_the_format_document_names_every_field() -> None:
         schema.SegmentErrorLimits,
         schema.QualityExpectations,
         schema.Expectations,
+        schema.MocapBiasSpec,
+        schema.AirframeSpec,
+        schema.Dispersions,
+        schema.Distribution,
+        schema.GoCriterion,
         Scenario,
     ):
         names.update(f.name for f in dataclasses.fields(cls))  # fmt: skip

@@ -96,6 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="an ESC node served by another node on the bus (20-23: ESC 0-3); repeatable")
     p.add_argument("--list-params", action="store_true", help="print the FC's parameter table and exit")
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
+    p.add_argument("--view", action="store_true",
+                   help="serve a live view on 127.0.0.1 (its URL in the endpoints line, as \"view\")")
+    p.add_argument("--view-port", type=int, default=0, metavar="PORT", help="the view's port (default: free)")
     p.set_defaults(func=main)
 
 
@@ -197,6 +200,7 @@ def main(args: argparse.Namespace) -> int:
             return fail(f"--mocap-link: {exc}")
     esc_stepper: EscBusStepper | None = None
     tlog = None
+    view = None
     if args.tlog:
         try:
             tlog = TlogWriter(args.tlog)
@@ -241,6 +245,17 @@ def main(args: argparse.Namespace) -> int:
         links.append(wire)
         runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
         _stop_on_signals(runner)
+        if args.view:
+            from hil.view import LiveSource, ViewServer
+
+            try:
+                view = ViewServer(port=args.view_port)
+            except OSError as exc:
+                return fail(f"--view: cannot serve on 127.0.0.1:{args.view_port}: {exc}")
+            uwb = {"latency_ms": args.uwb_latency_ms, "loss": args.uwb_loss}
+            view.live(LiveSource(vehicle, server, mocap, emu.world, title=f"hil fc ({profile.name})",
+                                 lock=runner.lock, links={"mocap": uwb} if mocap is not None else {}))
+            endpoints["view"] = view.url
         print(json.dumps(endpoints), flush=True)
         runner.run()
         summary = {
@@ -269,6 +284,9 @@ def main(args: argparse.Namespace) -> int:
     finally:
         if esc_stepper is not None:
             esc_stepper.esc.close()
+        if view is not None:
+            view.finish(None)
+            view.close()
         if tlog is not None:
             tlog.close()
         link.close()

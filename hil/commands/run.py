@@ -5,12 +5,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from emulator.physics import backend_names
 from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
+from hil.runner.emulator_side import EmulatorSide
 from hil.scenario import ScenarioError, load_scenarios
 from hil.scenario.schema import Scenario
+
+if TYPE_CHECKING:
+    from hil.view import ViewServer
 
 EXIT_PASSED, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -20,6 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_run_options(p)
     p.add_argument("scenario", metavar="SCENARIO", help="a *.scenario.yaml file")
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default reports/<scenario id>)")
+    p.add_argument("--view", action="store_true",
+                   help="serve a live view on 127.0.0.1 (URL printed); then the run's replay until Ctrl-C")
+    p.add_argument("--view-port", type=int, default=0, metavar="PORT",
+                   help="the view's port (default: a free one)")
+    p.add_argument("--mcap", action="store_true", help="also write run.mcap beside run.tlog (Foxglove)")
     p.set_defaults(func=main)
 
 
@@ -61,15 +72,27 @@ def options_from(args: argparse.Namespace) -> RunOptions:
     )
 
 
-def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool = False) -> RunResult:
-    """Run one scenario, printing a progress line (to a terminal) and the verdict."""
+def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool = False,
+            view: ViewServer | None = None) -> RunResult:
+    """Run one scenario, printing a progress line (to a terminal) and the verdict; ``view`` shows it live."""
     tty = sys.stderr.isatty() and not quiet
+    watch = None
+    if view is not None:
+        from hil.view.live import run_source
+
+        def watch(emu: EmulatorSide, events: Path) -> Callable[[], None]:
+            view.live(run_source(emu, events, f"{scenario.id} (live)"))
+            return view.hold  # before the emulator closes
 
     def progress(t: float, duration: float) -> None:
         if tty:
             print(f"\r  {scenario.id}: sim {t:5.2f} / {duration:g} s", end="", file=sys.stderr, flush=True)
 
-    result = run_scenario(scenario, out_dir, options, progress=progress)
+    try:
+        result = run_scenario(scenario, out_dir, options, progress=progress, watch=watch)
+    finally:
+        if view is not None:
+            view.finish(out_dir)
     if tty:
         print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
     s = result.summary
@@ -86,15 +109,21 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
     return result
 
 
+def read_scenario_file(path: Path, prog: str) -> list[Scenario] | None:
+    """The scenarios of ``path``; None after printing why it cannot be read or is invalid (exit 2)."""
+    try:
+        return load_scenarios(path)
+    except ScenarioError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+    except OSError as exc:
+        print(f"{prog}: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
     path = Path(args.scenario)
-    try:
-        scenarios = load_scenarios(path)
-    except ScenarioError as exc:
-        print(f"hil run: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        print(f"hil run: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+    scenarios = read_scenario_file(path, "hil run")
+    if scenarios is None:
         return EXIT_BAD_INPUT
     if not scenarios:
         print(f"hil run: {path} holds no scenario", file=sys.stderr)
@@ -102,15 +131,38 @@ def main(args: argparse.Namespace) -> int:
     options = options_from(args)
     base = Path(args.out) if args.out else Path("reports")
     failed = False
+    view = None
+    if args.view:
+        from hil.view import ViewServer
+
+        try:
+            view = ViewServer(port=args.view_port)
+        except OSError as exc:
+            print(f"hil run: --view: cannot serve on 127.0.0.1:{args.view_port}: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        print(f"view: {view.url}", flush=True)
     for s in scenarios:
         if s.skip:
             print(f"SKIPPED {s.id}: {s.skip}")
             continue
         out = base if (args.out and len(scenarios) == 1) else base / s.id
         try:
-            result = run_one(s, out, options)
+            result = run_one(s, out, options, view=view)
         except (RunSetupError, ValueError) as exc:
             print(f"hil run: {s.source}:{s.line}: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         failed = failed or not result.passed
+        if args.mcap:
+            from hil.report.mcap_log import write_mcap
+
+            try:
+                print(f"  mcap: {write_mcap(out)}")
+            except ValueError as exc:
+                print(f"hil run: --mcap: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+    if view is not None:
+        from hil.view.server import serve_until_stopped
+
+        print(f"view: the finished run at {view.url}; Ctrl-C to stop", flush=True)
+        serve_until_stopped(view)
     return EXIT_FAILED if failed else EXIT_PASSED

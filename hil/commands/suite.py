@@ -8,6 +8,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from html import escape
 from pathlib import Path
@@ -27,6 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("folder", metavar="DIR", help="folder of scenario files (searched recursively)")
     p.add_argument("--out", default="reports", metavar="DIR", help="output folder (default reports/)")
     p.add_argument("-j", "--jobs", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (2)")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="fly the runs as tasks on this Ray cluster (e.g. auto) instead of local processes")
     add_run_options(p)
     p.set_defaults(func=main)
 
@@ -47,6 +50,21 @@ def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
         "wall_time_s": r.summary["wall_time_s"],
         "failed": [f"{c.name}: expected {c.expected}, observed {c.observed}" for c in r.failed_checks],
     }
+
+
+def _results(work: list[tuple[Scenario, str, RunOptions]], jobs: int, ray_address: str | None,
+             ) -> Iterator[dict[str, Any]]:
+    """Each run's result: from a local process pool in order, or from Ray tasks as they finish."""
+    if ray_address is None:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            yield from pool.map(_run, work)
+        return
+    from hil.sweep.sweep import ray_imap, ray_session
+
+    with ray_session(ray_address, jobs):
+        for k, res in ray_imap(_run, (), [(w,) for w in work]):
+            yield res if isinstance(res, dict) else {"id": work[k][0].id, "passed": False,
+                                                    "error": f"its Ray task failed: {res}"}
 
 
 def main(args: argparse.Namespace) -> int:
@@ -80,16 +98,15 @@ def main(args: argparse.Namespace) -> int:
     wall0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     work = [(s, str(out / s.id), options) for s in todo]
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        for res in pool.map(_run, work):
-            word = "PASSED" if res["passed"] else "FAILED"
-            print(
-                f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),
-                flush=True,
-            )
-            for line in res.get("failed", []) + ([res["error"]] if "error" in res else []):
-                print(f"  {line}")
-            results.append(res)
+    for res in _results(work, args.jobs, args.ray_address):
+        word = "PASSED" if res["passed"] else "FAILED"
+        print(
+            f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),
+            flush=True,
+        )
+        for line in res.get("failed", []) + ([res["error"]] if "error" in res else []):
+            print(f"  {line}")
+        results.append(res)
     wall = time.perf_counter() - wall0
     index = write_index(out, results, skipped, wall)
     n_pass = sum(r["passed"] for r in results)

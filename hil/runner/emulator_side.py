@@ -13,7 +13,7 @@ in another.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
@@ -39,7 +39,7 @@ from hil.runner.faults import FaultSchedule, corrupt
 from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, channel_model
-from hil.scenario.schema import CanFrameLossParams, EscSilentParams, ParamSetParams, Scenario
+from hil.scenario.schema import AirframeSpec, CanFrameLossParams, EscSilentParams, ParamSetParams, Scenario
 
 FC_SYSTEM_ID = 1
 #: the FC's telemetry in a run (s between messages): what the onboard program acts on (HEARTBEAT) and
@@ -55,8 +55,13 @@ RUN_STREAMS_S: dict[int, float] = {
 }
 
 
-def make_gap(scenario: Scenario) -> Gap:
+def make_gap(scenario: Scenario, seen: bool = False) -> Gap:
+    """The scenario's gap; ``seen``: as the mocap system reports it (with ``mocap_bias``)."""
     g = scenario.gap
+    if seen:
+        b = scenario.mocap_bias
+        g = replace(g, centre_m=tuple(c + e for c, e in zip(g.centre_m, b.gap_pos_m, strict=True)),
+                    roll_deg=g.roll_deg + b.gap_roll_deg, yaw_deg=g.yaw_deg + b.gap_yaw_deg)
     return Gap.from_deg(
         g.centre_m,
         g.roll_deg,
@@ -65,6 +70,20 @@ def make_gap(scenario: Scenario) -> Gap:
         width_m=g.width_m,
         height_m=g.height_m,
         wall_thickness_m=g.wall_thickness_m,
+    )
+
+
+def flown_profile(profile: VehicleProfile, airframe: AirframeSpec) -> VehicleProfile:
+    """The airframe the physics flies: ``profile`` with its mass and rotor thrust scaled (the thrust at
+    the N3's 100 % with it); the profile itself when nothing is scaled."""
+    if airframe == AirframeSpec():
+        return profile
+    k = airframe.thrust_scale
+    return profile.with_changes(
+        mass_kg=profile.mass_kg * airframe.mass_scale,
+        thrust_coeff_n_s2=profile.thrust_coeff_n_s2 * k,
+        max_thrust_per_rotor_n=profile.max_thrust_per_rotor_n * k,
+        n3_full_thrust_n=profile.n3_full_thrust_n * k,
     )
 
 
@@ -165,7 +184,8 @@ class EmulatorSide:
         cmd_rng, mocap_rng, corrupt_rng = rng.spawn(3)
         state, ground_z = initial_state(scenario, profile)
         self.gap = make_gap(scenario)
-        gap_pose = pose_of(self.gap)  # the gap does not move: its pose is read once
+        # the gap does not move: its pose (as the mocap system reports it) is read once
+        gap_pose = pose_of(make_gap(scenario, seen=True))
         self._gap_pose = (*gap_pose.pos_m.tolist(), *gap_pose.quat_wxyz.tolist())
         protocol = scenario.links.command.protocol
         self.wire = CommandWire(

@@ -88,7 +88,7 @@ def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]],
     pos = np.column_stack([cols["pos_m_x"], cols["pos_m_y"], cols["pos_m_z"]])
     offboard = np.asarray(cols["fc_state"]) == OFFBOARD_CODE
     flown = offboard & (np.asarray(cols["setpoint_age_s"]) <= FRESH_SETPOINT_S)  # by the program
-    plan, t_plan = _plan(events)
+    plan, t_plan = mission_plan(events)
     t_end = _first_time(events, _MISSION_ENDS, after_s=-math.inf if t_plan is None else t_plan)
     # settling over the hold after each manoeuvre, where the program held it to its end (a hold cut
     # short by an abort, a lost link or a failsafe is not measured)
@@ -234,7 +234,7 @@ def _first_time(events: Sequence[Mapping[str, Any]], names: Sequence[str], after
     return min(times, default=math.inf)
 
 
-def _plan(events: Sequence[Mapping[str, Any]]) -> tuple[MissionPlan | None, float | None]:
+def mission_plan(events: Sequence[Mapping[str, Any]]) -> tuple[MissionPlan | None, float | None]:
     """The plan of the program's ``plan`` event and its time (s); (None, None) when there is none or it
     does not record its request."""
     ev = _event(events, "plan")

@@ -109,6 +109,23 @@ def _state_columns(t: np.ndarray, x: np.ndarray, clr: np.ndarray, in_slab: np.nd
         out[i, _BODY_RATE] = math.sqrt(wx * wx + wy * wy + wz * wz)
 
 
+#: the columns `state_values` gives
+_STATE_VALUES = (*COLUMNS[_T : _POS_X + 6], "roll_deg", "pitch_deg", "yaw_deg", *COLUMNS[_CMD], "thrust_n",
+                 "body_rate_rad_s")
+
+
+def state_values(t_s: float, x: np.ndarray, target: AttitudeThrustTarget | None, profile: VehicleProfile,
+                 ) -> dict[str, float]:
+    """One state's columns that need neither the world nor the history (a live view's): time,
+    position, velocity, roll/pitch/yaw (deg), the FC target's four columns and the thrust (N)."""
+    out = np.full((1, len(COLUMNS)), np.nan)
+    _state_columns(np.array([t_s]), x.reshape(1, -1), np.zeros(1), np.zeros(1, np.bool_),
+                   float(profile.thrust_coeff_n_s2), out)
+    out[0, _CMD] = _command(target, profile.n3_full_thrust_n)
+    row = out[0].tolist()
+    return {name: row[_COL[name]] for name in _STATE_VALUES}
+
+
 @dataclass(frozen=True)
 class Collision:
     """The first collision that counts: what, when (sim s), where (m) and how fast (m/s)."""

@@ -23,7 +23,7 @@ from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
-from hil.runner.emulator_side import EmulatorSide
+from hil.runner.emulator_side import EmulatorSide, flown_profile
 from hil.runner.flight_quality import measure
 from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
 from hil.runner.mission import phase_intervals, window_hits
@@ -63,6 +63,8 @@ class RunOptions:
     protocol: str | None = None  # the command link's protocol ("mavlink", "dji_open")
     tick_s: float = DEFAULT_TICK_S
     guard_s: float = DEFAULT_GUARD_S
+    #: report.html for every run, or only for a failed one (a sweep's passed runs need none: 15 % of a run)
+    html_report: bool | str = True  # True, or "failed"
 
 
 @dataclass(frozen=True)
@@ -174,15 +176,18 @@ def run_scenario(
     out_dir: str | Path,
     options: RunOptions | None = None,
     progress: Callable[[float, float], None] | None = None,
+    watch: Callable[[EmulatorSide, Path], Callable[[], None] | None] | None = None,
 ) -> RunResult:
     """Fly ``scenario`` and write its results to ``out_dir``; RunSetupError (or ValueError) for bad input.
 
-    ``progress(sim_time_s, duration_s)`` is called about twice a second of wall time.
+    ``progress(sim_time_s, duration_s)`` is called about twice a second of wall time; ``watch(emulator
+    side, onboard event log)`` once before the flight starts (a live view reads them from its own
+    thread), and what it returns (if anything) once the flight is over, before the emulator closes.
     """
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
     try:
-        profile = load_profile(s.vehicle)
+        profile = flown_profile(load_profile(s.vehicle), s.airframe)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused here, with the reason
         ob_options = onboard_options(s)
         config = program_config(ob_options)
@@ -243,6 +248,7 @@ def run_scenario(
             if progress is not None:
                 progress(t, s.duration_s)
 
+        unwatch = None if watch is None else watch(emu, log_path)
         compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
         if realtime:  # the modelled compute time as lockstep's (default: one tick)
             compute = options.tick_s if compute_s is None else compute_s
@@ -257,10 +263,13 @@ def run_scenario(
                 guard_s=options.guard_s,
                 progress=tell,
             )
+        if unwatch is not None:
+            unwatch()
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
-        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime)
+        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime,
+                       options.html_report)
     finally:
         if onboard is not None:
             onboard.close()
@@ -281,6 +290,7 @@ def _finish(
     wall_s: float,
     in_process: bool,
     realtime: bool,
+    html_report: bool | str = True,
 ) -> RunResult:
     rec = emu.recorder
     cols = rec.columns()
@@ -413,7 +423,8 @@ def _finish(
     }
     write_summary(out, summary)
     write_timeseries(out, cols)
-    write_report_html(out, summary, cols, s)
+    if html_report is True or (html_report == "failed" and not passed):
+        write_report_html(out, summary, cols, s)
     return RunResult(passed, checks, out, summary)
 
 

@@ -22,14 +22,18 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from hil.scenario import schema
 from hil.scenario.schema import (
+    DISTRIBUTIONS,
     FAULT_KINDS,
     FAULT_PARAMS,
     FLIGHT_PHASES,
     MISSION_EVENTS,
     SCENARIO_LIMITS,
+    Dispersions,
+    Distribution,
     EventTime,
     Expectations,
     Fault,
+    GoCriterion,
     NoParams,
     ParamSetParams,
     RecoveryExpectation,
@@ -338,6 +342,7 @@ class _Builder:
             "params": self.params,
             "markers": self.markers,
             "expect": self.expectations,
+            "dispersions": self.dispersions,
             "skip": lambda n, p: None if self.value(n) is None else self.convert(str, n, p, {}),
         }
         kwargs, _ = self.dataclass(
@@ -351,6 +356,8 @@ class _Builder:
             id=kwargs.get("name") or default_id, source=self.source, line=doc_line, index=index, **kwargs
         )
         self.check_across(scenario, doc_line)
+        if scenario.dispersions is not None:
+            self.check_dispersions(scenario, doc_line)
         return scenario
 
     def name(self, node: Node, path: str) -> str | None:
@@ -448,6 +455,101 @@ class _Builder:
             return RecoveryExpectation()
         kwargs, _ = self.dataclass(RecoveryExpectation, node, path)
         return RecoveryExpectation(**kwargs)
+
+    def dispersions(self, node: Node, path: str) -> Dispersions | None:
+        if isinstance(node, ScalarNode) and self.value(node) is None:
+            return None
+        kwargs, items = self.dataclass(Dispersions, node, path, custom={
+            "vary": self.vary, "envelope": self.envelope, "go": lambda n, p: GoCriterion(
+                **self.dataclass(GoCriterion, n, p)[0])})
+        if not kwargs.get("vary"):
+            raise self.error(node, f"{path}.vary", "required: at least one field and its distribution")
+        d = Dispersions(**kwargs)
+        names = [p for p, _ in d.vary]
+        if d.envelope is not None:
+            for i, p in enumerate(d.envelope):
+                if p not in names:
+                    raise self.error(items["envelope"], f"{path}.envelope[{i}]",
+                                     f"expected a path of vary ({', '.join(names)}), got {p!r}")
+        return d
+
+    def vary(self, node: Node, path: str) -> tuple[tuple[str, Distribution], ...]:
+        if not isinstance(node, MappingNode):
+            raise self.error(node, path, "expected a mapping of field path: distribution "
+                             "(gap.roll_deg: {uniform: [50, 62]})")
+        out = []
+        for key_node, value_node in node.value:
+            key = self.value(key_node)
+            if not isinstance(key, str):
+                raise self.error(key_node, path, f"field paths must be text, got {key!r}")
+            full = f"{path}.{key}"
+            if key in (p for p, _ in out):
+                raise self.error(key_node, full, "field given twice")
+            self.lines[full] = key_node.start_mark.line + 1
+            out.append((key, self.distribution(value_node, full)))
+        return tuple(out)
+
+    def distribution(self, node: Node, path: str) -> Distribution:
+        kwargs, items = self.dataclass(Distribution, node, path, custom={"choice": self.choice})
+        given = [k for k in DISTRIBUTIONS if kwargs.get(k) is not None]
+        if len(given) != 1:
+            raise self.error(node, path, f"give exactly one of {', '.join(DISTRIBUTIONS)}, got "
+                             f"{', '.join(given) or 'none'}")
+        for key in ("uniform", "clip"):
+            pair = kwargs.get(key)
+            if pair is not None and pair[0] > pair[1]:
+                raise self.error(items[key], f"{path}.{key}", f"expected [low, high] with low <= high, got "
+                                 f"{list(pair)}")
+        if kwargs.get("normal") is not None and kwargs["normal"][1] < 0:
+            raise self.error(items["normal"], f"{path}.normal",
+                             f"expected [mean, standard deviation >= 0], got {list(kwargs['normal'])}")
+        return Distribution(**kwargs)
+
+    def choice(self, node: Node, path: str) -> tuple[Any, ...]:
+        items = self.sequence(node, path)
+        if not items:
+            raise self.error(node, path, "expected a list of at least one value")
+        out = []
+        for i, n in enumerate(items):
+            if not isinstance(n, ScalarNode) or self.value(n) is None:
+                raise self.error(n, f"{path}[{i}]", f"expected a value, got {_describe(self.value(n), n)}")
+            out.append(self.value(n))
+        return tuple(out)
+
+    def envelope(self, node: Node, path: str) -> tuple[str, str] | None:
+        if isinstance(node, ScalarNode) and self.value(node) is None:
+            return None
+        a, b = (self.convert(str, n, f"{path}[{i}]", {}) for i, n in enumerate(self.sequence(node, path, 2)))
+        return (a, b)
+
+    def check_dispersions(self, s: Scenario, doc_line: int) -> None:
+        """Every path of ``vary`` names a field of this scenario, and the values its distribution reaches
+        (a uniform's ends, a normal's mean +- 3 sd, each choice) make a valid scenario."""
+        from hil.scenario.dispersions import PathError, base_document, dispersed, value_at
+
+        assert s.dispersions is not None
+        doc = base_document(s)
+        for key, dist in s.dispersions.vary:
+            full = f"dispersions.vary.{key}"
+            line = self.line_of(full, doc_line)
+            try:
+                current = value_at(doc, key)
+            except PathError as exc:
+                raise self.error(line, full, str(exc)) from None
+            if isinstance(current, list) and key in (s.dispersions.envelope or ()):
+                raise self.error(self.line_of("dispersions.envelope", doc_line), "dispersions.envelope",
+                                 f"expected fields with one number each, {key} is a vector: name one of "
+                                 f"its components ({key}[0])")
+            for value in dist.extremes():
+                if isinstance(current, list):
+                    drawn: Any = [c + value if dist.offset else value for c in current]
+                else:
+                    drawn = current + value if dist.offset else value
+                try:
+                    dispersed(s, {key: drawn}, 0, "check")
+                except ScenarioError as exc:
+                    raise self.error(line, full, f"a draw of {value!r} makes no valid scenario: "
+                                     f"{exc.field}: {exc.message}") from None
 
     def faults(self, node: Node, path: str) -> tuple[Fault, ...]:
         if isinstance(node, ScalarNode) and self.value(node) is None:

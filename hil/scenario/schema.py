@@ -203,6 +203,97 @@ class LinksSpec:
 
 
 @dataclass(frozen=True)
+class MocapBiasSpec:
+    """What the mocap system reports for the gap minus the truth (a mis-measured gap: markers placed
+    off, a calibration error). The onboard side sees the biased pose; the world and the checks keep the
+    true gap."""
+
+    gap_pos_m: Vec3 = spec(
+        (0.0, 0.0, 0.0), lo=-1.0, hi=1.0, doc="error of the gap's reported centre, world ENU"
+    )
+    gap_roll_deg: float = spec(0.0, lo=-30.0, hi=30.0, doc="error of the gap's reported roll")
+    gap_yaw_deg: float = spec(0.0, lo=-30.0, hi=30.0, doc="error of the gap's reported yaw")
+
+
+@dataclass(frozen=True)
+class AirframeSpec:
+    """The airframe flown against its profile (a heavier battery, worn propellers); the onboard side is
+    still told the profile's mass and thrust, as a real onboard computer would be."""
+
+    mass_scale: float = spec(1.0, lo=0.5, hi=2.0, doc="flown mass / the profile's mass")
+    thrust_scale: float = spec(
+        1.0, lo=0.5, hi=1.5, doc="flown rotor thrust / the profile's, at every rotor speed (and at 100 %)"
+    )
+
+
+#: the ways a dispersed field is drawn
+DISTRIBUTIONS = ("uniform", "normal", "choice")
+#: fields a dispersion may not vary: each run draws its own seed; the rest name the scenario
+FIXED_FIELDS = ("seed", "name", "description", "dispersions", "skip", "markers", "realtime")
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """How one field is drawn for each run: exactly one of ``uniform``, ``normal``, ``choice``. A
+    vector field (``[x, y, z]``) draws each component on its own from the same distribution."""
+
+    uniform: tuple[float, float] | None = spec(None, lo=-1e6, hi=1e6, doc="[low, high]")
+    normal: tuple[float, float] | None = spec(None, lo=-1e6, hi=1e6, doc="[mean, standard deviation >= 0]")
+    choice: tuple[Any, ...] | None = spec(None, doc="values picked with equal chance")
+    offset: bool = spec(False, doc="add the draw to the scenario's own value instead of replacing it")
+    clip: tuple[float, float] | None = spec(None, lo=-1e6, hi=1e6, doc="[low, high]: draws kept inside")
+
+    @property
+    def kind(self) -> str:
+        return next(k for k in DISTRIBUTIONS if getattr(self, k) is not None)
+
+    def extremes(self) -> tuple[Any, ...]:
+        """Values a draw can reach or is likely to (a normal's mean +- 3 standard deviations, clipped)."""
+        if self.choice is not None:
+            return self.choice
+        if self.uniform is not None:
+            lo, hi = self.uniform
+        else:
+            assert self.normal is not None
+            mean, std = self.normal
+            lo, hi = mean - 3.0 * std, mean + 3.0 * std
+        if self.clip is not None:
+            lo, hi = max(lo, self.clip[0]), min(hi, self.clip[1])
+        return (lo, hi)
+
+
+@dataclass(frozen=True)
+class GoCriterion:
+    """When a dry run says go: the success probability's lower confidence bound at least ``min_success``."""
+
+    min_success: float = spec(0.95, lo=0.0, hi=1.0, doc="success probability a go needs")
+    confidence: float = spec(0.95, lo=0.5, hi=1.0, hi_open=True, doc="two-sided level of the interval")
+
+
+@dataclass(frozen=True)
+class Dispersions:
+    """Dispersed runs of a scenario (`hil dryrun`): each run draws every field of ``vary`` and a seed of
+    its own from one generator seeded with ``seed``. ``vary`` maps a field's path (``gap.roll_deg``,
+    ``initial.pos_m[2]``, ``faults[0].params.force_n``, ``wind.speed_m_s``) to its distribution."""
+
+    vary: tuple[tuple[str, Distribution], ...] = ()
+    runs: int = spec(100, lo=1, hi=1_000_000, doc="runs when `hil dryrun` is not given --runs")
+    seed: int = spec(0, lo=0, hi=2**63 - 1, doc="seed of the generator every run's draws come from")
+    go: GoCriterion = spec(factory=GoCriterion, doc="the go/no-go threshold")
+    envelope: tuple[str, str] | None = spec(
+        None, doc="two paths of `vary` the report maps the pass rate over (default: the first two)"
+    )
+    bins: int = spec(6, lo=2, hi=50, doc="bins per axis of the envelope map")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The block as written in a scenario file."""
+        out = _plain(self)
+        out["vary"] = {path: {k: v for k, v in _plain(d).items() if v is not None and v is not False}
+                       for path, d in self.vary}
+        return out
+
+
+@dataclass(frozen=True)
 class NoParams:
     """A fault without parameters."""
 
@@ -466,6 +557,9 @@ class Scenario:
     skip: str | None = None
     markers: tuple[str, ...] = ()
     expect: Expectations = field(default_factory=Expectations)
+    mocap_bias: MocapBiasSpec = field(default_factory=MocapBiasSpec)
+    airframe: AirframeSpec = field(default_factory=AirframeSpec)
+    dispersions: Dispersions | None = None
 
     META_FIELDS = ("id", "source", "line", "index")
 
@@ -480,6 +574,8 @@ class Scenario:
                 out["faults"] = [fault.to_dict() for fault in value]
             elif f.name == "params":
                 out["params"] = dict(value)
+            elif f.name == "dispersions":
+                out[f.name] = None if value is None else value.to_dict()
             else:
                 out[f.name] = _plain(value)
         return out

@@ -1,0 +1,185 @@
+"""The live view in a real browser (headless Chromium over the DevTools protocol): during a real-time
+run the page loads, the vehicle moves between frames that come at least 20 times a second, and a
+command-link fault shows the failsafe banner; when the run ends the same page replays it with a time
+slider, as `hil view RUN_DIR` does. `hil fc --view` streams the standalone FC the same way."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+from browser import Browser
+
+HIL = [sys.executable, "-m", "hil.cli"]
+# the approach starts about 3.9 s in; the command link goes down in it and the FC fails safe 1 s later
+SCENARIO = """
+description: the command link is lost in the approach; the FC fails safe to a hover
+gap: {roll_deg: 30}
+faults:
+  - {kind: command_link_down, start_s: 4.8}
+duration_s: 8
+expect: {crosses_gap: false, recovery: false, failsafe_expected: hover}
+"""
+BANNER = "document.getElementById('banner')"
+
+
+def _url(proc: subprocess.Popen[str]) -> str:
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    assert line.startswith("view: http://127.0.0.1:"), line
+    return line.split()[1]
+
+
+def _stop(proc: subprocess.Popen[str]) -> int:
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _check_replay(b: Browser) -> None:
+    """The replayed run: a slider over its frames; the vehicle moves and the banner follows the time."""
+    n = b.wait_for("hilView.mode === 'replay' && hilView.frames.length")
+    assert n > 200  # 8 s and more at 50 frames a second
+    assert b.eval("document.getElementById('slider').max") == str(n - 1)
+    assert "FAILSAFE" in b.eval(f"{BANNER}.textContent")  # the last frame: failsafe hover
+    b.eval("setIndex(10)")
+    assert b.eval("hilView.index") == 10
+    assert b.wait_for(f"{BANNER}.style.display === 'none'")
+    early = b.eval("hilView.frames[10].pos")
+    b.eval(f"setIndex({n // 2 + 40})")
+    assert b.eval("hilView.frames[hilView.index].pos") != early
+
+
+def test_the_live_page_follows_a_realtime_run_then_replays_it(tmp_path):
+    path = tmp_path / "live.scenario.yaml"
+    path.write_text(SCENARIO)
+    b = Browser(tmp_path / "profile")  # started first: a browser takes seconds to start on a busy host
+    proc = subprocess.Popen([*HIL, "run", str(path), "--realtime", "--in-process", "--view", "--out",
+                             str(tmp_path / "run")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = _url(proc)
+        b.open(url)
+        assert b.wait_for("hilView.mode === 'live' && hilView.received > 0", 30)
+        assert b.eval("document.getElementById('title').textContent") == "live (live)"
+        # frames at least 20 times a second
+        n0, w0 = b.eval("hilView.received"), time.monotonic()
+        time.sleep(2.0)
+        rate = (b.eval("hilView.received") - n0) / (time.monotonic() - w0)
+        assert rate >= 20, rate
+        # the vehicle moves between two frames of the approach, and the page draws it
+        b.wait_for("hilView.frames.length && hilView.frames[hilView.index].t > 4.4", 30)
+        a = b.eval("hilView.frames[hilView.index]")
+        b.screenshot(tmp_path / "a.png")
+        b.wait_for(f"hilView.frames[hilView.index].t > {a['t'] + 0.6}", 10)
+        c = b.eval("hilView.frames[hilView.index]")
+        b.screenshot(tmp_path / "b.png")
+        moved = sum((p - q) ** 2 for p, q in zip(a["pos"], c["pos"], strict=True)) ** 0.5
+        assert moved > 0.1, (a, c)
+        assert (tmp_path / "a.png").read_bytes() != (tmp_path / "b.png").read_bytes()
+        assert b.eval("hilView.scene.plan_m && hilView.scene.plan_m.length") > 10  # the plan is drawn
+        assert b.eval(f"{BANNER}.style.display") == "none"
+        # the command link goes down: the FC fails safe and the banner says so
+        text = b.wait_for(f"{BANNER}.style.display === 'block' && {BANNER}.textContent", 20)
+        assert "FC FAILSAFE: failsafe_hover" in text
+        assert b.eval("document.getElementById('panel').textContent").count("command_link_down") == 1
+        # the run ends: the same page replays it
+        _check_replay(b)
+        b.screenshot(tmp_path / "replay.png")
+    finally:
+        b.close()
+        code = _stop(proc)
+    # the exit code is the run's verdict, the view's Ctrl-C notwithstanding (on a busy host a real-time
+    # run may fail its `realtime` check: the view does not decide that)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert code == (0 if summary["passed"] else 1), proc.stderr.read() if proc.stderr else ""
+    assert {c["name"] for c in summary["checks"] if not c["passed"]} <= {"realtime"}
+    # and `hil view` replays the folder the same way
+    view = subprocess.Popen([*HIL, "view", str(tmp_path / "run")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    b = Browser(tmp_path / "profile2")
+    try:
+        b.open(_url(view))
+        _check_replay(b)
+    finally:
+        b.close()
+        assert _stop(view) == 0
+
+
+def test_hil_view_refuses_a_folder_without_a_run(tmp_path):
+    p = subprocess.run([*HIL, "view", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "holds no finished run" in p.stderr
+
+
+def test_hil_fc_view_streams_the_standalone_fc(tmp_path):
+    proc = subprocess.Popen([*HIL, "fc", "--view", "--duration", "30", "--mocap-link", "none"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        endpoints = json.loads(proc.stdout.readline())
+        url = endpoints["view"]
+        assert url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url + "state.json", timeout=10) as r:
+            state = json.load(r)
+        assert state["mode"] == "live" and state["scene"]["gap"]["width_m"] > 0
+        ts = []
+        for _ in range(2):
+            time.sleep(0.5)
+            with urllib.request.urlopen(url + "frame.json", timeout=10) as r:
+                frame = json.load(r)
+            ts.append(frame["t"])
+            assert frame["fc"] == "disarmed" and frame["banner"] is None
+        assert ts[1] > ts[0]  # the FC's clock goes on in the frames
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+
+
+@pytest.fixture(autouse=True)
+def _quiet_cwd(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the runs write reports/ where they are started
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).resolve().parents[1]))
+
+
+def test_a_run_folder_as_mcap_for_foxglove(tmp_path):
+    import math
+
+    from mcap.reader import make_reader
+
+    from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd
+    from hil.report.timeseries import read_timeseries
+
+    path = tmp_path / "m.scenario.yaml"
+    path.write_text("description: m\ngap: {roll_deg: 45}\nduration_s: 9\n")
+    p = subprocess.run([*HIL, "run", str(path), "--in-process", "--mcap", "--out", str(tmp_path / "r")],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "mcap:" in p.stdout, p.stdout + p.stderr
+    cols = read_timeseries(tmp_path / "r")
+    with (tmp_path / "r" / "run.mcap").open("rb") as f:
+        msgs = [(ch.topic, json.loads(m.data)) for _, ch, m in make_reader(f).iter_messages()]
+    poses = [d for topic, d in msgs if topic == "/vehicle/pose"]
+    assert len(poses) == len(cols["t_s"])
+    assert len([1 for topic, _ in msgs if topic == "/state"]) == len(poses)
+    assert any("offboard" in d["message"] for topic, d in msgs if topic == "/events")
+    # the pose's orientation (body FLU -> world ENU) is the recorded attitude, the steepest one too
+    i = int(cols["roll_deg"].__abs__().argmax())
+    o = poses[i]["pose"]["orientation"]
+    q = quat_enu_flu_to_ned_frd([o["w"], o["x"], o["y"], o["z"]])
+    rpy = [math.degrees(a) for a in euler_from_quat(q)]
+    assert abs(cols["roll_deg"][i]) > 30
+    assert rpy == pytest.approx([cols["roll_deg"][i], cols["pitch_deg"][i], cols["yaw_deg"][i]], abs=1e-6)
+    assert poses[i]["pose"]["position"]["x"] == pytest.approx(cols["pos_m_x"][i])
+    # hil view --mcap writes the same from a folder
+    (tmp_path / "r" / "run.mcap").unlink()
+    p = subprocess.run([*HIL, "view", str(tmp_path / "r"), "--mcap"], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 0 and (tmp_path / "r" / "run.mcap").stat().st_size > 10_000
