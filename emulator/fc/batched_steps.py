@@ -14,7 +14,7 @@ the vehicle's own per-step path.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.flight_controller import HOLD_STATES, LANDED_MAX_SPEED_M_S
@@ -30,6 +30,19 @@ def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_ste
     for _ in range(n_steps):
         control(x[6:10], x[10:13], roll, pitch, yaw, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
+
+
+@njit(cache=True, parallel=True)
+def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps):  # pragma: no cover
+    """Many vehicles of one profile, each flying its own offboard attitude target for ``n_steps`` physics
+    steps (the FC's inner loop, then one physics step, each step): rows of ``xs`` (N, STATE_SIZE) and
+    ``auxs`` (N, AUX_SIZE) (`BatchPhysics.kernel_arrays`) advanced in place, rows in parallel.
+    ``targets`` (N, 4): NED roll, pitch, yaw (rad) and thrust (N), already within the FC's limits;
+    ``gains``, ``mix_inv``: an `InnerLoop`'s ``params`` and ``mix_inv``; ``outs`` (N, 4): the last
+    throttles. The batch form of `_fly_batch` (no FC state: the caller keeps the vehicles in OFFBOARD)."""
+    for i in prange(xs.shape[0]):
+        tg = targets[i]
+        _fly_batch(xs[i], auxs[i], p, tg[0], tg[1], tg[2], tg[3], gains, mix_inv, outs[i], n_steps)
 
 
 @njit(cache=True, nogil=True)
