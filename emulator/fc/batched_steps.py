@@ -19,7 +19,7 @@ from numba import njit, prange
 from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.flight_controller import HOLD_STATES, LANDED_MAX_SPEED_M_S
 from emulator.fc.hold import hold_command
-from emulator.fc.inner_loop import control
+from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
@@ -27,8 +27,9 @@ from emulator.physics.state import QUAT
 
 @njit(cache=True, nogil=True)
 def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_steps):  # pragma: no cover
+    d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
     for _ in range(n_steps):
-        control(x[6:10], x[10:13], roll, pitch, yaw, thrust_n, gains, mix_inv, out)
+        control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
 
 
