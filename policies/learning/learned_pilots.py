@@ -85,15 +85,16 @@ class EndToEndPilot:
     """The merged policy network on the approach; the expert on the plan's reference afterwards."""
 
     def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None, acc_input: str = "zero",
-                 max_tilt_deg: float = 75.0) -> None:
+                 max_tilt_deg: float = 75.0, shipped: str = "e2e") -> None:
         if acc_input not in ("zero", "measured"):
             raise ValueError(f"acc_input must be 'zero' or 'measured', got {acc_input!r}")
         if not (math.isfinite(mass_kg) and mass_kg > 0):
             raise ValueError("mass_kg must be positive")
-        self.model = model or load_shipped("e2e")
+        self.model = model or load_shipped(shipped)
         self.mass_kg, self.acc_input = mass_kg, acc_input
         self.expert = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
-        self.flies = flown_by(approach="end-to-end network")
+        self.flies = flown_by(approach="end-to-end network" if shipped == "e2e" or model is not None
+                              else f"end-to-end network ({shipped})")
 
     def inputs(self, obs: object) -> np.ndarray:
         """The policy's 29 inputs for an observation (in the frame of the plan's yaw)."""
@@ -136,8 +137,9 @@ def make_planner_net(mass_kg: float, options: tuple[tuple[str, str], ...] = (),
 
 
 def make_e2e(mass_kg: float, options: tuple[tuple[str, str], ...] = (), max_tilt_deg: float = 75.0,
-             ) -> EndToEndPilot:
-    """``e2e`` pilot; options ``onnx=<path>`` and ``acc_input=zero|measured``."""
+             shipped: str = "e2e") -> EndToEndPilot:
+    """``e2e`` pilot (``e2e_rl`` with ``shipped="e2e_rl"``: the policy fine-tuned by RL); options
+    ``onnx=<path>`` and ``acc_input=zero|measured``."""
     opts = _options(options)
     model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
-    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"), max_tilt_deg)
+    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"), max_tilt_deg, shipped)
