@@ -1,6 +1,6 @@
 """The TRPO actor is the imitation policy before its first update (normalisation and planner included),
 with small log-stds and a critic of its own; an update moves the controller within the KL bound and
-holds the planner; `hil train rl` refuses bad input."""
+holds the planner; `hil train rl` writes its outputs, resumes, and refuses bad input."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from hil.cli import main as hil_main
-from hil.rl.env import CrossGapCore, CrossGapVecEnv, EnvConfig
+from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapVecEnv, EnvConfig
 from hil.rl.policy import imitation_policy
-from hil.rl.train import RLConfig, make_model
+from hil.rl.train import RLConfig, make_model, train_rl
 from policies.learning.onnx_runtime import load_shipped
 
 SMALL = EnvConfig(pool_size=4, seed=5)
@@ -76,3 +76,16 @@ def test_train_rl_refuses_bad_input(tmp_path, capsys):
     assert hil_main(["train", "rl", "--minutes", "0", "--out", str(tmp_path)]) == 1
     assert "minutes must be positive" in capsys.readouterr().err
     assert hil_main(["train", "rl", "--minutes", "1", "--envs", "0", "--out", str(tmp_path)]) == 1
+
+
+@pytest.mark.slow
+def test_train_rl_writes_its_outputs_and_resumes(tmp_path):
+    cfg = RLConfig(n_envs=4, n_steps=80, critic_batch=80, sub_sampling_factor=2, n_critic_updates=1,
+                   pool_size=4, eval_size=3, checkpoint_every=1)
+    first = train_rl(tmp_path, 0.01, seed=1, cfg=cfg, progress=False)  # one update, then the budget is spent
+    for name in ("checkpoint.zip", "returns.csv", "e2e_rl.pt", "e2e_rl.onnx", "metrics.json"):
+        assert (tmp_path / name).exists(), name
+    assert first["held_out"]["crossings"] == 3
+    assert set(first["held_out"]["rl"]["mean_terms"]) == set(REWARD_TERMS)
+    again = train_rl(tmp_path, 0.01, seed=1, cfg=cfg, resume=True, progress=False)
+    assert again["timesteps"] > first["timesteps"]  # went on from the checkpoint

@@ -148,6 +148,12 @@ class _Progress(BaseCallback):
         self.update = start_update
         self.episodes: list[dict[str, Any]] = []
         self.started = time.perf_counter()
+        self.bar = None
+        if progress:
+            from tqdm import tqdm
+
+            total = max(0.0, deadline_s - self.started)
+            self.bar = tqdm(total=round(total), unit="s", desc="hil train rl", leave=False)
         self.csv_path = out / "returns.csv"
         if not self.csv_path.exists():
             with self.csv_path.open("w", newline="") as f:
@@ -170,10 +176,11 @@ class _Progress(BaseCallback):
                    *[np.mean([e["reward_terms"][k] for e in eps]) for k in REWARD_TERMS]]
             with self.csv_path.open("a", newline="") as f:
                 csv.writer(f).writerow(row)
-            if self.progress:
-                left = max(0.0, self.deadline_s - time.perf_counter())
-                print(f"update {self.update}: {self.num_timesteps} steps, return {row[4]:.4g}, success "
-                      f"{row[5]:.2f}, ang.acc. {row[10]:.4g}, {left / 60:.1f} min left", flush=True)
+            if self.bar is not None:
+                self.bar.n = min(self.bar.total, round(time.perf_counter() - self.started))
+                self.bar.set_postfix_str(f"update {self.update}, return {row[4]:.4g}, success {row[5]:.2f}")
+                self.bar.write(f"update {self.update}: {self.num_timesteps} steps, return {row[4]:.4g}, "
+                               f"success {row[5]:.2f}, angular acceleration term {row[10]:.4g}")
         if self.update % self.every == 0:
             self.model.save(self.out / "checkpoint.zip")
 
@@ -225,6 +232,8 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
         print(f"hil train rl: device {device()}, {cfg.n_envs} envs x {cfg.n_steps} steps a batch, "
               f"{minutes:g} min, out {out}", flush=True)
     model.learn(total_timesteps=10**12, callback=callback, reset_num_timesteps=not resume)
+    if callback.bar is not None:
+        callback.bar.close()
     train_s = time.perf_counter() - t0
     model.save(ckpt)
     actor = model.policy.actor_module().cpu().eval()
