@@ -121,3 +121,27 @@ def test_crossings_are_seeded_and_vary():
     env = CrossGapEnv(SMALL, CrossGapCore(1, SMALL).pool)
     picks = [env.reset(seed=s)[1]["crossing"] for s in (1, 1, 2, 3, 4, 5)]
     assert picks[0] == picks[1] and len(set(picks)) > 1
+
+
+def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision(pool):
+    with pytest.raises(ValueError, match="world_check"):
+        EnvConfig(world_check="sometimes")
+    fine = EnvConfig(pool_size=6, seed=3, world_check="physics")
+    a, b = CrossGapCore(2, SMALL, pool), CrossGapCore(2, fine, pool)
+    for core in (a, b):
+        core.reset_rows(np.arange(2), np.array([0, 1]))
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        act = np.column_stack([rng.normal(0, 0.05, 2), rng.normal(0, 0.05, 2), np.full(2, 8.9)])
+        ra, ta, *_ = a.step(act)
+        rb, tb, *_ = b.step(act)
+        assert not ta.any() and not tb.any()
+    np.testing.assert_array_equal(a.physics.kernel_arrays[0], b.physics.kernel_arrays[0])
+    np.testing.assert_array_equal(ra, rb)
+    env = CrossGapEnv(fine, pool)
+    env.reset(seed=0)
+    for _ in range(300):  # no thrust: it falls to the floor
+        _, _, terminated, truncated, info = env.step(np.array([0.0, 0.0, 0.0], np.float32))
+        if terminated or truncated:
+            break
+    assert terminated and info["reward_terms"]["collision"] == -1e6

@@ -7,7 +7,8 @@ through `emulator.world.box_kernel.check_states_in`), nothing re-written.
 Episode (as in the paper's release): a hover at a drawn start facing the crossing, the onboard program's
 plan of a drawn gap (`hil.rl.scenarios`), then the approach and the traverse; it ends at approach time
 + 2 x the traverse's time to the gap centre (truncated), or on a collision with the wall, the floor or
-the lab's faces (terminated; the world is checked once a control step).
+the lab's faces (terminated; the world is checked once a control step, or after every physics step with
+``EnvConfig.world_check = "physics"``, as the runner does).
 
 Action (3,) at the control rate (100 Hz): the N3 attitude-thrust setpoint as the end-to-end policy gives
 it, roll and pitch (rad, ZYX of body FLU -> world ENU relative to the plan's yaw) and thrust (N, for the
@@ -39,7 +40,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from emulator.fc import EmulatedVehicle
-from emulator.fc.batched_steps import fly_targets
+from emulator.fc.batched_steps import fly_targets, fly_targets_checked
 from emulator.fc.n3 import limit_tilt
 from emulator.physics.native import BatchPhysics, hover_state
 from emulator.profile import load_profile
@@ -79,8 +80,13 @@ class EnvConfig:
     seed: int = 0
     ranges: CrossingRanges = field(default_factory=CrossingRanges)
     reward: RewardWeights = field(default_factory=RewardWeights)
+    #: when the world is checked: "control" once a control step (fast, training), "physics" after every
+    #: physics step as the runner does (a graze shorter than a control step counts; about 2x slower)
+    world_check: str = "control"
 
     def __post_init__(self) -> None:
+        if self.world_check not in ("control", "physics"):
+            raise ValueError(f"world_check must be 'control' or 'physics', got {self.world_check!r}")
         steps = 1.0 / (self.rate_hz * self.physics_dt_s)
         whole = abs(steps - round(steps)) < 1e-9 and steps >= 1
         if not (self.rate_hz > 0 and self.physics_dt_s > 0 and whole):
@@ -223,10 +229,15 @@ class CrossGapCore:
         for i in over:  # rare: the FC scales roll and pitch back to its tilt limit
             tg[i, 0], tg[i, 1] = limit_tilt(tg[i, 0], tg[i, 1], self._max_tilt)
         x, aux, p = self.physics.kernel_arrays
-        fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps)
+        if cfg.world_check == "physics":
+            fly_targets_checked(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
+                                pool.worlds, k, self._codes, self.clearance_m)
+        else:
+            fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps)
+            check_states_in(x[:, 0:3], x[:, 6:10], pool.worlds, k, self._codes, self.clearance_m,
+                            self._in_slab)
         self.physics.advance_clock(cfg.physics_steps)
         self.tick += 1
-        check_states_in(x[:, 0:3], x[:, 6:10], pool.worlds, k, self._codes, self.clearance_m, self._in_slab)
         terms = self._reward_terms(x, aux)
         collided = self._codes != 0
         terms[:, 5] = np.where(collided, -cfg.reward.collision, 0.0)
