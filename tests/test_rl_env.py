@@ -101,13 +101,18 @@ def test_imitation_policy_crosses_and_reward_terms_are_the_papers(pool):
         assert info["terminal_observation"].shape == (29,)
 
 
-def test_a_collision_terminates_with_the_penalty(pool):
-    env = CrossGapEnv(SMALL, pool)
+def _fall(env: CrossGapEnv) -> tuple[float, bool, bool, dict]:
+    """Fly with no thrust until the episode ends (it falls to the floor); the last step's results."""
     env.reset(seed=0)
-    for _ in range(300):  # no thrust: it falls to the floor
+    for _ in range(300):
         _, reward, terminated, truncated, info = env.step(np.array([0.0, 0.0, 0.0], np.float32))
         if terminated or truncated:
             break
+    return reward, terminated, truncated, info
+
+
+def test_a_collision_terminates_with_the_penalty(pool):
+    reward, terminated, truncated, info = _fall(CrossGapEnv(SMALL, pool))
     assert terminated and not truncated
     assert info["reward_terms"]["collision"] == -1e6 and reward < -0.99e6
     assert not info["success"]
@@ -138,10 +143,5 @@ def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision
         assert not ta.any() and not tb.any()
     np.testing.assert_array_equal(a.physics.kernel_arrays[0], b.physics.kernel_arrays[0])
     np.testing.assert_array_equal(ra, rb)
-    env = CrossGapEnv(fine, pool)
-    env.reset(seed=0)
-    for _ in range(300):  # no thrust: it falls to the floor
-        _, _, terminated, truncated, info = env.step(np.array([0.0, 0.0, 0.0], np.float32))
-        if terminated or truncated:
-            break
+    _, terminated, _, info = _fall(CrossGapEnv(fine, pool))
     assert terminated and info["reward_terms"]["collision"] == -1e6
