@@ -14,22 +14,59 @@ the vehicle's own per-step path.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from emulator.fc import EmulatedVehicle, FcState
 from emulator.fc.flight_controller import HOLD_STATES, LANDED_MAX_SPEED_M_S
 from emulator.fc.hold import hold_command
-from emulator.fc.inner_loop import control
+from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
+from emulator.world.box_kernel import check_packed, quat_to_rot
 
 
 @njit(cache=True, nogil=True)
 def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_steps):  # pragma: no cover
+    d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
     for _ in range(n_steps):
-        control(x[6:10], x[10:13], roll, pitch, yaw, thrust_n, gains, mix_inv, out)
+        control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
+
+
+@njit(cache=True, parallel=True)
+def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps):  # pragma: no cover
+    """Many vehicles of one profile, each flying its own offboard attitude target for ``n_steps`` physics
+    steps (the FC's inner loop, then one physics step, each step): rows of ``xs`` (N, STATE_SIZE) and
+    ``auxs`` (N, AUX_SIZE) (`BatchPhysics.kernel_arrays`) advanced in place, rows in parallel.
+    ``targets`` (N, 4): NED roll, pitch, yaw (rad) and thrust (N), already within the FC's limits;
+    ``gains``, ``mix_inv``: an `InnerLoop`'s ``params`` and ``mix_inv``; ``outs`` (N, 4): the last
+    throttles. The batch form of `_fly_batch` (no FC state: the caller keeps the vehicles in OFFBOARD)."""
+    for i in prange(xs.shape[0]):
+        tg = targets[i]
+        _fly_batch(xs[i], auxs[i], p, tg[0], tg[1], tg[2], tg[3], gains, mix_inv, outs[i], n_steps)
+
+
+@njit(cache=True, parallel=True)
+def fly_targets_checked(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, which, codes,
+                        clearance):  # pragma: no cover
+    """`fly_targets` with the world checked after every physics step (`emulator.world.box_kernel`,
+    row i against ``worlds[which[i]]``): a row stops at its first collision, its code (0: none) in
+    ``codes`` (N,) and its least clearance over the steps (m) in ``clearance`` (N,)."""
+    for i in prange(xs.shape[0]):
+        x, tg = xs[i], targets[i]
+        d0, d1, d2, d3 = target_quat_floats(tg[0], tg[1], tg[2])
+        codes[i] = 0
+        least = np.inf
+        for _ in range(n_steps):
+            control_quat(x[6:10], x[10:13], d0, d1, d2, d3, tg[3], gains, mix_inv, outs[i])
+            step_vehicle(x, auxs[i], p, outs[i], 1)
+            code, clr, _, _ = check_packed(x[0:3], quat_to_rot(x[6:10]), worlds[which[i]])
+            least = min(least, clr)
+            if code != 0:
+                codes[i] = code
+                break
+        clearance[i] = least
 
 
 @njit(cache=True, nogil=True)

@@ -45,7 +45,9 @@ class InnerLoop:
 
     Contract for compiled callers that fuse the loop with physics (`emulator.fc.batched_steps`):
     ``control(q, w, roll, pitch, yaw, thrust_n, params, mix_inv, out)`` (`control`, numba) with this
-    loop's ``params`` and ``mix_inv`` writes the throttles into ``out`` (4,), here ``motor_cmd``.
+    loop's ``params`` and ``mix_inv`` writes the throttles into ``out`` (4,), here ``motor_cmd``;
+    ``control_quat`` takes the target as its quaternion (`target_quat_floats`), for a target held over
+    many steps.
     """
 
     def __init__(self, profile: VehicleProfile, gains: InnerLoopGains) -> None:
@@ -119,8 +121,8 @@ def _qmul(aw, ax, ay, az, bw, bx, by, bz):
 
 
 @njit(cache=True)
-def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Body(FLU)->world(ENU) quaternion of NED/FRD Euler angles (rad)."""
+def target_quat_floats(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """`target_quat_enu_flu` as four floats (w >= 0): no array for the per-step path."""
     cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
     cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
     cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
@@ -131,10 +133,16 @@ def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
     # q_enu = qT * q_ned * qD with qT = (0, s, s, 0) (NED<->ENU) and qD = (0, 1, 0, 0) (FRD<->FLU)
     aw, ax, ay, az = _qmul(0.0, _S, _S, 0.0, w, x, y, z)
     bw, bx, by, bz = _qmul(aw, ax, ay, az, 0.0, 1.0, 0.0, 0.0)
+    if bw < 0:
+        return -bw, -bx, -by, -bz
+    return bw, bx, by, bz
+
+
+@njit(cache=True)
+def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Body(FLU)->world(ENU) quaternion of NED/FRD Euler angles (rad)."""
     out = np.empty(4)
-    out[0], out[1], out[2], out[3] = bw, bx, by, bz
-    if out[0] < 0:
-        out *= -1.0
+    out[0], out[1], out[2], out[3] = target_quat_floats(roll, pitch, yaw)
     return out
 
 
@@ -142,62 +150,80 @@ def target_quat_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:
 def control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):  # pragma: no cover
     """The inner loop's step (see the module doc): throttles into ``out`` (4,) for attitude ``q``
     (FLU->ENU, wxyz) and rates ``w`` (rad/s) toward NED (``roll``, ``pitch``, ``yaw``) (rad) and
-    ``thrust_n`` (N); ``p`` and ``mix_inv`` are an `InnerLoop`'s ``params`` and ``mix_inv``."""
-    qd = target_quat_enu_flu(roll, pitch, yaw)
+    ``thrust_n`` (N); ``p`` and ``mix_inv`` are an `InnerLoop`'s ``params`` and ``mix_inv``.
+    Scalars only (no array is allocated: it runs every physics step of every vehicle)."""
+    d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)
+    control_quat(q, w, d0, d1, d2, d3, thrust_n, p, mix_inv, out)
+
+
+@njit(cache=True, nogil=True)
+def control_quat(q, w, d0, d1, d2, d3, thrust_n, p, mix_inv, out):  # pragma: no cover
+    """`control` toward the target attitude given as its FLU->ENU quaternion (``d0``..``d3`` = w, x, y,
+    z; `target_quat_floats` of the NED Euler angles): a caller holding one target over many steps
+    computes it once."""
     # error quaternion qe = conj(q) * qd (rotation from the body to the target, body frame)
     qw, qx, qy, qz = q[0], -q[1], -q[2], -q[3]
-    ew = qw * qd[0] - qx * qd[1] - qy * qd[2] - qz * qd[3]
-    ex = qw * qd[1] + qx * qd[0] + qy * qd[3] - qz * qd[2]
-    ey = qw * qd[2] - qx * qd[3] + qy * qd[0] + qz * qd[1]
-    ez = qw * qd[3] + qx * qd[2] - qy * qd[1] + qz * qd[0]
+    ew = qw * d0 - qx * d1 - qy * d2 - qz * d3
+    ex = qw * d1 + qx * d0 + qy * d3 - qz * d2
+    ey = qw * d2 - qx * d3 + qy * d0 + qz * d1
+    ez = qw * d3 + qx * d2 - qy * d1 + qz * d0
     if ew < 0:
         ex, ey, ez = -ex, -ey, -ez
     max_rate = p[9]
-    rate_cmd = np.empty(3)
-    rate_cmd[0] = 2.0 * p[0] * ex
-    rate_cmd[1] = 2.0 * p[1] * ey
-    rate_cmd[2] = 2.0 * p[2] * ez
-    for i in range(3):
-        rate_cmd[i] = min(max_rate, max(-max_rate, rate_cmd[i]))
+    rc0 = min(max_rate, max(-max_rate, 2.0 * p[0] * ex))
+    rc1 = min(max_rate, max(-max_rate, 2.0 * p[1] * ey))
+    rc2 = min(max_rate, max(-max_rate, 2.0 * p[2] * ez))
     ixx, iyy, izz = p[6], p[7], p[8]
-    ax = p[3] * (rate_cmd[0] - w[0])
-    ay = p[4] * (rate_cmd[1] - w[1])
-    az = p[5] * (rate_cmd[2] - w[2])
-    tx = ixx * ax + (izz - iyy) * w[1] * w[2]
-    ty = iyy * ay + (ixx - izz) * w[2] * w[0]
-    tz = izz * az + (iyy - ixx) * w[0] * w[1]
+    w0, w1, w2 = w[0], w[1], w[2]
+    ax = p[3] * (rc0 - w0)
+    ay = p[4] * (rc1 - w1)
+    az = p[5] * (rc2 - w2)
+    tx = ixx * ax + (izz - iyy) * w1 * w2
+    ty = iyy * ay + (ixx - izz) * w2 * w0
+    tz = izz * az + (iyy - ixx) * w0 * w1
     f_max = p[10]
     f_lo = p[11] * f_max
     avail = f_max - f_lo
-    f = np.empty(4)
-    dmin, dmax = 1e300, -1e300
-    for i in range(4):
-        d = mix_inv[i, 1] * tx + mix_inv[i, 2] * ty
-        f[i] = d
-        dmin = min(dmin, d)
-        dmax = max(dmax, d)
+    f0 = mix_inv[0, 1] * tx + mix_inv[0, 2] * ty
+    f1 = mix_inv[1, 1] * tx + mix_inv[1, 2] * ty
+    f2 = mix_inv[2, 1] * tx + mix_inv[2, 2] * ty
+    f3 = mix_inv[3, 1] * tx + mix_inv[3, 2] * ty
+    dmin = min(min(1e300, f0), min(f1, min(f2, f3)))
+    dmax = max(max(-1e300, f0), max(f1, max(f2, f3)))
     spread = dmax - dmin
     if spread > avail:  # roll/pitch alone saturate: scale them down to fit
         k = avail / spread
         dmin *= k
         dmax *= k
-        for i in range(4):
-            f[i] *= k
+        f0 *= k
+        f1 *= k
+        f2 *= k
+        f3 *= k
     collective = 0.25 * thrust_n
     collective = min(max(collective, f_lo - dmin), f_max - dmax)  # shift the collective to fit
-    for i in range(4):
-        f[i] += collective
-    k = 1.0
-    for i in range(4):  # yaw last: the largest share of the yaw torque that still fits
-        y = mix_inv[i, 3] * tz
-        if y > 1e-12:
-            k = min(k, (f_max - f[i]) / y)
-        elif y < -1e-12:
-            k = min(k, (f_lo - f[i]) / y)
-    k = max(k, 0.0)
-    for i in range(4):
-        u = (f[i] + k * mix_inv[i, 3] * tz) / f_max
-        out[i] = min(1.0, max(0.0, u))
+    f0 += collective
+    f1 += collective
+    f2 += collective
+    f3 += collective
+    y0, y1, y2, y3 = mix_inv[0, 3] * tz, mix_inv[1, 3] * tz, mix_inv[2, 3] * tz, mix_inv[3, 3] * tz
+    k = min(min(_yaw_room(f0, y0, f_lo, f_max), _yaw_room(f1, y1, f_lo, f_max)),
+            min(_yaw_room(f2, y2, f_lo, f_max), _yaw_room(f3, y3, f_lo, f_max)))
+    k = max(min(k, 1.0), 0.0)  # yaw last: the largest share of the yaw torque that still fits
+    out[0] = min(1.0, max(0.0, (f0 + k * mix_inv[0, 3] * tz) / f_max))
+    out[1] = min(1.0, max(0.0, (f1 + k * mix_inv[1, 3] * tz) / f_max))
+    out[2] = min(1.0, max(0.0, (f2 + k * mix_inv[2, 3] * tz) / f_max))
+    out[3] = min(1.0, max(0.0, (f3 + k * mix_inv[3, 3] * tz) / f_max))
+
+
+@njit(cache=True, nogil=True)
+def _yaw_room(f: float, y: float, f_lo: float, f_max: float) -> float:
+    """The share of a rotor's yaw thrust ``y`` (N) that keeps its thrust ``f`` + share * y in
+    [f_lo, f_max] (1 or more: all of it)."""
+    if y > 1e-12:
+        return (f_max - f) / y
+    if y < -1e-12:
+        return (f_lo - f) / y
+    return 1.0
 
 
 @njit(cache=True, nogil=True)

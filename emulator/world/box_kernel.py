@@ -163,3 +163,17 @@ def check_states(
         codes[i] = c
         clr[i] = cl
         in_slab[i] = s
+
+
+@njit(cache=True)
+def check_states_in(
+    p: np.ndarray, q: np.ndarray, worlds: np.ndarray, which: np.ndarray, codes: np.ndarray, clr: np.ndarray,
+    in_slab: np.ndarray,
+) -> None:
+    """`check_states` of rows that each have their own world: row i of positions ``p`` (N, 3) and
+    quaternions ``q`` (N, 4; non-zero) checked against ``worlds[which[i]]`` (`pack_world` rows (K, 27))."""
+    for i in range(p.shape[0]):
+        c, cl, s, _ = check_packed(p[i], quat_to_rot(q[i]), worlds[which[i]])
+        codes[i] = c
+        clr[i] = cl
+        in_slab[i] = s

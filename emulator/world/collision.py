@@ -121,6 +121,12 @@ class World:
         """A world checking the collision box of a `VehicleProfile` (its ``body_box_m``)."""
         return cls(gap, lab, body_box_m=profile.body_box_m, **kwargs)  # type: ignore[attr-defined]
 
+    @property
+    def packed(self) -> np.ndarray:
+        """This world's constants as `box_kernel.pack_world` packs them (27,): a row of the worlds that
+        `box_kernel.check_states_in` checks a batch against, each row its own world."""
+        return self._packed
+
     # --- one pose ---------------------------------------------------------------------------------------
     def check(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[Obstacle | None, Clearance]:
         """Both `collision` and `clearance` for one pose, computed together."""

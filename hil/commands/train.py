@@ -1,4 +1,5 @@
-"""`hil train planner|controller|export`: train the imitation networks, export them to ONNX."""
+"""`hil train planner|controller|export`: train the imitation networks, export them to ONNX; `hil train rl`:
+fine-tune the end-to-end policy with TRPO in `CrossGap-v0` (`hil.rl.train`)."""
 
 from __future__ import annotations
 
@@ -52,6 +53,35 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--controller", required=True, help="controller state dict (controller.pt)")
     ex.add_argument("--out", required=True, help="output folder")
     ex.set_defaults(func=main)
+    rl = tsub.add_parser("rl", help="fine-tune the end-to-end policy with TRPO in CrossGap-v0 (imitate, then "
+                                    "reinforce); writes e2e_rl.onnx, returns.csv, curve.png, metrics.json")
+    rl.add_argument("--minutes", type=float, default=20.0, help="wall-clock budget in minutes (default 20)")
+    rl.add_argument("--envs", type=int, default=None,
+                    help="vehicles flown at once (default 64; the batch stays about 10,240 steps)")
+    rl.add_argument("--seed", type=int, default=0, help="seed of the crossings and of TRPO (default 0)")
+    rl.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.zip")
+    rl.add_argument("--out", default="out/rl", help="output folder (default out/rl)")
+    rl.add_argument("--no-progress", action="store_true", help="no progress lines")
+    rl.set_defaults(func=main_rl)
+
+
+def main_rl(args: argparse.Namespace) -> int:
+    try:
+        from hil.rl.train import train_rl
+    except ImportError as exc:  # the 'learn' extra
+        print(f"hil train rl: needs the 'learn' extra (torch, gymnasium, stable-baselines3, sb3-contrib): "
+              f"{exc}", file=sys.stderr)
+        return 2
+    try:
+        metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
+                           progress=not args.no_progress)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"hil train rl: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps({k: metrics[k] for k in ("timesteps", "train_minutes", "held_out")}, indent=2))
+    print(f"wrote {metrics['onnx']}, {Path(args.out) / 'returns.csv'}, {Path(args.out) / 'curve.png'}, "
+          f"{Path(args.out) / 'metrics.json'}")
+    return 0
 
 
 def main(args: argparse.Namespace) -> int:

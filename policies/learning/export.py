@@ -71,6 +71,13 @@ def load_controller(path: str | Path) -> ControllerNet:
     return net.eval()
 
 
+def load_e2e(path: str | Path) -> EndToEndPolicy:
+    """An ``EndToEndPolicy`` from a state-dict file of the whole policy (e.g. ``e2e_rl.pt``)."""
+    net = EndToEndPolicy(PlannerNet(), ControllerNet())
+    net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    return net.eval()
+
+
 def export_all(planner: PlannerNet, controller: ControllerNet, out_dir: str | Path) -> dict[str, Path]:
     """Write planner.onnx, controller.onnx and e2e.onnx (the merged policy) into ``out_dir``."""
     out = Path(out_dir)

@@ -38,6 +38,23 @@ def approach_planner_inputs(plan: MissionPlan, t_s: float,
     return x, p0
 
 
+def e2e_state_inputs(pos_rel_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, euler_rad: np.ndarray,
+                     yaw_rad: np.ndarray | float, out: np.ndarray) -> np.ndarray:
+    """The end-to-end policy's first 12 inputs into ``out[..., 0:12]``: position relative to the approach
+    start (m), velocity (m/s), acceleration (m/s^2), each (..., 3) world ENU turned by -``yaw_rad`` (the
+    plan's yaw, (...) or a float), and the Euler angles (..., 3) (roll, pitch, yaw; rad) with the yaw
+    taken relative to ``yaw_rad`` and wrapped to [-pi, pi). One sample or a batch (the RL environment's)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    for k, v in enumerate((pos_rel_m, vel_m_s, acc_m_s2)):
+        x, y = v[..., 0], v[..., 1]
+        out[..., 3 * k] = c * x + s * y  # rot_z(-yaw) @ v
+        out[..., 3 * k + 1] = c * y - s * x
+        out[..., 3 * k + 2] = v[..., 2]
+    out[..., 9:11] = euler_rad[..., 0:2]
+    out[..., 11] = (euler_rad[..., 2] - yaw_rad + math.pi) % (2 * math.pi) - math.pi
+    return out
+
+
 class PlannerNetPilot:
     """Approach reference from the planner network, tracked by the expert controller."""
 
@@ -68,28 +85,28 @@ class EndToEndPilot:
     """The merged policy network on the approach; the expert on the plan's reference afterwards."""
 
     def __init__(self, mass_kg: float = 0.9, model: OnnxModel | None = None, acc_input: str = "zero",
-                 max_tilt_deg: float = 75.0) -> None:
+                 max_tilt_deg: float = 75.0, shipped: str = "e2e") -> None:
         if acc_input not in ("zero", "measured"):
             raise ValueError(f"acc_input must be 'zero' or 'measured', got {acc_input!r}")
         if not (math.isfinite(mass_kg) and mass_kg > 0):
             raise ValueError("mass_kg must be positive")
-        self.model = model or load_shipped("e2e")
+        self.model = model or load_shipped(shipped)
         self.mass_kg, self.acc_input = mass_kg, acc_input
         self.expert = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
-        self.flies = flown_by(approach="end-to-end network")
+        self.flies = flown_by(approach="end-to-end network" if shipped == "e2e" or model is not None
+                              else f"end-to-end network ({shipped})")
 
     def inputs(self, obs: object) -> np.ndarray:
         """The policy's 29 inputs for an observation (in the frame of the plan's yaw)."""
         plan: MissionPlan = obs.plan  # type: ignore[attr-defined]
         yaw = plan.yaw_rad
         x17, p0 = approach_planner_inputs(plan, obs.t_s, yaw)  # type: ignore[attr-defined]
-        turn = rot_z(-yaw)
         acc = np.asarray(obs.acc_m_s2, float) if self.acc_input == "measured" else np.zeros(3)  # type: ignore[attr-defined]
-        euler = np.asarray(obs.euler_rad, float).copy()  # type: ignore[attr-defined]
-        euler[2] = (euler[2] - yaw + math.pi) % (2 * math.pi) - math.pi
-        state = [turn @ (np.asarray(obs.pos_m, float) - p0), turn @ np.asarray(obs.vel_m_s, float),  # type: ignore[attr-defined]
-                 turn @ acc, euler]
-        return np.concatenate([*state, x17])
+        out = np.empty(29)
+        e2e_state_inputs(np.asarray(obs.pos_m, float) - p0, np.asarray(obs.vel_m_s, float), acc,  # type: ignore[attr-defined]
+                         np.asarray(obs.euler_rad, float), yaw, out)  # type: ignore[attr-defined]
+        out[12:] = x17
+        return out
 
     def command(self, obs: object) -> AttitudeThrustCommand:
         plan: MissionPlan = obs.plan  # type: ignore[attr-defined]
@@ -120,8 +137,9 @@ def make_planner_net(mass_kg: float, options: tuple[tuple[str, str], ...] = (),
 
 
 def make_e2e(mass_kg: float, options: tuple[tuple[str, str], ...] = (), max_tilt_deg: float = 75.0,
-             ) -> EndToEndPilot:
-    """``e2e`` pilot; options ``onnx=<path>`` and ``acc_input=zero|measured``."""
+             shipped: str = "e2e") -> EndToEndPilot:
+    """``e2e`` pilot (``e2e_rl`` with ``shipped="e2e_rl"``: the policy fine-tuned by RL); options
+    ``onnx=<path>`` and ``acc_input=zero|measured``."""
     opts = _options(options)
     model = OnnxModel(Path(opts["onnx"])) if "onnx" in opts else None
-    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"), max_tilt_deg)
+    return EndToEndPilot(mass_kg, model, opts.get("acc_input", "zero"), max_tilt_deg, shipped)

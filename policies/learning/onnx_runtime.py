@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-WEIGHT_NAMES = ("planner", "controller", "e2e")
+WEIGHT_NAMES = ("planner", "controller", "e2e", "e2e_rl")
 
 
 def shipped_path(name: str) -> Path:
-    """Path of a shipped ONNX file in ``policies/weights`` (``planner``, ``controller`` or ``e2e``)."""
+    """Path of a shipped ONNX file in ``policies/weights`` (one of `WEIGHT_NAMES`)."""
     if name not in WEIGHT_NAMES:
         raise ValueError(f"unknown network {name!r}; shipped: {', '.join(WEIGHT_NAMES)}")
     return Path(str(resources.files("policies") / "weights" / f"{name}.onnx"))
@@ -85,7 +85,7 @@ class OnnxModel:
 
 
 def load_shipped(name: str, threads: int = 1) -> OnnxModel:
-    """The shipped network ``name`` (``planner``, ``controller`` or ``e2e``) on onnxruntime."""
+    """The shipped network ``name`` (one of `WEIGHT_NAMES`) on onnxruntime."""
     path = shipped_path(name)
     if not path.is_file():
         raise FileNotFoundError(f"the shipped {name} network is missing ({path}); train and export it with "

@@ -1,0 +1,34 @@
+"""Bench group `rl`: control steps a second of the batched RL environment `CrossGap-v0`."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from hil.benches import BenchRow, time_per_call
+
+BATCH_N = 4096
+
+
+def collect(quick: bool) -> Iterator[BenchRow]:
+    """`rl_env_steps_per_s`: `CrossGapVecEnv.step` at N = 4096 under the hover-ish action of the
+    imitation policy's order (physics 10 x 1 ms with the FC's inner loop, world check, reward, the
+    29 inputs, restarts), control steps (one vehicle, 10 ms) a second."""
+    from hil.rl.env import CrossGapVecEnv, EnvConfig  # the 'learn' extra
+
+    env = CrossGapVecEnv(BATCH_N, EnvConfig(pool_size=32 if quick else 128, seed=0))
+    env.reset()
+    rng = np.random.default_rng(0)
+    actions = np.zeros((64, BATCH_N, 3))
+    actions[..., 0:2] = rng.normal(0.0, 0.05, (64, BATCH_N, 2))
+    actions[..., 2] = 8.8 + rng.normal(0.0, 0.3, (64, BATCH_N))
+    k = [0]
+
+    def one_step() -> None:
+        env.step(actions[k[0] & 63])
+        k[0] += 1
+
+    per_step = time_per_call(one_step, min_time_s=0.5 if quick else 3.0)
+    yield BenchRow("rl_env_steps_per_s", BATCH_N / per_step, "steps/s",
+                   f"CrossGapVecEnv.step, N={BATCH_N}, control steps of 10 ms (10 physics steps each)")

@@ -1,0 +1,147 @@
+"""`CrossGap-v0`: registered, a one-vehicle view passes gymnasium's and SB3's checks, the batch sees what
+the `e2e` pilot sees and commands the FC as the link does, the imitation policy crosses in it, the reward
+terms are the paper's, a collision ends an episode with its penalty, and crossings are seeded."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
+from hil.rl import ENV_ID
+from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig
+from hil.rl.scenarios import CrossingPool, draw_crossings
+from policies.learning.learned_pilots import EndToEndPilot
+from policies.learning.onnx_runtime import load_shipped
+from policies.onboard.pilots import Observation
+
+SMALL = EnvConfig(pool_size=6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def pool() -> CrossingPool:
+    core = CrossGapCore(1, SMALL)
+    return core.pool
+
+
+def test_registered_and_one_vehicle_view_passes_the_checkers(pool):
+    env = gym.make(ENV_ID, config=SMALL, pool=pool)
+    assert isinstance(env.unwrapped, CrossGapEnv)
+    gym_check_env(env.unwrapped, skip_render_check=True)
+    sb3_check_env(CrossGapEnv(SMALL, pool), warn=False)
+
+
+def test_observation_is_what_the_e2e_pilot_builds(pool):
+    core = CrossGapCore(3, SMALL, pool)
+    core.reset_rows(np.arange(3), np.array([0, 1, 2]))
+    rng = np.random.default_rng(0)
+    for _ in range(30):  # fly a little, with some tilt, so that the state is no hover
+        core.step(np.column_stack([rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3), np.full(3, 9.5)]))
+    x, aux, _ = core.physics.kernel_arrays
+    pilot = EndToEndPilot(model=object())  # no network needed to build inputs
+    h = SMALL.lead_s
+    for i in range(3):
+        plan = pool.crossings[core.which[i]].plan
+        pos, vel, acc = x[i, 0:3], x[i, 3:6], aux[i, 3:6]
+        pred = pos + vel * h + 0.5 * acc * h * h
+        obs = Observation(core.tick[i] * SMALL.dt_s + h, pred, vel + acc * h, acc,
+                          np.array(euler_from_quat(x[i, 6:10])), plan.gap, plan)
+        np.testing.assert_allclose(core.observations()[i], pilot.inputs(obs), rtol=1e-6, atol=1e-6)
+
+
+def test_command_reaches_the_fc_as_through_the_link(pool):
+    # the FC's NED target is what SET_ATTITUDE_TARGET's quaternion of the ENU command reads as
+    core = CrossGapCore(1, SMALL, pool)
+    yaw = float(pool.yaw_rad[core.which[0]])
+    core.step(np.array([[0.3, -0.2, 9.0]]))
+    q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(0.3, -0.2, yaw))
+    roll, pitch, yaw_ned = euler_from_quat(np.array(q))
+    np.testing.assert_allclose(core._targets[0, :3], [roll, pitch, yaw_ned], atol=1e-9)
+    assert core._targets[0, 3] == pytest.approx(9.0)  # thrust (N) for the 0.9 kg vehicle
+
+
+def test_tilt_and_thrust_are_limited_as_the_fc_does(pool):
+    core = CrossGapCore(1, SMALL, pool)
+    core.step(np.array([[1.5, 0.5, 100.0]]))
+    roll, pitch = core._targets[0, 0], core._targets[0, 1]
+    tilt = math.degrees(math.acos(math.cos(roll) * math.cos(pitch)))
+    assert tilt == pytest.approx(core.profile.max_tilt_deg, abs=1e-6)
+    assert core._targets[0, 3] == core.profile.n3_full_thrust_n
+    with pytest.raises(ValueError, match="finite"):
+        core.step(np.array([[np.nan, 0.0, 9.0]]))
+    with pytest.raises(ValueError, match="shape"):
+        core.step(np.zeros((2, 3)))
+
+
+def test_imitation_policy_crosses_and_reward_terms_are_the_papers(pool):
+    model = load_shipped("e2e")
+    env = CrossGapVecEnv(len(pool), SMALL, pool)
+    obs = env.reset()
+    ends = {}
+    for _ in range(400):
+        obs, _, done, infos = env.step(model.run(obs.astype(np.float64)))
+        for i in np.flatnonzero(done):
+            ends.setdefault(i, infos[i])
+        if len(ends) == env.num_envs:
+            break
+    assert len(ends) == env.num_envs
+    for info in ends.values():
+        terms = info["reward_terms"]
+        assert set(terms) == set(REWARD_TERMS)
+        assert info["success"] and info["arrived"] and info["TimeLimit.truncated"]
+        assert terms["arrival"] == 5e5 and terms["collision"] == 0.0
+        assert 0 < terms["position"] < 1000 * 0.2 * 0.01 * info["episode"]["l"]
+        assert terms["rate"] < 0 and terms["angular_acceleration"] < 0 and terms["jerk"] < 0
+        assert info["episode"]["r"] == pytest.approx(sum(terms.values()), rel=1e-4)
+        assert info["terminal_observation"].shape == (29,)
+
+
+def _fall(env: CrossGapEnv) -> tuple[float, bool, bool, dict]:
+    """Fly with no thrust until the episode ends (it falls to the floor); the last step's results."""
+    env.reset(seed=0)
+    for _ in range(300):
+        _, reward, terminated, truncated, info = env.step(np.array([0.0, 0.0, 0.0], np.float32))
+        if terminated or truncated:
+            break
+    return reward, terminated, truncated, info
+
+
+def test_a_collision_terminates_with_the_penalty(pool):
+    reward, terminated, truncated, info = _fall(CrossGapEnv(SMALL, pool))
+    assert terminated and not truncated
+    assert info["reward_terms"]["collision"] == -1e6 and reward < -0.99e6
+    assert not info["success"]
+
+
+def test_crossings_are_seeded_and_vary():
+    a = draw_crossings(5, np.random.default_rng(7))
+    b = draw_crossings(5, np.random.default_rng(7))
+    assert [c.gap_centre_m for c in a] == [c.gap_centre_m for c in b]
+    assert len({c.roll_deg for c in a}) == 5
+    env = CrossGapEnv(SMALL, CrossGapCore(1, SMALL).pool)
+    picks = [env.reset(seed=s)[1]["crossing"] for s in (1, 1, 2, 3, 4, 5)]
+    assert picks[0] == picks[1] and len(set(picks)) > 1
+
+
+def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision(pool):
+    with pytest.raises(ValueError, match="world_check"):
+        EnvConfig(world_check="sometimes")
+    fine = EnvConfig(pool_size=6, seed=3, world_check="physics")
+    a, b = CrossGapCore(2, SMALL, pool), CrossGapCore(2, fine, pool)
+    for core in (a, b):
+        core.reset_rows(np.arange(2), np.array([0, 1]))
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        act = np.column_stack([rng.normal(0, 0.05, 2), rng.normal(0, 0.05, 2), np.full(2, 8.9)])
+        ra, ta, *_ = a.step(act)
+        rb, tb, *_ = b.step(act)
+        assert not ta.any() and not tb.any()
+    np.testing.assert_array_equal(a.physics.kernel_arrays[0], b.physics.kernel_arrays[0])
+    np.testing.assert_array_equal(ra, rb)
+    _, terminated, _, info = _fall(CrossGapEnv(fine, pool))
+    assert terminated and info["reward_terms"]["collision"] == -1e6
