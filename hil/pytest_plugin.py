@@ -32,6 +32,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=False,
         help="run both sides in the test process over memory links (default: ptys)",
     )
+    group.addoption(
+        "--hil-cold-start",
+        action="store_true",
+        default=False,
+        help="start the onboard program as a new interpreter each run (default: forked warm)",
+    )
     group.addoption("--hil-backend", default=None, help="physics backend for every scenario")
     group.addoption(
         "--hil-realtime",
@@ -64,6 +70,18 @@ SCENARIO_MARKERS = {
 def pytest_configure(config: pytest.Config) -> None:
     for name, text in SCENARIO_MARKERS.items():
         config.addinivalue_line("markers", f"{name}: {text}")
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start the onboard program's fork server while pytest gets ready, when scenarios will fly over ptys
+    warm (the default)."""
+    cfg = session.config
+    if cfg.getoption("--hil-in-process") or cfg.getoption("--hil-cold-start"):
+        return
+    if any(isinstance(item, ScenarioItem) for item in session.items):
+        from hil.runner.onboard_side import prestart
+
+        prestart()
 
 
 def pytest_collect_file(parent: pytest.Collector, file_path: Path) -> ScenarioFile | None:
@@ -134,6 +152,7 @@ class ScenarioItem(pytest.Item):
             backend=cfg.getoption("--hil-backend"),
             realtime=True if cfg.getoption("--hil-realtime") else None,
             vehicle=cfg.getoption("--hil-vehicle"),
+            cold_start=cfg.getoption("--hil-cold-start"),
         )
         result = run_scenario(self.scenario, out, options)
         self.user_properties.append(("report", str(result.report_path)))

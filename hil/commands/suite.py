@@ -15,6 +15,7 @@ from typing import Any
 
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
 from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
 from hil.scenario.schema import Scenario
@@ -80,7 +81,8 @@ def main(args: argparse.Namespace) -> int:
     wall0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     work = [(s, str(out / s.id), options) for s in todo]
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+    warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
+    with ProcessPoolExecutor(max_workers=args.jobs, initializer=prestart if warm else None) as pool:
         for res in pool.map(_run, work):
             word = "PASSED" if res["passed"] else "FAILED"
             print(

@@ -150,6 +150,8 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
+                if first:  # dropped by the program's port as it opens, always: whether it is open yet
+                    wire.discard_held()  # depends on how fast it started (warm or cold)
                 wire.send_sync(tick_frames(t, mocap_total, FC_SYSTEM_ID, FC_COMPONENT_ID))
                 onboard.service()
                 emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works

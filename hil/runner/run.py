@@ -32,6 +32,7 @@ from hil.runner.onboard_side import (
     ProcessOnboard,
     onboard_argv,
     onboard_options,
+    prestart,
     program_config,
 )
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
@@ -62,6 +63,8 @@ class RunOptions:
     vehicle: str | None = None  # a profile name or file; the opening grows with its body box (`for_vehicle`)
     tick_s: float = DEFAULT_TICK_S
     guard_s: float = DEFAULT_GUARD_S
+    #: start the onboard program as a new interpreter instead of forking it warm (over ptys only)
+    cold_start: bool = False
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,9 @@ def run_scenario(
     """
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
+    warm = not (in_process or options.cold_start)
+    if warm:
+        prestart()  # (the first run of a process: the fork server imports while the emulator is built)
     try:
         profile = load_profile(s.vehicle)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused here, with the reason
@@ -230,7 +236,7 @@ def run_scenario(
             # started only now, right before the first tick: the frames written with that tick reach
             # a program that has not opened its ports yet and are dropped, always (a program started
             # earlier would get them or not depending on how fast it starts)
-            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt")
+            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
 
         def tell(t: float) -> None:
             if progress is not None:
@@ -253,7 +259,8 @@ def run_scenario(
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
-        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime)
+        started = None if isinstance(onboard, InProcessOnboard) else ("warm" if onboard.warm else "cold")
+        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime, started)
     finally:
         if onboard is not None:
             onboard.close()
@@ -274,6 +281,7 @@ def _finish(
     wall_s: float,
     in_process: bool,
     realtime: bool,
+    onboard_start: str | None,
 ) -> RunResult:
     rec = emu.recorder
     cols = rec.columns()
@@ -370,6 +378,7 @@ def _finish(
         "mode": {
             "in_process": in_process,
             "realtime": realtime,
+            "onboard_start": onboard_start,  # "warm" (forked), "cold" (a new interpreter), None (in-process)
             "pilot": s.pilot,
             # what computed each segment's commands, as the onboard program reported it
             "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"),

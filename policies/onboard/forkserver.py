@@ -1,0 +1,327 @@
+"""The onboard program started warm: a server process that has imported the program once and forks one
+fresh copy of itself per run, so that a run pays a fork (milliseconds) instead of an interpreter start
+and the imports of numpy, pymavlink and the pilots (about 0.3-0.5 s).
+
+Each child runs ``python -m policies.onboard`` exactly as a cold start does (the same ``__main__``, on
+the arguments and the stderr it is given, stdin and stdout on /dev/null), in a copy of the server's
+memory as it was after the imports: the server never runs a program itself, so no state passes from
+one run to the next. The server forks, reaps and reports; `ForkServer.spawn` returns a `ForkedProcess`,
+which a harness watches, signals (through a pidfd: never a recycled pid) and waits on as it would a
+`subprocess.Popen`: a killed or stopped child is killed or stopped as a cold one is.
+
+The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descriptors beside it):
+    control socket (one per server): the request ``{"args": [...], "preload": "pilot name"|null}``
+        with two descriptors: the run's channel and the child's stderr;
+    run channel (one per child): the server's ``{"pid": N}`` with the child's pidfd, then
+        ``{"exit": code}`` (negative: the signal that ended it) once it has been reaped; the channel
+        closes after it.
+The server ends when its control socket closes (its harness exited); children it leaves behind end as
+cold ones do, when their links close.
+
+    python -m policies.onboard.forkserver FD     # FD: the control socket, inherited
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import gc
+import json
+import os
+import runpy
+import select
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from typing import IO, Any
+
+#: the program the children run (as ``python -m MODULE``)
+MODULE = "policies.onboard"
+#: the modules the server imports before it forks (the pilots: see `_preload`)
+PRELOAD = ("numpy", "serial", "policies.onboard.cli")
+MAX_MESSAGE_BYTES = 1 << 16
+#: the first spawn waits for the server to import everything (s); later ones take milliseconds
+START_TIMEOUT_S = 60.0
+
+
+def available() -> bool:
+    """Whether this platform can run the server (fork, pidfds, SCM_RIGHTS: Linux 5.3 or later)."""
+    return hasattr(os, "pidfd_open") and hasattr(signal, "pidfd_send_signal") and hasattr(socket, "send_fds")
+
+
+# --- the server ------------------------------------------------------------------------------------
+_preloaded: set[str] = set()
+
+
+def _preload(pilot: str | None) -> None:
+    """Import the program and, if named, a pilot's module (a learned pilot's brings onnxruntime), once."""
+    import importlib
+
+    key = pilot or ""
+    if key in _preloaded:
+        return
+    _preloaded.add(key)
+    for name in PRELOAD:
+        importlib.import_module(name)
+    if pilot:
+        from policies.onboard.pilots import PILOTS
+
+        with contextlib.suppress(Exception):  # an unknown pilot is the program's to refuse, cold or warm
+            PILOTS.load(pilot)
+    gc.collect()
+    gc.freeze()  # what is imported stays put: the children's collector never scans (or copies) it
+
+
+def serve(control_fd: int) -> int:
+    """Serve fork requests on ``control_fd`` until it closes; returns the exit code (0)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the harness's to handle, not ours
+    _preload(None)
+    control = socket.socket(fileno=control_fd)
+    sel = selectors.DefaultSelector()
+    sel.register(control, selectors.EVENT_READ, None)
+    children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, run channel)
+    while True:
+        for key, _ in sel.select():
+            if key.data is None:
+                try:
+                    data, fds, _, _ = socket.recv_fds(control, MAX_MESSAGE_BYTES, 2)
+                except OSError:
+                    data, fds = b"", []
+                if not data:
+                    return 0
+                _fork(data, fds, control, sel, children)
+            else:
+                pidfd = key.fd
+                pid, chan = children.pop(pidfd)
+                sel.unregister(pidfd)
+                _, status = os.waitpid(pid, 0)
+                with contextlib.suppress(OSError):
+                    chan.send(json.dumps({"exit": os.waitstatus_to_exitcode(status)}).encode())
+                chan.close()
+                os.close(pidfd)
+
+
+def _fork(data: bytes, fds: list[int], control: socket.socket, sel: selectors.BaseSelector,
+          children: dict[int, tuple[int, socket.socket]]) -> None:
+    if len(fds) != 2:
+        for fd in fds:
+            os.close(fd)
+        return
+    chan, stderr_fd = socket.socket(fileno=fds[0]), fds[1]
+    try:
+        request = json.loads(data)
+        args = [str(a) for a in request["args"]]
+        preload = request.get("preload")
+    except (ValueError, KeyError, TypeError) as exc:
+        with contextlib.suppress(OSError):
+            chan.send(json.dumps({"error": f"bad request: {exc}"}).encode())
+        chan.close()
+        os.close(stderr_fd)
+        return
+    if preload:
+        _preload(str(preload))  # (before the fork: the next child of this pilot starts warm too)
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            sel.close()
+            control.close()
+            chan.close()
+            for _, other in children.values():
+                other.close()
+            for pidfd in children:
+                os.close(pidfd)
+            code = _child(args, stderr_fd)
+        finally:
+            os._exit(code)
+    os.close(stderr_fd)
+    pidfd = os.pidfd_open(pid)
+    children[pidfd] = (pid, chan)
+    sel.register(pidfd, selectors.EVENT_READ, pid)
+    try:
+        socket.send_fds(chan, [json.dumps({"pid": pid}).encode()], [pidfd])
+    except OSError:  # the harness has gone: the child goes too
+        os.kill(pid, signal.SIGKILL)
+
+
+def _child(args: list[str], stderr_fd: int) -> int:
+    """Run the program in this fresh child, as ``python -m MODULE ARGS`` would; its exit code."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # (the server ignores it; Python's own)
+    devnull = os.open(os.devnull, os.O_RDWR)
+    os.dup2(devnull, 0)
+    os.dup2(devnull, 1)
+    os.dup2(stderr_fd, 2)
+    os.close(devnull)
+    os.close(stderr_fd)
+    sys.argv = [MODULE, *args]
+    try:
+        runpy.run_module(MODULE, run_name="__main__", alter_sys=True)  # (its __main__ leaves by os._exit)
+    except SystemExit as exc:
+        code = exc.code
+        if code is None or isinstance(code, int):
+            return code or 0
+        print(code, file=sys.stderr)
+        return 1
+    except BaseException:  # the child's last word, as the interpreter would print it
+        import traceback
+
+        traceback.print_exc()
+        return 1
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+    return 0
+
+
+# --- the client ------------------------------------------------------------------------------------
+class ForkServerError(OSError):
+    """The server could not start a program (it did not start, or it has gone)."""
+
+
+class ForkedProcess:
+    """A program the server forked, with `subprocess.Popen`'s ``pid``, ``returncode``, ``poll``,
+    ``wait``, ``send_signal``, ``terminate`` and ``kill``; signals go through its pidfd."""
+
+    def __init__(self, pid: int, pidfd: int, chan: socket.socket) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+        self._pidfd: int | None = pidfd
+        self._chan = chan
+
+    def poll(self) -> int | None:
+        """The exit code once the server has reaped the program, else None (one non-blocking read)."""
+        if self.returncode is None:
+            try:
+                data = self._chan.recv(MAX_MESSAGE_BYTES, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                return None
+            except OSError:
+                data = b""
+            self._on_message(data)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for the exit code; `subprocess.TimeoutExpired` after ``timeout`` (s)."""
+        if self.returncode is None:
+            ready, _, _ = select.select([self._chan], [], [], timeout)
+            if not ready:
+                raise subprocess.TimeoutExpired(MODULE, timeout or 0.0)
+            self.poll()
+            if self.returncode is None:  # (not a message yet: a spurious wake-up)
+                return self.wait(timeout)
+        return self.returncode  # type: ignore[return-value]
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None and self._pidfd is not None:
+            with contextlib.suppress(ProcessLookupError):
+                signal.pidfd_send_signal(self._pidfd, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def _on_message(self, data: bytes) -> None:
+        msg: dict[str, Any] = {}
+        with contextlib.suppress(ValueError):
+            msg = json.loads(data) if data else {}
+        if isinstance(msg.get("exit"), int):
+            self.returncode = msg["exit"]
+        elif not data:  # the server has gone without a word: end the program, as a harness would
+            if self._pidfd is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    signal.pidfd_send_signal(self._pidfd, signal.SIGKILL)
+            self.returncode = -signal.SIGKILL
+        else:
+            return
+        self._release()
+
+    def _release(self) -> None:
+        if self._pidfd is not None:
+            os.close(self._pidfd)
+            self._pidfd = None
+        self._chan.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            if self._pidfd is not None:
+                self._release()
+
+
+class ForkServer:
+    """A server process (started here, importing in the background) and the control socket to it."""
+
+    def __init__(self, env: dict[str, str] | None = None) -> None:
+        if not available():
+            raise ForkServerError("warm starts need Linux 5.3 or later (fork, pidfds)")
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", __name__, str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env,
+            )
+        finally:
+            theirs.close()
+        self._sock = ours
+        self._lock = threading.Lock()
+        self.owner_pid = os.getpid()
+
+    def spawn(self, args: list[str], stderr: IO[bytes], preload: str | None = None) -> ForkedProcess:
+        """Start ``python -m policies.onboard ARGS`` warm, its stderr on ``stderr``; ``preload`` names a
+        pilot whose module the server imports first (once). ForkServerError when the server cannot."""
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            with self._lock:
+                request = json.dumps({"args": args, "preload": preload}).encode()
+                socket.send_fds(self._sock, [request], [theirs.fileno(), stderr.fileno()])
+            theirs.close()
+            ours.settimeout(START_TIMEOUT_S)
+            data, fds, _, _ = socket.recv_fds(ours, MAX_MESSAGE_BYTES, 1)
+            ours.settimeout(None)
+        except OSError as exc:
+            ours.close()
+            raise ForkServerError(f"onboard fork server: {exc}") from exc
+        finally:
+            theirs.close()
+        msg: dict[str, Any] = {}
+        with contextlib.suppress(ValueError):
+            msg = json.loads(data) if data else {}
+        if not isinstance(msg.get("pid"), int) or len(fds) != 1:
+            for fd in fds:
+                os.close(fd)
+            ours.close()
+            raise ForkServerError(f"onboard fork server: {msg.get('error', 'no answer (it has exited)')}")
+        return ForkedProcess(msg["pid"], fds[0], ours)
+
+    def close(self) -> None:
+        """End the server (its children run on to their end)."""
+        self._sock.close()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.proc.wait(2.0)
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+_shared: ForkServer | None = None
+
+
+def shared(env: dict[str, str] | None = None) -> ForkServer | None:
+    """This process's server, started on first use (None where warm starts are not available). A forked
+    copy of the process starts its own: the server belongs to the process that started it."""
+    global _shared
+    if not available():
+        return None
+    if _shared is None or _shared.owner_pid != os.getpid() or _shared.proc.poll() is not None:
+        _shared = ForkServer(env)
+        atexit.register(_shared.close)
+    return _shared
+
+
+if __name__ == "__main__":
+    sys.exit(serve(int(sys.argv[1])))
