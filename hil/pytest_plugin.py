@@ -11,6 +11,7 @@ A failed scenario shows its failed checks (expected, observed, sim time) and the
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -72,15 +73,25 @@ def pytest_configure(config: pytest.Config) -> None:
         config.addinivalue_line("markers", f"{name}: {text}")
 
 
-def pytest_collection_finish(session: pytest.Session) -> None:
-    """Start the onboard program's fork server while pytest gets ready, when scenarios will fly over ptys
-    warm (the default)."""
-    cfg = session.config
-    if cfg.getoption("--hil-in-process") or cfg.getoption("--hil-cold-start"):
-        return
-    if any(isinstance(item, ScenarioItem) for item in session.items):
-        from hil.runner.onboard_side import prestart
+def _xdist_workers() -> tuple[int, int]:
+    """This pytest-xdist worker's number and how many there are ((0, 1) without xdist)."""
+    name = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    count = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    number = name[2:] if name.startswith("gw") else "0"
+    return (int(number) if number.isdigit() else 0), (int(count) if count.isdigit() else 1)
 
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """When scenarios will fly over ptys: this worker's CPU (`share_a_core`, when the workers fill the
+    cores), then the onboard program's fork server, started while pytest gets ready (warm, the default)."""
+    cfg = session.config
+    if cfg.getoption("--hil-in-process") or not any(isinstance(i, ScenarioItem) for i in session.items):
+        return
+    from hil.runner.lockstep import share_a_core
+    from hil.runner.onboard_side import prestart
+
+    share_a_core(*_xdist_workers())
+    if not cfg.getoption("--hil-cold-start"):
         prestart()
 
 
@@ -153,6 +164,8 @@ class ScenarioItem(pytest.Item):
             realtime=True if cfg.getoption("--hil-realtime") else None,
             vehicle=cfg.getoption("--hil-vehicle"),
             cold_start=cfg.getoption("--hil-cold-start"),
+            # pytest-xdist's workers, each flying one run at a time
+            parallel_runs=_xdist_workers()[1],
         )
         result = run_scenario(self.scenario, out, options)
         self.user_properties.append(("report", str(result.report_path)))

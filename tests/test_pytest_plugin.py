@@ -3,6 +3,7 @@ checks and the report, markers from YAML, bad files as collection errors, JUnit 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -72,3 +73,18 @@ def test_pilot_option_reaches_the_runner(tmp_path):
     (tmp_path / "one.scenario.yaml").write_text(FAILSAFE.format(name="one", fs="hover"))
     p = pytest_run([str(tmp_path), "--hil-in-process", "--pilot", "no_such_pilot"], tmp_path)
     assert p.returncode == 1 and "unknown pilot 'no_such_pilot'" in p.stdout
+
+
+def test_scenarios_fly_warm_over_ptys_by_default_and_cold_on_request(tmp_path):
+    (tmp_path / "two.scenario.yaml").write_text(
+        FAILSAFE.format(name="a", fs="hover") + "---\n" + FAILSAFE.format(name="b", fs="hover")
+    )
+    for flag, start in (([], "warm"), (["--hil-cold-start"], "cold")):
+        out = tmp_path / start
+        p = pytest_run([str(tmp_path / "two.scenario.yaml"), "-n", "2", "--hil-out", str(out), *flag],
+                       tmp_path)
+        assert p.returncode == 0, p.stdout
+        for name in ("a", "b"):
+            summary = json.loads((out / name / "summary.json").read_text())
+            assert summary["mode"]["onboard_start"] == start
+            assert summary["mode"]["in_process"] is False

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,6 +28,7 @@ from hil.link.mavlink import (
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import _FaultyLink
+from hil.runner.lockstep import SPIN_S, lockstep_spin_s
 from hil.scenario import load_scenarios, loads_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -347,3 +351,27 @@ def test_run_reports_the_onboard_start_up_apart_from_the_loop(tmp_path: Path):
     assert sm["real_time_factor"] == pytest.approx(sm["loop_sim_time_s"] / sm["loop_wall_time_s"])
     assert sm["ticks_answered"] == sm["ticks"] == 50
     assert sm["wall_time_s"] >= sm["onboard_startup_s"] + sm["loop_wall_time_s"]
+
+
+def test_the_sides_poll_only_while_each_process_of_the_runs_at_once_has_a_core():
+    cores = len(os.sched_getaffinity(0))
+    assert lockstep_spin_s(cores) == 0.0  # a suite filling the cores: each side sleeps while it waits
+    assert lockstep_spin_s(1) == (SPIN_S if cores >= 2 else 0.0)
+
+
+def test_workers_filling_the_cores_each_keep_to_one_core_and_their_children_with_them():
+    cores = sorted(os.sched_getaffinity(0))
+    code = (
+        "import os, subprocess, sys\n"
+        "from hil.runner.lockstep import share_a_core\n"
+        f"print(share_a_core(0, {len(cores)} - 1))\n"
+        f"print(share_a_core(1, {len(cores)}), sorted(os.sched_getaffinity(0)))\n"
+        "print(subprocess.run([sys.executable, '-c', 'import os; print(sorted(os.sched_getaffinity(0)))'],"
+        " capture_output=True, text=True).stdout.strip())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    lines = out.splitlines()
+    cpu = cores[1 % len(cores)]
+    assert lines[0] == "None"  # fewer workers than cores: left to the scheduler
+    assert lines[1] == f"{cpu} [{cpu}]"
+    assert lines[2] == f"[{cpu}]"  # the onboard program and its fork server start there too

@@ -4,20 +4,25 @@ index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import multiprocessing
 import os
 import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from html import escape
 from pathlib import Path
 from typing import Any
 
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.runner.lockstep import share_a_core
 from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
-from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
+from hil.scenario import ScenarioError, find_scenario_files, load_scenarios, loads_scenarios
 from hil.scenario.schema import Scenario
 
 
@@ -50,6 +55,30 @@ def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     }
 
 
+#: a short flight that loads what every run loads on its first use
+WARM_UP_SCENARIO = "description: warm-up, not part of any suite\nduration_s: 0.3\n"
+
+
+def warm_up(options: RunOptions) -> None:
+    """Load here, once, what each run loads on its first use in a process (numba's compiled kernels,
+    from its cache, for the options' physics and vehicle): a short in-process flight, its files thrown
+    away. Nothing of it is seen by a run but the time it saves."""
+    flight = RunOptions(in_process=True, backend=options.backend, vehicle=options.vehicle)
+    with contextlib.suppress(RunSetupError, ValueError), tempfile.TemporaryDirectory() as tmp:
+        run_scenario(loads_scenarios(WARM_UP_SCENARIO)[0], tmp, flight)
+
+
+def _start_worker(numbers: Any, workers: int, warm: bool) -> None:
+    """A worker's start: its CPU when the workers fill the cores (`share_a_core`), then its onboard
+    fork server (which keeps that CPU for the programs it forks)."""
+    with numbers.get_lock():
+        worker = numbers.value
+        numbers.value += 1
+    share_a_core(worker, workers)
+    if warm:
+        prestart()
+
+
 def main(args: argparse.Namespace) -> int:
     folder = Path(args.folder)
     if not folder.is_dir():
@@ -80,9 +109,17 @@ def main(args: argparse.Namespace) -> int:
     skipped = [{"id": s.id, "skipped": skip[s.id], "source": s.source} for s in scenarios if s.id in skip]
     wall0 = time.perf_counter()
     results: list[dict[str, Any]] = []
+    workers = max(1, min(args.jobs, len(todo)))
+    options = replace(options, parallel_runs=workers)
     work = [(s, str(out / s.id), options) for s in todo]
     warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
-    with ProcessPoolExecutor(max_workers=args.jobs, initializer=prestart if warm else None) as pool:
+    fork = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+    if fork is not None and todo:
+        warm_up(options)  # (the workers are forked from this process: they start with what it loaded)
+    numbers = (fork or multiprocessing).Value("i", 0)
+    with ProcessPoolExecutor(
+        max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, workers, warm)
+    ) as pool:
         for res in pool.map(_run, work):
             word = "PASSED" if res["passed"] else "FAILED"
             print(

@@ -25,7 +25,7 @@ from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
 from hil.runner.flight_quality import measure
-from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
+from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, lockstep_spin_s, run_lockstep
 from hil.runner.mission import phase_intervals, window_hits
 from hil.runner.onboard_side import (
     InProcessOnboard,
@@ -65,6 +65,9 @@ class RunOptions:
     guard_s: float = DEFAULT_GUARD_S
     #: start the onboard program as a new interpreter instead of forking it warm (over ptys only)
     cold_start: bool = False
+    #: runs flying at once on this machine (a suite's workers): with fewer than two cores per run the
+    #: two sides of a lockstep run wait for each other asleep instead of polling (`lockstep_spin_s`)
+    parallel_runs: int = 1
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,9 @@ def run_scenario(
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
     warm = not (in_process or options.cold_start)
+    if options.parallel_runs < 1:
+        raise RunSetupError(f"parallel runs must be >= 1, got {options.parallel_runs}")
+    spin_s = lockstep_spin_s(options.parallel_runs)
     if warm:
         prestart()  # (the first run of a process: the fork server imports while the emulator is built)
     try:
@@ -196,6 +202,7 @@ def run_scenario(
     log_path = out / ONBOARD_LOG_NAME
     emu = None
     onboard: InProcessOnboard | ProcessOnboard | None = None
+    spawn_s = 0.0  # wall time the onboard process took to spawn (s)
     wall0 = time.perf_counter()
     try:
         if in_process:
@@ -229,14 +236,16 @@ def run_scenario(
                 moc_fc.endpoint,
                 s.links.command.baud,
                 s.links.mocap.baud,
-                ob_options,
+                [*ob_options, f"--lockstep-spin-us={spin_s * 1e6:g}"],
                 log_path,
                 lockstep=not realtime,
             )
             # started only now, right before the first tick: the frames written with that tick reach
             # a program that has not opened its ports yet and are dropped, always (a program started
             # earlier would get them or not depending on how fast it starts)
+            spawn0 = time.perf_counter()
             onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
+            spawn_s = time.perf_counter() - spawn0
 
         def tell(t: float) -> None:
             if progress is not None:
@@ -255,7 +264,9 @@ def run_scenario(
                 compute_s=compute_s,
                 guard_s=options.guard_s,
                 progress=tell,
+                spin_s=spin_s,
             )
+        loop.startup_wall_s += spawn_s  # (the program's start-up counts from its spawn)
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0

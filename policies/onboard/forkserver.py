@@ -66,6 +66,14 @@ def _preload(pilot: str | None) -> None:
     _preloaded.add(key)
     for name in PRELOAD:
         importlib.import_module(name)
+    if not key:  # what the program imports on its first use of them: its options and vehicle files
+        import argparse
+
+        from policies.onboard.cli import add_arguments
+        from policies.vehicle import DEFAULT_VEHICLE, load_vehicle
+
+        add_arguments(argparse.ArgumentParser())
+        load_vehicle(DEFAULT_VEHICLE)
     if pilot:
         from policies.onboard.pilots import PILOTS
 
@@ -79,72 +87,119 @@ def serve(control_fd: int) -> int:
     """Serve fork requests on ``control_fd`` until it closes; returns the exit code (0)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the harness's to handle, not ours
     _preload(None)
-    control = socket.socket(fileno=control_fd)
-    sel = selectors.DefaultSelector()
-    sel.register(control, selectors.EVENT_READ, None)
-    children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, run channel)
-    while True:
-        for key, _ in sel.select():
-            if key.data is None:
+    return _Server(socket.socket(fileno=control_fd)).run()
+
+
+class _Server:
+    """The server's loop: requests on the control socket, children's exits on their pidfds, and one spare
+    child forked ahead (at the start, and when a run's child has ended), waiting for its run's arguments:
+    the fork is then off the next run's start-up."""
+
+    def __init__(self, control: socket.socket) -> None:
+        self.control = control
+        self.sel = selectors.DefaultSelector()
+        self.sel.register(control, selectors.EVENT_READ, None)
+        self.children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, run channel)
+        self.spare: tuple[int, socket.socket] | None = None  # (pid, the socket it waits on)
+
+    def run(self) -> int:
+        self.spare = self._fork_spare()
+        while True:
+            for key, _ in self.sel.select():
+                if key.data is not None:
+                    self._reap(key.fd)
+                    continue
                 try:
-                    data, fds, _, _ = socket.recv_fds(control, MAX_MESSAGE_BYTES, 2)
+                    data, fds, _, _ = socket.recv_fds(self.control, MAX_MESSAGE_BYTES, 2)
                 except OSError:
                     data, fds = b"", []
                 if not data:
                     return 0
-                _fork(data, fds, control, sel, children)
-            else:
-                pidfd = key.fd
-                pid, chan = children.pop(pidfd)
-                sel.unregister(pidfd)
-                _, status = os.waitpid(pid, 0)
-                with contextlib.suppress(OSError):
-                    chan.send(json.dumps({"exit": os.waitstatus_to_exitcode(status)}).encode())
-                chan.close()
-                os.close(pidfd)
+                self._start(data, fds)
 
-
-def _fork(data: bytes, fds: list[int], control: socket.socket, sel: selectors.BaseSelector,
-          children: dict[int, tuple[int, socket.socket]]) -> None:
-    if len(fds) != 2:
-        for fd in fds:
-            os.close(fd)
-        return
-    chan, stderr_fd = socket.socket(fileno=fds[0]), fds[1]
-    try:
-        request = json.loads(data)
-        args = [str(a) for a in request["args"]]
-        preload = request.get("preload")
-    except (ValueError, KeyError, TypeError) as exc:
+    def _reap(self, pidfd: int) -> None:
+        pid, chan = self.children.pop(pidfd)
+        self.sel.unregister(pidfd)
+        _, status = os.waitpid(pid, 0)
         with contextlib.suppress(OSError):
-            chan.send(json.dumps({"error": f"bad request: {exc}"}).encode())
+            chan.send(json.dumps({"exit": os.waitstatus_to_exitcode(status)}).encode())
         chan.close()
-        os.close(stderr_fd)
-        return
-    if preload:
-        _preload(str(preload))  # (before the fork: the next child of this pilot starts warm too)
-    pid = os.fork()
-    if pid == 0:
-        code = 1
+        os.close(pidfd)
+        if self.spare is None:  # the next run's child, forked now that this one is over (not while it
+            self.spare = self._fork_spare()  # starts: the fork would take the CPU it starts on)
+
+    def _start(self, data: bytes, fds: list[int]) -> None:
+        """Hand a request to the spare child (or a new one if there is none), report its pid and pidfd on
+        the run's channel."""
+        if len(fds) != 2:
+            for fd in fds:
+                os.close(fd)
+            return
+        chan, stderr_fd = socket.socket(fileno=fds[0]), fds[1]
         try:
-            sel.close()
-            control.close()
+            request = json.loads(data)
+            args = [str(a) for a in request["args"]]
+            preload = request.get("preload")
+        except (ValueError, KeyError, TypeError) as exc:
+            with contextlib.suppress(OSError):
+                chan.send(json.dumps({"error": f"bad request: {exc}"}).encode())
             chan.close()
-            for _, other in children.values():
-                other.close()
-            for pidfd in children:
-                os.close(pidfd)
-            code = _child(args, stderr_fd)
-        finally:
-            os._exit(code)
-    os.close(stderr_fd)
-    pidfd = os.pidfd_open(pid)
-    children[pidfd] = (pid, chan)
-    sel.register(pidfd, selectors.EVENT_READ, pid)
-    try:
-        socket.send_fds(chan, [json.dumps({"pid": pid}).encode()], [pidfd])
-    except OSError:  # the harness has gone: the child goes too
-        os.kill(pid, signal.SIGKILL)
+            os.close(stderr_fd)
+            return
+        pid = self._hand_over(json.dumps(args).encode(), stderr_fd)
+        os.close(stderr_fd)
+        pidfd = os.pidfd_open(pid)
+        self.children[pidfd] = (pid, chan)
+        self.sel.register(pidfd, selectors.EVENT_READ, pid)
+        try:
+            socket.send_fds(chan, [json.dumps({"pid": pid}).encode()], [pidfd])
+        except OSError:  # the harness has gone: the child goes too
+            os.kill(pid, signal.SIGKILL)
+        if preload:
+            _preload(str(preload))  # (a pilot's first run imports it itself; the next spares have it)
+
+    def _hand_over(self, args: bytes, stderr_fd: int) -> int:
+        """The pid of the child now running ``args``: the spare, or a new child if there is none (runs at
+        once) or the spare has gone."""
+        spare, self.spare = self.spare, None
+        if spare is not None:
+            pid, sock = spare
+            try:
+                socket.send_fds(sock, [args], [stderr_fd])
+                return pid
+            except OSError:  # it died waiting: reaped, and a new child runs the request
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(pid, 0)
+            finally:
+                sock.close()
+        spare = self._fork_spare()
+        pid, sock = spare
+        socket.send_fds(sock, [args], [stderr_fd])
+        sock.close()
+        return pid
+
+    def _fork_spare(self) -> tuple[int, socket.socket]:
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        pid = os.fork()
+        if pid == 0:
+            code = 1
+            try:
+                ours.close()
+                self.sel.close()
+                self.control.close()
+                for pidfd, (_, chan) in self.children.items():
+                    chan.close()
+                    os.close(pidfd)
+                try:
+                    data, fds, _, _ = socket.recv_fds(theirs, MAX_MESSAGE_BYTES, 1)  # waits for its run
+                except OSError:
+                    data, fds = b"", []
+                theirs.close()
+                code = _child(json.loads(data), fds[0]) if data and len(fds) == 1 else 0
+            finally:
+                os._exit(code)
+        theirs.close()
+        return pid, ours
 
 
 def _child(args: list[str], stderr_fd: int) -> int:
