@@ -69,8 +69,9 @@ def warm_up(options: RunOptions) -> None:
 
 
 def _start_worker(numbers: Any, workers: int, warm: bool) -> None:
-    """A worker's start: its CPU when the workers fill the cores (`share_a_core`), then its onboard
-    fork server (which keeps that CPU for the programs it forks)."""
+    """A worker's start: its CPU when the workers fill the cores (`share_a_core`; the programs started
+    for it keep to it too), and the onboard fork server (this process's, if it was not forked from one
+    that has it)."""
     with numbers.get_lock():
         worker = numbers.value
         numbers.value += 1
@@ -114,8 +115,10 @@ def main(args: argparse.Namespace) -> int:
     work = [(s, str(out / s.id), options) for s in todo]
     warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
     fork = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
-    if fork is not None and todo:
-        warm_up(options)  # (the workers are forked from this process: they start with what it loaded)
+    if fork is not None and todo:  # the workers are forked from this process: they start with what it
+        if warm:  # loaded, and share its onboard fork server (which imports meanwhile)
+            prestart()
+        warm_up(options)
     numbers = (fork or multiprocessing).Value("i", 0)
     with ProcessPoolExecutor(
         max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, workers, warm)

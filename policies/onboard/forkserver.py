@@ -10,8 +10,9 @@ which a harness watches, signals (through a pidfd: never a recycled pid) and wai
 `subprocess.Popen`: a killed or stopped child is killed or stopped as a cold one is.
 
 The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descriptors beside it):
-    control socket (one per server): the request ``{"args": [...], "preload": "pilot name"|null}``
-        with two descriptors: the run's channel and the child's stderr;
+    control socket (one per server): the request ``{"args": [...], "preload": "pilot name"|null,
+        "cpus": [...]|null}`` (the CPUs the child keeps to: the asking harness's) with two descriptors:
+        the run's channel and the child's stderr;
     run channel (one per child): the server's ``{"pid": N}`` with the child's pidfd, then
         ``{"exit": code}`` (negative: the signal that ended it) once it has been reaped; the channel
         closes after it.
@@ -140,13 +141,14 @@ class _Server:
             request = json.loads(data)
             args = [str(a) for a in request["args"]]
             preload = request.get("preload")
+            cpus = request.get("cpus")
         except (ValueError, KeyError, TypeError) as exc:
             with contextlib.suppress(OSError):
                 chan.send(json.dumps({"error": f"bad request: {exc}"}).encode())
             chan.close()
             os.close(stderr_fd)
             return
-        pid = self._hand_over(json.dumps(args).encode(), stderr_fd)
+        pid = self._hand_over(json.dumps({"args": args, "cpus": cpus}).encode(), stderr_fd)
         os.close(stderr_fd)
         pidfd = os.pidfd_open(pid)
         self.children[pidfd] = (pid, chan)
@@ -195,7 +197,11 @@ class _Server:
                 except OSError:
                     data, fds = b"", []
                 theirs.close()
-                code = _child(json.loads(data), fds[0]) if data and len(fds) == 1 else 0
+                run = json.loads(data) if data and len(fds) == 1 else None
+                if run is not None and run.get("cpus") and hasattr(os, "sched_setaffinity"):
+                    with contextlib.suppress(OSError, ValueError, TypeError):
+                        os.sched_setaffinity(0, run["cpus"])  # the CPUs of the harness that asked
+                code = _child(run["args"], fds[0]) if run is not None else 0
             finally:
                 os._exit(code)
         theirs.close()
@@ -332,7 +338,8 @@ class ForkServer:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             with self._lock:
-                request = json.dumps({"args": args, "preload": preload}).encode()
+                cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+                request = json.dumps({"args": args, "preload": preload, "cpus": cpus}).encode()
                 socket.send_fds(self._sock, [request], [theirs.fileno(), stderr.fileno()])
             theirs.close()
             ours.settimeout(START_TIMEOUT_S)
@@ -353,8 +360,20 @@ class ForkServer:
             raise ForkServerError(f"onboard fork server: {msg.get('error', 'no answer (it has exited)')}")
         return ForkedProcess(msg["pid"], fds[0], ours)
 
+    def alive(self) -> bool:
+        """Whether the server is still there (asked of its process by any process that shares it)."""
+        if self.owner_pid == os.getpid():
+            return self.proc.poll() is None
+        try:
+            os.kill(self.proc.pid, 0)
+        except OSError:
+            return False
+        return True
+
     def close(self) -> None:
-        """End the server (its children run on to their end)."""
+        """End the server (its children run on to their end); only the process that started it can."""
+        if self.owner_pid != os.getpid():
+            return
         self._sock.close()
         with contextlib.suppress(subprocess.TimeoutExpired):
             self.proc.wait(2.0)
@@ -367,12 +386,13 @@ _shared: ForkServer | None = None
 
 
 def shared(env: dict[str, str] | None = None) -> ForkServer | None:
-    """This process's server, started on first use (None where warm starts are not available). A forked
-    copy of the process starts its own: the server belongs to the process that started it."""
+    """This process's server, started on first use (None where warm starts are not available). Processes
+    forked from this one after it started use it too (a suite's workers: one server imports for all);
+    each request carries its CPUs, which the program keeps to."""
     global _shared
     if not available():
         return None
-    if _shared is None or _shared.owner_pid != os.getpid() or _shared.proc.poll() is not None:
+    if _shared is None or not _shared.alive():
         _shared = ForkServer(env)
         atexit.register(_shared.close)
     return _shared
