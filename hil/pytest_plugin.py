@@ -82,16 +82,14 @@ def _xdist_workers() -> tuple[int, int]:
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """When scenarios will fly over ptys: this worker's CPU (`share_a_core`, when the workers fill the
-    cores), then the onboard program's fork server, started while pytest gets ready (warm, the default)."""
+    """Start the onboard program's fork server while pytest gets ready, when scenarios will fly over ptys
+    warm (the default)."""
     cfg = session.config
-    if cfg.getoption("--hil-in-process") or not any(isinstance(i, ScenarioItem) for i in session.items):
+    if cfg.getoption("--hil-in-process") or cfg.getoption("--hil-cold-start"):
         return
-    from hil.runner.lockstep import share_a_core
-    from hil.runner.onboard_side import prestart
+    if any(isinstance(item, ScenarioItem) for item in session.items):
+        from hil.runner.onboard_side import prestart
 
-    share_a_core(*_xdist_workers())
-    if not cfg.getoption("--hil-cold-start"):
         prestart()
 
 
@@ -165,6 +163,7 @@ class ScenarioItem(pytest.Item):
             vehicle=cfg.getoption("--hil-vehicle"),
             cold_start=cfg.getoption("--hil-cold-start"),
             # pytest-xdist's workers, each flying one run at a time
+            worker=_xdist_workers()[0],
             parallel_runs=_xdist_workers()[1],
         )
         result = run_scenario(self.scenario, out, options)

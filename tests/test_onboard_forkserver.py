@@ -4,6 +4,7 @@ as cold starts; faults on the process as cold."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -101,6 +102,24 @@ def test_a_forked_program_is_stopped_continued_and_killed_through_its_pidfd(serv
         proc.kill()
         assert proc.wait(5) == -signal.SIGKILL
         proc.kill()  # a process already reaped: nothing happens (its pid may be someone else's now)
+
+
+def test_a_forked_program_keeps_to_the_cpus_of_the_harness_that_asked_for_it(server, tmp_path):
+    from hil.link.pty import PtyTransport
+    from hil.runner.lockstep import kept_to
+
+    cpu = max(os.sched_getaffinity(0))
+    with PtyTransport.create() as cmd, PtyTransport.create() as moc, open(tmp_path / "err", "wb") as err:
+        with kept_to(cpu):
+            proc = server.spawn([f"--command-link=serial:{cmd.endpoint}:921600",
+                                 f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet"], err)
+        deadline = time.monotonic() + 5
+        while os.sched_getaffinity(proc.pid) != {cpu} and time.monotonic() < deadline:
+            time.sleep(0.01)  # (it keeps to them as it starts)
+        assert os.sched_getaffinity(proc.pid) == {cpu}
+        assert os.sched_getaffinity(server.proc.pid) != {cpu} or len(os.sched_getaffinity(0)) == 1
+        proc.kill()
+        proc.wait(5)
 
 
 def test_a_forked_program_ended_by_sigterm_exits_143_with_its_summary(server, tmp_path):

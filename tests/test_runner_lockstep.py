@@ -28,7 +28,7 @@ from hil.link.mavlink import (
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import _FaultyLink
-from hil.runner.lockstep import SPIN_S, lockstep_spin_s
+from hil.runner.lockstep import SPIN_S, kept_to, lockstep_cpu, lockstep_spin_s
 from hil.scenario import load_scenarios, loads_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -359,19 +359,21 @@ def test_the_sides_poll_only_while_each_process_of_the_runs_at_once_has_a_core()
     assert lockstep_spin_s(1) == (SPIN_S if cores >= 2 else 0.0)
 
 
-def test_workers_filling_the_cores_each_keep_to_one_core_and_their_children_with_them():
+def test_a_lockstep_run_of_workers_filling_the_cores_keeps_to_its_workers_core_and_so_does_its_program(
+    tmp_path,
+):
     cores = sorted(os.sched_getaffinity(0))
-    code = (
-        "import os, subprocess, sys\n"
-        "from hil.runner.lockstep import share_a_core\n"
-        f"print(share_a_core(0, {len(cores)} - 1))\n"
-        f"print(share_a_core(1, {len(cores)}), sorted(os.sched_getaffinity(0)))\n"
-        "print(subprocess.run([sys.executable, '-c', 'import os; print(sorted(os.sched_getaffinity(0)))'],"
-        " capture_output=True, text=True).stdout.strip())\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    lines = out.splitlines()
-    cpu = cores[1 % len(cores)]
-    assert lines[0] == "None"  # fewer workers than cores: left to the scheduler
-    assert lines[1] == f"{cpu} [{cpu}]"
-    assert lines[2] == f"[{cpu}]"  # the onboard program and its fork server start there too
+    assert lockstep_cpu(None, len(cores)) is None  # no worker number: left to the scheduler
+    assert lockstep_cpu(0, len(cores) - 1) is None  # fewer runs than cores
+    cpu = lockstep_cpu(1, len(cores))
+    assert cpu == cores[1 % len(cores)]
+    s = loads_scenarios(CORRUPT.replace("duration_s: 2.0", "duration_s: 1.5"))[0]
+    r = run_scenario(s, tmp_path / "r", RunOptions(parallel_runs=len(cores), worker=1))
+    assert r.summary["mode"]["onboard_start"] == "warm"
+    assert sorted(os.sched_getaffinity(0)) == cores  # as it was, after the run
+    with kept_to(cpu):
+        assert sorted(os.sched_getaffinity(0)) == [cpu]
+        out = subprocess.run([sys.executable, "-c", "import os; print(sorted(os.sched_getaffinity(0)))"],
+                             capture_output=True, text=True, check=True).stdout
+        assert out.strip() == f"[{cpu}]"  # what the run starts keeps to it too
+    assert sorted(os.sched_getaffinity(0)) == cores

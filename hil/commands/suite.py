@@ -19,7 +19,6 @@ from typing import Any
 
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
-from hil.runner.lockstep import share_a_core
 from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
 from hil.scenario import ScenarioError, find_scenario_files, load_scenarios, loads_scenarios
@@ -39,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     s, out, options = args
+    options = replace(options, worker=_worker)
     try:
         r = run_scenario(s, out, options)
     except (RunSetupError, ValueError) as exc:
@@ -68,14 +68,17 @@ def warm_up(options: RunOptions) -> None:
         run_scenario(loads_scenarios(WARM_UP_SCENARIO)[0], tmp, flight)
 
 
-def _start_worker(numbers: Any, workers: int, warm: bool) -> None:
-    """A worker's start: its CPU when the workers fill the cores (`share_a_core`; the programs started
-    for it keep to it too), and the onboard fork server (this process's, if it was not forked from one
-    that has it)."""
+_worker: int | None = None  # this worker's number (in a worker process)
+
+
+def _start_worker(numbers: Any, warm: bool) -> None:
+    """A worker's start: its number (its runs keep to that core when the workers fill the cores, see
+    `lockstep_cpu`), and the onboard fork server (this process's, if it was not forked from one that
+    has it)."""
+    global _worker
     with numbers.get_lock():
-        worker = numbers.value
+        _worker = numbers.value
         numbers.value += 1
-    share_a_core(worker, workers)
     if warm:
         prestart()
 
@@ -121,7 +124,7 @@ def main(args: argparse.Namespace) -> int:
         warm_up(options)
     numbers = (fork or multiprocessing).Value("i", 0)
     with ProcessPoolExecutor(
-        max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, workers, warm)
+        max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, warm)
     ) as pool:
         for res in pool.map(_run, work):
             word = "PASSED" if res["passed"] else "FAILED"

@@ -21,7 +21,8 @@ import math
 import os
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from hil.link.lockstep import MOCAP_COUNT_MASK, RESEND_FILLER, RESEND_S, STARTUP_RESEND_S, tick_frames
@@ -78,20 +79,33 @@ def lockstep_spin_s(parallel_runs: int = 1) -> float:
     return SPIN_S if 2 * max(1, parallel_runs) <= len(_cores()) else 0.0
 
 
-def share_a_core(worker: int, parallel_runs: int) -> int | None:
-    """Keep this worker process (one of ``parallel_runs`` flying runs at once, number ``worker``) and the
-    processes it starts from now on (the onboard program, its fork server) on one CPU when the runs fill
-    the cores: the two sides of a run then hand each tick over without waking another CPU, which costs
-    more than the tick's work where CPUs are virtual. Returns the CPU, or None (left to the scheduler)."""
+def lockstep_cpu(worker: int | None, parallel_runs: int) -> int | None:
+    """The CPU a lockstep run over ptys keeps to (itself and its onboard program, for the run) when it
+    flies in worker number ``worker`` of ``parallel_runs`` that fill the cores: the two sides then hand
+    each tick over without waking another CPU, which costs more than the tick's work where CPUs are
+    virtual. None (left to the scheduler) with fewer runs than cores, or no worker number."""
     cores = _cores()
-    if parallel_runs < len(cores) or not hasattr(os, "sched_setaffinity"):
+    if worker is None or parallel_runs < len(cores) or not hasattr(os, "sched_setaffinity"):
         return None
-    cpu = cores[worker % len(cores)]
+    return cores[worker % len(cores)]
+
+
+@contextmanager
+def kept_to(cpu: int | None) -> Iterator[None]:
+    """This process (and what it starts meanwhile) on ``cpu`` for the block (None: as it is)."""
+    if cpu is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
     try:
         os.sched_setaffinity(0, {cpu})
     except OSError:
-        return None
-    return cpu
+        yield
+        return
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
 
 
 def apply_process_faults(rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, t: float) -> None:

@@ -25,7 +25,15 @@ from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
 from hil.runner.flight_quality import measure
-from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, lockstep_spin_s, run_lockstep
+from hil.runner.lockstep import (
+    DEFAULT_GUARD_S,
+    DEFAULT_TICK_S,
+    LoopReport,
+    kept_to,
+    lockstep_cpu,
+    lockstep_spin_s,
+    run_lockstep,
+)
 from hil.runner.mission import phase_intervals, window_hits
 from hil.runner.onboard_side import (
     InProcessOnboard,
@@ -68,6 +76,9 @@ class RunOptions:
     #: runs flying at once on this machine (a suite's workers): with fewer than two cores per run the
     #: two sides of a lockstep run wait for each other asleep instead of polling (`lockstep_spin_s`)
     parallel_runs: int = 1
+    #: which of those workers flies this run (0-based; None: not known): with as many runs as cores, a
+    #: lockstep run over ptys keeps to that worker's core (`lockstep_cpu`)
+    worker: int | None = None
 
 
 @dataclass(frozen=True)
@@ -180,6 +191,19 @@ def run_scenario(
     """
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
+    cpu = None if in_process or realtime else lockstep_cpu(options.worker, options.parallel_runs)
+    with kept_to(cpu):
+        return _run(s, out_dir, options, progress, in_process, realtime)
+
+
+def _run(
+    s: Scenario,
+    out_dir: str | Path,
+    options: RunOptions,
+    progress: Callable[[float, float], None] | None,
+    in_process: bool,
+    realtime: bool,
+) -> RunResult:
     warm = not (in_process or options.cold_start)
     if options.parallel_runs < 1:
         raise RunSetupError(f"parallel runs must be >= 1, got {options.parallel_runs}")
