@@ -131,8 +131,9 @@ def test_a_forked_program_ended_by_sigterm_exits_143_with_its_summary(server, tm
                              f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet", "--log-json", str(log)],
                             err)
         deadline = time.monotonic() + 10
-        while not log.exists() and time.monotonic() < deadline:
+        while (not log.exists() or '"start"' not in log.read_text()) and time.monotonic() < deadline:
             time.sleep(0.01)
+        time.sleep(0.2)  # (its SIGTERM handler goes in right after the start event)
         proc.terminate()
         assert proc.wait(10) == 143
     assert '"summary"' in log.read_text()

@@ -44,6 +44,8 @@ MODULE = "policies.onboard"
 #: the modules the server imports before it forks (the pilots: see `_preload`)
 PRELOAD = ("numpy", "serial", "policies.onboard.cli")
 MAX_MESSAGE_BYTES = 1 << 16
+#: the server's messages on a run's channel ({"pid": N}, {"exit": code}) are far shorter (polled each tick)
+CHANNEL_MESSAGE_BYTES = 256
 #: the first spawn waits for the server to import everything (s); later ones take milliseconds
 START_TIMEOUT_S = 60.0
 
@@ -257,7 +259,7 @@ class ForkedProcess:
         """The exit code once the server has reaped the program, else None (one non-blocking read)."""
         if self.returncode is None:
             try:
-                data = self._chan.recv(MAX_MESSAGE_BYTES, socket.MSG_DONTWAIT)
+                data = self._chan.recv(CHANNEL_MESSAGE_BYTES, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 return None
             except OSError:
@@ -343,7 +345,7 @@ class ForkServer:
                 socket.send_fds(self._sock, [request], [theirs.fileno(), stderr.fileno()])
             theirs.close()
             ours.settimeout(START_TIMEOUT_S)
-            data, fds, _, _ = socket.recv_fds(ours, MAX_MESSAGE_BYTES, 1)
+            data, fds, _, _ = socket.recv_fds(ours, CHANNEL_MESSAGE_BYTES, 1)
             ours.settimeout(None)
         except OSError as exc:
             ours.close()
