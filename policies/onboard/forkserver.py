@@ -1,6 +1,7 @@
 """The onboard program started warm: a server process that has imported the program once and forks one
-fresh copy of itself per run, so that a run pays a fork (milliseconds) instead of an interpreter start
-and the imports of numpy, pymavlink and the pilots (about 0.3-0.5 s).
+fresh copy of itself per run (one kept forked ahead, waiting for its run's arguments), so that a run
+pays a hand-over (milliseconds) instead of an interpreter start and the imports of numpy, pymavlink and
+the pilots (about 0.3-0.5 s).
 
 Each child runs ``python -m policies.onboard`` exactly as a cold start does (the same ``__main__``, on
 the arguments and the stderr it is given, stdin and stdout on /dev/null), in a copy of the server's
@@ -10,7 +11,8 @@ which a harness watches, signals (through a pidfd: never a recycled pid) and wai
 `subprocess.Popen`: a killed or stopped child is killed or stopped as a cold one is.
 
 The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descriptors beside it):
-    control socket (one per server): the request ``{"args": [...], "preload": "pilot name"|null,
+    control socket (one per server; harness processes forked after it started share it): the request
+        ``{"args": [...], "preload": "pilot name"|null,
         "cpus": [...]|null}`` (the CPUs the child keeps to: the asking harness's) with two descriptors:
         the run's channel and the child's stderr;
     run channel (one per child): the server's ``{"pid": N}`` with the child's pidfd, then
