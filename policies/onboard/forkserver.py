@@ -84,8 +84,7 @@ def _preload(pilot: str | None) -> None:
 
         with contextlib.suppress(Exception):  # an unknown pilot is the program's to refuse, cold or warm
             PILOTS.load(pilot)
-    gc.collect()
-    gc.freeze()  # what is imported stays put: the children's collector never scans (or copies) it
+    gc.collect()  # (no gc.freeze(): the children collect as a cold program does, so they run as fast)
 
 
 def serve(control_fd: int) -> int:
