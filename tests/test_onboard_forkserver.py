@@ -51,7 +51,11 @@ def test_two_warm_runs_give_the_same_tlog_bytes_as_two_cold_starts(tmp_path):
     events = {key: [(e["text"], e["time_s"]) for e in r.summary["events"] if e["source"] == "onboard"]
               for key, r in runs.items()}
     assert events[("warm", 1)] == events[("cold", 0)]
-    assert runs[("warm", 1)].summary["onboard"] == runs[("cold", 0)].summary["onboard"]
+    # its counters too, but the command link's: the first tick is sent again every 2 ms (wall) until the
+    # program has opened its port, and how many copies it reads after it did depends on scheduling
+    counters = {key: {k: v for k, v in r.summary["onboard"].items() if k != "mavlink"}
+                for key, r in runs.items()}
+    assert counters[("warm", 1)] == counters[("cold", 0)] == counters[("warm", 0)]
 
 
 @pytest.mark.parametrize("name", ["onboard_killed_approach", "onboard_stalled"])
