@@ -106,5 +106,5 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
         1e3 * float(np.median(startups)),
         "ms",
         f"median over the suite's {len(startups)} runs, from the onboard program's spawn to its first "
-        f"answered tick (max {1e3 * startups[-1]:.0f} ms: a worker's first run)",
+        f"answered tick (max {1e3 * startups[-1]:.0f} ms)",
     )
