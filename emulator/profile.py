@@ -12,6 +12,7 @@ Conventions (shared by every physics backend and the flight controller):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import MISSING, dataclass, fields
 from importlib import resources
@@ -199,6 +200,13 @@ def load_profile(path_or_name: str | Path) -> VehicleProfile:
         except OSError as exc:
             raise ProfileError(str(path), "<file>", f"cannot read: {exc.strerror}") from exc
         source = str(path)
+    return _profile_from_text(text, source)
+
+
+@functools.lru_cache(maxsize=64)
+def _profile_from_text(text: str, source: str) -> VehicleProfile:
+    """The profile a file's text describes, parsed once per process for the same text (a suite loads
+    the same few profiles run after run; an edited file is new text, parsed again)."""
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -11,6 +11,7 @@ A failed scenario shows its failed checks (expected, observed, sim time) and the
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         action="store_true",
         default=False,
         help="run both sides in the test process over memory links (default: ptys)",
+    )
+    group.addoption(
+        "--hil-cold-start",
+        action="store_true",
+        default=False,
+        help="start the onboard program as a new interpreter each run (default: forked warm)",
     )
     group.addoption("--hil-backend", default=None, help="physics backend for every scenario")
     group.addoption(
@@ -70,6 +77,26 @@ SCENARIO_MARKERS = {
 def pytest_configure(config: pytest.Config) -> None:
     for name, text in SCENARIO_MARKERS.items():
         config.addinivalue_line("markers", f"{name}: {text}")
+
+
+def _xdist_workers() -> tuple[int, int]:
+    """This pytest-xdist worker's number and how many there are ((0, 1) without xdist)."""
+    name = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    count = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    number = name[2:] if name.startswith("gw") else "0"
+    return (int(number) if number.isdigit() else 0), (int(count) if count.isdigit() else 1)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start the onboard program's fork server while pytest gets ready, when scenarios will fly over ptys
+    warm (the default)."""
+    cfg = session.config
+    if cfg.getoption("--hil-in-process") or cfg.getoption("--hil-cold-start"):
+        return
+    if any(isinstance(item, ScenarioItem) for item in session.items):
+        from hil.runner.onboard_side import prestart
+
+        prestart()
 
 
 def pytest_collect_file(parent: pytest.Collector, file_path: Path) -> ScenarioFile | None:
@@ -141,6 +168,10 @@ class ScenarioItem(pytest.Item):
             realtime=True if cfg.getoption("--hil-realtime") else None,
             vehicle=cfg.getoption("--hil-vehicle"),
             protocol=cfg.getoption("--hil-protocol"),
+            cold_start=cfg.getoption("--hil-cold-start"),
+            # pytest-xdist's workers, each flying one run at a time
+            worker=_xdist_workers()[0],
+            parallel_runs=_xdist_workers()[1],
         )
         result = run_scenario(self.scenario, out, options)
         self.user_properties.append(("report", str(result.report_path)))

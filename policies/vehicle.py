@@ -8,6 +8,7 @@ file): the onboard side never reads the emulator's profile, as the real onboard 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import MISSING, dataclass, fields
 from importlib import resources
@@ -88,6 +89,13 @@ def load_vehicle(name_or_path: str | Path) -> OnboardVehicle:
             text, source = path.read_text(), str(path)
         except OSError as exc:
             raise ValueError(f"onboard vehicle configuration {path}: cannot read: {exc.strerror}") from None
+    return _vehicle_from_text(text, source)
+
+
+@functools.lru_cache(maxsize=64)
+def _vehicle_from_text(text: str, source: str) -> OnboardVehicle:
+    """The configuration a file's text describes, parsed once per process for the same text (an edited
+    file is new text, parsed again)."""
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

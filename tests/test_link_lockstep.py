@@ -185,13 +185,17 @@ def test_the_fc_frames_of_a_lockstep_tick_go_out_with_the_tick():
     assert [m.get_type() for m in ob.receive()] == ["HEARTBEAT", "TIMESYNC"]
 
 
-def test_a_repeated_tick_is_acted_on_once_and_answered_each_time():
-    clock = SimClock()
+def _lockstep_program() -> tuple[OnboardProgram, MavlinkCodec, MemoryTransport]:
+    """A program in lockstep on memory links; the FC's codec and the FC's end of the command link."""
     cmd_ob, cmd_fc = MemoryTransport.pair()
     moc_ob, _ = MemoryTransport.pair()
     program = OnboardProgram(cmd_ob, moc_ob, ProgramConfig())
     program.link.lockstep = True
-    fc = MavlinkCodec(cmd_fc, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    return program, MavlinkCodec(cmd_fc, SimClock(), 1, mav.MAV_COMP_ID_AUTOPILOT1), cmd_fc
+
+
+def test_a_repeated_tick_is_acted_on_once_and_answered_each_time():
+    program, fc, cmd_fc = _lockstep_program()
     tick = fc.pack(fc.mav.timesync_encode(0, 10_000_000))
     cmd_fc.send(tick + tick)  # the same tick twice, as a resend during start-up leaves it
     assert program.lockstep_poll() == [0.01]
@@ -217,3 +221,22 @@ def test_command_link_reads_every_waiting_datagram_in_one_poll():
     finally:
         tx.close()
         rx.close()
+
+
+def test_a_tick_repeated_after_its_answer_changes_none_of_the_frames_that_follow():
+    """How often the harness repeats a tick depends on process scheduling (a wall-clock timeout): the
+    repeat gets the first answer's frame again, so the program's later frames (and their sequence
+    numbers, in the .tlog) are the same as without it."""
+
+    def outputs(repeat: bool) -> list[bytes]:
+        program, fc, cmd_fc = _lockstep_program()
+        got = []
+        for ns in (10_000_000, 10_000_000, 20_000_000) if repeat else (10_000_000, 20_000_000):
+            cmd_fc.send(fc.pack(fc.mav.timesync_encode(0, ns)))
+            program.lockstep_poll()
+            got.append(cmd_fc.recv())
+        return got
+
+    with_repeat, without = outputs(True), outputs(False)
+    assert with_repeat[0].endswith(with_repeat[1])  # the same answer frame, sequence number and all
+    assert [with_repeat[0], with_repeat[2]] == without

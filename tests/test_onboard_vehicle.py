@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 import pytest
 
 from policies.onboard.cli import add_arguments, config_from_args
 from policies.onboard.pilots import PilotContext, make_pilot
-from policies.vehicle import load_vehicle, vehicle_names
+from policies.vehicle import DEFAULT_VEHICLE, load_vehicle, vehicle_names
 
 
 def config(*options: str):
@@ -81,3 +82,14 @@ def test_pilots_fly_with_the_vehicles_mass_and_tilt_limit(pilot):
     expert = getattr(p, "controller", None) or p.expert
     assert expert.mass_kg == 1.4
     assert expert.gains.tilt_max_rad == pytest.approx(math.radians(40.0))
+
+
+def test_a_configuration_is_parsed_once_per_text_and_an_edited_file_is_read_again(tmp_path):
+    assert load_vehicle(DEFAULT_VEHICLE) is load_vehicle(DEFAULT_VEHICLE)
+    f = tmp_path / "quad.onboard.yaml"
+    shipped = Path(__file__).resolve().parents[1] / "policies" / "vehicles" / f"{DEFAULT_VEHICLE}.yaml"
+    text = shipped.read_text(encoding="utf-8")
+    f.write_text(text)
+    first = load_vehicle(f)
+    f.write_text(text.replace(f"mass_kg: {first.mass_kg}", "mass_kg: 1.25"))
+    assert load_vehicle(f).mass_kg == 1.25 != first.mass_kg

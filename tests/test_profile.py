@@ -144,3 +144,13 @@ def test_the_fc_flies_the_inertia_it_is_tuned_for(tmp_path: Path) -> None:
     bad.write_text(yaml.safe_dump({**data, "fc_inertia_kgm2": [0.1, -1, 0.1]}))
     with pytest.raises(ProfileError, match="fc_inertia_kgm2"):
         load_profile(bad)
+
+
+def test_a_profile_is_parsed_once_per_text_and_an_edited_file_is_read_again(tmp_path):
+    assert load_profile("n3_tx2") is load_profile("n3_tx2")  # (a suite loads it run after run)
+    f = tmp_path / "quad.yaml"
+    text = (Path(__file__).resolve().parents[1] / "emulator" / "profiles" / "n3_tx2.yaml").read_text()
+    f.write_text(text)
+    first = load_profile(f)
+    f.write_text(text.replace("mass_kg: 0.9", "mass_kg: 1.0"))
+    assert first.mass_kg == 0.9 and load_profile(f).mass_kg == 1.0

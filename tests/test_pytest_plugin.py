@@ -3,6 +3,7 @@ checks and the report, markers from YAML, bad files as collection errors, JUnit 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -84,3 +85,18 @@ def test_protocol_option_flies_the_scenario_over_djis_open_protocol(tmp_path):
     assert capture[8] == 0xAA  # after the first stamp: an OPEN-protocol frame, not MAVLink's 0xFD
     p = pytest_run([str(tmp_path), "--hil-protocol", "dji"], tmp_path)
     assert p.returncode != 0 and "invalid choice: 'dji'" in p.stderr
+
+
+def test_scenarios_fly_warm_over_ptys_by_default_and_cold_on_request(tmp_path):
+    (tmp_path / "two.scenario.yaml").write_text(
+        FAILSAFE.format(name="a", fs="hover") + "---\n" + FAILSAFE.format(name="b", fs="hover")
+    )
+    for flag, start in (([], "warm"), (["--hil-cold-start"], "cold")):
+        out = tmp_path / start
+        p = pytest_run([str(tmp_path / "two.scenario.yaml"), "-n", "2", "--hil-out", str(out), *flag],
+                       tmp_path)
+        assert p.returncode == 0, p.stdout
+        for name in ("a", "b"):
+            summary = json.loads((out / name / "summary.json").read_text())
+            assert summary["mode"]["onboard_start"] == start
+            assert summary["mode"]["in_process"] is False

@@ -93,3 +93,16 @@ def test_the_recovery_point_comes_from_the_scenario_not_the_pilot():
     yawed = Gap(centre_m=(1.0, 0.0, 2.0), yaw_rad=math.pi / 2, roll_rad=math.radians(60))
     p = recovery_point_m(yawed.axes(), np.array(yawed.centre_m), np.array([1.0, -3.0, 0.5]))
     assert np.allclose(p, (1.0, 2.5, 1.0))
+
+
+def test_suite_flies_warm_and_cold_start_is_a_flag(tmp_path):
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "a.scenario.yaml").write_text(PASSING)
+    (tmp_path / "s" / "b.scenario.yaml").write_text(PASSING)
+    for flag, start in (([], "warm"), (["--cold-start"], "cold")):
+        out = tmp_path / start
+        p = run(["suite", str(tmp_path / "s"), "--out", str(out), "-j", "2", *flag], tmp_path)
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "2/2 passed" in p.stdout
+        for name in ("a", "b"):
+            assert json.loads((out / name / "summary.json").read_text())["mode"]["onboard_start"] == start

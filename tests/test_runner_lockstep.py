@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,6 +28,7 @@ from hil.link.mavlink import (
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import _FaultyLink
+from hil.runner.lockstep import SPIN_S, kept_to, lockstep_cpu, lockstep_spin_s
 from hil.scenario import load_scenarios, loads_scenarios
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -347,3 +351,29 @@ def test_run_reports_the_onboard_start_up_apart_from_the_loop(tmp_path: Path):
     assert sm["real_time_factor"] == pytest.approx(sm["loop_sim_time_s"] / sm["loop_wall_time_s"])
     assert sm["ticks_answered"] == sm["ticks"] == 50
     assert sm["wall_time_s"] >= sm["onboard_startup_s"] + sm["loop_wall_time_s"]
+
+
+def test_the_sides_poll_only_while_each_process_of_the_runs_at_once_has_a_core():
+    cores = len(os.sched_getaffinity(0))
+    assert lockstep_spin_s(cores) == 0.0  # a suite filling the cores: each side sleeps while it waits
+    assert lockstep_spin_s(1) == (SPIN_S if cores >= 2 else 0.0)
+
+
+def test_a_lockstep_run_of_workers_filling_the_cores_keeps_to_its_workers_core_and_so_does_its_program(
+    tmp_path,
+):
+    cores = sorted(os.sched_getaffinity(0))
+    assert lockstep_cpu(None, len(cores)) is None  # no worker number: left to the scheduler
+    assert lockstep_cpu(0, len(cores) - 1) is None  # fewer runs than cores
+    cpu = lockstep_cpu(1, len(cores))
+    assert cpu == cores[1 % len(cores)]
+    s = loads_scenarios(CORRUPT.replace("duration_s: 2.0", "duration_s: 1.5"))[0]
+    r = run_scenario(s, tmp_path / "r", RunOptions(parallel_runs=len(cores), worker=1))
+    assert r.summary["mode"]["onboard_start"] == "warm"
+    assert sorted(os.sched_getaffinity(0)) == cores  # as it was, after the run
+    with kept_to(cpu):
+        assert sorted(os.sched_getaffinity(0)) == [cpu]
+        out = subprocess.run([sys.executable, "-c", "import os; print(sorted(os.sched_getaffinity(0)))"],
+                             capture_output=True, text=True, check=True).stdout
+        assert out.strip() == f"[{cpu}]"  # what the run starts keeps to it too
+    assert sorted(os.sched_getaffinity(0)) == cores

@@ -58,6 +58,13 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="both sides in this process over memory links (default: two processes over ptys)",
     )
+    p.add_argument(
+        "--cold-start",
+        action="store_true",
+        default=False,
+        help="start the onboard program as a new interpreter each run (default: forked warm from a "
+        "pre-imported server)",
+    )
 
 
 def options_from(args: argparse.Namespace) -> RunOptions:
@@ -69,6 +76,7 @@ def options_from(args: argparse.Namespace) -> RunOptions:
         backend=args.backend,
         vehicle=args.vehicle,
         protocol=args.protocol,
+        cold_start=args.cold_start,
     )
 
 

@@ -4,20 +4,25 @@ index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import multiprocessing
 import os
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from html import escape
 from pathlib import Path
 from typing import Any
 
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
+from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
-from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
+from hil.scenario import ScenarioError, find_scenario_files, load_scenarios, loads_scenarios
 from hil.scenario.schema import Scenario
 
 
@@ -36,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     s, out, options = args
+    options = replace(options, worker=_worker)
     try:
         r = run_scenario(s, out, options)
     except (RunSetupError, ValueError) as exc:
@@ -52,19 +58,57 @@ def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     }
 
 
-def _results(work: list[tuple[Scenario, str, RunOptions]], jobs: int, ray_address: str | None,
-             ) -> Iterator[dict[str, Any]]:
-    """Each run's result: from a local process pool in order, or from Ray tasks as they finish."""
-    if ray_address is None:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            yield from pool.map(_run, work)
-        return
-    from hil.sweep.sweep import ray_imap, ray_session
+#: a short flight that loads what every run loads on its first use
+WARM_UP_SCENARIO = "description: warm-up, not part of any suite\nduration_s: 0.3\n"
 
-    with ray_session(ray_address, jobs):
-        for k, res in ray_imap(_run, (), [(w,) for w in work]):
-            yield res if isinstance(res, dict) else {"id": work[k][0].id, "passed": False,
-                                                    "error": f"its Ray task failed: {res}"}
+
+def warm_up(options: RunOptions) -> None:
+    """Load here, once, what each run loads on its first use in a process (numba's compiled kernels,
+    from its cache, for the options' physics and vehicle): a short in-process flight, its files thrown
+    away. Nothing of it is seen by a run but the time it saves."""
+    flight = RunOptions(in_process=True, backend=options.backend, vehicle=options.vehicle)
+    with contextlib.suppress(RunSetupError, ValueError), tempfile.TemporaryDirectory() as tmp:
+        run_scenario(loads_scenarios(WARM_UP_SCENARIO)[0], tmp, flight)
+
+
+_worker: int | None = None  # this worker's number (in a worker process)
+
+
+def _start_worker(numbers: Any, warm: bool) -> None:
+    """A worker's start: its number (its runs keep to that core when the workers fill the cores, see
+    `lockstep_cpu`), and the onboard fork server (this process's, if it was not forked from one that
+    has it)."""
+    global _worker
+    with numbers.get_lock():
+        _worker = numbers.value
+        numbers.value += 1
+    if warm:
+        prestart()
+
+
+def _results(work: list[tuple[Scenario, str, RunOptions]], workers: int, ray_address: str | None,
+             warm: bool) -> Iterator[dict[str, Any]]:
+    """Each run's result: from a local process pool in order (workers forked from this process where
+    the platform forks, so they share what it loaded and its onboard fork server), or from Ray tasks as
+    they finish."""
+    if ray_address is not None:
+        from hil.sweep.sweep import ray_imap, ray_session
+
+        with ray_session(ray_address, workers):
+            for k, res in ray_imap(_run, (), [(w,) for w in work]):
+                yield res if isinstance(res, dict) else {"id": work[k][0].id, "passed": False,
+                                                        "error": f"its Ray task failed: {res}"}
+        return
+    fork = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+    if fork is not None and work:  # the workers are forked from this process: they start with what it
+        if warm:  # loaded, and share its onboard fork server (which imports meanwhile)
+            prestart()
+        warm_up(work[0][2])
+    numbers = (fork or multiprocessing).Value("i", 0)
+    with ProcessPoolExecutor(
+        max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, warm)
+    ) as pool:
+        yield from pool.map(_run, work)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -97,8 +141,11 @@ def main(args: argparse.Namespace) -> int:
     skipped = [{"id": s.id, "skipped": skip[s.id], "source": s.source} for s in scenarios if s.id in skip]
     wall0 = time.perf_counter()
     results: list[dict[str, Any]] = []
+    workers = max(1, min(args.jobs, len(todo)))
+    options = replace(options, parallel_runs=workers)
     work = [(s, str(out / s.id), options) for s in todo]
-    for res in _results(work, args.jobs, args.ray_address):
+    warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
+    for res in _results(work, workers, args.ray_address, warm):
         word = "PASSED" if res["passed"] else "FAILED"
         print(
             f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),

@@ -38,7 +38,7 @@ NS_PER_S = 1_000_000_000
 #: cost nothing)
 RESEND_S = 0.1
 #: the same until the first answer (a new process opening its port drops what came before)
-STARTUP_RESEND_S = 0.02
+STARTUP_RESEND_S = 0.002
 _MOCAP_COUNT_RAW = MOCAP_COUNT_NAME.encode("ascii")
 
 

@@ -21,6 +21,12 @@ from hil.report.svg import Band, Chart, Scene, Series, View, line_chart, scene_s
 from hil.report.timeseries import check_columns
 from hil.scenario.schema import Scenario
 
+
+def _yaml(data: object) -> str:
+    """``data`` as YAML in the given key order, with libyaml's safe dumper where PyYAML has it (the same
+    text as its own, a few times faster)."""
+    return yaml.dump(data, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), sort_keys=False)
+
 REPORT_NAME = "report.html"
 MEASURED, COMMANDED = "#1f5fa8", "#e0801e"
 
@@ -111,7 +117,7 @@ def render_report_html(
         _realtime(summary),
         _events(summary),
         "<h2>Scenario</h2>",
-        f"<pre>{escape(yaml.safe_dump(scenario.to_dict(include_meta=False), sort_keys=False))}</pre>",
+        f"<pre>{escape(_yaml(scenario.to_dict(include_meta=False)))}</pre>",
         f'<p class="note">From {escape(scenario.source)} line {scenario.line}. '
         "Data: summary.json and timeseries.npz next to this page.</p>",
         "</main></body></html>",

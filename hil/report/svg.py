@@ -18,12 +18,17 @@ _CMAP = np.array(
 )
 
 
+def colormaps(xs: np.ndarray) -> list[str]:
+    """Colours for values ``xs`` in [0, 1] (clipped) as ``#rrggbb``, all at once."""
+    x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
+    i = np.minimum(x.astype(int), len(_CMAP) - 2)
+    c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
+    return ["#{:02x}{:02x}{:02x}".format(*rgb) for rgb in np.round(c).astype(int).tolist()]
+
+
 def colormap(x: float) -> str:
     """Colour for ``x`` in [0, 1] as ``#rrggbb``."""
-    x = min(max(float(x), 0.0), 1.0) * (len(_CMAP) - 1)
-    i = min(int(x), len(_CMAP) - 2)
-    c = _CMAP[i] + (x - i) * (_CMAP[i + 1] - _CMAP[i])
-    return "#{:02x}{:02x}{:02x}".format(*(round(v) for v in c))
+    return colormaps(np.array([float(x)]))[0]
 
 
 def nice_ticks(lo: float, hi: float, target: int = 5) -> list[float]:
@@ -84,15 +89,11 @@ class Chart:
 
 
 def _path(xs: np.ndarray, ys: np.ndarray) -> str:
-    parts: list[str] = []
-    pen_up = True
-    for x, y in zip(xs, ys, strict=True):
-        if not (math.isfinite(x) and math.isfinite(y)):
-            pen_up = True
-            continue
-        parts.append(f"{'M' if pen_up else 'L'}{x:.1f},{y:.1f}")
-        pen_up = False
-    return "".join(parts)
+    """An SVG path through the points; a point that is not finite lifts the pen."""
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    starts = ok & ~np.concatenate(([False], ok[:-1]))  # after a gap (or first): a new line
+    cmd, x, y = np.where(starts[ok], "M", "L").tolist(), xs[ok].tolist(), ys[ok].tolist()
+    return "".join(f"{c}{a:.1f},{b:.1f}" for c, a, b in zip(cmd, x, y, strict=True))
 
 
 def line_chart(chart: Chart) -> str:
@@ -314,13 +315,17 @@ def scene_svg(
     vmax = max(vmax, 1e-6)
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
 
+    colours = colormaps(np.asarray(scene.speed_m_s, dtype=float)[idx] / vmax) if len(idx) else []
+    points = screen.tolist()
+    sides = in_front.tolist()
+
     def segments(front: bool) -> list[str]:
         segs = []
         for k in range(len(idx) - 1):
-            if bool(in_front[k]) != front and bool(in_front[k + 1]) != front:
+            if sides[k] != front and sides[k + 1] != front:
                 continue
-            (x0, y0), (x1, y1) = screen[k], screen[k + 1]
-            c = colormap(float(scene.speed_m_s[idx[k]]) / vmax)
+            (x0, y0), (x1, y1) = points[k], points[k + 1]
+            c = colours[k]
             segs.append(
                 f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{c}" class="traj"/>'
             )
@@ -358,8 +363,8 @@ def scene_svg(
         )
     if legend:
         bx, by = width - 190, height - 22
-        for k in range(40):
-            out.append(f'<rect x="{bx + 3 * k}" y="{by}" width="3.2" height="9" fill="{colormap(k / 39)}"/>')
+        for k, colour in enumerate(colormaps(np.arange(40) / 39)):
+            out.append(f'<rect x="{bx + 3 * k}" y="{by}" width="3.2" height="9" fill="{colour}"/>')
         out.append(f'<text x="{bx - 6}" y="{by + 8}" class="tk" text-anchor="end">speed 0</text>')
         out.append(f'<text x="{bx + 124}" y="{by + 8}" class="tk">{vmax:.1f} m/s</text>')
     out.append("</svg>")

@@ -18,9 +18,11 @@ process first imports its libraries and opens its ports (`LoopReport.startup_wal
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from hil.link.lockstep import MOCAP_COUNT_MASK, RESEND_S, STARTUP_RESEND_S
@@ -60,6 +62,50 @@ class LoopReport:
     realtime: dict[str, object] | None = None  # a real-time loop's health (see `hil.runner.realtime`)
 
 
+def _cores() -> list[int]:
+    """The CPUs this process may run on."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return list(range(os.cpu_count() or 1))
+
+
+def lockstep_spin_s(parallel_runs: int = 1) -> float:
+    """How long each side polls for the other before it sleeps (s): `SPIN_S` while every process of the
+    ``parallel_runs`` runs flying at once (two each) has a core of its own, else 0: polling would take
+    the cores the other runs need (a suite of two workers on two cores runs faster asleep)."""
+    return SPIN_S if 2 * max(1, parallel_runs) <= len(_cores()) else 0.0
+
+
+def lockstep_cpu(worker: int | None, parallel_runs: int) -> int | None:
+    """The CPU a lockstep run over ptys keeps to (itself and its onboard program, for the run) when it
+    flies in worker number ``worker`` of ``parallel_runs`` that fill the cores: the two sides then hand
+    each tick over without waking another CPU, which costs more than the tick's work where CPUs are
+    virtual. None (left to the scheduler) with fewer runs than cores, or no worker number."""
+    cores = _cores()
+    if worker is None or parallel_runs < len(cores) or not hasattr(os, "sched_setaffinity"):
+        return None
+    return cores[worker % len(cores)]
+
+
+@contextmanager
+def kept_to(cpu: int | None) -> Iterator[None]:
+    """This process (and what it starts meanwhile) on ``cpu`` for the block (None: as it is)."""
+    if cpu is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
 def apply_process_faults(rep: LoopReport, onboard: OnboardSide, faults: FaultSchedule, t: float) -> None:
     """Kill, stall or resume the onboard program as the fault schedule says at ``t`` (s), noting it."""
     kill_s = faults.kill_s
@@ -92,13 +138,15 @@ def run_lockstep(
     compute_s: float | None = None,
     guard_s: float = DEFAULT_GUARD_S,
     progress: Callable[[float], None] | None = None,
+    spin_s: float = SPIN_S,
 ) -> LoopReport:
     """Fly ``duration_s`` of sim time in lockstep; returns what the loop saw.
 
     ``compute_s`` (s, 0..``tick_s``; None: ``tick_s``) is the onboard computer's modelled compute time:
     its outputs for the tick at t are handed to the command link at t + ``compute_s``. The emulator
     side runs on until then, so with one tick (the default) the next tick is sent before the answer to
-    this one is read, and the two processes work at once.
+    this one is read, and the two processes work at once. ``spin_s``: how long it polls for an answer
+    before it sleeps (wall s, see `lockstep_spin_s`).
     """
     compute = tick_s if compute_s is None else compute_s
     if not 0.0 <= compute <= tick_s + 1e-12:
@@ -115,7 +163,7 @@ def run_lockstep(
     wire = emu.wire
     tick_frames = wire.framing.tick_frames  # (the command link's protocol)
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
-    wire.spin_s = SPIN_S
+    wire.spin_s = spin_s
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
     mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
     pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first
@@ -149,6 +197,8 @@ def run_lockstep(
             if onboard.exited():
                 _note_exit(rep, onboard, t)
             else:
+                if first:  # dropped by the program's port as it opens, always: whether it is open yet
+                    wire.discard_held()  # depends on how fast it started (warm or cold)
                 wire.send_sync(tick_frames(t, mocap_total))
                 onboard.service()
                 emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works

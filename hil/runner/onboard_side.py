@@ -21,7 +21,7 @@ from typing import IO, Any, Protocol
 from hil.link.transport import Transport
 from hil.scenario.loader import onboard_vehicle
 from hil.scenario.schema import Scenario
-from policies.onboard import EventLog, OnboardProgram, ProgramConfig
+from policies.onboard import EventLog, OnboardProgram, ProgramConfig, forkserver
 from policies.onboard.cli import add_arguments, config_from_args
 
 DEFAULT_APPROACH_SPEED_M_S = 2.0  # when the scenario leaves the speed to the pilot
@@ -121,17 +121,41 @@ class InProcessOnboard:
         return self.program.exit_code
 
 
-class ProcessOnboard:
-    """``python -m policies.onboard`` as a child process on two pty slave paths."""
+def program_env() -> dict[str, str]:
+    """The onboard program's environment: this one, with a fixed hash seed (the same run, the same bytes)."""
+    env = dict(os.environ)
+    env.setdefault("PYTHONHASHSEED", "0")
+    return env
 
-    def __init__(self, argv: list[str], log_path: Path, stderr_path: Path) -> None:
+
+def prestart() -> None:
+    """Start this process's fork server now (it imports in the background), so that the first warm
+    start of a run does not wait for it."""
+    with contextlib.suppress(forkserver.ForkServerError):
+        forkserver.shared(program_env())
+
+
+class ProcessOnboard:
+    """``python -m policies.onboard`` as a child process on two pty slave paths: forked by this process's
+    fork server (``warm``, see `policies.onboard.forkserver`), or a new interpreter (cold)."""
+
+    def __init__(self, argv: list[str], log_path: Path, stderr_path: Path, warm: bool = False) -> None:
         self.argv = argv
         self.log_path = log_path
         self._stderr = open(stderr_path, "wb")  # noqa: SIM115 - closed in close()
-        env = dict(os.environ)
-        env.setdefault("PYTHONHASHSEED", "0")
-        self.proc = subprocess.Popen(
-            argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr, env=env
+        proc: forkserver.ForkedProcess | None = None
+        if warm and argv[:3] == program_command():
+            pilot = argv[argv.index("--pilot") + 1] if "--pilot" in argv[:-1] else None
+            try:
+                server = forkserver.shared(program_env())
+                if server is not None:
+                    proc = server.spawn(argv[3:], self._stderr, preload=pilot)
+            except forkserver.ForkServerError as exc:  # the run goes on cold, and its folder says why
+                self._stderr.write(f"warm start failed ({exc}); started cold\n".encode())
+                self._stderr.flush()
+        self.warm = proc is not None
+        self.proc: subprocess.Popen[bytes] | forkserver.ForkedProcess = proc or subprocess.Popen(
+            argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr, env=program_env()
         )
         self.alive = True
         self.paused = False
@@ -276,9 +300,7 @@ def onboard_argv(
 ) -> list[str]:
     """The onboard program's command line on two serial paths."""
     argv = [
-        sys.executable,
-        "-m",
-        "policies.onboard",
+        *program_command(),
         "--command-link",
         f"serial:{command_path}:{baud_command}",
         "--mocap-link",
@@ -291,3 +313,8 @@ def onboard_argv(
     if lockstep:
         argv.append("--lockstep")
     return argv
+
+
+def program_command() -> list[str]:
+    """How the onboard program is started cold: ``python -m policies.onboard``."""
+    return [sys.executable, "-m", forkserver.MODULE]

@@ -25,13 +25,22 @@ from hil.report import write_report_html, write_summary, write_timeseries
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide, flown_profile
 from hil.runner.flight_quality import measure
-from hil.runner.lockstep import DEFAULT_GUARD_S, DEFAULT_TICK_S, LoopReport, run_lockstep
+from hil.runner.lockstep import (
+    DEFAULT_GUARD_S,
+    DEFAULT_TICK_S,
+    LoopReport,
+    kept_to,
+    lockstep_cpu,
+    lockstep_spin_s,
+    run_lockstep,
+)
 from hil.runner.mission import phase_intervals, window_hits
 from hil.runner.onboard_side import (
     InProcessOnboard,
     ProcessOnboard,
     onboard_argv,
     onboard_options,
+    prestart,
     program_config,
 )
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
@@ -65,6 +74,14 @@ class RunOptions:
     guard_s: float = DEFAULT_GUARD_S
     #: report.html for every run, or only for a failed one (a sweep's passed runs need none: 15 % of a run)
     html_report: bool | str = True  # True, or "failed"
+    #: start the onboard program as a new interpreter instead of forking it warm (over ptys only)
+    cold_start: bool = False
+    #: runs flying at once on this machine (a suite's workers): with fewer than two cores per run the
+    #: two sides of a lockstep run wait for each other asleep instead of polling (`lockstep_spin_s`)
+    parallel_runs: int = 1
+    #: which of those workers flies this run (0-based; None: not known): with as many runs as cores, a
+    #: lockstep run over ptys keeps to that worker's core (`lockstep_cpu`)
+    worker: int | None = None
 
 
 @dataclass(frozen=True)
@@ -186,6 +203,26 @@ def run_scenario(
     """
     options = options or RunOptions()
     s, in_process, realtime = resolve(scenario, options)
+    cpu = None if in_process or realtime else lockstep_cpu(options.worker, options.parallel_runs)
+    with kept_to(cpu):
+        return _run(s, out_dir, options, progress, in_process, realtime, watch)
+
+
+def _run(
+    s: Scenario,
+    out_dir: str | Path,
+    options: RunOptions,
+    progress: Callable[[float, float], None] | None,
+    in_process: bool,
+    realtime: bool,
+    watch: Callable[[EmulatorSide, Path], Callable[[], None] | None] | None,
+) -> RunResult:
+    warm = not (in_process or options.cold_start)
+    if options.parallel_runs < 1:
+        raise RunSetupError(f"parallel runs must be >= 1, got {options.parallel_runs}")
+    spin_s = lockstep_spin_s(options.parallel_runs)
+    if warm:
+        prestart()  # (the first run of a process: the fork server imports while the emulator is built)
     try:
         profile = flown_profile(load_profile(s.vehicle), s.airframe)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused here, with the reason
@@ -202,6 +239,7 @@ def run_scenario(
     log_path = out / ONBOARD_LOG_NAME
     emu = None
     onboard: InProcessOnboard | ProcessOnboard | None = None
+    spawn_s = 0.0  # wall time the onboard process took to spawn (s)
     wall0 = time.perf_counter()
     try:
         if in_process:
@@ -235,14 +273,16 @@ def run_scenario(
                 moc_fc.endpoint,
                 s.links.command.baud,
                 s.links.mocap.baud,
-                ob_options,
+                [*ob_options, f"--lockstep-spin-us={spin_s * 1e6:g}"],
                 log_path,
                 lockstep=not realtime,
             )
             # started only now, right before the first tick: the frames written with that tick reach
             # a program that has not opened its ports yet and are dropped, always (a program started
             # earlier would get them or not depending on how fast it starts)
-            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt")
+            spawn0 = time.perf_counter()
+            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
+            spawn_s = time.perf_counter() - spawn0
 
         def tell(t: float) -> None:
             if progress is not None:
@@ -262,13 +302,16 @@ def run_scenario(
                 compute_s=compute_s,
                 guard_s=options.guard_s,
                 progress=tell,
+                spin_s=spin_s,
             )
         if unwatch is not None:
             unwatch()
+        loop.startup_wall_s += spawn_s  # (the program's start-up counts from its spawn)
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
-        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime,
+        started = None if isinstance(onboard, InProcessOnboard) else ("warm" if onboard.warm else "cold")
+        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime, started,
                        options.html_report)
     finally:
         if onboard is not None:
@@ -290,6 +333,7 @@ def _finish(
     wall_s: float,
     in_process: bool,
     realtime: bool,
+    onboard_start: str | None,
     html_report: bool | str = True,
 ) -> RunResult:
     rec = emu.recorder
@@ -387,6 +431,7 @@ def _finish(
         "mode": {
             "in_process": in_process,
             "realtime": realtime,
+            "onboard_start": onboard_start,  # "warm" (forked), "cold" (a new interpreter), None (in-process)
             "pilot": s.pilot,
             # what computed each segment's commands, as the onboard program reported it
             "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"),

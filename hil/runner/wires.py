@@ -148,6 +148,12 @@ class CommandWire(Transport):
         if not self.raw.closed:
             self.raw.send(frame)
 
+    def discard_held(self) -> None:
+        """Drop the held FC frames unwritten (counted in the raw link's ``bytes_dropped``): the first
+        tick's, which a program opening its port would get or not depending on how fast it starts."""
+        self.raw.stats.bytes_dropped += len(self._held)
+        self._held.clear()
+
     def flush(self) -> None:
         """Write the held FC frames now."""
         if self._held:

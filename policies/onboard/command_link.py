@@ -50,6 +50,8 @@ USED_MSG_IDS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_COMMA
 #: the lockstep's own per-tick messages, which the codec hands over as frames and this client reads
 #: straight from the payload (`hil.link.lockstep.read_tick_frame`): no pymavlink objects for them
 RAW_MSG_IDS = TICK_MSG_IDS
+#: lockstep ticks whose answers are kept to be sent again unchanged when a tick is repeated
+ANSWERS_KEPT = 8
 READ_BYTES = 65536  # one read takes up to this much
 #: a read shorter than this emptied the link (a tty hands over at most its 4 KiB line buffer per read)
 SHORT_READ_BYTES = 4000
@@ -118,6 +120,7 @@ class CommandLink:
         #: yet answered, frames are held and go out with the last answer in one write
         self.lockstep = False
         self._open_ticks = 0
+        self._answers: dict[float, bytes] = {}  # the latest ticks answered (s) -> the answer's frame
         self._held: list[bytes] = []
         #: lockstep: messages (or frames of `RAW_MSG_IDS`) parsed but not yet acted on (those after a
         #: tick wait for it to be done)
@@ -294,8 +297,16 @@ class CommandLink:
         self.send_command(mav.MAV_CMD_DO_SET_MODE, PX4_BASE_MODE_CUSTOM, PX4_MAIN_AUTO, PX4_AUTO_LOITER)
 
     def answer_tick(self, tick_s: float) -> None:
-        """Lockstep "done with this tick" (`hil.link.lockstep`)."""
-        self._send_frame(self._answer_frame(tick_s))
+        """Lockstep "done with this tick" (`hil.link.lockstep`). A tick answered before (sent again on the
+        harness's wall-clock timeout) gets the same frame again, sequence number and all: how often a
+        tick is repeated depends on process scheduling, and the frames after it must not."""
+        frame = self._answers.get(tick_s)
+        if frame is None:
+            frame = self._answer_frame(tick_s)
+            if len(self._answers) >= ANSWERS_KEPT:
+                del self._answers[next(iter(self._answers))]
+            self._answers[tick_s] = frame
+        self._send_frame(frame)
         self._open_ticks = max(0, self._open_ticks - 1)
         if self._open_ticks == 0:
             self.flush()

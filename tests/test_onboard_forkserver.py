@@ -1,0 +1,161 @@
+"""Warm starts of the onboard program (`policies.onboard.forkserver`): each run a fresh fork of a
+pre-imported server, watched, signalled and reaped as a cold process is; the same runs, byte for byte,
+as cold starts; faults on the process as cold."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hil.runner import RunOptions, run_scenario
+from hil.runner.onboard_side import program_env
+from hil.scenario import load_scenarios, loads_scenarios
+from policies.onboard import forkserver
+
+pytestmark = pytest.mark.skipif(not forkserver.available(), reason="warm starts need Linux 5.3+ (pidfds)")
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+SHORT = """
+description: a short level crossing, long enough to take off and fly part of the approach
+gap: {roll_deg: 30}
+approach: {speed_m_s: 2.0}
+duration_s: 5
+"""
+
+
+@pytest.fixture()
+def server():
+    s = forkserver.ForkServer(program_env())
+    yield s
+    s.close()
+
+
+def test_two_warm_runs_give_the_same_tlog_bytes_as_two_cold_starts(tmp_path):
+    s = loads_scenarios(SHORT)[0]
+    runs = {
+        (start, k): run_scenario(s, tmp_path / f"{start}{k}", RunOptions(cold_start=start == "cold"))
+        for start in ("warm", "cold")
+        for k in range(2)
+    }
+    assert all(r.summary["mode"]["onboard_start"] == start for (start, _), r in runs.items())
+    tlogs = {key: r.tlog_path.read_bytes() for key, r in runs.items()}
+    assert len(tlogs[("warm", 0)]) > 10_000  # a flight, not an empty log
+    assert len(set(tlogs.values())) == 1, {k: len(v) for k, v in tlogs.items()}
+    # the program's own events and counters too: nothing carried over from the run before
+    events = {key: [(e["text"], e["time_s"]) for e in r.summary["events"] if e["source"] == "onboard"]
+              for key, r in runs.items()}
+    assert events[("warm", 1)] == events[("cold", 0)]
+    # its counters too, but the command link's: the first tick is sent again every 2 ms (wall) until the
+    # program has opened its port, and how many copies it reads after it did depends on scheduling
+    counters = {key: {k: v for k, v in r.summary["onboard"].items() if k != "mavlink"}
+                for key, r in runs.items()}
+    assert counters[("warm", 1)] == counters[("cold", 0)] == counters[("warm", 0)]
+
+
+@pytest.mark.parametrize("name", ["onboard_killed_approach", "onboard_stalled"])
+def test_a_killed_or_stalled_warm_program_behaves_as_a_cold_one(tmp_path, name):
+    s = load_scenarios(SCENARIOS / f"{name}.scenario.yaml")[0]
+    warm = run_scenario(s, tmp_path / "warm", RunOptions())
+    cold = run_scenario(s, tmp_path / "cold", RunOptions(cold_start=True))
+    assert warm.summary["mode"]["onboard_start"] == "warm"
+    assert warm.passed and cold.passed
+    for key in ("onboard_exit_code", "failsafe_events", "fc_final_state", "crossed_gap"):
+        assert warm.summary[key] == cold.summary[key], key
+    runner = [[e["text"] for e in r.summary["events"] if e["source"] == "runner"] for r in (warm, cold)]
+    assert runner[0] == runner[1]
+    if name == "onboard_killed_approach":
+        assert warm.summary["onboard_exit_code"] == -signal.SIGKILL
+        assert warm.summary["onboard"] is None  # a killed program writes no summary, warm or cold
+    else:
+        assert any("stalled" in t for t in runner[0]) and any("resumed" in t for t in runner[0])
+    assert warm.tlog_path.read_bytes() == cold.tlog_path.read_bytes()
+
+
+def test_a_forked_program_reports_its_exit_code_and_bad_options_as_a_cold_one(server, tmp_path):
+    with open(tmp_path / "err", "wb") as err:
+        proc = server.spawn(["--command-link", "memory", "--mocap-link", "memory", "--rate-hz", "10"], err)
+        assert proc.wait(10) == 2  # refused below the N3's 50 Hz, as `python -m policies.onboard` exits
+    assert "50" in (tmp_path / "err").read_text()
+    cold = subprocess.run(
+        [sys.executable, "-m", "policies.onboard", "--command-link", "memory", "--mocap-link", "memory",
+         "--rate-hz", "10"], capture_output=True, env=program_env(),
+    )
+    assert cold.returncode == 2
+
+
+def test_a_forked_program_is_stopped_continued_and_killed_through_its_pidfd(server, tmp_path):
+    # a program waiting for an FC that never speaks: it runs until it is ended
+    from hil.link.pty import PtyTransport
+
+    with PtyTransport.create() as cmd, PtyTransport.create() as moc, open(tmp_path / "err", "wb") as err:
+        proc = server.spawn([f"--command-link=serial:{cmd.endpoint}:921600",
+                             f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet"], err)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(0.05)
+        assert _state(proc.pid) == "T"  # stopped
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.05)
+        assert _state(proc.pid) in ("S", "R")
+        proc.kill()
+        assert proc.wait(5) == -signal.SIGKILL
+        proc.kill()  # a process already reaped: nothing happens (its pid may be someone else's now)
+
+
+def test_a_forked_program_keeps_to_the_cpus_of_the_harness_that_asked_for_it(server, tmp_path):
+    from hil.link.pty import PtyTransport
+    from hil.runner.lockstep import kept_to
+
+    cpu = max(os.sched_getaffinity(0))
+    with PtyTransport.create() as cmd, PtyTransport.create() as moc, open(tmp_path / "err", "wb") as err:
+        with kept_to(cpu):
+            proc = server.spawn([f"--command-link=serial:{cmd.endpoint}:921600",
+                                 f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet"], err)
+        deadline = time.monotonic() + 5
+        while os.sched_getaffinity(proc.pid) != {cpu} and time.monotonic() < deadline:
+            time.sleep(0.01)  # (it keeps to them as it starts)
+        assert os.sched_getaffinity(proc.pid) == {cpu}
+        assert os.sched_getaffinity(server.proc.pid) != {cpu} or len(os.sched_getaffinity(0)) == 1
+        proc.kill()
+        proc.wait(5)
+
+
+def test_a_forked_program_ended_by_sigterm_exits_143_with_its_summary(server, tmp_path):
+    from hil.link.pty import PtyTransport
+
+    log = tmp_path / "events.jsonl"
+    with PtyTransport.create() as cmd, PtyTransport.create() as moc, open(tmp_path / "err", "wb") as err:
+        proc = server.spawn([f"--command-link=serial:{cmd.endpoint}:921600",
+                             f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet", "--log-json", str(log)],
+                            err)
+        deadline = time.monotonic() + 10
+        while (not log.exists() or '"start"' not in log.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)  # (its SIGTERM handler goes in right after the start event)
+        proc.terminate()
+        assert proc.wait(10) == 143
+    assert '"summary"' in log.read_text()
+
+
+def test_a_server_that_has_gone_is_an_error_and_the_run_starts_cold(tmp_path, monkeypatch):
+    dead = forkserver.ForkServer(program_env())
+    dead.proc.kill()
+    dead.proc.wait()
+    with open(tmp_path / "err", "wb") as err, pytest.raises(forkserver.ForkServerError):
+        dead.spawn(["--help"], err)
+    dead.close()
+    monkeypatch.setattr(forkserver, "shared", lambda env=None: dead)
+    r = run_scenario(loads_scenarios(SHORT)[0], tmp_path / "run", RunOptions())
+    assert r.summary["mode"]["onboard_start"] == "cold"
+    assert "started cold" in (tmp_path / "run" / "onboard_stderr.txt").read_text()
+    assert r.summary["ticks_answered"] == r.summary["ticks"]
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
