@@ -61,7 +61,7 @@ def test_an_update_moves_the_controller_within_the_kl_bound_and_holds_the_planne
     model.learn(total_timesteps=4 * 64)
     assert all(torch.equal(a, b) for a, b in zip(planner0, actor.planner.parameters(), strict=True))
     pairs = zip(controller0, actor.controller.parameters(), strict=True)
-    moved = max(float((a - b).abs().max()) for a, b in pairs)
+    moved = max(float((a - b).detach().abs().max()) for a, b in pairs)
     assert moved > 0
     obs = torch.as_tensor(_observations(pool, n=4, steps=20))
     with torch.no_grad():
