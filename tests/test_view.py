@@ -40,6 +40,12 @@ def _url(proc: subprocess.Popen[str]) -> str:
     return line.split()[1]
 
 
+def _default_ctrl_c() -> None:
+    """In the child before it runs: Ctrl-C as at a terminal. A test run started in the background by a
+    shell inherits SIGINT ignored, and so would the command, which then could not be stopped by it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _stop(proc: subprocess.Popen[str]) -> int:
     proc.send_signal(signal.SIGINT)
     try:
@@ -70,7 +76,8 @@ def test_the_live_page_follows_a_realtime_run_then_replays_it(tmp_path):
     stderr = tmp_path / "stderr.txt"  # a file: a busy host's lateness warnings would fill a pipe
     proc = subprocess.Popen([*HIL, "run", str(path), "--realtime", "--in-process", "--view", "--out",
                              str(tmp_path / "run")],
-                            stdout=subprocess.PIPE, stderr=stderr.open("w"), text=True)
+                            stdout=subprocess.PIPE, stderr=stderr.open("w"), text=True,
+                            preexec_fn=_default_ctrl_c)
     try:
         url = _url(proc)
         b.open(url)
@@ -110,7 +117,8 @@ def test_the_live_page_follows_a_realtime_run_then_replays_it(tmp_path):
     assert {c["name"] for c in summary["checks"] if not c["passed"]} <= {"realtime"}
     # and `hil view` replays the folder the same way
     view = subprocess.Popen([*HIL, "view", str(tmp_path / "run")], stdout=subprocess.PIPE,
-                            stderr=(tmp_path / "view_stderr.txt").open("w"), text=True)
+                            stderr=(tmp_path / "view_stderr.txt").open("w"), text=True,
+                            preexec_fn=_default_ctrl_c)
     b = Browser(tmp_path / "profile2")
     try:
         b.open(_url(view))
