@@ -7,12 +7,15 @@ unknown commands, retries answered once, and 100k hostile frames after which the
 from __future__ import annotations
 
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from emulator.fc import EmulatedVehicle, FcConfig, FcState
 from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.fc.params import PARAMS, ParamError
 from emulator.profile import GRAVITY_M_S2, load_profile
 from hil.link import MemoryTransport, SimClock
 from hil.link.dji_open import OpenCodec
@@ -334,3 +337,25 @@ def test_hil_fc_answers_the_open_protocol_on_a_pty_and_hil_decode_prints_its_cap
     assert "0x00 0x01 activation" in decoded[0] and "ACK 0x0000" in decoded[1]
     assert any("0x01 0x00 control authority: 01" in line for line in decoded)
     assert any("flight data: time, quaternion" in line for line in decoded)
+
+
+def test_the_fc_parameters_apply_over_the_open_protocol_but_mavlink_telemetry_rates_do_not():
+    rig = Rig()
+    params = rig.server.params
+    assert params.set("COM_OF_LOSS_T", 0.5) == pytest.approx(0.5)
+    assert rig.vehicle.fc.config.failsafe_timeout_s == pytest.approx(0.5)
+    before = params.get("N3_RATE_ATT")  # read as its default: no MAVLink telemetry here
+    with pytest.raises(ParamError, match="no MAVLink telemetry"):
+        params.set("N3_RATE_ATT", 10.0)
+    assert params.get("N3_RATE_ATT") == before
+    assert len(list(params.items())) == len(PARAMS)  # the whole table still reads
+
+
+def test_hil_fc_over_the_open_protocol_refuses_telemetry_rates_and_an_esc_bus(tmp_path):
+    rates = tmp_path / "rates.params"
+    rates.write_text("N3_RATE_ATT 10\n")
+    for extra, words in ((["--params", str(rates)], "N3_RATE_ATT"), (["--esc-bus", "sim"], "--esc-bus")):
+        p = subprocess.run([sys.executable, "-m", "hil.cli", "fc", "--protocol", "dji-open", "--gap", "none",
+                            "--mocap-link", "none", "--duration", "0.2", *extra],
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 2 and words in p.stderr, p.stderr
