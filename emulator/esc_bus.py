@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -164,9 +164,48 @@ def parse_bus_spec(spec: str) -> str:
     raise ValueError(f"ESC bus {spec!r}: expected one of {', '.join(BUS_SPECS)}")
 
 
+@dataclass(frozen=True, slots=True)
+class Message:
+    """A DroneCAN message as the nodes of this process hand it on: its DSDL type (dronecan's, for
+    example ``uavcan.equipment.esc.RawCommand``), its sender and its field values (a snapshot)."""
+
+    dtype: Any
+    source_node_id: int
+    fields: dict[str, Any]
+
+    def encode(self, transfer_id: int, priority: int) -> list[tuple[int, bytes]]:
+        """Its CAN frames (id, data) as dronecan's transport cuts them: DSDL encoding, the multi-frame
+        CRC, the tail bytes."""
+        from dronecan.transport import Transfer
+
+        tr = Transfer(payload=self.dtype(**self.fields), source_node_id=self.source_node_id,
+                      transfer_id=transfer_id, transfer_priority=priority, service_not_message=False)
+        return [(f.message_id, bytes(f.bytes)) for f in tr.to_frames()]
+
+    @classmethod
+    def decoded(cls, transfer: Any) -> Message:
+        """The message a dronecan Transfer (decoded from the wire) carries."""
+        payload = transfer.payload
+        return cls(payload._type, transfer.source_node_id,
+                   {name: _plain(getattr(payload, name)) for name in payload._fields})
+
+
+def _plain(value: Any) -> Any:
+    from dronecan.transport import ArrayValue
+
+    return list(value) if isinstance(value, ArrayValue) else value
+
+
 class CanBus:
-    """The bus in the clock's time (see the module doc). Nodes attach with `attach(fn)`: ``fn(transfer,
-    t)`` gets every complete transfer (dronecan's Transfer, decoded once for all of them) but its own."""
+    """The bus in the clock's time (see the module doc). Nodes attach with `attach(node_id, fn)`:
+    ``fn(message, t)`` gets every complete `Message` but its own.
+
+    A transfer's frames are those dronecan's transport cuts from the message (their number and lengths,
+    worked out once per message layout): each takes its time on the wire and may be corrupted (resent)
+    or lost, and a transfer with a lost frame never completes. Between the nodes of this process the
+    message is handed on as its field values at the end of its last frame, without a byte-level round
+    trip; its frames are encoded by dronecan whenever they leave for a real bus (``bridge``), and frames
+    from a real bus are reassembled and decoded by dronecan's transport."""
 
     def __init__(self, config: EscBusConfig, rng: np.random.Generator, bridge: Bridge | None = None) -> None:
         from dronecan.transport import TransferManager
@@ -177,92 +216,129 @@ class CanBus:
         self.stats = BusStats()
         self._bit_s = 1.0 / config.bitrate_bps
         self._free_s = 0.0  # the wire is busy until then
-        self._queue: list[tuple[float, int, int, int, bytes]] = []  # (done_s, id, seq, src, data)
+        #: (done_s, seq, message or None, frames for a real bus or to reassemble, frames delivered)
+        self._queue: list[tuple[float, int, Message | None, list[tuple[int, bytes]], int]] = []
         self._seq = 0
         self._rx = TransferManager()
-        self._nodes: list[tuple[int, Callable[[Any, float], None]]] = []
+        self._nodes: list[tuple[int, Callable[[Message, float], None]]] = []
+        self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
         self.bus_off_until_s = -math.inf
         self.extra_loss = 0.0  # frames lost on top of ``config.loss`` (a fault), the larger counts
         self.start_s: float | None = None
 
-    def attach(self, node_id: int, on_transfer: Callable[[Any, float], None]) -> None:
-        self._nodes.append((node_id, on_transfer))
+    def attach(self, node_id: int, on_message: Callable[[Message, float], None]) -> None:
+        self._nodes.append((node_id, on_message))
 
     def next_event_s(self) -> float:
         return self._queue[0][0] if self._queue else math.inf
 
-    def send_transfer(self, payload: Any, source_node_id: int, transfer_id: int, priority: int,
-                      t: float) -> None:
-        """Put a message on the bus at ``t`` (s): its frames queue for the wire."""
-        from dronecan.transport import Transfer
+    def send(self, message: Message, transfer_id: int, priority: int, t: float) -> None:
+        """Put ``message`` on the bus at ``t`` (s): its frames queue for the wire."""
+        if self.bridge is not None:
+            frames = message.encode(transfer_id, priority)
+            lengths = tuple(len(data) for _, data in frames)
+        else:
+            frames = []
+            lengths = self._frame_lengths(message, priority)
+        self._queue_transfer(message, frames, lengths, t)
 
-        tr = Transfer(payload=payload, source_node_id=source_node_id, transfer_id=transfer_id,
-                      transfer_priority=priority, service_not_message=False)
-        for frame in tr.to_frames():
-            self._queue_frame(frame.message_id, bytes(frame.bytes), source_node_id, t)
+    def _frame_lengths(self, message: Message, priority: int) -> tuple[int, ...]:
+        """Data bytes of each frame of ``message`` (dronecan's cut, worked out once per type, priority
+        and array lengths: the tail byte's transfer id does not change them)."""
+        key = (message.dtype, priority,
+               *(len(v) for v in message.fields.values() if isinstance(v, list | tuple)))
+        lengths = self._layouts.get(key)
+        if lengths is None:
+            lengths = self._layouts[key] = tuple(len(data) for _, data in message.encode(0, priority))
+        return lengths
 
-    def _queue_frame(self, can_id: int, data: bytes, src: int, t: float) -> None:
+    def _queue_transfer(self, message: Message | None, frames: list[tuple[int, bytes]],
+                        lengths: tuple[int, ...], t: float) -> None:
+        """Queue the frames of one transfer (``message`` None: a frame from the real bus, in ``frames``)
+        from ``t`` (s), in order, behind what the wire already carries."""
         if self.start_s is None:
             self.start_s = t
         cfg, st = self.config, self.stats
         if t < self.bus_off_until_s:
-            st.bus_off_dropped += 1
+            st.bus_off_dropped += len(lengths)
             return
-        start = max(t, self._free_s)
-        bits = frame_bits(len(data))
-        while cfg.corruption > 0 and self.rng.random() < cfg.corruption:  # error frame, then resent
-            st.error_frames += 1
-            start += (bits // 2 + ERROR_FRAME_BITS) * self._bit_s
-        done = start + bits * self._bit_s
-        self._free_s = done
-        st.bits += bits
-        st.busy_s += done - start
         loss = cfg.loss if cfg.loss > self.extra_loss else self.extra_loss
-        if loss > 0 and self.rng.random() < loss:
-            st.lost += 1
-            return
-        self._seq += 1
-        heapq.heappush(self._queue, (done, can_id, self._seq, src, data))
+        start = max(t, self._free_s)
+        kept: list[tuple[int, bytes]] = []  # the frames not lost, when they have bytes
+        n_kept = 0
+        for i, n in enumerate(lengths):
+            bits = frame_bits(n)
+            while cfg.corruption > 0 and self.rng.random() < cfg.corruption:  # error frame, then resent
+                st.error_frames += 1
+                start += (bits // 2 + ERROR_FRAME_BITS) * self._bit_s
+            done = start + bits * self._bit_s
+            st.bits += bits
+            st.busy_s += done - start
+            start = done
+            if loss > 0 and self.rng.random() < loss:
+                st.lost += 1
+                continue
+            n_kept += 1
+            if frames:
+                kept.append(frames[i])
+        self._free_s = start
+        if n_kept:  # (a transfer short of a frame never completes: its other frames still pass)
+            self._seq += 1
+            complete = n_kept == len(lengths)
+            heapq.heappush(self._queue, (start, self._seq, message if complete else None, kept, n_kept))
 
     def take_external(self, t: float) -> None:
         """Put what the real bus brought on the wire at ``t`` (s)."""
         if self.bridge is None:
             return
         for can_id, data in self.bridge.receive():
-            src = can_id & 0x7F
-            if self._from_outside(src):  # (a multicast bus hands back what this process sent)
+            if self._from_outside(can_id & 0x7F):  # (a multicast bus hands back what this process sent)
                 self.stats.external_in += 1
-                self._queue_frame(can_id, data, src, t)
+                self._queue_transfer(None, [(can_id, data)], (len(data),), t)
 
     def advance_to(self, t: float) -> None:
-        """Deliver every frame on the wire by ``t`` (s)."""
-        bridge = self.bridge
+        """Deliver every transfer whose frames are off the wire by ``t`` (s)."""
         q = self._queue
         while q and q[0][0] <= t + 1e-12:
-            done, can_id, _, src, data = heapq.heappop(q)
-            self.stats.frames += 1
-            if bridge is not None and not self._from_outside(src):
-                bridge.send(can_id, data)
-                self.stats.external_out += 1
-            self._deliver(can_id, data, src, done)
+            done, _, message, frames, n = heapq.heappop(q)
+            self.stats.frames += n
+            if message is not None:  # ours, complete
+                self._send_out(frames)
+                self._hand_out(message, done)
+            elif frames and self._from_outside(frames[0][0] & 0x7F):  # a frame from the real bus
+                got = self._reassemble(*frames[0])
+                if got is not None:
+                    self._hand_out(got, done)
+            else:  # what was left of one of ours
+                self._send_out(frames)
 
-    def _from_outside(self, src: int) -> bool:
-        return all(src != nid for nid, _ in self._nodes)
+    def _send_out(self, frames: list[tuple[int, bytes]]) -> None:
+        if self.bridge is not None:
+            for can_id, data in frames:
+                self.bridge.send(can_id, data)
+            self.stats.external_out += len(frames)
 
-    def _deliver(self, can_id: int, data: bytes, src: int, t: float) -> None:
+    def _reassemble(self, can_id: int, data: bytes) -> Message | None:
         from dronecan.transport import Frame, Transfer
 
         frames = self._rx.receive_frame(Frame(can_id, data))
         if not frames:
-            return
+            return None
         tr = Transfer()
         try:
             tr.from_frames(frames)
         except Exception:  # a transfer of a type this process does not know, or a bad CRC: not ours
-            return
-        for nid, on_transfer in self._nodes:
-            if nid != tr.source_node_id:
-                on_transfer(tr, t)
+            return None
+        return Message.decoded(tr)
+
+    def _from_outside(self, src: int) -> bool:
+        return all(src != nid for nid, _ in self._nodes)
+
+    def _hand_out(self, message: Message, t: float) -> None:
+        src = message.source_node_id
+        for nid, on_message in self._nodes:
+            if nid != src:
+                on_message(message, t)
 
     def load(self, now_s: float) -> float:
         """Fraction of the time since the first frame the wire was busy."""
@@ -285,19 +361,19 @@ class _Node:
         self.next_node_status_s = t0
         self.health = HEALTH_OK
 
-    def broadcast(self, payload: Any, t: float, priority: int = 16) -> None:
-        key = payload._type.default_dtid
+    def broadcast(self, dtype: Any, fields: dict[str, Any], t: float, priority: int = 16) -> None:
+        key = dtype.default_dtid
         tid = self._tid.get(key, 0)
         self._tid[key] = (tid + 1) & 31
-        self.bus.send_transfer(payload, self.node_id, tid, priority, t)
+        self.bus.send(Message(dtype, self.node_id, fields), tid, priority, t)
 
     def node_status(self, t: float) -> None:
-        from dronecan import uavcan
-
         while t >= self.next_node_status_s - 1e-12:
-            self.broadcast(uavcan.protocol.NodeStatus(
-                uptime_sec=int(t - self.t0), health=self.health, mode=MODE_OPERATIONAL,
-                sub_mode=0, vendor_specific_status_code=0), t, priority=24)
+            from dronecan import uavcan
+
+            self.broadcast(uavcan.protocol.NodeStatus, {
+                "uptime_sec": int(t - self.t0), "health": self.health, "mode": MODE_OPERATIONAL,
+                "sub_mode": 0, "vendor_specific_status_code": 0}, t, priority=24)
             self.next_node_status_s += NODE_STATUS_PERIOD_S
 
 
@@ -316,13 +392,13 @@ class EmulatedEsc(_Node):
         from dronecan import uavcan
 
         self._raw_command_type = uavcan.equipment.esc.RawCommand
-        self._status = uavcan.equipment.esc.Status(esc_index=index)  # (one message, refilled: cheaper)
-        bus.attach(node_id, self.on_transfer)
+        self._status_type = uavcan.equipment.esc.Status
+        bus.attach(node_id, self.on_message)
 
-    def on_transfer(self, tr: Any, t: float) -> None:
-        if self.silent or tr.payload._type is not self._raw_command_type:
+    def on_message(self, msg: Message, t: float) -> None:
+        if self.silent or msg.dtype is not self._raw_command_type:
             return
-        cmd = tr.payload.cmd
+        cmd = msg.fields["cmd"]
         if self.index < len(cmd):
             self.throttle[self.index] = max(0, int(cmd[self.index])) / RAW_COMMAND_MAX
             self.last_command_s = t
@@ -341,11 +417,10 @@ class EmulatedEsc(_Node):
         self.node_status(t)
         if t >= self.next_status_s - 1e-12:
             u = float(self.throttle[self.index])
-            st = self._status
-            st.error_count, st.voltage, st.current = self.error_count, 15.2 - 1.2 * u, 25.0 * u**1.5
-            st.temperature, st.power_rating_pct = 300.0 + 40.0 * u, round(100 * u)
-            st.rpm = int(rotor_speed_rad_s * 60.0 / (2.0 * math.pi))
-            self.broadcast(st, t)
+            self.broadcast(self._status_type, {
+                "error_count": self.error_count, "voltage": 15.2 - 1.2 * u, "current": 25.0 * u**1.5,
+                "temperature": 300.0 + 40.0 * u, "rpm": int(rotor_speed_rad_s * 60.0 / (2.0 * math.pi)),
+                "power_rating_pct": round(100 * u), "esc_index": self.index}, t)
             self.next_status_s += self.period_s
             if self.next_status_s <= t:
                 self.next_status_s = t + self.period_s
@@ -377,30 +452,30 @@ class FcEscNode(_Node):
         self.escs = [EscHealth(last_status_s=t0) for _ in config.esc_node_ids]
         from dronecan import uavcan
 
-        self._raw_command = uavcan.equipment.esc.RawCommand(cmd=[0] * len(config.esc_node_ids))
+        self._raw_command_type = uavcan.equipment.esc.RawCommand
         self._status_type = uavcan.equipment.esc.Status
         self.commands_sent = 0
-        bus.attach(self.node_id, self.on_transfer)
+        bus.attach(self.node_id, self.on_message)
 
-    def send_command(self, throttles: Iterable[float], t: float) -> None:
-        msg = self._raw_command  # (one message, refilled)
-        for i, u in enumerate(throttles):
-            msg.cmd[i] = min(RAW_COMMAND_MAX, max(0, round(u * RAW_COMMAND_MAX)))
-        self.broadcast(msg, t, priority=8)
+    def send_command(self, throttles: np.ndarray | Sequence[float], t: float) -> None:
+        values = throttles.tolist() if isinstance(throttles, np.ndarray) else throttles
+        cmd = [min(RAW_COMMAND_MAX, max(0, round(u * RAW_COMMAND_MAX))) for u in values]
+        self.broadcast(self._raw_command_type, {"cmd": cmd}, t, priority=8)
         self.commands_sent += 1
 
-    def on_transfer(self, tr: Any, t: float) -> None:
-        p = tr.payload
-        if p._type is not self._status_type or not 0 <= p.esc_index < len(self.escs):
+    def on_message(self, msg: Message, t: float) -> None:
+        p = msg.fields
+        if msg.dtype is not self._status_type or not 0 <= p["esc_index"] < len(self.escs):
             return
-        h = self.escs[p.esc_index]
-        if p.error_count > h.error_count:
-            self.report("warning", f"ESC {p.esc_index} errors: {p.error_count}", t)
-        h.last_status_s, h.error_count, h.rpm = t, p.error_count, p.rpm
-        h.voltage_v, h.current_a, h.temperature_k = p.voltage, p.current, p.temperature
+        index, errors = p["esc_index"], p["error_count"]
+        h = self.escs[index]
+        if errors > h.error_count:
+            self.report("warning", f"ESC {index} errors: {errors}", t)
+        h.last_status_s, h.error_count, h.rpm = t, errors, p["rpm"]
+        h.voltage_v, h.current_a, h.temperature_k = p["voltage"], p["current"], p["temperature"]
         if h.failed:
             h.failed = False
-            self.report("info", f"ESC {p.esc_index} answers again", t)
+            self.report("info", f"ESC {index} answers again", t)
             if not any(e.failed for e in self.escs):
                 self.health = HEALTH_OK
 
@@ -453,12 +528,19 @@ class EscBus:
 
     def next_event_s(self) -> float:
         fc = self.fc_node
-        times = [self.bus.next_event_s(), fc.next_node_status_s]
-        times += [h.last_status_s + fc.config.status_timeout_s for h in fc.escs if not h.failed]
+        first = self.bus.next_event_s()
+        if fc.next_node_status_s < first:
+            first = fc.next_node_status_s
+        timeout = fc.config.status_timeout_s
+        for h in fc.escs:
+            if not h.failed and h.last_status_s + timeout < first:
+                first = h.last_status_s + timeout
         for esc in self.escs.values():
-            times.append(esc.next_status_s)
-            times.append(esc.next_node_status_s)
-        return min(times)
+            if esc.next_status_s < first:
+                first = esc.next_status_s
+            if esc.next_node_status_s < first:
+                first = esc.next_node_status_s
+        return first
 
     def close(self) -> None:
         self.bus.close()
@@ -485,9 +567,11 @@ class EscBusStepper:
         esc.bus.take_external(v.time_s)  # (a real bus: read once per call, about once a millisecond)
         while n_steps > 0:
             t = v.time_s
-            if t >= esc.next_event_s() - 1e-9:
+            event_s = esc.next_event_s()
+            if t >= event_s - 1e-9:
                 esc.poll(t, v.state_vector()[rotor], fc.state.armed)
                 self.polls += 1
+                event_s = esc.next_event_s()
             if t >= self.next_command_s - 1e-9:
                 esc.fc_node.send_command(fc.update(v.state), t)
                 self.fc_steps += 1
@@ -495,7 +579,8 @@ class EscBusStepper:
                 if self.next_command_s <= t:
                     self.next_command_s = t + self.period_s
                 esc.bus.advance_to(t)
-            until = min(self.next_command_s, esc.next_event_s())
+                event_s = esc.next_event_s()
+            until = min(self.next_command_s, event_s)
             k = max(1, min(n_steps, math.ceil((until - t) / dt - 1e-6)))
             be.step(esc.throttle, k)
             v.invalidate_state()

@@ -21,6 +21,7 @@ from emulator.esc_bus import (
     CanBus,
     EscBusConfig,
     EscBusStepper,
+    Message,
     attach,
     frame_bits,
     parse_bus_spec,
@@ -157,9 +158,9 @@ def test_the_bus_model_times_frames_and_counts_loss_corruption_and_bus_off():
     bus = CanBus(cfg, np.random.default_rng(0))
     seen: list[float] = []
     bus.attach(99, lambda tr, t: seen.append(t))
-    msg = uavcan.equipment.esc.RawCommand(cmd=[1, 2, 3, 4])
-    bus.send_transfer(msg, 10, 0, 8, 0.0)
-    bus.send_transfer(msg, 10, 1, 8, 0.0)  # queued behind the first
+    msg = Message(uavcan.equipment.esc.RawCommand, 10, {"cmd": [1, 2, 3, 4]})
+    bus.send(msg, 0, 8, 0.0)
+    bus.send(msg, 1, 8, 0.0)  # queued behind the first
     bus.advance_to(1.0)
     bits = frame_bits(8)
     assert seen == pytest.approx([bits * 1e-6, 2 * bits * 1e-6])
@@ -168,12 +169,12 @@ def test_the_bus_model_times_frames_and_counts_loss_corruption_and_bus_off():
     got: list[float] = []
     lossy.attach(99, lambda tr, t: got.append(t))
     for i in range(2000):
-        lossy.send_transfer(msg, 10, i & 31, 8, i * 1e-3)
+        lossy.send(msg, i & 31, 8, i * 1e-3)
     lossy.advance_to(10.0)
     assert len(got) == 2000 - lossy.stats.lost and lossy.stats.lost == pytest.approx(400, rel=0.15)
     assert lossy.stats.error_frames == pytest.approx(222, rel=0.2)  # 0.1 / 0.9 per frame, resent
     lossy.bus_off_until_s = 11.0
-    lossy.send_transfer(msg, 10, 0, 8, 10.5)
+    lossy.send(msg, 0, 8, 10.5)
     assert lossy.stats.bus_off_dropped == 1
 
 
@@ -220,3 +221,38 @@ def test_a_silent_esc_does_not_make_the_stepper_poll_every_step():
     b.stream(0.5, thrust=1.3 * HOVER)
     # three ESCs at 50 Hz and the bus's deliveries: a few hundred polls in 0.5 s, not one a step (500)
     assert stepper.polls - n0 < 400
+
+
+def test_a_multi_frame_status_takes_dronecans_frames_and_a_lost_frame_loses_the_transfer():
+    status = {"error_count": 0, "voltage": 15.0, "current": 2.0, "temperature": 300.0, "rpm": 9000,
+              "power_rating_pct": 40, "esc_index": 2}
+    msg = Message(uavcan.equipment.esc.Status, 22, status)
+    cut = [len(data) for _, data in msg.encode(0, 16)]  # dronecan's own cut: 14 bytes and the CRC
+    assert cut == [8, 8, 3]
+    bus = CanBus(EscBusConfig(), np.random.default_rng(0))
+    got: list[Message] = []
+    bus.attach(10, lambda m, t: got.append(m))
+    bus.send(msg, 0, 16, 0.0)
+    bus.advance_to(1.0)
+    assert bus.stats.bits == sum(frame_bits(n) for n in cut) and bus.stats.frames == 3
+    assert got == [msg] and got[0].fields["rpm"] == 9000
+    lossy = CanBus(EscBusConfig(loss=0.5), np.random.default_rng(3))
+    kept: list[Message] = []
+    lossy.attach(10, lambda m, t: kept.append(m))
+    for i in range(400):
+        lossy.send(msg, i & 31, 16, i * 1e-3)
+    lossy.advance_to(1.0)
+    # a transfer needs all three frames: about 1/8 of them complete, and every lost frame counts
+    assert len(kept) == pytest.approx(50, rel=0.35) and lossy.stats.lost + lossy.stats.frames == 1200
+
+
+def test_the_fc_hands_each_command_on_as_sent_later_commands_do_not_change_it():
+    _, stepper = flying_bench()
+    fc_node = stepper.esc.fc_node
+    seen: list[list[int]] = []
+    stepper.esc.bus.attach(99, lambda m, t: seen.append(list(m.fields["cmd"])) if "cmd" in m.fields else None)
+    fc_node.send_command([0.1, 0.2, 0.3, 0.4], 100.0)
+    fc_node.send_command([0.5, 0.6, 0.7, 0.8], 100.0)  # queued behind the first, sent before it arrives
+    stepper.esc.bus.advance_to(101.0)
+    assert seen == [[round(u * RAW_COMMAND_MAX) for u in (0.1, 0.2, 0.3, 0.4)],
+                    [round(u * RAW_COMMAND_MAX) for u in (0.5, 0.6, 0.7, 0.8)]]

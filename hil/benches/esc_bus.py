@@ -1,6 +1,5 @@
-"""ESC bus figures: frames per second through the DroneCAN bus model (dronecan's encoder and decoder
-included), and the full stack's real-time factor with the motors on the bus beside the one without it,
-measured in the same run."""
+"""ESC bus figures: frames per second through the DroneCAN bus model, and the full stack's real-time
+factor with the motors on the bus beside the one without it, measured in the same run."""
 
 from __future__ import annotations
 
@@ -23,23 +22,23 @@ RUNS = 3  # runs of each stack; the figure is their median
 def collect(quick: bool) -> Iterator[BenchRow]:
     from dronecan import uavcan
 
-    from emulator.esc_bus import CanBus, EscBusConfig
+    from emulator.esc_bus import CanBus, EscBusConfig, Message
 
     bus = CanBus(EscBusConfig(), np.random.default_rng(0))
     got: list[float] = []
-    bus.attach(99, lambda tr, t: got.append(t))
-    msg = uavcan.equipment.esc.RawCommand(cmd=[1000, 2000, 3000, 4000])
+    bus.attach(99, lambda msg, t: got.append(t))
     clock = [0.0]
 
     def one_frame() -> None:
         clock[0] += 1e-3
-        msg.cmd[3] = int(clock[0] * 1e3) & 0x1FFF
-        bus.send_transfer(msg, 10, int(clock[0] * 1e3) & 31, 8, clock[0])
+        cmd = [1000, 2000, 3000, int(clock[0] * 1e3) & 0x1FFF]
+        bus.send(Message(uavcan.equipment.esc.RawCommand, 10, {"cmd": cmd}), int(clock[0] * 1e3) & 31, 8,
+                 clock[0])
         bus.advance_to(clock[0] + 1e-3)
 
     per_frame = time_per_call(one_frame, 0.2 if quick else 1.0)
     yield BenchRow("can_frames_per_s", 1.0 / per_frame, "frames/s",
-                   "RawCommand (one frame) through the bus model: dronecan encode, wire time, decode")
+                   "RawCommand (one frame) through the bus model between nodes of one process")
     base = loads_scenarios(RTF_SCENARIO)[0]
     on_bus = replace(base, links=replace(base.links, esc_bus=EscBusSpec()))
     runs = 1 if quick else RUNS
