@@ -1,6 +1,6 @@
-"""`hil fc --esc-bus` with a separate process on the cross-process bus (dronecan's multicast driver):
-its own dronecan node sees RawCommand, esc.Status and NodeStatus, and, standing in for ESC 3, receives
-that ESC's commands and drives its motor."""
+"""`hil fc --esc-bus` with a separate process on a cross-process bus (dronecan's multicast driver, and
+python-can's multicast bus): its own dronecan node sees RawCommand, esc.Status and NodeStatus, and,
+standing in for ESC 3, receives that ESC's commands and drives its motor, in a hover."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ import time
 from pathlib import Path
 
 import pytest
+from test_fc_mavlink import HOVER
 from test_fc_mavsdk import start_fc, stop_fc
 
 from emulator.fc import FcConfig, FlightController
 from emulator.profile import load_profile
 from hil.link import SerialTransport, WallClock
-from hil.link.mavlink import MavlinkCodec, mav
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, quat_from_euler
 
 PROFILE = load_profile("n3_tx2")
 NODE = Path(__file__).with_name("esc_node_external.py")
@@ -55,3 +56,60 @@ def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor(
     assert esc["escs"][3]["external"] and esc["bus"]["external_in"] > 100
     assert esc["throttle"][:3] == pytest.approx([idle] * 3, abs=2e-4)
     assert esc["throttle"][3] == pytest.approx(idle, abs=2e-3)
+
+
+def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3():
+    """Take off on setpoints, then let the FC's failsafe hover hold the vehicle: with motor 3 following
+    the rpm the outside node reports, the height holds. On python-can's multicast bus: dronecan's own
+    multicast driver queues each frame to a helper process that sends only between 10 ms waits, and a
+    motor that lags its command by 10-20 ms (plus the Python node's stalls on a busy machine) cannot
+    hold a hover; python-can's answers in under a millisecond."""
+    bus = f"udp_multicast:239.74.{os.getpid() % 200 + 20}.9"
+    w_max = PROFILE.max_rotor_speed_rad_s
+    ext = subprocess.Popen([sys.executable, str(NODE), bus, "23", "3", "60", str(w_max)],
+                           stdout=subprocess.PIPE, text=True)
+    assert ext.stdout.readline().strip() == "ready"
+    proc, dev = start_fc("--esc-bus", bus, "--external-esc", "23", "--mocap-link", "none", "--gap", "none",
+                         "--failsafe-timeout", "0.3")  # (hovers on its own 0.3 s after the setpoints stop)
+    link = SerialTransport(dev, 921600)
+    codec = MavlinkCodec(link, WallClock(), 255, 190)
+    heights: list[tuple[float, float]] = []  # (FC time s, height m) from LOCAL_POSITION_NED
+    modes: list[int] = []
+    try:
+        arm = mav.MAV_CMD_COMPONENT_ARM_DISARM
+        codec.send(codec.mav.command_long_encode(1, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))
+        q = list(quat_from_euler(0.0, 0.0, 0.0))
+        start = time.monotonic()
+        requested = False
+        while time.monotonic() < start + 1.6:  # climb on setpoints at 50 Hz (offboard after 0.2 s)
+            codec.send(codec.mav.set_attitude_target_encode(0, 1, 1, 7, q, 0, 0, 0, 1.1 * HOVER))
+            if not requested and time.monotonic() > start + 0.2:
+                codec.send(codec.mav.command_long_encode(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 129,
+                                                         PX4_MAIN_OFFBOARD, 0, 0, 0, 0, 0))
+                requested = True
+            for m in codec.receive(0.02):
+                if m.get_type() == "LOCAL_POSITION_NED":
+                    heights.append((m.time_boot_ms / 1e3, -m.z))
+        stop_s = heights[-1][0]
+        end = time.monotonic() + 4.0  # the stream stops: 0.3 s later the FC hovers on its own
+        while time.monotonic() < end:
+            for m in codec.receive(0.05):
+                if m.get_type() == "LOCAL_POSITION_NED":
+                    heights.append((m.time_boot_ms / 1e3, -m.z))
+                elif m.get_type() == "HEARTBEAT":
+                    modes.append(m.system_status)
+    finally:
+        link.close()
+        summary = stop_fc(proc)
+        ext.terminate()
+        seen = json.loads(ext.communicate(timeout=20)[0].strip().splitlines()[-1])
+    esc = summary["esc_bus"]
+    assert esc["escs"][3]["external"] and not esc["escs"][3]["failed"] and esc["bus"]["external_in"] > 1000
+    assert seen["raw_commands"] > 1000 and all(seen["status_from"].get(str(i), 0) > 50 for i in range(3))
+    assert mav.MAV_STATE_CRITICAL in modes, "the FC never took over in its failsafe hover"
+    hover = [h for t, h in heights if t > stop_s + 1.5]  # settled in the hover
+    assert len(hover) > 30, f"too little telemetry in the hover: {len(hover)}"
+    assert min(hover) > 0.3, f"not in the air: lowest {min(hover):.2f} m"
+    assert max(hover) - min(hover) < 0.25, f"height wandered {min(hover):.2f}..{max(hover):.2f} m"
+    # motor 3 ran at the throttle the outside node reported, near the other three in a hover
+    assert esc["throttle"][3] == pytest.approx(sum(esc["throttle"][:3]) / 3, abs=0.1)
