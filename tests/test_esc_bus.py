@@ -256,3 +256,31 @@ def test_the_fc_hands_each_command_on_as_sent_later_commands_do_not_change_it():
     stepper.esc.bus.advance_to(101.0)
     assert seen == [[round(u * RAW_COMMAND_MAX) for u in (0.1, 0.2, 0.3, 0.4)],
                     [round(u * RAW_COMMAND_MAX) for u in (0.5, 0.6, 0.7, 0.8)]]
+
+
+def test_garbage_from_a_real_bus_is_dropped_and_the_vehicle_flies_on():
+    """Random frames from another node (random ids and lengths, a third of them claiming the id of a
+    node of this process) reach the bus model through python-can: nothing raises, frames that decode to
+    nothing are dropped, and the ESCs go on taking only the FC's commands."""
+    bridge = Bridge("virtual:escs-garbage", 1_000_000)
+    other = can.Bus(interface="virtual", channel="escs-garbage")
+    rng = np.random.default_rng(7)
+    try:
+        b, stepper = flying_bench(bridge=bridge)
+        take_off(b)
+        z0 = b.vehicle.state.pos_m[2]
+        for i in range(3000):
+            can_id = int(rng.integers(0, 1 << 29))
+            if i % 3 == 0:
+                can_id = (can_id & ~0x7F) | int(rng.choice([10, 20, 21, 99]))
+            data = rng.integers(0, 256, int(rng.integers(0, 9)), dtype=np.uint8).tobytes()
+            other.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
+            if i % 50 == 49:
+                b.stream(0.02, thrust=1.3 * HOVER)
+        b.stream(0.1, thrust=1.3 * HOVER)
+    finally:
+        other.shutdown()
+        stepper.esc.close()
+    assert stepper.esc.bus.stats.external_in > 1500  # taken in, and dropped as they decode to nothing
+    assert b.vehicle.fc.state is FcState.OFFBOARD and b.vehicle.state.pos_m[2] > z0 + 0.3
+    np.testing.assert_allclose(stepper.esc.throttle, b.vehicle.fc.motor_cmd, atol=2.0 / RAW_COMMAND_MAX)

@@ -196,3 +196,41 @@ def test_a_run_folder_as_mcap_for_foxglove(tmp_path):
     p = subprocess.run([*HIL, "view", str(tmp_path / "r"), "--mcap"], capture_output=True, text=True,
                        timeout=60)
     assert p.returncode == 0 and (tmp_path / "r" / "run.mcap").stat().st_size > 10_000
+
+
+def test_the_view_answers_malformed_requests_and_keeps_serving():
+    """Garbage, unsupported methods, an over-long path, too many headers, a path out of the page's
+    folder and a client that connects and says nothing: each gets an error (or nothing), and the page
+    and its state are still served."""
+    import socket
+
+    from hil.view.server import ViewServer
+
+    view = ViewServer()
+    host, port = view._httpd.server_address[:2]
+    cases = {
+        b"\x00\xff garbage\r\n\r\n": b"400",
+        b"POST / HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\n\r\nhello": b"501",
+        b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\n\r\n": b"414",
+        b"GET / HTTP/1.1\r\n" + b"X: y\r\n" * 200 + b"\r\n": b"431",
+        b"GET / HTTP/9.9\r\n\r\n": b"505",
+        b"DELETE /stream HTTP/1.1\r\n\r\n": b"501",
+        b"GET /../../etc/passwd HTTP/1.1\r\n\r\n": b"404",
+    }
+    idle = socket.create_connection((host, port))  # connects and says nothing
+    try:
+        for request, code in cases.items():
+            with socket.create_connection((host, port), timeout=5) as s:
+                s.sendall(request)
+                s.shutdown(socket.SHUT_WR)
+                answer = b""
+                while chunk := s.recv(65536):
+                    answer += chunk
+            assert code in answer[:2000], (request[:40], answer[:200])
+        with urllib.request.urlopen(f"http://{host}:{port}/state.json", timeout=5) as r:
+            assert r.status == 200 and isinstance(json.loads(r.read()), dict)
+        with urllib.request.urlopen(f"http://{host}:{port}/", timeout=5) as r:
+            assert b"<html" in r.read(2000).lower()
+    finally:
+        idle.close()
+        view.close()
