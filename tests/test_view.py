@@ -234,3 +234,42 @@ def test_the_view_answers_malformed_requests_and_keeps_serving():
     finally:
         idle.close()
         view.close()
+
+
+TWO_SCENARIOS = """
+name: first
+description: a short hover before the approach
+gap: {roll_deg: 30}
+duration_s: 2
+expect: {crosses_gap: false, recovery: false}
+---
+name: second
+description: the same, again
+gap: {roll_deg: 30}
+duration_s: 2
+expect: {crosses_gap: false, recovery: false}
+"""
+
+
+def test_the_page_follows_each_scenario_of_a_file_live_in_turn(tmp_path):
+    path = tmp_path / "two.scenario.yaml"
+    path.write_text(TWO_SCENARIOS)
+    b = Browser(tmp_path / "profile")
+    proc = subprocess.Popen([*HIL, "run", str(path), "--realtime", "--in-process", "--view", "--out",
+                             str(tmp_path / "runs")],
+                            stdout=subprocess.PIPE, stderr=(tmp_path / "stderr.txt").open("w"), text=True,
+                            preexec_fn=_default_ctrl_c)
+    try:
+        b.open(_url(proc))
+        assert b.wait_for("hilView.mode === 'live' && hilView.received > 0", 30)
+        assert b.eval("document.getElementById('title').textContent") == "first (live)"
+        # the first ends, the second starts: the same page follows it live, then replays it
+        assert b.wait_for("hilView.mode === 'live' && hilView.scene.title === 'second (live)' "
+                          "&& hilView.frames.length > 0", 60)
+        assert b.eval("hilView.frames[0].t") < 1.0  # its own frames, from its start
+        assert b.wait_for("hilView.mode === 'replay' && hilView.frames.length", 60) > 50
+        assert b.eval("hilView.runs") == 2
+    finally:
+        b.close()
+        _stop(proc)
+    assert {p.name for p in (tmp_path / "runs").iterdir()} == {"first", "second"}

@@ -27,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scenario", metavar="SCENARIO", help="a *.scenario.yaml file")
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default reports/<scenario id>)")
     p.add_argument("--view", action="store_true",
-                   help="serve a live view on 127.0.0.1 (URL printed); then the run's replay until Ctrl-C")
+                   help="serve a live view on 127.0.0.1 (URL printed): each scenario live in turn, "
+                        "then the last one's replay until Ctrl-C")
     p.add_argument("--view-port", type=int, default=0, metavar="PORT",
                    help="the view's port (default: a free one)")
     p.add_argument("--mcap", action="store_true", help="also write run.mcap beside run.tlog (Foxglove)")

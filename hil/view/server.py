@@ -41,6 +41,7 @@ class ViewServer:
         self._cond = threading.Condition()
         self._frame: dict[str, Any] | None = None
         self._seq = 0
+        self._run = 0  # runs shown live so far: a page replaying one moves on to the next live run
         self._source: Source | None = None
         self._replay: dict[str, Any] | None = None
         self._replay_dir: Path | None = None
@@ -66,6 +67,7 @@ class ViewServer:
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = source, False, None, None
             self._frame, self._holding = None, False
+            self._run += 1
         self._sampler = threading.Thread(target=self._sample, args=(source,), name="hil-view-sampler",
                                          daemon=True)
         self._sampler.start()
@@ -125,11 +127,11 @@ class ViewServer:
     def _state(self) -> dict[str, Any]:
         with self._cond:
             mode = "replay" if self._done else "live"
-            source = self._source
+            source, run = self._source, self._run
         if mode == "live" and source is not None:
-            return {"mode": mode, "scene": source.scene()}
+            return {"mode": mode, "scene": source.scene(), "run": run}
         data = self._replay_data()
-        return {"mode": "replay" if data else "waiting", "scene": data["scene"] if data else None}
+        return {"mode": "replay" if data else "waiting", "scene": data["scene"] if data else None, "run": run}
 
     def _replay_data(self) -> dict[str, Any] | None:
         from hil.view.replay import ReplayError, load_replay
