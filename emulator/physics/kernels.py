@@ -63,6 +63,14 @@ def pack_params(profile: VehicleProfile, dt_s: float) -> np.ndarray:
     return p
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _rotor_speed_target(u: float, w_max: float) -> float:
+    """Rotor speed (rad/s) a throttle ``u`` settles at: clipped to [0, 1], a non-finite one as 0."""
+    if not (u > 0.0):  # also catches NaN
+        return 0.0
+    return math.sqrt(1.0 if u > 1.0 else u) * w_max
+
+
 @njit(cache=True, nogil=True)
 def step_vehicle(x: np.ndarray, aux: np.ndarray, p: np.ndarray, cmd: np.ndarray, n_steps: int) -> None:
     """Advance one vehicle row ``x`` (STATE_SIZE,) by ``n_steps`` under throttle ``cmd`` (4,), in place.
@@ -75,15 +83,10 @@ def step_vehicle(x: np.ndarray, aux: np.ndarray, p: np.ndarray, cmd: np.ndarray,
     kf, km, alpha = p[P_KF], p[P_KM], p[P_MOTOR_ALPHA]
     g = p[P_GRAVITY]
     half_h = p[P_HALF_HEIGHT]
-    # Rotor speed targets are fixed over the call.
-    w_cmd = np.empty(4)
-    for i in range(4):
-        u = cmd[i]
-        if not (u > 0.0):  # also catches NaN
-            u = 0.0
-        elif u > 1.0:
-            u = 1.0
-        w_cmd[i] = math.sqrt(u) * p[P_WMAX]
+    # Rotor speed targets are fixed over the call (a tuple: no array made per call).
+    w_max = p[P_WMAX]
+    w_cmd = (_rotor_speed_target(cmd[0], w_max), _rotor_speed_target(cmd[1], w_max),
+             _rotor_speed_target(cmd[2], w_max), _rotor_speed_target(cmd[3], w_max))
     fx_ext, fy_ext, fz_ext = aux[0], aux[1], aux[2]
     tx_ext, ty_ext, tz_ext = aux[6], aux[7], aux[8]
     ax = ay = az = 0.0
