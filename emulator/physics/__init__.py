@@ -40,6 +40,10 @@ class PhysicsBackend(Protocol):
         """A disturbance torque (a gust's moment) in body FLU (N m), held until changed."""
 
     @property
+    def time_s(self) -> float:
+        """The backend's clock (s): the reset state's time plus the steps since."""
+
+    @property
     def state(self) -> VehicleState:
         """The current state."""
 

@@ -243,6 +243,11 @@ class JSBSimBackend:
         self._torque_frd_nm = (float(m[0]), -float(m[1]), -float(m[2]))  # FLU -> FRD
 
     @property
+    def time_s(self) -> float:
+        """The backend's clock (s)."""
+        return self._t0_s + self._steps * self.dt_s
+
+    @property
     def state(self) -> VehicleState:
         """The current state in world ENU / body FLU (SI units)."""
         if self._cached is not None:
@@ -254,7 +259,7 @@ class JSBSimBackend:
         ve, vn, vu = self._ned_velocity_m_s()
         ax, ay, az = self._accel  # ENU, from the NED velocity difference
         self._cached = VehicleState(
-            time_s=self._t0_s + self._steps * self.dt_s,
+            time_s=self.time_s,
             pos_m=np.array([y, z, x - PLANET_RADIUS_M]),
             vel_m_s=np.array([ve, vn, vu]),
             quat_wxyz=np.array(quat_enu_flu_from_euler_ned(phi, theta, psi)),
