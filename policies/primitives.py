@@ -412,8 +412,8 @@ def _high_jerk(t: float, t3: float, de: float, ep: float) -> float:
 
 def _roots_inside(coeffs: tuple[float, ...], T: float) -> list[float]:
     """The real parts, inside (0, T), of the roots of the polynomial with ascending ``coeffs`` (companion
-    eigenvalues). Near-real pairs count as roots: a value at any point is one the function takes, so an
-    extra candidate never loosens a bound built from them."""
+    eigenvalues), of complex ones too: a near-real pair may be a double root that round-off split, and
+    a value at any other point is one the function takes, so an extra candidate never loosens a bound."""
     if not any(coeffs):
         return []
     return [r for r in np.roots(coeffs[::-1]).real.tolist() if 0 < r < T]

@@ -390,6 +390,7 @@ def test_a_slow_vehicles_recovery_from_a_60_deg_traverse_is_within_its_body_rate
                              BodyClearance(f450.body_box_m), w)
     plan = request.plan()
     rec = plan.recovery.trajectory
+    assert _max_body_rate_rad_s(rec) <= w  # (the minimum-jerk one of the planner before asked 11.2 rad/s)
     assert rec.delta is not None  # the minimum-snap primitive
     t_end = plan.traverse.duration_s
     _, _, a_tr = plan.traverse.state(t_end)
