@@ -19,7 +19,11 @@ no drop and the traverse is straight: t_c = d_min / s. The traverse ends ``exit_
 Approach: a motion primitive from the current state to the traverse start state, 2.6 s by default.
 Recovery: the paper's search over 0.5-3.0 s in 0.3 s steps to the hover point (1 m above ground, 2.5 m
 past the centre along the crossing direction projected horizontally), taking the first duration whose
-trajectory stays in the lab, beyond the gap plane, and passes the input-feasibility test.
+trajectory stays in the lab, beyond the gap plane, and passes the input-feasibility test. A minimum-jerk
+recovery's start jerk is free: from a steep traverse's low thrust (4.9 m/s^2 at 60 deg) it turns the body
+at once (body rate = |jerk| / thrust, 8 rad/s and more after a 60 deg gap). Where the vehicle's FC
+cannot turn that fast, the search may go on to minimum-snap recoveries (degree 7) whose jerk is
+continuous with the traverse's (zero) and zero at the hover: the body starts turning from rest.
 
 The mission (`plan_mission`) is searched the same way: crossing speed, then the traverse's l, then the
 approach duration, each starting from what was asked for, the first candidate whose three segments keep
@@ -33,7 +37,7 @@ import contextlib
 import functools
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -363,13 +367,15 @@ def hover_point(gap: GapPose, direction: np.ndarray, distance_m: float = 2.5,
 def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: object, lab: LabVolume,
                     limits: VehicleLimits | None = None, wall: tuple[object, object] | None = None,
                     durations_s: np.ndarray = RECOVERY_DURATIONS_S, margin_m: float = 0.0,
-                    wall_margin_m: float = 0.0) -> RecoveryResult:
+                    wall_margin_m: float = 0.0, jerk_m_s3: object | None = None) -> RecoveryResult:
     """The paper's recovery search from the current state to hover at ``hover_m``: the durations are
     tried in order and the first that passes wins.
 
     A duration passes when its trajectory stays ``margin_m`` inside ``lab``, ``wall_margin_m`` on the
-    normal's side of ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. Raises
-    PlanningError if none.
+    normal's side of ``wall`` = (point, normal) if given, and is FEASIBLE under ``limits``. With the
+    current jerk ``jerk_m_s3`` (m/s^3) given, where no minimum-jerk recovery passes, the minimum-snap
+    ones from it to the hover at rest (jerk zero) are tried in the same durations (``tried`` counts
+    both). Raises PlanningError if none.
     """
     limits = limits or VehicleLimits()
     start = time.perf_counter()
@@ -386,11 +392,18 @@ def search_recovery(pos_m: object, vel_m_s: object, acc_m_s2: object, hover_m: o
         planes.append(Plane(_vec3("wall point", wall[0]), _vec3("wall normal", wall[1]),
                             float(wall_margin_m) - 1e-9))
     zero = (0.0, 0.0, 0.0)
-    for i, cand in enumerate(solve_floats(p0, v0, a0, hover, zero, zero, T_all)):
+    j0 = None if jerk_m_s3 is None else _vec3("jerk_m_s3", jerk_m_s3)
+
+    def candidates() -> Iterator[FloatTrajectory]:
+        yield from solve_floats(p0, v0, a0, hover, zero, zero, T_all)
+        if j0 is not None:  # (solved only where no minimum-jerk one passed)
+            yield from solve_floats(p0, v0, a0, hover, zero, zero, T_all, j0, zero)
+
+    for i, cand in enumerate(candidates()):
         if cand.planes_ok(planes) and cand.input_feasible(
                 limits.f_min_m_s2, limits.f_max_m_s2, limits.max_body_rate_rad_s,
                 limits.min_dt_s) is Feasibility.FEASIBLE:
-            return RecoveryResult(cand.trajectory(), T_all[i], i + 1, time.perf_counter() - start)
+            return RecoveryResult(cand.trajectory(), cand.T, i + 1, time.perf_counter() - start)
     raise PlanningError(f"no recovery duration in {np.asarray(durations_s).round(2).tolist()} s stays in "
                         "the lab and within the thrust and body-rate limits")
 
@@ -504,7 +517,8 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
                  crossing_speed_m_s: float = 2.0, limits: VehicleLimits | None = None,
                  d_min_m: float = 0.1, exit_m: float = 0.3, hover_distance_m: float = 2.5,
                  hover_height_m: float = 1.0, body: BodyClearance | None = None,
-                 crossing_speed_range_m_s: tuple[float, float] = CROSSING_SPEED_RANGE_M_S) -> MissionPlan:
+                 crossing_speed_range_m_s: tuple[float, float] = CROSSING_SPEED_RANGE_M_S,
+                 recovery_limits: VehicleLimits | None = None, smooth_recovery: bool = False) -> MissionPlan:
     """Plan the whole crossing from the current state (the paper's pipeline), searched for a plan the
     body can fly.
 
@@ -516,10 +530,18 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
     clearance from the floor (z = 0) and the lab's faces, the approach stays before the wall (no nearer
     it than the traverse start), the traverse ends, and the recovery stays, the clearance past the wall,
     the approach is not INFEASIBLE (INDETERMINABLE is accepted and recorded) and a recovery duration
-    passes `search_recovery`. Raises PlanningError, saying why the requested candidate failed, if none.
+    passes `search_recovery`. With ``smooth_recovery`` the recovery search goes on to the jerk-continuous
+    recoveries (`search_recovery`'s minimum-snap ones from the traverse's jerk, zero) where no
+    minimum-jerk one passes; with ``recovery_limits`` (tighter than ``limits``) it searches within those
+    first (minimum-jerk, then jerk-continuous), then the minimum-jerk ones within ``limits``. Raises
+    PlanningError, saying why the requested candidate failed, if none.
     """
     started = time.perf_counter()
     limits = limits or VehicleLimits()
+    traverse_jerk = (0.0, 0.0, 0.0) if smooth_recovery else None  # the ballistic traverse's
+    # (limits, start jerk) of each recovery search, in order
+    recovery_tiers = [(limits, traverse_jerk)] if recovery_limits is None else [
+        (recovery_limits, traverse_jerk), (limits, None)]
     body = body or BodyClearance()
     p_start = _vec3("start_pos_m", start_pos_m)
     if not (math.isfinite(approach_duration_s) and approach_duration_s > 0):
@@ -557,11 +579,16 @@ def plan_mission(start_pos_m: object, gap: GapPose, lab: LabVolume, *, start_vel
                 why.append(f"the traverse comes within {clear:.2f} m of the floor or the lab's faces")
                 continue
             pe, ve, ae = trav.state_tuples(trav.duration_s)
-            try:
-                recovery = search_recovery(pe, ve, ae, hover, room, limits, wall=wall, margin_m=clear,
-                                           wall_margin_m=body.reach_m)
-            except PlanningError as exc:
-                why.append(str(exc))
+            recovery = None
+            for tier_limits, jerk in recovery_tiers:
+                try:
+                    recovery = search_recovery(pe, ve, ae, hover, room, tier_limits, wall=wall,
+                                               margin_m=clear, wall_margin_m=body.reach_m, jerk_m_s3=jerk)
+                    break
+                except PlanningError as exc:
+                    error = str(exc)
+            if recovery is None:
+                why.append(error)
                 continue
             p0, v0, a0 = trav.state_tuples(0.0)
             approach_planes = [*box_planes, Plane(gap.centre_m, back, trav.d_m - 1e-6)]
@@ -614,19 +641,30 @@ class MissionRequest:
     max_body_rate_rad_s: float = VehicleLimits.max_body_rate_rad_s
 
     def plan(self) -> MissionPlan:
-        """The mission `plan_mission` makes from this request (PlanningError, ValueError as it): the first
-        plan within the vehicle's body rate; where there is none (the recovery from a steep traverse of a
-        slow vehicle), the first within twice it, the FC trailing briefly; then the first within
-        `VehicleLimits`' (the planner's limits for any vehicle)."""
+        """The mission `plan_mission` makes from this request (PlanningError, ValueError as it).
+
+        For a vehicle whose body rate w is below `VehicleLimits`' (the planner's limits for any vehicle),
+        the first of: the plan within w; the plan within w whose recovery may be jerk-continuous (after
+        a steep traverse, where every minimum-jerk one starts turning faster than w); the plan within 2 w
+        (the FC trailing briefly) whose recovery is within w where one is (minimum-jerk, then
+        jerk-continuous), else a minimum-jerk one within 2 w. Then (and for any other vehicle only) the
+        plan within `VehicleLimits`'.
+        """
         plan = functools.partial(plan_mission, self.start_pos_m, self.gap, self.lab,
                                  start_vel_m_s=self.start_vel_m_s,
                                  approach_duration_s=self.approach_duration_s,
                                  crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
                                  body=self.body)
-        for w in (self.max_body_rate_rad_s, 2 * self.max_body_rate_rad_s):
-            if w < VehicleLimits.max_body_rate_rad_s:
+        w = self.max_body_rate_rad_s
+        if w < VehicleLimits.max_body_rate_rad_s:
+            own = VehicleLimits(max_body_rate_rad_s=w)
+            stages: list[dict[str, Any]] = [{"limits": own}, {"limits": own, "smooth_recovery": True}]
+            if 2 * w < VehicleLimits.max_body_rate_rad_s:
+                stages.append({"limits": VehicleLimits(max_body_rate_rad_s=2 * w), "recovery_limits": own,
+                               "smooth_recovery": True})
+            for kwargs in stages:
                 with contextlib.suppress(PlanningError):
-                    return plan(limits=VehicleLimits(max_body_rate_rad_s=w))
+                    return plan(**kwargs)
         return plan()
 
     def to_dict(self) -> dict[str, Any]:

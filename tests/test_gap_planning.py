@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -361,3 +362,64 @@ def test_a_request_prefers_plans_within_the_vehicles_body_rate_and_keeps_it_thro
     assert again.max_body_rate_rad_s == 6.0 and again.plan().recovery.duration_s == slow.recovery.duration_s
     legacy = {k: v for k, v in _f450_request(30.0, 6.0).to_dict().items() if k != "max_body_rate_rad_s"}
     assert MissionRequest.from_dict(legacy).max_body_rate_rad_s == VehicleLimits().max_body_rate_rad_s
+
+
+def _max_body_rate_rad_s(traj: Trajectory) -> float:
+    """The roll/pitch body rate |jerk x z| / |a - g| (rad/s) a trajectory asks for, densely sampled."""
+    ts = np.linspace(0.0, float(traj.T), 4001)
+    f = traj.state(ts)[2] - G
+    z = f / np.linalg.norm(f, axis=-1, keepdims=True)
+    j = traj.jerk(ts)
+    return float(np.max(np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1)
+                        / np.linalg.norm(f, axis=-1)))
+
+
+def test_a_slow_vehicles_recovery_from_a_60_deg_traverse_is_within_its_body_rate() -> None:
+    """The f450 (its FC turns at 6 rad/s: its onboard configuration) through the -60 deg gap: every
+    minimum-jerk recovery from the traverse's low thrust starts turning faster than that (its start jerk
+    is free); the plan's recovery is the jerk-continuous one (zero jerk at the traverse's end and at the
+    hover), within the vehicle's rate, where it used to ask 11 rad/s. The default vehicle's plan keeps
+    its minimum-jerk recovery."""
+    from policies.vehicle import load_vehicle
+
+    f450 = load_vehicle("f450")
+    w = f450.max_body_rate_rad_s
+    request = MissionRequest((-2.0, -1.0, 0.5), (0.0, 0.0, 0.0),
+                             GapPose.from_deg((0.0, 0.5, 2.1), -60.0, width_m=0.85, height_m=0.57),
+                             LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0)), 2.6, 2.5, f450.traverse_lead_m,
+                             BodyClearance(f450.body_box_m), w)
+    plan = request.plan()
+    rec = plan.recovery.trajectory
+    assert _max_body_rate_rad_s(rec) <= w  # (the minimum-jerk one of the planner before asked 11.2 rad/s)
+    assert rec.delta is not None  # the minimum-snap primitive
+    t_end = plan.traverse.duration_s
+    _, _, a_tr = plan.traverse.state(t_end)
+    np.testing.assert_allclose(rec.jerk(0.0), 0.0, atol=1e-9)  # the ballistic traverse's jerk
+    np.testing.assert_allclose(rec.state(0.0)[2], a_tr, atol=1e-12)
+    np.testing.assert_allclose(rec.jerk(plan.recovery.duration_s), 0.0, atol=1e-6)
+    np.testing.assert_allclose(rec.state(plan.recovery.duration_s)[0], plan.hover_m, atol=1e-9)
+    limits = VehicleLimits(max_body_rate_rad_s=w)
+    verdict = rec.input_feasible(limits.f_min_m_s2, limits.f_max_m_s2, w, limits.min_dt_s)
+    assert verdict == Feasibility.FEASIBLE
+    assert _max_body_rate_rad_s(rec) <= w
+    # from the same traverse end, no minimum-jerk recovery is within the rate; the jerk-continuous one is
+    pe, ve, ae = plan.traverse.state(t_end)
+    u = tuple(plan.traverse.direction)
+    clear = request.body.clearance_m
+    room = request.lab
+    kwargs = {"wall": (request.gap.centre_m, u), "margin_m": clear, "wall_margin_m": request.body.reach_m}
+    with pytest.raises(PlanningError, match="no recovery duration"):
+        search_recovery(pe, ve, ae, plan.hover_m, room, limits, **kwargs)
+    again = search_recovery(pe, ve, ae, plan.hover_m, room, limits, jerk_m_s3=(0.0, 0.0, 0.0), **kwargs)
+    assert again.duration_s == plan.recovery.duration_s and again.tried > len(RECOVERY_DURATIONS_S)
+    rates = []
+    for T in RECOVERY_DURATIONS_S:  # every minimum-jerk one in the lab, whatever its rate
+        with contextlib.suppress(PlanningError):
+            rates.append(_max_body_rate_rad_s(search_recovery(
+                pe, ve, ae, plan.hover_m, room, VehicleLimits(max_body_rate_rad_s=100.0),
+                durations_s=np.array([T]), **kwargs).trajectory))
+    assert rates and min(rates) > 1.3 * w  # 8 rad/s and more
+    # the planner's own limits (the default vehicle): the paper's minimum-jerk recovery, as before
+    default = MissionRequest(request.start_pos_m, request.start_vel_m_s, request.gap, request.lab, 2.6, 2.5,
+                             f450.traverse_lead_m, request.body).plan()
+    assert default.recovery.trajectory.delta is None

@@ -293,3 +293,105 @@ def test_single_trajectory_floats_match_the_array_evaluation():
     batch = solve(np.zeros((2, 3)), np.zeros(3), np.zeros(3), np.ones(3), np.zeros(3), np.zeros(3), 1.0)
     with pytest.raises(ValueError, match="single trajectory"):
         batch.state_tuples(0.5)
+
+
+# --- minimum-snap primitives (the start's jerk fixed) ---------------------------------------------
+
+
+def _snap_jerk_and_snap(tr: Trajectory, t: np.ndarray, h: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    return tr.jerk(t), (tr.jerk(t + h) - tr.jerk(t - h)) / (2 * h)
+
+
+@pytest.mark.parametrize("fixed", list(itertools.product((True, False), repeat=4)),
+                         ids=lambda f: "".join("F" if x else "-" for x in f))
+def test_minimum_snap_boundary_conditions_and_optimality(fixed: tuple[bool, bool, bool, bool]) -> None:
+    """With ``j0`` the primitive starts at (p0, v0, a0, j0) and ends at every fixed one of (pf, vf, af,
+    jf); a free end state is the optimum (no perturbation of it lowers the integral of |snap|^2)."""
+    rng = np.random.default_rng(31)
+    c = _random_case(rng, 50)
+    j0, jf = rng.uniform(-5, 5, (50, 3)), rng.uniform(-5, 5, (50, 3))
+    ends = [c[k] if f else None for k, f in zip(("pf", "vf", "af"), fixed[:3], strict=True)]
+    tr = solve(c["p0"], c["v0"], c["a0"], *ends, c["T"], j0=j0, jf=jf if fixed[3] else None)
+    assert tr.delta is not None and tr.epsilon is not None
+    p, v, a = tr.state(np.zeros(50))
+    for got, want in ((p, c["p0"]), (v, c["v0"]), (a, c["a0"]), (tr.jerk(np.zeros(50)), j0)):
+        assert _rel_err(got, want) < 1e-9
+    p, v, a = tr.state(c["T"])
+    for got, want in zip((p, v, a, tr.jerk(c["T"])), (*ends, jf if fixed[3] else None), strict=True):
+        if want is not None:
+            assert _rel_err(got, want) < 1e-7
+
+    def snap_cost(traj: Trajectory) -> np.ndarray:
+        ts = np.linspace(0, 1, 2001)[None, :] * traj.T[:, None]
+        s = _snap_jerk_and_snap(traj, ts)[1]
+        return np.trapezoid(np.sum(s * s, -1), ts, axis=-1)
+
+    base = snap_cost(tr)
+    p_end, v_end, a_end = tr.state(c["T"])
+    free_ends = [p_end, v_end, a_end, tr.jerk(c["T"])]
+    for k in range(4):
+        if fixed[k]:
+            continue
+        nudged = list(free_ends)
+        nudged[k] = nudged[k] + rng.normal(0, 0.3, (50, 3))
+        other = solve(c["p0"], c["v0"], c["a0"], *nudged[:3], c["T"], j0=j0, jf=nudged[3])
+        assert np.all(snap_cost(other) >= base * (1 - 1e-6))
+
+
+def test_minimum_snap_primitive_is_degree_seven_and_its_free_end_jerk_ends_without_snap() -> None:
+    rng = np.random.default_rng(32)
+    p0, v0, a0, j0, pf = rng.normal(size=(5, 3))
+    tr = solve(p0, v0, a0, pf, np.zeros(3), np.zeros(3), 1.7, j0=j0)
+    assert np.abs(_snap_jerk_and_snap(tr, np.array(1.7))[1]).max() < 1e-4
+    ts = np.linspace(0, 1.7, 9)  # eight points fit a degree-7 polynomial exactly: the ninth agrees
+    pos = tr.state(ts)[0]
+    fit = np.polynomial.polynomial.polyfit(ts[:8], pos[:8], 7)
+    np.testing.assert_allclose(np.polynomial.polynomial.polyval(ts[8], fit), pos[8], atol=1e-8)
+    # cost: (1/T) * integral of |jerk|^2, as for the quintic
+    grid = np.linspace(0, 1.7, 20001)
+    np.testing.assert_allclose(tr.cost, np.trapezoid(np.sum(tr.jerk(grid) ** 2, -1), grid) / 1.7, rtol=1e-6)
+    with pytest.raises(ValueError, match="j0"):
+        solve(p0, v0, a0, pf, None, None, 1.0, jf=np.zeros(3))
+
+
+def test_minimum_snap_feasibility_and_plane_tests_agree_with_dense_sampling() -> None:
+    """The input-feasibility and half-space tests of degree-7 primitives: FEASIBLE never breaks a limit
+    at any sample, INFEASIBLE breaks one (or comes within a hair); the plane tests give the sampled
+    minimum distance; `solve_floats` gives `solve`'s numbers."""
+    from policies.primitives import Plane, solve_floats
+
+    rng = np.random.default_rng(33)
+    up = np.array([0.0, 0.0, 9.8])
+    seen = set()
+    zero = (0.0, 0.0, 0.0)
+    for _ in range(150):
+        p0, v0, pf = (tuple(rng.normal(0, 2, 3).tolist()) for _ in range(3))
+        a0, j0 = (tuple(rng.normal(0, 3, 3).tolist()) for _ in range(2))
+        T = float(rng.uniform(0.8, 3.0))
+        (fl,) = solve_floats(p0, v0, a0, pf, zero, zero, [T], j0, zero)
+        tr = fl.trajectory()
+        one = solve(p0, v0, a0, pf, zero, zero, T, j0=j0, jf=zero)
+        for name in ("p0", "v0", "a0", "alpha", "beta", "gamma", "delta", "epsilon", "T"):
+            np.testing.assert_allclose(getattr(tr, name), getattr(one, name), rtol=1e-12, atol=1e-12)
+        ts = np.linspace(0, T, 4001)
+        pos, _, acc = tr.state(ts)
+        a, j = acc + up, tr.jerk(ts)
+        f = np.linalg.norm(a, axis=-1)
+        z = a / f[:, None]
+        w = np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1) / f
+        for w_max in (0.5 * w.max(), 1.01 * w.max(), 8.0):
+            verdict = fl.input_feasible(2.0, 25.0, float(w_max), 0.005)
+            margin = min(f.min() / 2.0 - 1, 1 - f.max() / 25.0, 1 - w.max() / w_max)
+            if verdict == Feasibility.FEASIBLE:
+                assert margin >= -1e-9
+            elif verdict == Feasibility.INFEASIBLE:
+                assert margin <= 1e-2
+            seen.add(int(verdict))
+        normal = rng.normal(size=3)
+        point = rng.normal(0, 1.5, 3)
+        exact = float(tr.min_plane_distance(point, normal))
+        sampled = float(np.min((pos - point) @ (normal / np.linalg.norm(normal))))
+        assert sampled - 1e-3 <= exact <= sampled + 1e-9
+        for thr in (exact - 1e-4, exact + 1e-4, float(rng.normal())):
+            assert fl.planes_ok([Plane(tuple(point.tolist()), tuple(normal.tolist()), thr)]) == (exact >= thr)
+    assert {Feasibility.FEASIBLE, Feasibility.INFEASIBLE} <= seen
