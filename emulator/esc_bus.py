@@ -221,13 +221,19 @@ class CanBus:
         self._seq = 0
         self._rx = TransferManager()
         self._nodes: list[tuple[int, Callable[[Message, float], None]]] = []
+        self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
+        self._by_type: dict[Any, list[tuple[int, Callable[[Message, float], None]]]] = {}  # (from _routes)
         self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
         self.bus_off_until_s = -math.inf
         self.extra_loss = 0.0  # frames lost on top of ``config.loss`` (a fault), the larger counts
         self.start_s: float | None = None
 
-    def attach(self, node_id: int, on_message: Callable[[Message, float], None]) -> None:
+    def attach(self, node_id: int, on_message: Callable[[Message, float], None],
+               dtypes: tuple[Any, ...] | None = None) -> None:
+        """``on_message(message, t)`` gets the messages of ``dtypes`` (None: of every type) but its own."""
         self._nodes.append((node_id, on_message))
+        self._routes.append((node_id, on_message, dtypes))
+        self._by_type.clear()
 
     def next_event_s(self) -> float:
         return self._queue[0][0] if self._queue else math.inf
@@ -335,8 +341,12 @@ class CanBus:
         return all(src != nid for nid, _ in self._nodes)
 
     def _hand_out(self, message: Message, t: float) -> None:
+        receivers = self._by_type.get(message.dtype)
+        if receivers is None:
+            receivers = self._by_type[message.dtype] = [
+                (nid, fn) for nid, fn, dtypes in self._routes if dtypes is None or message.dtype in dtypes]
         src = message.source_node_id
-        for nid, on_message in self._nodes:
+        for nid, on_message in receivers:
             if nid != src:
                 on_message(message, t)
 
@@ -393,7 +403,14 @@ class EmulatedEsc(_Node):
 
         self._raw_command_type = uavcan.equipment.esc.RawCommand
         self._status_type = uavcan.equipment.esc.Status
-        bus.attach(node_id, self.on_message)
+        bus.attach(node_id, self.on_message, (self._raw_command_type,))
+
+    def due_s(self) -> float:
+        """When `poll` has something to do next (s): a status, a NodeStatus, or the command timeout."""
+        due = self.next_status_s if self.next_status_s < self.next_node_status_s else self.next_node_status_s
+        if self.throttle[self.index] != 0.0 and self.last_command_s + ESC_COMMAND_TIMEOUT_S < due:
+            due = self.last_command_s + ESC_COMMAND_TIMEOUT_S
+        return due
 
     def on_message(self, msg: Message, t: float) -> None:
         if self.silent or msg.dtype is not self._raw_command_type:
@@ -455,7 +472,16 @@ class FcEscNode(_Node):
         self._raw_command_type = uavcan.equipment.esc.RawCommand
         self._status_type = uavcan.equipment.esc.Status
         self.commands_sent = 0
-        bus.attach(self.node_id, self.on_message)
+        bus.attach(self.node_id, self.on_message, (self._status_type,))
+
+    def due_s(self) -> float:
+        """When `poll` has something to do next (s): its NodeStatus or an ESC's status timeout."""
+        due = self.next_node_status_s
+        timeout = self.config.status_timeout_s
+        for h in self.escs:
+            if not h.failed and h.last_status_s + timeout < due:
+                due = h.last_status_s + timeout
+        return due
 
     def send_command(self, throttles: np.ndarray | Sequence[float], t: float) -> None:
         values = throttles.tolist() if isinstance(throttles, np.ndarray) else throttles
@@ -505,42 +531,47 @@ class EscBus:
                      for i, nid in enumerate(config.esc_node_ids) if nid not in config.external}
         self._external_index = {config.esc_node_ids.index(nid) for nid in config.external}
         self.max_rotor_speed_rad_s = 1.0
+        self._nodes_due_s = t0  # the earliest `due_s` of the nodes, as of the last poll
 
     def reconfigure(self, **changes: Any) -> None:
         """Change the FC's ESC watch in flight (``status_timeout_s``, ``failsafe_action``)."""
         self.config = replace(self.config, **changes)
         self.fc_node.config = self.config
+        self._nodes_due_s = -math.inf  # (poll at the next step)
 
     def poll(self, t: float, rotor_speed_rad_s: np.ndarray, armed: bool) -> None:
         """Everything due by ``t`` (s): frames delivered, ESC reports, the FC's watch."""
-        self.bus.advance_to(t)
-        for esc in self.escs.values():
-            esc.poll(t, float(rotor_speed_rad_s[esc.index]))
-        self.fc_node.poll(t, armed)
+        self.bus.advance_to(t)  # (what it delivers only moves the nodes' times later)
+        fc = self.fc_node
+        if t >= self._nodes_due_s - 1e-12:
+            due = math.inf
+            for esc in self.escs.values():
+                d = esc.due_s()
+                if t >= d - 1e-12 or esc.silent:
+                    esc.poll(t, float(rotor_speed_rad_s[esc.index]))
+                    d = esc.due_s()
+                due = d if d < due else due
+            d = fc.due_s()
+            if t >= d - 1e-12:
+                fc.poll(t, armed)
+                d = fc.due_s()
+            self._nodes_due_s = d if d < due else due
         for i in self._external_index:  # an outside ESC's motor follows the rpm it reports
-            w = self.fc_node.escs[i].rpm * 2.0 * math.pi / 60.0
+            w = fc.escs[i].rpm * 2.0 * math.pi / 60.0
             self.throttle[i] = min(1.0, max(0.0, w / self.max_rotor_speed_rad_s) ** 2)
 
     def set_silent(self, esc_index: int, silent: bool) -> None:
         for esc in self.escs.values():
             if esc.index == esc_index:
                 esc.silent = silent
+        self._nodes_due_s = -math.inf  # (poll at the next step)
 
     def next_event_s(self) -> float:
-        fc = self.fc_node
-        first = self.bus.next_event_s()
-        if fc.next_node_status_s < first:
-            first = fc.next_node_status_s
-        timeout = fc.config.status_timeout_s
-        for h in fc.escs:
-            if not h.failed and h.last_status_s + timeout < first:
-                first = h.last_status_s + timeout
-        for esc in self.escs.values():
-            if esc.next_status_s < first:
-                first = esc.next_status_s
-            if esc.next_node_status_s < first:
-                first = esc.next_node_status_s
-        return first
+        """When the bus or a node next has something to do (s). The nodes' times are those of the last
+        poll: a status coming in only moves the FC's watch later, and a command due at an ESC arrives
+        on the bus, whose own time is always current."""
+        head = self.bus.next_event_s()
+        return head if head < self._nodes_due_s else self._nodes_due_s
 
     def close(self) -> None:
         self.bus.close()
