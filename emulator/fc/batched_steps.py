@@ -9,6 +9,10 @@ the FC's `hold_command` parameters, `quiet_steps` and `stepped_outside`. Same ar
 before anything the FC's own step would act on: the setpoint-loss timeout, the failsafe hover's end,
 the body reaching the ground. Anything else (other FC states, other backends, yaw-rate targets) takes
 the vehicle's own per-step path.
+
+numba caches these kernels keyed on this file alone: after a change to a kernel they call from another
+module (the inner loop with its mixer, the physics step), touch this file or delete its cache in
+``__pycache__`` (``batched_steps.*.nbi``/``.nbc``), or the batched steps keep flying the old one.
 """
 
 from __future__ import annotations

@@ -3,7 +3,9 @@
 Attitude error (quaternion, body frame) -> rate command (P, clipped to the profile's body-rate limit)
 -> angular acceleration (P on rate error) -> torque (J alpha + w x J w) -> rotor thrusts through the
 inverse of the X-quad allocation matrix, saturated so that roll/pitch come first, collective thrust
-second and yaw last (the collective is shifted, yaw is scaled down). Numba-compiled hot path.
+second and yaw last (the collective is shifted, yaw is scaled down), as PX4's sequential desaturation does:
+at full throttle yaw may lower the collective by up to `YAW_THRUST_MARGIN` of the throttle range, so the FC
+keeps some yaw authority there; it never takes from roll or pitch. Numba-compiled hot path.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ from numba import njit
 from emulator.profile import ROTOR_ANGLES_RAD, ROTOR_SPIN, VehicleProfile
 
 _S = math.sqrt(0.5)
+#: the share of the throttle range (idle to full) by which yaw may lower the collective thrust to keep some
+#: yaw authority with the motors at full throttle (PX4's MINIMUM_YAW_MARGIN)
+YAW_THRUST_MARGIN = 0.15
 
 
 @dataclass(frozen=True)
@@ -206,23 +211,47 @@ def control_quat(q, w, d0, d1, d2, d3, thrust_n, p, mix_inv, out):  # pragma: no
     f2 += collective
     f3 += collective
     y0, y1, y2, y3 = mix_inv[0, 3] * tz, mix_inv[1, 3] * tz, mix_inv[2, 3] * tz, mix_inv[3, 3] * tz
-    k = min(min(_yaw_room(f0, y0, f_lo, f_max), _yaw_room(f1, y1, f_lo, f_max)),
-            min(_yaw_room(f2, y2, f_lo, f_max), _yaw_room(f3, y3, f_lo, f_max)))
-    k = max(min(k, 1.0), 0.0)  # yaw last: the largest share of the yaw torque that still fits
-    out[0] = min(1.0, max(0.0, (f0 + k * mix_inv[0, 3] * tz) / f_max))
-    out[1] = min(1.0, max(0.0, (f1 + k * mix_inv[1, 3] * tz) / f_max))
-    out[2] = min(1.0, max(0.0, (f2 + k * mix_inv[2, 3] * tz) / f_max))
-    out[3] = min(1.0, max(0.0, (f3 + k * mix_inv[3, 3] * tz) / f_max))
+    # yaw last: the largest share of the yaw torque that fits, where yaw may lower the collective by up to
+    # YAW_THRUST_MARGIN of the throttle range: a rotor may reach f_hi before the collective comes down, and
+    # the four may not spread wider than the range (so that lowering it takes nothing from roll or pitch)
+    f_hi = f_max + YAW_THRUST_MARGIN * avail
+    k = min(min(_yaw_room(f0, y0, f_lo, f_hi), _yaw_room(f1, y1, f_lo, f_hi)),
+            min(_yaw_room(f2, y2, f_lo, f_hi), _yaw_room(f3, y3, f_lo, f_hi)))
+    k = min(k, _spread_room(f0, y0, f1, y1, avail), _spread_room(f0, y0, f2, y2, avail),
+            _spread_room(f0, y0, f3, y3, avail), _spread_room(f1, y1, f2, y2, avail),
+            _spread_room(f1, y1, f3, y3, avail), _spread_room(f2, y2, f3, y3, avail))
+    k = max(min(k, 1.0), 0.0)
+    f0 += k * y0
+    f1 += k * y1
+    f2 += k * y2
+    f3 += k * y3
+    drop = max(0.0, max(max(f0, f1), max(f2, f3)) - f_max)  # the collective given up to yaw
+    out[0] = min(1.0, max(0.0, (f0 - drop) / f_max))
+    out[1] = min(1.0, max(0.0, (f1 - drop) / f_max))
+    out[2] = min(1.0, max(0.0, (f2 - drop) / f_max))
+    out[3] = min(1.0, max(0.0, (f3 - drop) / f_max))
 
 
 @njit(cache=True, nogil=True)
-def _yaw_room(f: float, y: float, f_lo: float, f_max: float) -> float:
+def _yaw_room(f: float, y: float, f_lo: float, f_hi: float) -> float:
     """The share of a rotor's yaw thrust ``y`` (N) that keeps its thrust ``f`` + share * y in
-    [f_lo, f_max] (1 or more: all of it)."""
+    [f_lo, f_hi] (1 or more: all of it)."""
     if y > 1e-12:
-        return (f_max - f) / y
+        return (f_hi - f) / y
     if y < -1e-12:
         return (f_lo - f) / y
+    return 1.0
+
+
+@njit(cache=True, nogil=True)
+def _spread_room(fa: float, ya: float, fb: float, yb: float, avail: float) -> float:
+    """The share of the yaw thrusts ``ya``, ``yb`` (N) that keeps two rotors' thrusts ``fa``, ``fb`` (N)
+    within ``avail`` (N) of each other (1 or more: all of it)."""
+    dy = ya - yb
+    if dy > 1e-12:
+        return (avail - (fa - fb)) / dy
+    if dy < -1e-12:
+        return (-avail - (fa - fb)) / dy
     return 1.0
 
 
