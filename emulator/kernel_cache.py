@@ -1,0 +1,81 @@
+"""Where numba keeps the compiled kernels: a folder named by a digest of the emulator's sources.
+
+numba checks a cached kernel against the timestamp of its own source file only, but the kernels here are
+compiled with functions and constants of other modules inlined (the FC's fused loop calls the mixer, the
+physics and the world check). After a change to one of those alone (a `git pull` that touches the mixer),
+numba's own cache would go on flying the old code, silently. So the cache lives in a folder named by a
+digest of every source file of the package (and of the run recorder, which has kernels too): any change
+compiles afresh, once (about 10 s), and runs of one checkout share it. Folders of other digests that
+have not been used for a day are removed, beyond the few most recent.
+
+``NUMBA_CACHE_DIR``, when set, is used as it is: the user's choice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import shutil
+import time
+from pathlib import Path
+
+#: folders of other digests kept whatever their age (other checkouts, a branch switched back to)
+KEEP_OTHERS = 4
+STALE_AFTER_S = 86400.0
+
+_ROOT = Path(__file__).resolve().parent
+_OTHER_SOURCES = (_ROOT.parent / "hil" / "runner" / "recorder.py",)
+
+
+def sources_digest() -> str:
+    """sha256 (12 hex digits) of the package's .py files and the recorder's, by relative path."""
+    h = hashlib.sha256()
+    files = sorted(_ROOT.rglob("*.py")) + [p for p in _OTHER_SOURCES if p.is_file()]
+    for path in files:
+        h.update(str(path.relative_to(_ROOT.parent)).encode())
+        h.update(b"\0")
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def cache_root() -> Path:
+    """The folder that holds one folder per digest: ``numba`` in the project's cache ($HIL_CACHE_DIR,
+    else crossgap-hil under $XDG_CACHE_HOME or ~/.cache, as the learning data's)."""
+    env = os.environ.get("HIL_CACHE_DIR")
+    if env:
+        return Path(env) / "numba"
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "crossgap-hil" / "numba"
+
+
+def configure() -> Path | None:
+    """Point numba's cache at this digest's folder (unless NUMBA_CACHE_DIR is set); returns it, or
+    None when the user's setting stands or no folder can be made (numba then caches as it would)."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    folder = cache_root() / sources_digest()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        os.utime(folder)  # (used now: kept by the clean-up of other checkouts)
+    except OSError:
+        return None
+    os.environ["NUMBA_CACHE_DIR"] = str(folder)  # (for a numba imported later, and child processes)
+    from numba.core import config
+
+    config.CACHE_DIR = str(folder)  # (for a numba imported already)
+    _remove_stale(folder)
+    return folder
+
+
+def _remove_stale(current: Path) -> None:
+    others = []
+    for p in current.parent.iterdir():
+        if p != current and p.is_dir():
+            with contextlib.suppress(OSError):
+                others.append((p.stat().st_mtime, p))
+    others.sort(reverse=True)
+    now = time.time()
+    for mtime, p in others[KEEP_OTHERS:]:
+        if now - mtime > STALE_AFTER_S:
+            shutil.rmtree(p, ignore_errors=True)
