@@ -106,3 +106,16 @@ def test_suite_flies_warm_and_cold_start_is_a_flag(tmp_path):
         assert "2/2 passed" in p.stdout
         for name in ("a", "b"):
             assert json.loads((out / name / "summary.json").read_text())["mode"]["onboard_start"] == start
+
+
+def test_suite_starts_the_longest_runs_first_and_lists_them_in_the_suites_order(tmp_path):
+    (tmp_path / "s").mkdir()
+    for name, duration in (("a", 2.0), ("b", 3.0), ("c", 2.5)):
+        (tmp_path / "s" / f"{name}.scenario.yaml").write_text(
+            PASSING.replace("duration_s: 2.5", f"duration_s: {duration}"))
+    p = run(["suite", str(tmp_path / "s"), "--out", str(tmp_path / "out"), "-j", "1"], tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    printed = [line.split()[1] for line in p.stdout.splitlines() if line.startswith("PASSED")]
+    assert printed == ["b", "c", "a"]  # one worker: in the order they started, the longest first
+    index = json.loads((tmp_path / "out" / "index.json").read_text())
+    assert [r["id"] for r in index["results"]] == ["a", "b", "c"]

@@ -143,7 +143,9 @@ def main(args: argparse.Namespace) -> int:
     results: list[dict[str, Any]] = []
     workers = max(1, min(args.jobs, len(todo)))
     options = replace(options, parallel_runs=workers)
-    work = [(s, str(out / s.id), options) for s in todo]
+    # the longest first, so that no long run starts last while the other workers sit idle; the index
+    # lists them in the suite's order all the same
+    work = [(s, str(out / s.id), options) for s in sorted(todo, key=lambda s: -s.duration_s)]
     warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
     for res in _results(work, workers, args.ray_address, warm):
         word = "PASSED" if res["passed"] else "FAILED"
@@ -155,6 +157,8 @@ def main(args: argparse.Namespace) -> int:
             print(f"  {line}")
         results.append(res)
     wall = time.perf_counter() - wall0
+    order = {s.id: k for k, s in enumerate(todo)}
+    results.sort(key=lambda r: order.get(r["id"], len(order)))
     index = write_index(out, results, skipped, wall)
     n_pass = sum(r["passed"] for r in results)
     print(f"{n_pass}/{len(results)} passed, {len(skipped)} skipped, {wall:.1f} s wall; index: {index}")
