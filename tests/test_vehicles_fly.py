@@ -226,28 +226,29 @@ def test_the_suite_skips_what_does_not_apply_to_the_vehicle_and_flies_the_rest(t
     assert "beyond f450's 65 deg tilt limit" in capsys.readouterr().err
 
 
-def test_f450_through_the_minus_60_deg_scenario_pulls_out_within_its_fc_rate(tmp_path):
-    """The shipped -60 deg scenario flown by the f450: the plan the program flew (derived again from its
-    plan event, as the harness does) pulls out of the traverse with the jerk-continuous recovery, within
-    the FC's 6 rad/s (the minimum-jerk one asked 11.2); the vehicle crosses through the opening
-    untouched and hovers at the recovery point. (Its pull-out's tracking checks still fail: README.)"""
+def test_f450_through_the_minus_60_deg_scenario_climbs_to_the_start_its_approach_needs(tmp_path):
+    """The shipped -60 deg scenario flown by the f450: from the 0.5 m take-off height its plan crossed at
+    4.5 m/s after a 2 s approach turning it at up to 12 rad/s, and the flight failed its heading,
+    tracking and position checks. The program now takes off to the start height the planner chooses
+    (1.85 m) and flies the plan asked for from there (derived again from its plan event, as the harness
+    does): 2.5 m/s after a 2.6 s approach; it crosses through the opening untouched, hovers at the
+    recovery point, and of the checks only attitude tracking in the pull-out still fails (README)."""
     from policies.gap_planning import MissionRequest
 
     path = Path(__file__).parents[1] / "scenarios" / "gap_roll_m60_2p5ms.scenario.yaml"
     s = for_vehicle(load_scenarios(path)[0], "f450")
     r, _ = fly(s, tmp_path)
     checks = {c["name"]: c["passed"] for c in r.summary["checks"]}
-    assert checks["crosses_gap"] and checks["collision"] and checks["recovery"], checks
+    failed = [name for name, ok in checks.items() if not ok]
+    assert set(failed) <= {"attitude_tracking_deg"}, failed
     assert r.summary["crossing"]["through_opening"] and r.summary["min_clearance_m"] > 0.0
     events = [json.loads(line) for line in (r.out_dir / "onboard_events.jsonl").read_text().splitlines()]
-    plan = MissionRequest.from_dict(next(e for e in events if e["event"] == "plan")["request"]).plan()
-    rec = plan.recovery.trajectory
-    ts = np.linspace(0.0, plan.recovery.duration_s, 4001)
-    f = rec.state(ts)[2] + np.array([0.0, 0.0, 9.8])
-    z = f / np.linalg.norm(f, axis=-1, keepdims=True)
-    j = rec.jerk(ts)
-    rate = np.linalg.norm(j - np.sum(j * z, -1, keepdims=True) * z, axis=-1) / np.linalg.norm(f, axis=-1)
-    assert rate.max() <= load_vehicle("f450").max_body_rate_rad_s
-    assert rec.delta is not None  # the minimum-snap primitive, its jerk zero where the traverse ends
-    print(f"f450 -60 deg: recovery {plan.recovery.duration_s} s, at most {rate.max():.2f} rad/s; failed "
-          f"checks {[name for name, ok in checks.items() if not ok]}")
+    takeoff = next(e for e in events if e["event"] == "takeoff")
+    assert takeoff["target_m"][2] == pytest.approx(1.85, abs=1e-3)
+    request = MissionRequest.from_dict(next(e for e in events if e["event"] == "plan")["request"])
+    plan = request.plan()
+    assert request.start_pos_m[2] == pytest.approx(1.85, abs=0.02)
+    assert plan.traverse.crossing_speed_m_s == 2.5 and float(plan.approach.T) == pytest.approx(2.6)
+    quality = {c["name"]: c["observed"] for c in r.summary["checks"]}
+    print(f"f450 -60 deg from {request.start_pos_m[2]:.3f} m: failed checks {failed}; "
+          f"{quality.get('attitude_tracking_deg')}")

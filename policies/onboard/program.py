@@ -53,6 +53,7 @@ from policies.gap_planning import (
     PlanningError,
     Segment,
     VehicleLimits,
+    start_height,
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
@@ -288,6 +289,7 @@ class OnboardProgram:
         self._request: _Request | None = None
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
+        self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
@@ -395,14 +397,15 @@ class OnboardProgram:
             self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap.pos_m,
                              fc_armed=self.link.status.armed)  # type: ignore[union-attr]
             self._abort_yaw = float(est.euler_rad[2])
-            # before taking off: a plan from where the climb ends must exist (it is planned again there)
+            # before taking off: a plan from where the climb ends must exist (it is planned again there);
+            # a slow vehicle climbs higher where its approach needs the room (`start_height`)
             start = est.pos_m.copy()
             start[2] = max(start[2], cfg.takeoff_height_m)
             gap_pose = self._gap_pose(now_s)
             if gap_pose is None:
                 return  # (aborted, naming why)
             try:
-                self._mission_request(start, np.zeros(3), gap_pose).plan()
+                self._start_height_m = start_height(self._mission_request(start, np.zeros(3), gap_pose))
             except (PlanningError, ValueError) as exc:
                 self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
                 return
@@ -486,7 +489,7 @@ class OnboardProgram:
         if gap is None:
             return
         target = est.pos_m.copy()
-        target[2] = max(target[2], cfg.takeoff_height_m)
+        target[2] = max(target[2], cfg.takeoff_height_m, self._start_height_m)
         traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
                      cfg.takeoff_duration_s)
         # the turn starts from the heading commanded since the vehicle was first seen (the heading the
