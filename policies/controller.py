@@ -169,3 +169,16 @@ def _new_command(roll_rad: float, pitch_rad: float, thrust_n: float, yaw_rad: fl
     cmd = object.__new__(AttitudeThrustCommand)
     cmd.__dict__.update(roll_rad=roll_rad, pitch_rad=pitch_rad, yaw_rad=yaw_rad, thrust_n=thrust_n)
     return cmd
+
+
+def limit_tilt_step(cmd: AttitudeThrustCommand, last: AttitudeThrustCommand,
+                    max_step_rad: float) -> AttitudeThrustCommand:
+    """``cmd`` with its roll and pitch each moved at most ``max_step_rad`` (rad) from ``last``'s: a
+    command that turns no faster than the FC can (its body rate times the control period); yaw and
+    thrust as they are."""
+    r, p, lr, lp = cmd.roll_rad, cmd.pitch_rad, last.roll_rad, last.pitch_rad
+    r2 = lr + max_step_rad if r > lr + max_step_rad else (lr - max_step_rad if r < lr - max_step_rad else r)
+    p2 = lp + max_step_rad if p > lp + max_step_rad else (lp - max_step_rad if p < lp - max_step_rad else p)
+    if r2 == r and p2 == p:
+        return cmd
+    return _new_command(r2, p2, cmd.thrust_n, cmd.yaw_rad)

@@ -34,6 +34,7 @@ and the wall wins. Every test is a `FloatTrajectory.planes_ok` plane test or the
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import time
@@ -650,22 +651,41 @@ class MissionRequest:
         jerk-continuous), else a minimum-jerk one within 2 w. Then (and for any other vehicle only) the
         plan within `VehicleLimits`'.
         """
-        plan = functools.partial(plan_mission, self.start_pos_m, self.gap, self.lab,
-                                 start_vel_m_s=self.start_vel_m_s,
-                                 approach_duration_s=self.approach_duration_s,
-                                 crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m,
-                                 body=self.body)
+        return self.ranked_plan()[1]
+
+    def ranked_plan(self) -> tuple[int, MissionPlan]:
+        """`plan` with the index of the stage (in `plan`'s order, 0 first) that found it."""
+        last = len(self._stages()) - 1
+        for i in range(last):
+            with contextlib.suppress(PlanningError):
+                return i, self.stage_plan(i)
+        return last, self.stage_plan(last)
+
+    def stage_plan(self, stage: int, **options: Any) -> MissionPlan:
+        """The plan of `plan`'s stage ``stage`` (0 first) alone, with ``options`` of `plan_mission` added
+        (PlanningError, ValueError as it)."""
+        return plan_mission(self.start_pos_m, self.gap, self.lab, start_vel_m_s=self.start_vel_m_s,
+                            approach_duration_s=self.approach_duration_s,
+                            crossing_speed_m_s=self.crossing_speed_m_s, d_min_m=self.d_min_m, body=self.body,
+                            **self._stages()[stage], **options)
+
+    @property
+    def own_rate_stages(self) -> int:
+        """How many of `plan`'s stages keep the whole plan within the vehicle's own body rate (2 for a
+        vehicle slower than `VehicleLimits`', else none: its only stage is the planner's own limit)."""
+        return 2 if self.max_body_rate_rad_s < VehicleLimits.max_body_rate_rad_s else 0
+
+    def _stages(self) -> list[dict[str, Any]]:
+        """`plan_mission`'s limits and options of each of `plan`'s stages, in order."""
         w = self.max_body_rate_rad_s
+        stages: list[dict[str, Any]] = []
         if w < VehicleLimits.max_body_rate_rad_s:
             own = VehicleLimits(max_body_rate_rad_s=w)
-            stages: list[dict[str, Any]] = [{"limits": own}, {"limits": own, "smooth_recovery": True}]
+            stages = [{"limits": own}, {"limits": own, "smooth_recovery": True}]
             if 2 * w < VehicleLimits.max_body_rate_rad_s:
                 stages.append({"limits": VehicleLimits(max_body_rate_rad_s=2 * w), "recovery_limits": own,
                                "smooth_recovery": True})
-            for kwargs in stages:
-                with contextlib.suppress(PlanningError):
-                    return plan(**kwargs)
-        return plan()
+        return [*stages, {}]
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready numbers (full precision: the same plan comes back from `from_dict`)."""
@@ -680,3 +700,39 @@ class MissionRequest:
                    BodyClearance(**data["body"]) if "body" in data else BodyClearance(),
                    float(data.get("max_body_rate_rad_s", VehicleLimits.max_body_rate_rad_s)))
 
+
+#: the step (m) between the start heights `start_height` tries above the take-off height
+START_HEIGHT_STEP_M = 0.1
+
+
+def start_height(request: MissionRequest) -> float:
+    """The height (m, world z) to start ``request``'s mission from, at or above its start (the take-off
+    height): a slow vehicle chooses it for its approach.
+
+    A vehicle as fast as the planner's limits, or one whose plan from the start stays within its own
+    body rate (the first `MissionRequest.own_rate_stages` of `MissionRequest.plan`'s stages), starts where
+    it is. Otherwise, where the approach that keeps the body's clearance from the floor from a low start
+    is a short one turning the body fast, the start is the lowest height (`START_HEIGHT_STEP_M` apart, up
+    to the lab's ceiling less the body's clearance) from which the stage that planned it flies the
+    search's first approach (the crossing speed and the approach duration asked for), half a step
+    above it; where none does, where it is. Raises PlanningError (as `MissionRequest.plan`) when there is
+    no plan from the start.
+    """
+    stage, plan = request.ranked_plan()
+    z0 = request.start_pos_m[2]
+    if request.own_rate_stages == 0 or stage < request.own_rate_stages or (
+            plan.candidates_tried == 1 and plan.traverse.crossing_speed_m_s == request.crossing_speed_m_s):
+        return z0
+    speed = request.crossing_speed_m_s
+    top = request.lab.max_m[2] - request.body.clearance_m
+    x, y, _ = request.start_pos_m
+    for k in range(1, int((top - z0) / START_HEIGHT_STEP_M + 1e-9) + 1):
+        z = z0 + k * START_HEIGHT_STEP_M
+        try:
+            higher = dataclasses.replace(request, start_pos_m=(x, y, z)).stage_plan(
+                stage, crossing_speed_range_m_s=(speed, speed))
+        except PlanningError:
+            continue
+        if higher.candidates_tried == 1:  # (half a step above it: room for the take-off's settling)
+            return min(z + START_HEIGHT_STEP_M / 2, top)
+    return z0

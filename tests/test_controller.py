@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from policies.controller import ExpertController, ExpertGains, expert_command_batch
+from policies.controller import (
+    AttitudeThrustCommand,
+    ExpertController,
+    ExpertGains,
+    expert_command_batch,
+    limit_tilt_step,
+)
 from policies.frames import euler_to_matrix
 from policies.gap_planning import GapPose, LabVolume, plan_mission
 from policies.primitives import solve
@@ -151,3 +157,16 @@ def test_controller_checks_every_input_and_names_the_bad_one():
     assert math.isfinite(cmd.thrust_n) and cmd.thrust_n > 0
     with pytest.raises(ValueError, match="yaw"):
         ctl.command(z, z, z, math.nan, z, z)
+
+
+def test_a_tilt_step_limit_moves_roll_and_pitch_at_most_the_step_and_keeps_the_rest() -> None:
+    """A command swinging from the tilt limit across (-65 to +40 deg roll) moves at most the step from
+    the last one, each of roll and pitch; yaw and thrust as commanded; one within the step as it is."""
+    last = AttitudeThrustCommand(math.radians(-65.0), math.radians(-2.0), 0.3, 5.0)
+    swing = AttitudeThrustCommand(math.radians(40.0), math.radians(-30.0), 0.4, 12.0)
+    out = limit_tilt_step(swing, last, 0.06)
+    assert out.roll_rad == pytest.approx(last.roll_rad + 0.06)
+    assert out.pitch_rad == pytest.approx(last.pitch_rad - 0.06)
+    assert (out.yaw_rad, out.thrust_n) == (0.4, 12.0)
+    near = AttitudeThrustCommand(last.roll_rad + 0.05, last.pitch_rad - 0.01, 0.3, 6.0)
+    assert limit_tilt_step(near, last, 0.06) is near

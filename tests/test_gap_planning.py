@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import time
@@ -26,6 +27,7 @@ from policies.gap_planning import (
     plan_mission,
     plan_traverse,
     search_recovery,
+    start_height,
 )
 from policies.primitives import Feasibility, Trajectory, solve
 
@@ -423,3 +425,25 @@ def test_a_slow_vehicles_recovery_from_a_60_deg_traverse_is_within_its_body_rate
     default = MissionRequest(request.start_pos_m, request.start_vel_m_s, request.gap, request.lab, 2.6, 2.5,
                              f450.traverse_lead_m, request.body).plan()
     assert default.recovery.trajectory.delta is None
+
+
+def test_a_slow_vehicle_starts_as_high_as_its_approach_needs_and_a_fast_one_where_it_is() -> None:
+    """The f450 (6 rad/s) through the -60 deg gap at 2.5 m/s from the 0.5 m take-off: the approaches
+    that keep its 0.48 m floor clearance are short and turn it fast, and the plan crosses at 4.5 m/s in a
+    2 s approach. From the start height the planner chooses (the lowest, 0.1 m apart, where the same
+    stage of the search flies its first approach, with half a step of room) it crosses at the speed and
+    in the approach duration asked for, turning slower. Where the plan from the take-off height is within
+    the vehicle's own rate (the f450 through 30 deg), and for the default vehicle (the planner's own
+    limits: its plans are as before), the start is the take-off height."""
+    low = _f450_request(-60.0, 6.0)
+    z = start_height(low)
+    assert z == pytest.approx(1.85)
+    assert z <= low.lab.max_m[2] - low.body.clearance_m
+    before, after = low.plan(), dataclasses.replace(low, start_pos_m=(-2.0, -1.0, z)).plan()
+    assert before.traverse.crossing_speed_m_s == 4.5 and float(before.approach.T) == pytest.approx(2.0)
+    assert after.traverse.crossing_speed_m_s == low.crossing_speed_m_s == 2.5
+    assert float(after.approach.T) == pytest.approx(low.approach_duration_s) and after.candidates_tried == 1
+    assert _max_body_rate_rad_s(after.approach) < _max_body_rate_rad_s(before.approach)
+    assert after.approach.state(0.0)[0][2] == pytest.approx(z)
+    assert start_height(_f450_request(30.0, 6.0)) == 0.5
+    assert start_height(_f450_request(-60.0, 15.0)) == 0.5

@@ -42,7 +42,7 @@ from hil.link.clock import WallClock
 from hil.link.linktrack import BODY_IDS
 from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
-from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains
+from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains, limit_tilt_step
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import (
     BodyClearance,
@@ -53,6 +53,7 @@ from policies.gap_planning import (
     PlanningError,
     Segment,
     VehicleLimits,
+    start_height,
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
@@ -138,7 +139,9 @@ class ProgramConfig:
     heartbeat_period_s: float = 1.0
     max_catch_up_steps: int = 3  # control steps run at once after a stall; later ones are skipped
     control_lead_s: float = 0.06  # state and reference taken this far ahead (the FC's attitude lag)
-    #: the body rate the vehicle's FC turns it at, at most (rad/s): plans within it are preferred
+    #: the body rate the vehicle's FC turns it at, at most (rad/s): plans within it are preferred; below the
+    #: planner's limits, the start height is chosen for the approach and, from the traverse on, the command
+    #: turns no faster
     max_body_rate_rad_s: float = VehicleLimits.max_body_rate_rad_s
     #: lockstep: wall time (s) to poll for the next tick before sleeping (it usually comes within it)
     lockstep_spin_s: float = 1e-3
@@ -288,6 +291,13 @@ class OnboardProgram:
         self._request: _Request | None = None
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
+        self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
+        # a vehicle whose FC turns it slower than the planner's limits: the most its commanded roll and
+        # pitch move in a control step from the traverse on (rad; its body rate times the period), so that
+        # the pull-out asks no faster turn than the FC makes (a command swinging across from its tilt limit
+        # in 0.1 s is one the FC trails by 20 deg); None: as the pilot commands
+        self._tilt_step_rad = (cfg.max_body_rate_rad_s * cfg.period_s
+                               if cfg.max_body_rate_rad_s < VehicleLimits.max_body_rate_rad_s else None)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
@@ -395,14 +405,15 @@ class OnboardProgram:
             self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap.pos_m,
                              fc_armed=self.link.status.armed)  # type: ignore[union-attr]
             self._abort_yaw = float(est.euler_rad[2])
-            # before taking off: a plan from where the climb ends must exist (it is planned again there)
+            # before taking off: a plan from where the climb ends must exist (it is planned again there);
+            # a slow vehicle climbs higher where its approach needs the room (`start_height`)
             start = est.pos_m.copy()
             start[2] = max(start[2], cfg.takeoff_height_m)
             gap_pose = self._gap_pose(now_s)
             if gap_pose is None:
                 return  # (aborted, naming why)
             try:
-                self._mission_request(start, np.zeros(3), gap_pose).plan()
+                self._start_height_m = start_height(self._mission_request(start, np.zeros(3), gap_pose))
             except (PlanningError, ValueError) as exc:
                 self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
                 return
@@ -486,7 +497,7 @@ class OnboardProgram:
         if gap is None:
             return
         target = est.pos_m.copy()
-        target[2] = max(target[2], cfg.takeoff_height_m)
+        target[2] = max(target[2], cfg.takeoff_height_m, self._start_height_m)
         traj = solve(est.pos_m, est.vel_m_s, np.zeros(3), target, np.zeros(3), np.zeros(3),
                      cfg.takeoff_duration_s)
         # the turn starts from the heading commanded since the vehicle was first seen (the heading the
@@ -627,7 +638,18 @@ class OnboardProgram:
             yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
             self._send(self.expert.command(p, v, a, yaw, est.pos_m, est.vel_m_s))
         elif ph in (Phase.MISSION, Phase.HANDBACK):
-            self._send(self.pilot.command(self._observation(t_s, est)))
+            cmd = self.pilot.command(self._observation(t_s, est))
+            step = self._tilt_step_rad
+            if step is not None and self._last_cmd is not None and self._turns_limited(t_s):
+                cmd = limit_tilt_step(cmd, self._last_cmd, step)
+            self._send(cmd)
+
+    def _turns_limited(self, t_s: float) -> bool:
+        """Whether the command at ``t_s`` (s, the program's clock) turns at most at the FC's body rate:
+        from the traverse on (the traverse, the pull-out, the hover), not in the approach, which rolls the
+        body into the gap's tilt before the wall (the planner lets it ask up to twice the rate there)."""
+        assert self.plan is not None
+        return self.plan.segment_at(t_s - self._mission_start_s) is not Segment.APPROACH
 
     def _observation(self, t_s: float, est: StateEstimate) -> Observation:
         assert self.plan is not None and self.gap is not None
