@@ -222,3 +222,22 @@ def test_the_takeoff_turns_from_the_heading_first_seen_not_a_moving_one(tmp_path
     assert np.abs(cols["yaw_cmd_deg"][offboard] - 90.0).max() < 0.5  # every command, takeoff included
     later = offboard[cols["t_s"][offboard] > cols["t_s"][first] + 1.5]
     assert np.abs(cols["yaw_deg"][later] - 90.0).max() < 1.0
+
+
+def test_the_default_vehicles_pull_out_command_turns_no_faster_than_its_body_rate(tmp_path: Path):
+    """From the traverse on the program's command moves at most the vehicle's body rate per tick (15 rad/s
+    for n3_tx2: 8.6 deg a 10 ms tick). At 70 deg the expert's command at its tilt limit had swung 10-20
+    deg a tick in the pull-out, while the body was still turning through level."""
+    from policies.vehicle import load_vehicle
+
+    summary, cols = _run("gap_roll70_4ms", tmp_path)
+    log = (tmp_path / "gap_roll70_4ms" / "onboard_events.jsonl").read_text()
+    events = [json.loads(line) for line in log.splitlines()]
+    traverse_s = next(e["t_s"] for e in events if e["event"] == "segment" and e.get("segment") == "traverse")
+    t, sent = cols["t_s"], np.isfinite(cols["roll_cmd_deg"])
+    after = sent & (t >= traverse_s)
+    limit_deg = math.degrees(load_vehicle("n3_tx2").max_body_rate_rad_s * 0.01) + 0.1
+    for axis in ("roll", "pitch"):
+        steps = np.abs(np.diff(cols[f"{axis}_cmd_deg"][after]))
+        assert steps.max() <= limit_deg, (axis, steps.max())
+    assert summary["flight_quality"]["attitude_tracking_deg"]["value"] < 25.0

@@ -292,12 +292,11 @@ class OnboardProgram:
         self._mission_start_s = 0.0
         self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
-        # a vehicle whose FC turns it slower than the planner's limits: the most its commanded roll and
-        # pitch move in a control step from the traverse on (rad; its body rate times the period), so that
-        # the pull-out asks no faster turn than the FC makes (a command swinging across from its tilt limit
-        # in 0.1 s is one the FC trails by 20 deg); None: as the pilot commands
-        self._tilt_step_rad = (cfg.max_body_rate_rad_s * cfg.period_s
-                               if cfg.max_body_rate_rad_s < VehicleLimits.max_body_rate_rad_s else None)
+        # the most the commanded roll and pitch move in a control step from the traverse on (rad; the
+        # vehicle's body rate times the period), so that the pull-out asks no faster turn than the FC makes:
+        # a command swinging across from its tilt limit in 0.1 s is one the f450's FC trails by 20 deg, and
+        # at 70 deg the n3's command swung 10-20 deg a tick while the body was still turning through level
+        self._tilt_step_rad = cfg.max_body_rate_rad_s * cfg.period_s
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
@@ -639,9 +638,8 @@ class OnboardProgram:
             self._send(self.expert.command(p, v, a, yaw, est.pos_m, est.vel_m_s))
         elif ph in (Phase.MISSION, Phase.HANDBACK):
             cmd = self.pilot.command(self._observation(t_s, est))
-            step = self._tilt_step_rad
-            if step is not None and self._last_cmd is not None and self._turns_limited(t_s):
-                cmd = limit_tilt_step(cmd, self._last_cmd, step)
+            if self._last_cmd is not None and self._turns_limited(t_s):
+                cmd = limit_tilt_step(cmd, self._last_cmd, self._tilt_step_rad)
             self._send(cmd)
 
     def _turns_limited(self, t_s: float) -> bool:
