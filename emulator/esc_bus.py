@@ -111,16 +111,19 @@ class Bridge:
         self.spec, self.errors = spec, 0
         self._bus: Any = None
         self._driver: Any = None
-        if kind == "mcast":
-            from dronecan.driver import make_driver
+        try:
+            if kind == "mcast":
+                from dronecan.driver import make_driver
 
-            self._driver = make_driver(f"mcast:{arg or 0}")
-        else:
-            import can
+                self._driver = make_driver(f"mcast:{arg or 0}")
+            else:
+                import can
 
-            channel = arg or ("239.74.163.2" if kind == "udp_multicast" else "")
-            self._bus = can.Bus(interface=kind, channel=channel, bitrate=bitrate_bps)
-            self._message = can.Message
+                channel = arg or ("239.74.163.2" if kind == "udp_multicast" else "")
+                self._bus = can.Bus(interface=kind, channel=channel, bitrate=bitrate_bps)
+                self._message = can.Message
+        except Exception as exc:  # (python-can's CanError family, a socket's OSError, a bad group)
+            raise OSError(f"cannot open the CAN bus {spec!r}: {exc}") from exc
 
     def send(self, can_id: int, data: bytes) -> None:
         try:

@@ -211,6 +211,9 @@ def test_hil_fc_refuses_bad_esc_bus_options(capsys):
     assert "--esc-bus: ESC bus 'can0': expected one of" in capsys.readouterr().err
     assert main(["fc", "--esc-bus", "mcast:0", "--external-esc", "5", "--mocap-link", "none"]) == 2
     assert "external ESC node 5" in capsys.readouterr().err
+    for spec in ("udp_multicast:999.1.1.1", "socketcan:nosuchcan0"):  # buses that cannot be opened
+        assert main(["fc", "--esc-bus", spec, "--mocap-link", "none"]) == 2
+        assert f"--esc-bus: cannot open the CAN bus '{spec}'" in capsys.readouterr().err
 
 
 def test_a_silent_esc_does_not_make_the_stepper_poll_every_step():
