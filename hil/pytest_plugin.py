@@ -77,6 +77,14 @@ SCENARIO_MARKERS = {
 def pytest_configure(config: pytest.Config) -> None:
     for name, text in SCENARIO_MARKERS.items():
         config.addinivalue_line("markers", f"{name}: {text}")
+    vehicle = config.getoption("--hil-vehicle", None)
+    if vehicle is not None:  # a vehicle that does not load is a usage error, not a failure per scenario
+        from emulator.profile import load_profile
+
+        try:
+            load_profile(vehicle)
+        except ValueError as exc:
+            raise pytest.UsageError(f"--hil-vehicle {vehicle}: {exc}") from exc
 
 
 def _xdist_workers() -> tuple[int, int]:

@@ -70,3 +70,5 @@ def test_bad_input_is_refused(tmp_path, capsys):
     assert hil_main(["compare", str(tmp_path / "missing.scenario.yaml"), "--out", str(tmp_path)]) == 2
     assert hil_main(["compare", "--out", str(tmp_path)]) == 2
     assert "no scenario" in capsys.readouterr().err
+    assert hil_main(["compare", "--held-out", "-3", "--out", str(tmp_path)]) == 2
+    assert "--held-out must be 0 or more crossings, got -3" in capsys.readouterr().err

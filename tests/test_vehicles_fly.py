@@ -261,3 +261,17 @@ def test_f450_flies_the_minus_60_deg_scenario_from_the_start_its_approach_needs(
     print(f"f450 -60 deg {physics} from {request.start_pos_m[2]:.3f} m: attitude tracking "
           f"{quality.get('attitude_tracking_deg')}; position {quality.get('position_error_m')}; heading "
           f"{quality.get('heading_error_deg')}; clearance {r.summary['min_clearance_m']:.4f} m")
+
+
+def test_a_vehicle_that_does_not_load_is_refused_once_by_the_suite_and_the_plugin(tmp_path, capsys):
+    """`hil suite --vehicle` and `pytest --hil-vehicle` with a vehicle that does not load stop at once
+    with the reason (exit 2; pytest's usage error), not with a failure in every scenario."""
+    folder = tmp_path / "suite"
+    folder.mkdir()
+    (folder / "level.scenario.yaml").write_text("description: x\ngap: {roll_deg: 0}\n")
+    assert hil_main(["suite", str(folder), "--vehicle", "nosuch", "--out", str(tmp_path / "out")]) == 2
+    assert "--vehicle nosuch: " in capsys.readouterr().err and not (tmp_path / "out" / "level").exists()
+    p = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", str(folder),
+                        "--hil-in-process", "--hil-vehicle", "nosuch"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode == pytest.ExitCode.USAGE_ERROR and "--hil-vehicle nosuch: " in p.stderr

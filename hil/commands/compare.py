@@ -243,6 +243,9 @@ def main(args: argparse.Namespace) -> int:
     if not pilots:
         print("hil compare: --pilots names no pilot", file=sys.stderr)
         return 2
+    if args.held_out < 0:
+        print(f"hil compare: --held-out must be 0 or more crossings, got {args.held_out}", file=sys.stderr)
+        return 2
     try:
         from policies.onboard.pilots import pilot_names
 

@@ -133,6 +133,14 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     options = options_from(args)
+    if options.vehicle is not None:  # refused once, not failed in every run
+        from emulator.profile import load_profile
+
+        try:
+            load_profile(options.vehicle)
+        except ValueError as exc:
+            print(f"hil suite: --vehicle {options.vehicle}: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     skip = {s.id: s.skip for s in scenarios if s.skip}
     if options.vehicle is not None:  # scenarios that do not apply to the vehicle flown in their place
         skip.update({s.id: f"not applicable to {options.vehicle}: {why}" for s in scenarios
