@@ -161,3 +161,9 @@ def test_hil_fc_refuses_a_bad_params_file(tmp_path: Path, capsys):
     path.write_text("COM_OF_LOSS_T 120\n")
     assert main(["fc", "--params", str(path)]) == 2
     assert "bad.params:1: COM_OF_LOSS_T: 120 outside 0.1..60 s" in capsys.readouterr().err
+    assert main(["fc", "--params", str(tmp_path / "no" / "such" / "fc.params")]) == 2
+    assert "no such file, nor a folder to write it in" in capsys.readouterr().err
+    # a file to be written later is fine, and said (a mistyped name is noticed)
+    assert main(["fc", "--params", str(tmp_path / "new.params"), "--mocap-link", "none",
+                 "--duration", "0.2"]) == 0
+    assert "does not exist yet: the defaults, written there" in capsys.readouterr().err

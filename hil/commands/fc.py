@@ -161,6 +161,11 @@ def main(args: argparse.Namespace) -> int:
         params: dict[str, float | int] = {}
         if args.params is not None and Path(args.params).exists():
             params = read_param_file(args.params)
+        elif args.params is not None:  # a file to write later: said, so that a mistyped name is noticed
+            if not Path(args.params).resolve().parent.is_dir():
+                return fail(f"--params {args.params}: no such file, nor a folder to write it in")
+            print(f"hil fc: --params {args.params} does not exist yet: the defaults, written there on "
+                  "MAV_CMD_PREFLIGHT_STORAGE", file=sys.stderr)
         if args.failsafe_timeout is not None:  # the flag wins over the file
             params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
