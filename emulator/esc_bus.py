@@ -223,7 +223,6 @@ class CanBus:
         self._queue: list[tuple[float, int, Message | None, list[tuple[int, bytes]], int]] = []
         self._seq = 0
         self._rx = TransferManager()
-        self._nodes: list[tuple[int, Callable[[Message, float], None]]] = []
         self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
         self._by_type: dict[Any, list[tuple[int, Callable[[Message, float], None]]]] = {}  # (from _routes)
         self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
@@ -234,7 +233,6 @@ class CanBus:
     def attach(self, node_id: int, on_message: Callable[[Message, float], None],
                dtypes: tuple[Any, ...] | None = None) -> None:
         """``on_message(message, t)`` gets the messages of ``dtypes`` (None: of every type) but its own."""
-        self._nodes.append((node_id, on_message))
         self._routes.append((node_id, on_message, dtypes))
         self._by_type.clear()
 
@@ -341,7 +339,7 @@ class CanBus:
         return Message.decoded(tr)
 
     def _from_outside(self, src: int) -> bool:
-        return all(src != nid for nid, _ in self._nodes)
+        return all(src != nid for nid, _, _ in self._routes)
 
     def _hand_out(self, message: Message, t: float) -> None:
         receivers = self._by_type.get(message.dtype)

@@ -4,11 +4,13 @@ standing in for ESC 3, receives that ESC's commands and drives its motor, in a h
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -24,27 +26,36 @@ PROFILE = load_profile("n3_tx2")
 NODE = Path(__file__).with_name("esc_node_external.py")
 
 
-def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor():
-    bus = f"mcast:{40 + os.getpid() % 200}"  # (a bus of its own: tests may run side by side)
+@contextlib.contextmanager
+def outside_esc_3(bus: str, *fc_args: str) -> Iterator[tuple[MavlinkCodec, dict]]:
+    """A dronecan node in another process standing in for ESC 3 on ``bus``, and `hil fc` with its motors
+    on that bus; yields a client codec on the FC's command link and a dict that holds, once the block
+    is left and both have stopped, the FC's exit summary ("summary") and what the node saw ("seen")."""
     w_max = PROFILE.max_rotor_speed_rad_s
     ext = subprocess.Popen([sys.executable, str(NODE), bus, "23", "3", "60", str(w_max)],
                            stdout=subprocess.PIPE, text=True)
     assert ext.stdout.readline().strip() == "ready"
-    proc, dev = start_fc("--esc-bus", bus, "--external-esc", "23", "--mocap-link", "none", "--gap", "none")
+    proc, dev = start_fc("--esc-bus", bus, "--external-esc", "23", "--mocap-link", "none", "--gap", "none",
+                         *fc_args)
     link = SerialTransport(dev, 921600)
-    codec = MavlinkCodec(link, WallClock(), 255, 190)
+    out: dict = {}
     try:
+        yield MavlinkCodec(link, WallClock(), 255, 190), out
+    finally:
+        link.close()
+        out["summary"] = stop_fc(proc)
+        ext.terminate()
+        out["seen"] = json.loads(ext.communicate(timeout=20)[0].strip().splitlines()[-1])
+
+
+def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor():
+    with outside_esc_3(f"mcast:{40 + os.getpid() % 200}") as (codec, out):  # (a bus of its own)
         arm = mav.MAV_CMD_COMPONENT_ARM_DISARM
         codec.send(codec.mav.command_long_encode(1, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))
         end = time.monotonic() + 3.0
         while time.monotonic() < end:
             codec.receive(0.05)
-    finally:
-        link.close()
-        summary = stop_fc(proc)
-        ext.terminate()
-        seen = json.loads(ext.communicate(timeout=20)[0].strip().splitlines()[-1])
-    esc = summary["esc_bus"]
+    esc, seen = out["summary"]["esc_bus"], out["seen"]
     # the other process's node saw the FC's commands (at a good part of their 400 Hz: it is Python, on
     # a shared machine), the emulated ESCs' status and every node's NodeStatus
     assert seen["raw_commands"] > 0.25 * esc["commands_sent"] > 200
@@ -65,17 +76,10 @@ def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3():
     motor that lags its command by 10-20 ms (plus the Python node's stalls on a busy machine) cannot
     hold a hover; python-can's answers in under a millisecond."""
     bus = f"udp_multicast:239.74.{os.getpid() % 200 + 20}.9"
-    w_max = PROFILE.max_rotor_speed_rad_s
-    ext = subprocess.Popen([sys.executable, str(NODE), bus, "23", "3", "60", str(w_max)],
-                           stdout=subprocess.PIPE, text=True)
-    assert ext.stdout.readline().strip() == "ready"
-    proc, dev = start_fc("--esc-bus", bus, "--external-esc", "23", "--mocap-link", "none", "--gap", "none",
-                         "--failsafe-timeout", "0.3")  # (hovers on its own 0.3 s after the setpoints stop)
-    link = SerialTransport(dev, 921600)
-    codec = MavlinkCodec(link, WallClock(), 255, 190)
     heights: list[tuple[float, float]] = []  # (FC time s, height m) from LOCAL_POSITION_NED
     modes: list[int] = []
-    try:
+    # (the FC hovers on its own 0.3 s after the setpoints stop)
+    with outside_esc_3(bus, "--failsafe-timeout", "0.3") as (codec, out):
         arm = mav.MAV_CMD_COMPONENT_ARM_DISARM
         codec.send(codec.mav.command_long_encode(1, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))
         q = list(quat_from_euler(0.0, 0.0, 0.0))
@@ -98,12 +102,7 @@ def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3():
                     heights.append((m.time_boot_ms / 1e3, -m.z))
                 elif m.get_type() == "HEARTBEAT":
                     modes.append(m.system_status)
-    finally:
-        link.close()
-        summary = stop_fc(proc)
-        ext.terminate()
-        seen = json.loads(ext.communicate(timeout=20)[0].strip().splitlines()[-1])
-    esc = summary["esc_bus"]
+    esc, seen = out["summary"]["esc_bus"], out["seen"]
     assert esc["escs"][3]["external"] and not esc["escs"][3]["failed"] and esc["bus"]["external_in"] > 1000
     assert seen["raw_commands"] > 1000 and all(seen["status_from"].get(str(i), 0) > 50 for i in range(3))
     assert mav.MAV_STATE_CRITICAL in modes, "the FC never took over in its failsafe hover"
