@@ -10,9 +10,9 @@ before anything the FC's own step would act on: the setpoint-loss timeout, the f
 the body reaching the ground. Anything else (other FC states, other backends, yaw-rate targets) takes
 the vehicle's own per-step path.
 
-numba caches these kernels keyed on this file alone: after a change to a kernel they call from another
-module (the inner loop with its mixer, the physics step), touch this file or delete its cache in
-``__pycache__`` (``batched_steps.*.nbi``/``.nbc``), or the batched steps keep flying the old one.
+numba caches these kernels in a folder per digest of the emulator's sources (`emulator.kernel_cache`):
+a change to a kernel they call from another module (the inner loop with its mixer, the physics step)
+compiles them afresh.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
-from emulator.world.box_kernel import check_packed, quat_to_rot
+from emulator.world.box_kernel import check_packed, quat_to_rot_into
 
 
 @njit(cache=True, nogil=True)
@@ -39,37 +39,33 @@ def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_ste
 
 
 @njit(cache=True, parallel=True)
-def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps):  # pragma: no cover
+def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, which, every_step, codes,
+                clearance):  # pragma: no cover
     """Many vehicles of one profile, each flying its own offboard attitude target for ``n_steps`` physics
-    steps (the FC's inner loop, then one physics step, each step): rows of ``xs`` (N, STATE_SIZE) and
-    ``auxs`` (N, AUX_SIZE) (`BatchPhysics.kernel_arrays`) advanced in place, rows in parallel.
-    ``targets`` (N, 4): NED roll, pitch, yaw (rad) and thrust (N), already within the FC's limits;
-    ``gains``, ``mix_inv``: an `InnerLoop`'s ``params`` and ``mix_inv``; ``outs`` (N, 4): the last
-    throttles. The batch form of `_fly_batch` (no FC state: the caller keeps the vehicles in OFFBOARD)."""
+    steps (the FC's inner loop, then one physics step, each step: `_fly_batch`'s arithmetic), rows in
+    parallel, the world checked (`emulator.world.box_kernel`, row i against ``worlds[which[i]]``) after
+    every physics step (``every_step``) or after the last one. Rows of ``xs`` (N, STATE_SIZE) and ``auxs``
+    (N, AUX_SIZE) (`BatchPhysics.kernel_arrays`) advance in place; ``targets`` (N, 4): NED roll, pitch,
+    yaw (rad) and thrust (N), already within the FC's limits; ``gains``, ``mix_inv``: an `InnerLoop`'s
+    ``params`` and ``mix_inv``; ``outs`` (N, 4): the last throttles. A row stops at its first collision,
+    its code (0: none) in ``codes`` (N,), its least clearance over the checks (m) in ``clearance`` (N,).
+    No FC state: the caller keeps the vehicles in OFFBOARD."""
     for i in prange(xs.shape[0]):
-        tg = targets[i]
-        _fly_batch(xs[i], auxs[i], p, tg[0], tg[1], tg[2], tg[3], gains, mix_inv, outs[i], n_steps)
-
-
-@njit(cache=True, parallel=True)
-def fly_targets_checked(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, which, codes,
-                        clearance):  # pragma: no cover
-    """`fly_targets` with the world checked after every physics step (`emulator.world.box_kernel`,
-    row i against ``worlds[which[i]]``): a row stops at its first collision, its code (0: none) in
-    ``codes`` (N,) and its least clearance over the steps (m) in ``clearance`` (N,)."""
-    for i in prange(xs.shape[0]):
-        x, tg = xs[i], targets[i]
+        x, aux, out, tg = xs[i], auxs[i], outs[i], targets[i]
         d0, d1, d2, d3 = target_quat_floats(tg[0], tg[1], tg[2])
         codes[i] = 0
         least = np.inf
-        for _ in range(n_steps):
-            control_quat(x[6:10], x[10:13], d0, d1, d2, d3, tg[3], gains, mix_inv, outs[i])
-            step_vehicle(x, auxs[i], p, outs[i], 1)
-            code, clr, _, _ = check_packed(x[0:3], quat_to_rot(x[6:10]), worlds[which[i]])
-            least = min(least, clr)
-            if code != 0:
-                codes[i] = code
-                break
+        rot = np.empty((3, 3))
+        for k in range(n_steps):
+            control_quat(x[6:10], x[10:13], d0, d1, d2, d3, tg[3], gains, mix_inv, out)
+            step_vehicle(x, aux, p, out, 1)
+            if every_step or k == n_steps - 1:
+                quat_to_rot_into(x[6:10], rot)
+                code, clr, _, _ = check_packed(x[0:3], rot, worlds[which[i]])
+                least = min(least, clr)
+                if code != 0:
+                    codes[i] = code
+                    break
         clearance[i] = least
 
 

@@ -161,7 +161,7 @@ def control(q, w, roll, pitch, yaw, thrust_n, p, mix_inv, out):  # pragma: no co
     control_quat(q, w, d0, d1, d2, d3, thrust_n, p, mix_inv, out)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def control_quat(q, w, d0, d1, d2, d3, thrust_n, p, mix_inv, out):  # pragma: no cover
     """`control` toward the target attitude given as its FLU->ENU quaternion (``d0``..``d3`` = w, x, y,
     z; `target_quat_floats` of the NED Euler angles): a caller holding one target over many steps

@@ -71,7 +71,7 @@ def _rotor_speed_target(u: float, w_max: float) -> float:
     return math.sqrt(1.0 if u > 1.0 else u) * w_max
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def step_vehicle(x: np.ndarray, aux: np.ndarray, p: np.ndarray, cmd: np.ndarray, n_steps: int) -> None:
     """Advance one vehicle row ``x`` (STATE_SIZE,) by ``n_steps`` under throttle ``cmd`` (4,), in place.
 

@@ -93,11 +93,12 @@ def check_pose(
 ) -> tuple:
     """(obstacle code, clearance_m, in_slab, limiting edge) for one pose; codes as CODE_* above,
     priority wall > ground > lab."""
-    c = np.empty(3)  # no `@` inside numba without scipy's BLAS: write the products out
-    a = np.empty((3, 3))
-    d = p - centre
+    buf = np.empty(12)  # one allocation: c (3,) and a (3, 3)
+    c = buf[0:3]  # no `@` inside numba without scipy's BLAS: write the products out
+    a = buf[3:12].reshape((3, 3))
+    d0, d1, d2 = p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]
     for k in range(3):
-        c[k] = axes[k, 0] * d[0] + axes[k, 1] * d[1] + axes[k, 2] * d[2]
+        c[k] = axes[k, 0] * d0 + axes[k, 1] * d1 + axes[k, 2] * d2
         for i in range(3):
             a[k, i] = axes[k, 0] * rot[0, i] + axes[k, 1] * rot[1, i] + axes[k, 2] * rot[2, i]
     clr, in_slab, edge = _box_gap(c, a, h, wall_half[1], hw, hh)
@@ -116,13 +117,19 @@ def check_pose(
 @njit(cache=True)
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a quaternion (w, x, y, z), normalised here; the caller rejects zero or NaN."""
+    r = np.empty((3, 3))
+    quat_to_rot_into(q, r)
+    return r
+
+
+@njit(cache=True)
+def quat_to_rot_into(q: np.ndarray, r: np.ndarray) -> None:
+    """`quat_to_rot` written into ``r`` (3, 3)."""
     n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     w, x, y, z = q[0] / n, q[1] / n, q[2] / n, q[3] / n
-    r = np.empty((3, 3))
     r[0, 0], r[0, 1], r[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     r[1, 0], r[1, 1], r[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     r[2, 0], r[2, 1], r[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-    return r
 
 
 #: layout of the packed world constants of `check_packed` (see `pack_world`)
@@ -160,20 +167,6 @@ def check_states(
     for i in range(p.shape[0]):
         rot = quat_to_rot(q[i]) if q.ndim == 2 else q[i]
         c, cl, s, _ = check_packed(p[i], rot, world)
-        codes[i] = c
-        clr[i] = cl
-        in_slab[i] = s
-
-
-@njit(cache=True)
-def check_states_in(
-    p: np.ndarray, q: np.ndarray, worlds: np.ndarray, which: np.ndarray, codes: np.ndarray, clr: np.ndarray,
-    in_slab: np.ndarray,
-) -> None:
-    """`check_states` of rows that each have their own world: row i of positions ``p`` (N, 3) and
-    quaternions ``q`` (N, 4; non-zero) checked against ``worlds[which[i]]`` (`pack_world` rows (K, 27))."""
-    for i in range(p.shape[0]):
-        c, cl, s, _ = check_packed(p[i], quat_to_rot(q[i]), worlds[which[i]])
         codes[i] = c
         clr[i] = cl
         in_slab[i] = s

@@ -124,7 +124,7 @@ class World:
     @property
     def packed(self) -> np.ndarray:
         """This world's constants as `box_kernel.pack_world` packs them (27,): a row of the worlds that
-        `box_kernel.check_states_in` checks a batch against, each row its own world."""
+        `emulator.fc.batched_steps.fly_targets` checks a batch against, each row its own world."""
         return self._packed
 
     # --- one pose ---------------------------------------------------------------------------------------

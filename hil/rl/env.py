@@ -1,8 +1,8 @@
 """`CrossGap-v0`: the gap crossing as an RL environment, batched natively over N vehicles.
 
 One process, N vehicles as rows of arrays: the emulator's own code flies them (`BatchPhysics` rows, the
-FC's inner loop and physics through `emulator.fc.batched_steps.fly_targets`, the world's compiled check
-through `emulator.world.box_kernel.check_states_in`), nothing re-written.
+FC's inner loop, physics and the world's compiled check in one parallel call,
+`emulator.fc.batched_steps.fly_targets`), nothing re-written.
 
 Episode (as in the paper's release): a hover at a drawn start facing the crossing, the onboard program's
 plan of a drawn gap (`hil.rl.scenarios`), then the approach and the traverse; it ends at approach time
@@ -21,10 +21,8 @@ Observation (29,): the end-to-end policy's inputs exactly as the `e2e` pilot bui
 (`policies.learning.learned_pilots`): the state predicted ``lead_s`` ahead (the onboard program's control
 lead; here from the true state), acceleration input zero (the pilot's default), mission time + lead.
 
-Reward: the paper's (Lin et al. 2019, section V-B) with the release's constants, each term kept apart:
-``position`` w_r max(0, d_a - |p - p_gap|) dt, ``arrival`` S once on the first positive position reward,
-``rate`` -w_w |w| dt, ``angular_acceleration`` -w_a |dw/dt| dt, ``jerk`` -w_j |da/dt| dt (w body rates,
-a world acceleration, derivatives over the control period), ``collision`` -C on a collision.
+Reward: the paper's (Lin et al. 2019, section V-B) with the release's constants, each term kept apart
+(`hil.rl.reward`, compiled over the rows).
 """
 
 from __future__ import annotations
@@ -40,19 +38,17 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from emulator.fc import EmulatedVehicle
-from emulator.fc.batched_steps import fly_targets, fly_targets_checked
+from emulator.fc.batched_steps import fly_targets
 from emulator.fc.n3 import limit_tilt
 from emulator.physics.native import BatchPhysics, hover_state
 from emulator.profile import load_profile
-from emulator.world.box_kernel import check_states_in
 from hil.link.mavlink import euler_from_quat_batch
+from hil.rl.reward import REWARD_TERMS, pack_weights, score_rows
 from hil.rl.scenarios import CrossingPool, CrossingRanges, draw_crossings
 from policies.controller import ExpertGains, expert_command_batch
 from policies.learning.features import CONTROLLER_MASS_KG, E2E_IN
 from policies.learning.learned_pilots import e2e_state_inputs
 from policies.onboard.program import ProgramConfig
-
-REWARD_TERMS = ("position", "arrival", "rate", "angular_acceleration", "jerk", "collision")
 
 
 @dataclass(frozen=True)
@@ -146,10 +142,23 @@ class CrossGapCore:
         self._prev_a = np.zeros((self.n, 3))
         self._pred_pos = np.zeros((self.n, 3))
         self._pred_vel = np.zeros((self.n, 3))
+        self._weights = pack_weights(cfg.reward, cfg.dt_s)
+        self._terms = np.zeros((self.n, len(REWARD_TERMS)))
+        self._reward = np.zeros(self.n)
+        self._terminated = np.zeros(self.n, bool)
+        self._truncated = np.zeros(self.n, bool)
+        self._success = np.zeros(self.n, bool)
         self._obs = np.zeros((self.n, E2E_IN))
         self._codes = np.zeros(self.n, np.int64)
         self.clearance_m = np.zeros(self.n)
-        self._in_slab = np.zeros(self.n, bool)
+        # each row's crossing, copied from the pool at its reset (no gather per step)
+        self._row_yaw = np.zeros(self.n)  # plan yaw (ENU, rad)
+        self._row_ned_yaw = np.zeros(self.n)  # the FC target's yaw (NED, rad)
+        self._row_start = np.zeros((self.n, 3))
+        self._row_centre = np.zeros((self.n, 3))
+        self._row_dir = np.zeros((self.n, 3))
+        self._row_t_approach = np.zeros(self.n)
+        self._row_steps = np.zeros(self.n, np.int64)
         self.reset_rows(np.arange(self.n))
 
     # --- episodes -------------------------------------------------------------------------------------
@@ -163,6 +172,15 @@ class CrossGapCore:
         if k.shape != rows.shape or k.min() < 0 or k.max() >= len(self.pool):
             raise ValueError(f"crossings {k} do not fit rows {rows} of a pool of {len(self.pool)}")
         self.which[rows] = k
+        pool = self.pool
+        self._row_yaw[rows] = pool.yaw_rad[k]
+        self._row_ned_yaw[rows] = (math.pi / 2 - pool.yaw_rad[k] + math.pi) % (2 * math.pi) - math.pi
+        self._row_start[rows] = pool.start_m[k]
+        self._row_centre[rows] = pool.gap_centre_m[k]
+        self._row_dir[rows] = pool.crossing_dir[k]
+        self._row_t_approach[rows] = pool.t_approach_s[k]
+        self._row_steps[rows] = pool.steps[k]
+        self._obs[rows, 12:] = pool.x17[k]  # the planner inputs at t = 0; column 12 (time) moves
         self.tick[rows] = 0
         self.arrived[rows] = False
         x, aux, _ = self.physics.kernel_arrays
@@ -183,16 +201,13 @@ class CrossGapCore:
         """The policy's inputs of ``rows`` from their state (see the module doc)."""
         x, aux, _ = self.physics.kernel_arrays
         h = self.config.lead_s
-        k = self.which[rows]
         pos, vel, acc = x[rows, 0:3], x[rows, 3:6], aux[rows, 3:6]
-        self._pred_pos[rows] = pos + vel * h + acc * (0.5 * h * h)
-        self._pred_vel[rows] = vel + acc * h
-        euler = euler_from_quat_batch(x[rows, 6:10])
+        pred_pos = self._pred_pos[rows] = pos + vel * h + acc * (0.5 * h * h)
+        pred_vel = self._pred_vel[rows] = vel + acc * h
         obs = self._obs[rows]
-        e2e_state_inputs(self._pred_pos[rows] - self.pool.start_m[k], self._pred_vel[rows],
-                         np.zeros_like(acc), euler, self.pool.yaw_rad[k], obs)
-        obs[:, 12:] = self.pool.x17[k]
-        obs[:, 12] = np.clip(self.tick[rows] * self.config.dt_s + h, 0.0, self.pool.t_approach_s[k])
+        e2e_state_inputs(pred_pos - self._row_start[rows], pred_vel, np.zeros_like(acc),
+                         euler_from_quat_batch(x[rows, 6:10]), self._row_yaw[rows], obs)
+        obs[:, 12] = np.clip(self.tick[rows] * self.config.dt_s + h, 0.0, self._row_t_approach[rows])
         self._obs[rows] = obs
 
     # --- one control step -----------------------------------------------------------------------------
@@ -207,63 +222,37 @@ class CrossGapCore:
                 raise ValueError(f"actions must have shape ({self.n}, 3), got {np.shape(actions)}")
         if not np.isfinite(a).all():
             raise ValueError("actions must be finite (roll, pitch in rad, thrust in N)")
-        cfg, pool = self.config, self.pool
-        k = self.which
-        yaw = pool.yaw_rad[k]
+        cfg = self.config
         roll, pitch, thrust = a[:, 0], a[:, 1], a[:, 2] * self._mass_scale
-        expert = self.tick * cfg.dt_s + cfg.lead_s >= pool.t_approach_s[k]  # the traverse: the expert flies
-        if expert.any():
-            ref = pool.ref[k[expert], self.tick[expert]]
-            er, ep, _, et = expert_command_batch(ref[:, 0:3], ref[:, 3:6], ref[:, 6:9], yaw[expert],
+        expert = np.flatnonzero(self.tick * cfg.dt_s + cfg.lead_s >= self._row_t_approach)  # the traverse
+        if expert.size:  # the expert flies the traverse
+            ref = self.pool.ref[self.which[expert], self.tick[expert]]
+            er, ep, _, et = expert_command_batch(ref[:, 0:3], ref[:, 3:6], ref[:, 6:9], self._row_yaw[expert],
                                                  self._pred_pos[expert], self._pred_vel[expert],
                                                  self.profile.mass_kg, self._expert)
             roll, pitch, thrust = roll.copy(), pitch.copy(), thrust.copy()
             roll[expert], pitch[expert], thrust[expert] = er, ep, et
         tg = self._targets
         # ENU command -> the FC's NED target (the command link's SET_ATTITUDE_TARGET, as the FC reads it)
-        tg[:, 0] = np.clip(roll, -math.pi / 2, math.pi / 2)
-        tg[:, 1] = -np.clip(pitch, -math.pi / 2, math.pi / 2)
-        tg[:, 2] = (math.pi / 2 - yaw + math.pi) % (2 * math.pi) - math.pi
-        tg[:, 3] = np.clip(thrust, 0.0, self._full)
+        np.clip(roll, -math.pi / 2, math.pi / 2, out=tg[:, 0])
+        np.clip(pitch, -math.pi / 2, math.pi / 2, out=tg[:, 1])
+        np.negative(tg[:, 1], out=tg[:, 1])
+        tg[:, 2] = self._row_ned_yaw
+        np.clip(thrust, 0.0, self._full, out=tg[:, 3])
         over = np.flatnonzero(np.cos(tg[:, 0]) * np.cos(tg[:, 1]) < math.cos(self._max_tilt))
         for i in over:  # rare: the FC scales roll and pitch back to its tilt limit
             tg[i, 0], tg[i, 1] = limit_tilt(tg[i, 0], tg[i, 1], self._max_tilt)
         x, aux, p = self.physics.kernel_arrays
-        if cfg.world_check == "physics":
-            fly_targets_checked(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
-                                pool.worlds, k, self._codes, self.clearance_m)
-        else:
-            fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps)
-            check_states_in(x[:, 0:3], x[:, 6:10], pool.worlds, k, self._codes, self.clearance_m,
-                            self._in_slab)
+        fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
+                    self.pool.worlds, self.which, cfg.world_check == "physics", self._codes, self.clearance_m)
         self.physics.advance_clock(cfg.physics_steps)
         self.tick += 1
-        terms = self._reward_terms(x, aux)
-        collided = self._codes != 0
-        terms[:, 5] = np.where(collided, -cfg.reward.collision, 0.0)
-        reward = terms.sum(1)
-        terminated = collided
-        truncated = (self.tick >= pool.steps[k]) & ~collided
-        ahead = np.einsum("ij,ij->i", x[:, 0:3] - pool.gap_centre_m[k], pool.crossing_dir[k]) > 0
-        success = truncated & ahead
+        score_rows(x, aux, self._weights, self._row_centre, self._row_dir, self.tick, self._row_steps,
+                   self._codes, self.arrived, self._prev_w, self._prev_a, self._terms, self._reward,
+                   self._terminated, self._truncated, self._success)
         self._observe(slice(None))
-        return reward, terminated, truncated, terms, success
-
-    def _reward_terms(self, x: np.ndarray, aux: np.ndarray) -> np.ndarray:
-        r, dt = self.config.reward, self.config.dt_s
-        terms = np.zeros((self.n, len(REWARD_TERMS)))
-        dist = np.linalg.norm(x[:, 0:3] - self.pool.gap_centre_m[self.which], axis=1)
-        terms[:, 0] = r.position_per_m_s * np.maximum(0.0, r.active_distance_m - dist) * dt
-        first = (terms[:, 0] > 0) & ~self.arrived
-        self.arrived |= first
-        terms[:, 1] = np.where(first, r.arrival, 0.0)
-        w, acc = x[:, 10:13], aux[:, 3:6]
-        terms[:, 2] = -r.rate_per_rad * np.linalg.norm(w, axis=1) * dt
-        terms[:, 3] = -r.angular_acceleration_per_rad * np.linalg.norm(w - self._prev_w, axis=1)  # |dw/dt| dt
-        terms[:, 4] = -r.jerk_per_m * np.linalg.norm(acc - self._prev_a, axis=1)  # |da/dt| dt
-        self._prev_w[:] = w
-        self._prev_a[:] = acc
-        return terms
+        return (self._reward.copy(), self._terminated.copy(), self._truncated.copy(), self._terms.copy(),
+                self._success.copy())
 
 
 class CrossGapVecEnv(VecEnv):
