@@ -588,8 +588,15 @@ class EscBusStepper:
         self.next_command_s = vehicle.time_s
         esc.max_rotor_speed_rad_s = vehicle.profile.max_rotor_speed_rad_s
         self.fc_steps = 0
+        self.fc_quiet_steps = 0  # of them, those flown by the inner loop alone (see `_fc_throttles`)
         self.physics_steps = 0
         self.polls = 0  # times the bus and its nodes were polled (at their events only)
+        from emulator.fc.modes import FcState
+
+        self._offboard = FcState.OFFBOARD
+        #: the native backend's state rows (`NativeBackend.kernel_arrays`), None on another backend
+        arrays = getattr(vehicle.backend, "kernel_arrays", None)
+        self._x = None if arrays is None else arrays[0]
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
@@ -605,7 +612,7 @@ class EscBusStepper:
                 self.polls += 1
                 event_s = esc.next_event_s()
             if t >= self.next_command_s - 1e-9:
-                esc.fc_node.send_command(fc.update(v.state), t)
+                esc.fc_node.send_command(self._fc_throttles(t), t)
                 self.fc_steps += 1
                 self.next_command_s += self.period_s
                 if self.next_command_s <= t:
@@ -619,6 +626,21 @@ class EscBusStepper:
             v.steps += k
             self.physics_steps += k
             n_steps -= k
+
+    def _fc_throttles(self, t: float) -> np.ndarray:
+        """The FC's motor outputs at ``t`` (s). While it flies an offboard attitude target with no timed
+        change due (`FlightController.quiet_steps`), as the lockstep runner's batched steps do: its
+        inner loop on the state's rows, then `stepped_outside`'s bookkeeping; else its own `update`."""
+        v, x = self.vehicle, self._x
+        fc = v.fc
+        tg = fc.target
+        if (x is None or fc.state is not self._offboard or tg is None or tg.yaw_rate_rad_s is not None
+                or fc.quiet_steps(t, v.dt_s, 1) < 1):
+            return fc.update(v.state)
+        out = fc.inner.update(x[6:10], x[10:13], tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n)
+        fc.stepped_outside(t, x.item(2), x.item(5))
+        self.fc_quiet_steps += 1
+        return out
 
     def summary(self, now_s: float) -> dict[str, Any]:
         bus = self.esc.bus

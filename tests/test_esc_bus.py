@@ -122,6 +122,26 @@ def test_the_vehicle_flies_on_its_escs_throttles():
     assert b.vehicle.steps == pytest.approx(1000 * b.clock.now_s(), abs=2)  # physics at 1 kHz
 
 
+def test_the_fcs_quiet_motor_ticks_fly_as_its_own_update_does():
+    """While the FC flies an offboard target with nothing timed due, the stepper runs its inner loop on
+    the state's rows instead of `update`: the flight is the same to the bit, and the setpoint-loss
+    failsafe still fires through `update`."""
+    runs = []
+    for quiet in (True, False):
+        b, stepper = flying_bench()
+        if not quiet:
+            stepper._x = None  # every motor tick through the FC's own update
+        take_off(b)
+        b.stream(0.3, thrust=HOVER)
+        b.run(1.0)  # no setpoints: the failsafe
+        runs.append((b.vehicle.state_vector(), [(e.time_s, e.reason) for e in b.vehicle.fc.events],
+                     stepper.fc_quiet_steps))
+    (x_quiet, events_quiet, n_quiet), (x_update, events_update, n_update) = runs
+    assert n_update == 0 and n_quiet > 0.8 * 400 * 1.6
+    np.testing.assert_array_equal(x_quiet, x_update)
+    assert events_quiet == events_update and any("setpoints lost" in r for _, r in events_quiet)
+
+
 def test_a_silent_esc_is_reported_its_motor_stops_and_the_fc_lands_when_told():
     b, stepper = flying_bench()
     b.send(b.client.mav.param_set_encode(1, 1, b"N3_ESC_FS_ACT", _int_wire(1), mav.MAV_PARAM_TYPE_INT32))
