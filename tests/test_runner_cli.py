@@ -71,6 +71,20 @@ def test_bad_options_exit_2(tmp_path):
     assert p.returncode == 2 and "cannot read" in p.stderr
 
 
+@pytest.mark.parametrize("command", ["run", "suite", "compare", "dryrun"])
+def test_an_output_folder_that_cannot_be_made_exits_2_before_any_flight(tmp_path, command):
+    f = tmp_path / "ok.scenario.yaml"
+    f.write_text(PASSING + "dispersions: {runs: 2, vary: {gap.roll_deg: {uniform: [-5, 5]}}}\n")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    out = blocker / "reports"  # under a regular file: no folder can be made there
+    target = str(tmp_path) if command == "suite" else str(f)
+    p = run([command, target, "--out", str(out)], tmp_path)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert f"hil {command}: cannot make the output folder {out}" in p.stderr
+    assert "Traceback" not in p.stderr and "PASSED" not in p.stdout  # said once, nothing flown
+
+
 def test_the_recovery_point_comes_from_the_scenario_not_the_pilot():
     import math
 

@@ -1,1 +1,22 @@
 """Subcommands of `hil`: one module each, with ``register(subparsers)`` setting ``func``."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+
+def output_folder(path: str | Path, command: str) -> Path | None:
+    """``path`` made (with its parents) as ``command``'s output folder and checked writable, before any
+    work is done; None after saying on stderr why it cannot be (the command then exits with 2)."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"{command}: cannot make the output folder {out}: {exc.strerror or exc}", file=sys.stderr)
+        return None
+    if not os.access(out, os.W_OK | os.X_OK):
+        print(f"{command}: cannot write into the output folder {out}", file=sys.stderr)
+        return None
+    return out

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.commands import output_folder
 from hil.report.svg import View
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import make_gap
@@ -265,6 +266,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     if not scenarios:
         print("hil compare: no scenario to fly", file=sys.stderr)
+        return 2
+    if output_folder(args.out, "hil compare") is None:
         return 2
     try:
         compare(scenarios, pilots, Path(args.out), RunOptions(in_process=args.in_process, seed=args.seed))

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from hil.commands import output_folder
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, read_scenario_file
 
 
@@ -44,7 +45,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil dryrun: --jobs must be >= 1, got {args.jobs}", file=sys.stderr)
         return EXIT_BAD_INPUT
     s = swept[0]
-    out = Path(args.out) if args.out else Path("reports") / "dryrun" / s.id
+    out = output_folder(args.out or Path("reports") / "dryrun" / s.id, "hil dryrun")
+    if out is None:
+        return EXIT_BAD_INPUT
     try:
         plan = plan_sweep(s, out, runs=args.runs, seed=args.seed)
     except ValueError as exc:

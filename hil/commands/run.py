@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from emulator.physics import backend_names
+from hil.commands import output_folder
 from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
 from hil.runner.emulator_side import EmulatorSide
 from hil.scenario import ScenarioError, load_scenarios
@@ -138,7 +139,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil run: {path} holds no scenario", file=sys.stderr)
         return EXIT_BAD_INPUT
     options = options_from(args)
-    base = Path(args.out) if args.out else Path("reports")
+    base = output_folder(args.out or "reports", "hil run")
+    if base is None:
+        return EXIT_BAD_INPUT
     failed = False
     view = None
     if args.view:

@@ -18,6 +18,7 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
+from hil.commands import output_folder
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.onboard_side import prestart
@@ -130,8 +131,9 @@ def main(args: argparse.Namespace) -> int:
     if dupes:
         print(f"hil suite: scenario ids used twice: {', '.join(dupes)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out, "hil suite")
+    if out is None:
+        return EXIT_BAD_INPUT
     options = options_from(args)
     if options.vehicle is not None:  # refused once, not failed in every run
         from emulator.profile import load_profile
