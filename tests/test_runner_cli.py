@@ -85,6 +85,16 @@ def test_an_output_folder_that_cannot_be_made_exits_2_before_any_flight(tmp_path
     assert "Traceback" not in p.stderr and "PASSED" not in p.stdout  # said once, nothing flown
 
 
+@pytest.mark.parametrize(("args", "said"), [
+    (["view", ".", "--port", "99999"], "argument --port: a port is 0 (any free one) to 65535, got 99999"),
+    (["run", "x.scenario.yaml", "--view-port", "-1"], "argument --view-port: a port is 0"),
+    (["fc", "--view-port", "http"], "argument --view-port: a port is a whole number, got 'http'"),
+])
+def test_a_port_out_of_range_is_refused_by_the_option(tmp_path, args, said):
+    p = run(args, tmp_path)
+    assert p.returncode == 2 and said in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
 def test_the_recovery_point_comes_from_the_scenario_not_the_pilot():
     import math
 

@@ -27,6 +27,7 @@ from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
 from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, World
+from hil.commands import port_number
 from hil.link.clock import WallClock
 from hil.link.endpoint import open_link
 from hil.link.mavlink import mav, parse_signing_key
@@ -98,7 +99,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
     p.add_argument("--view", action="store_true",
                    help="serve a live view on 127.0.0.1 (its URL in the endpoints line, as \"view\")")
-    p.add_argument("--view-port", type=int, default=0, metavar="PORT", help="the view's port (default: free)")
+    p.add_argument("--view-port", type=port_number, default=0, metavar="PORT",
+                   help="the view's port (default: free)")
     p.set_defaults(func=main)
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from emulator.physics import backend_names
-from hil.commands import output_folder
+from hil.commands import output_folder, port_number
 from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
 from hil.runner.emulator_side import EmulatorSide
 from hil.scenario import ScenarioError, load_scenarios
@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--view", action="store_true",
                    help="serve a live view on 127.0.0.1 (URL printed): each scenario live in turn, "
                         "then the last one's replay until Ctrl-C")
-    p.add_argument("--view-port", type=int, default=0, metavar="PORT",
+    p.add_argument("--view-port", type=port_number, default=0, metavar="PORT",
                    help="the view's port (default: a free one)")
     p.add_argument("--mcap", action="store_true", help="also write run.mcap beside run.tlog (Foxglove)")
     p.set_defaults(func=main)

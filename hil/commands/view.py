@@ -6,11 +6,13 @@ from __future__ import annotations
 import argparse
 import sys
 
+from hil.commands import port_number
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("view", help="replay a finished run folder in the browser (time slider)")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (summary.json, timeseries.npz)")
-    p.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--port", type=port_number, default=0, help="port on 127.0.0.1 (default: a free one)")
     p.add_argument("--mcap", action="store_true",
                    help="write the run as RUN_DIR/run.mcap (Foxglove) and exit instead of serving it")
     p.set_defaults(func=main)
