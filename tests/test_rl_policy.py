@@ -76,6 +76,21 @@ def test_train_rl_refuses_bad_input(tmp_path, capsys):
     assert hil_main(["train", "rl", "--minutes", "0", "--out", str(tmp_path)]) == 1
     assert "minutes must be positive" in capsys.readouterr().err
     assert hil_main(["train", "rl", "--minutes", "1", "--envs", "0", "--out", str(tmp_path)]) == 1
+    assert hil_main(["train", "rl", "--updates", "0", "--out", str(tmp_path)]) == 1
+    assert "updates must be a whole number >= 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_number_of_updates_gives_the_same_weights_whatever_the_clock(tmp_path):
+    """The budget in updates stops after that many, however much time is left, and two trainings with the
+    same seed end with the same weights, file for file (the shipped ones came from ``--updates 9``)."""
+    cfg = RLConfig(n_envs=4, n_steps=40, critic_batch=40, sub_sampling_factor=2, n_critic_updates=1,
+                   pool_size=4, eval_size=2, checkpoint_every=1)
+    runs = [train_rl(tmp_path / name, 30.0, seed=3, cfg=cfg, progress=False, updates=2) for name in "ab"]
+    for m in runs:
+        assert m["updates"] == 2 and m["timesteps"] <= 2 * 4 * 40 + 4  # (the third rollout's first step)
+        assert m["train_minutes"] < 5
+    assert (tmp_path / "a" / "e2e_rl.onnx").read_bytes() == (tmp_path / "b" / "e2e_rl.onnx").read_bytes()
 
 
 @pytest.mark.slow

@@ -56,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rl = tsub.add_parser("rl", help="fine-tune the end-to-end policy with TRPO in CrossGap-v0 (imitate, then "
                                     "reinforce); writes e2e_rl.onnx, returns.csv, curve.png, metrics.json")
     rl.add_argument("--minutes", type=float, default=20.0, help="wall-clock budget in minutes (default 20)")
+    rl.add_argument("--updates", type=int, default=None,
+                    help="stop after this many TRPO updates in all (the budget that gives the same weights "
+                         "on any machine; the minutes still bound it)")
     rl.add_argument("--envs", type=int, default=None,
                     help="vehicles flown at once (default 64; the batch stays about 10,240 steps)")
     rl.add_argument("--seed", type=int, default=0, help="seed of the crossings and of TRPO (default 0)")
@@ -74,11 +77,12 @@ def main_rl(args: argparse.Namespace) -> int:
         return 2
     try:
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, updates=args.updates)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"hil train rl: {exc}", file=sys.stderr)
         return 1
-    print(json.dumps({k: metrics[k] for k in ("timesteps", "train_minutes", "held_out")}, indent=2))
+    shown = ("updates", "timesteps", "train_minutes", "held_out")
+    print(json.dumps({k: metrics[k] for k in shown}, indent=2))
     print(f"wrote {metrics['onnx']}, {Path(args.out) / 'returns.csv'}, {Path(args.out) / 'curve.png'}, "
           f"{Path(args.out) / 'metrics.json'}")
     return 0

@@ -140,12 +140,14 @@ class _ScaledReward(VecEnvWrapper):
 
 class _Progress(BaseCallback):
     """Per update: a CSV row (returns, success, each reward term), checkpoints, the progress line, and
-    the wall-clock budget."""
+    the budget: the wall clock, and ``max_updates`` (None: no limit) updates in all."""
 
-    def __init__(self, out: Path, deadline_s: float, every: int, progress: bool, start_update: int) -> None:
+    def __init__(self, out: Path, deadline_s: float, every: int, progress: bool, start_update: int,
+                 max_updates: int | None = None) -> None:
         super().__init__()
         self.out, self.deadline_s, self.every, self.progress = out, deadline_s, every, progress
         self.update = start_update
+        self.max_updates = max_updates
         self.episodes: list[dict[str, Any]] = []
         self.started = time.perf_counter()
         self.bar = None
@@ -164,6 +166,8 @@ class _Progress(BaseCallback):
         for info in self.locals["infos"]:
             if "episode" in info:
                 self.episodes.append(info)
+        if self.max_updates is not None and self.update >= self.max_updates:
+            return False  # (the rollout after the last update is dropped at its first step)
         return time.perf_counter() < self.deadline_s
 
     def _on_rollout_end(self) -> None:
@@ -201,13 +205,19 @@ def device() -> str:
 
 
 def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = False,
-             cfg: RLConfig | None = None, n_envs: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Fine-tune for ``minutes`` of wall clock; writes into ``out_dir``: checkpoint.zip, returns.csv,
-    curve.png, e2e_rl.pt (the actor's state dict), e2e_rl.onnx and metrics.json (held-out evaluation
-    of the imitation policy and the fine-tuned one). Returns the metrics."""
+             cfg: RLConfig | None = None, n_envs: int | None = None, progress: bool = True,
+             updates: int | None = None) -> dict[str, Any]:
+    """Fine-tune for ``minutes`` of wall clock or ``updates`` TRPO updates in all (None: no limit),
+    whichever ends first; writes into ``out_dir``: checkpoint.zip, returns.csv, curve.png, e2e_rl.pt (the
+    actor's state dict), e2e_rl.onnx and metrics.json (held-out evaluation of the imitation policy and
+    the fine-tuned one). Returns the metrics. A number of updates is the budget that gives the same
+    weights on any machine (the seed fixes the crossings, the rollouts and TRPO's samples); minutes
+    give as many updates as the machine manages."""
     cfg = cfg or RLConfig()
     if not (math.isfinite(minutes) and minutes > 0):
         raise ValueError(f"minutes must be positive, got {minutes}")
+    if updates is not None and (isinstance(updates, bool) or not isinstance(updates, int) or updates < 1):
+        raise ValueError(f"updates must be a whole number >= 1, got {updates!r}")
     if n_envs is not None:
         if n_envs < 1:
             raise ValueError(f"--envs must be >= 1, got {n_envs}")
@@ -227,10 +237,11 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
     else:
         model = make_model(env, cfg, seed, device())
     deadline = time.perf_counter() + minutes * 60.0
-    callback = _Progress(out, deadline, cfg.checkpoint_every, progress, start_update)
+    callback = _Progress(out, deadline, cfg.checkpoint_every, progress, start_update, updates)
     if progress:
+        budget = f"{minutes:g} min" + ("" if updates is None else f" or {updates} updates in all")
         print(f"hil train rl: device {device()}, {cfg.n_envs} envs x {cfg.n_steps} steps a batch, "
-              f"{minutes:g} min, out {out}", flush=True)
+              f"{budget}, out {out}", flush=True)
     model.learn(total_timesteps=10**12, callback=callback, reset_num_timesteps=not resume)
     if callback.bar is not None:
         callback.bar.close()
@@ -244,7 +255,8 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
                                            env_cfg.ranges), venv.core.profile, env_cfg.dt_s, env_cfg.lead_s)
     before = evaluate(torch_predict(imitation_policy().eval()), held_out, env_cfg)
     after = evaluate(torch_predict(actor), held_out, env_cfg)
-    metrics = {"config": asdict(cfg), "seed": seed, "timesteps": int(model.num_timesteps),
+    metrics = {"config": asdict(cfg), "seed": seed, "updates": callback.update,
+               "timesteps": int(model.num_timesteps),
                "train_minutes": round(train_s / 60.0, 2), "device": device(),
                "held_out": {"crossings": cfg.eval_size, "imitation": before.to_dict(), "rl": after.to_dict()}}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
