@@ -4,6 +4,8 @@ holds the planner; `hil train rl` writes its outputs, resumes, and refuses bad i
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -91,6 +93,11 @@ def test_a_number_of_updates_gives_the_same_weights_whatever_the_clock(tmp_path)
         assert m["updates"] == 2 and m["timesteps"] <= 2 * 4 * 40 + 4  # (the third rollout's first step)
         assert m["train_minutes"] < 5
     assert (tmp_path / "a" / "e2e_rl.onnx").read_bytes() == (tmp_path / "b" / "e2e_rl.onnx").read_bytes()
+    judged = train_rl(tmp_path / "c", 30.0, seed=3, cfg=replace(cfg, world_check="physics"), progress=False,
+                      updates=1)  # trained and evaluated with the world checked as the runner checks it
+    assert judged["config"]["world_check"] == "physics" and judged["updates"] == 1
+    with pytest.raises(ValueError, match="world_check must be 'control' or 'physics'"):
+        train_rl(tmp_path / "d", 1.0, cfg=replace(cfg, world_check="sometimes"), progress=False, updates=1)
 
 
 @pytest.mark.slow

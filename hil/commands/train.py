@@ -59,6 +59,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rl.add_argument("--updates", type=int, default=None,
                     help="stop after this many TRPO updates in all (the budget that gives the same weights "
                          "on any machine; the minutes still bound it)")
+    rl.add_argument("--world-check", choices=("control", "physics"), default="control",
+                    help="when the environment checks the world, in training and in the held-out evaluation: "
+                         "once a control step (default) or after every physics step, as the runner does")
     rl.add_argument("--envs", type=int, default=None,
                     help="vehicles flown at once (default 64; the batch stays about 10,240 steps)")
     rl.add_argument("--seed", type=int, default=0, help="seed of the crossings and of TRPO (default 0)")
@@ -76,8 +79,11 @@ def main_rl(args: argparse.Namespace) -> int:
               f"{exc}", file=sys.stderr)
         return 2
     try:
+        from hil.rl.train import RLConfig
+
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
-                           progress=not args.no_progress, updates=args.updates)
+                           progress=not args.no_progress, updates=args.updates,
+                           cfg=RLConfig(world_check=args.world_check))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"hil train rl: {exc}", file=sys.stderr)
         return 1

@@ -65,6 +65,9 @@ class RLConfig:
     pool_size: int = 256
     eval_size: int = 256
     eval_seed_offset: int = 1_000_003
+    #: when the environment checks the world (`EnvConfig.world_check`), in training and in the held-out
+    #: evaluation: "control", once a control step, or "physics", after every physics step as the runner does
+    world_check: str = "control"
     threads: int = 2  # torch CPU threads
     checkpoint_every: int = 10  # updates
 
@@ -216,6 +219,8 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
     cfg = cfg or RLConfig()
     if not (math.isfinite(minutes) and minutes > 0):
         raise ValueError(f"minutes must be positive, got {minutes}")
+    if cfg.world_check not in ("control", "physics"):
+        raise ValueError(f"world_check must be 'control' or 'physics', got {cfg.world_check!r}")
     if updates is not None and (isinstance(updates, bool) or not isinstance(updates, int) or updates < 1):
         raise ValueError(f"updates must be a whole number >= 1, got {updates!r}")
     if n_envs is not None:
@@ -226,7 +231,7 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    env_cfg = EnvConfig(pool_size=cfg.pool_size, seed=seed)
+    env_cfg = EnvConfig(pool_size=cfg.pool_size, seed=seed, world_check=cfg.world_check)
     venv = CrossGapVecEnv(cfg.n_envs, env_cfg)
     env = _ScaledReward(venv, cfg.reward_scale)
     ckpt = out / "checkpoint.zip"
