@@ -149,6 +149,7 @@ class CrossGapCore:
         self._truncated = np.zeros(self.n, bool)
         self._success = np.zeros(self.n, bool)
         self._obs = np.zeros((self.n, E2E_IN))
+        self._zero3 = np.zeros((self.n, 3))  # the acceleration input (the pilot's default: zero)
         self._codes = np.zeros(self.n, np.int64)
         self.clearance_m = np.zeros(self.n)
         # each row's crossing, copied from the pool at its reset (no gather per step)
@@ -204,11 +205,12 @@ class CrossGapCore:
         pos, vel, acc = x[rows, 0:3], x[rows, 3:6], aux[rows, 3:6]
         pred_pos = self._pred_pos[rows] = pos + vel * h + acc * (0.5 * h * h)
         pred_vel = self._pred_vel[rows] = vel + acc * h
-        obs = self._obs[rows]
-        e2e_state_inputs(pred_pos - self._row_start[rows], pred_vel, np.zeros_like(acc),
+        obs = self._obs[rows]  # (a view of all rows, a copy of some)
+        e2e_state_inputs(pred_pos - self._row_start[rows], pred_vel, self._zero3[: len(pred_pos)],
                          euler_from_quat_batch(x[rows, 6:10]), self._row_yaw[rows], obs)
         obs[:, 12] = np.clip(self.tick[rows] * self.config.dt_s + h, 0.0, self._row_t_approach[rows])
-        self._obs[rows] = obs
+        if not isinstance(rows, slice):
+            self._obs[rows] = obs
 
     # --- one control step -----------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
