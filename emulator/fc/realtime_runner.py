@@ -36,6 +36,7 @@ class RealtimeRunner:
         wait_fds: Sequence[int] = (),
     ) -> None:
         self.vehicle = vehicle
+        vehicle.compile_kernels()  # before the clock matters: not a stall of seconds in the first flight
         self.links = list(links)
         self.clock = clock or WallClock()
         self.duration_s = duration_s

@@ -97,6 +97,22 @@ class EmulatedVehicle:
     def dt_s(self) -> float:
         return self.backend.dt_s
 
+    def compile_kernels(self) -> None:
+        """Compile the numba kernels of this vehicle's own steps (the FC's inner loop and its hold
+        controller, the native physics step), or load them from numba's cache, now rather than at their
+        first use, with the argument types that use will have: on a fresh install a real-time loop would
+        otherwise stall for seconds in flight the first time the FC arms. Changes no state."""
+        from emulator.fc.hold import hold_command
+        from emulator.fc.inner_loop import control
+        from emulator.physics.native import NativeBackend
+
+        st, fc = self.state, self.fc
+        inner = fc.inner
+        control(st.quat_wxyz, st.omega_rad_s, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, np.zeros(4))
+        hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params)
+        if isinstance(self.backend, NativeBackend):
+            self.backend.step(np.zeros(4), 0)  # (no step: the state stays as it is)
+
     def step(self, n_steps: int = 1) -> None:
         """Run ``n_steps`` physics steps, the FC deciding the throttles before each."""
         if self.motor_path is not None:

@@ -65,7 +65,8 @@ class Clearance:
 
 
 def _as_positions(pos_m: np.ndarray, batch: bool) -> np.ndarray:
-    p = np.asarray(pos_m, dtype=np.float64)
+    p = np.array(pos_m, dtype=np.float64)  # (a writable copy: one compiled type for the checks, even of
+    # a `VehicleState`'s read-only arrays)
     want = "(N, 3)" if batch else "(3,)"
     if (batch and (p.ndim != 2 or p.shape[1] != 3)) or (not batch and p.shape != (3,)):
         raise ValueError(f"position must have shape {want}, got {p.shape}")
@@ -76,7 +77,7 @@ def _as_positions(pos_m: np.ndarray, batch: bool) -> np.ndarray:
 
 def _as_attitudes(attitude: np.ndarray, batch: bool) -> np.ndarray:
     """Validated quaternions (N, 4) or rotations (N, 3, 3) of a batch; one pose's rotation (3, 3)."""
-    a = np.asarray(attitude, dtype=np.float64)
+    a = np.array(attitude, dtype=np.float64)  # (a writable copy, as `_as_positions`)
     lead = a.shape[:1] if batch else ()
     if a.shape == (*lead, 4):
         if not (np.isfinite(a).all() and np.all(np.einsum("...i,...i", a, a) > 1e-18)):
@@ -126,6 +127,13 @@ class World:
         """This world's constants as `box_kernel.pack_world` packs them (27,): a row of the worlds that
         `emulator.fc.batched_steps.fly_targets` checks a batch against, each row its own world."""
         return self._packed
+
+    def compile_kernels(self) -> None:
+        """Compile the compiled checks, one pose and N, or load them from numba's cache, now rather than
+        at the first check: a real-time loop would otherwise stall in flight on a fresh install."""
+        level = np.array([1.0, 0.0, 0.0, 0.0])
+        self.check(self._centre, level)
+        self.check_states_values(self._centre[None, :], level[None, :])
 
     # --- one pose ---------------------------------------------------------------------------------------
     def check(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[Obstacle | None, Clearance]:

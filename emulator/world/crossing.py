@@ -41,6 +41,7 @@ class CrossingTracker:
 
     def __init__(self, world: World) -> None:
         self.world = world
+        world.compile_kernels()  # (now, not at the first sample of a real-time loop)
         self._crossings: list[Crossing] = []
         self._prev: tuple[float, np.ndarray, float] | None = None  # (time_s, pos_m, n)
         self.min_clearance_m: float | None = None  # None until the box first overlaps the slab

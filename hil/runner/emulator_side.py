@@ -221,6 +221,7 @@ class EmulatorSide:
                                   **self.server.params.esc_settings())
             self.esc = attach_esc_bus(self.vehicle, self.server, config, rng.spawn(1)[0])
         self.fast: FastStepper | EscBusStepper = self.esc or FastStepper.for_vehicle(self.vehicle)
+        self.vehicle.compile_kernels()  # (its own per-step path too: no compile inside a run's loop)
         self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
         #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)

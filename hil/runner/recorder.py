@@ -142,9 +142,7 @@ class Recorder:
     def __init__(self, world: World, profile: VehicleProfile, duration_s: float) -> None:
         self.world = world
         self.profile = profile
-        self._tracker = CrossingTracker(world)
-        # the batch check is compiled (or loaded from numba's cache) now, not in the middle of a run
-        world.check_states_values(np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))
+        self._tracker = CrossingTracker(world)  # (which compiles the world's checks now)
         level = np.zeros((1, STATE_SIZE))
         level[0, QUAT] = (1.0, 0.0, 0.0, 0.0)
         no = np.zeros(1)

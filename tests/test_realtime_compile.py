@@ -1,0 +1,65 @@
+"""A real-time loop compiles nothing once it runs: on a fresh install (numba's cache empty) the FC's,
+the physics' and the world's kernels compile while the loop is set up, not in flight, where a compile of
+seconds would stall the FC and starve the onboard program of mocap (it aborted, seen in a fresh clone)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+FLIGHT = r"""
+import json, math
+import numpy as np
+from numba.core import event
+
+from emulator.fc import EmulatedVehicle, N3Setpoint, RealtimeRunner
+from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE
+from emulator.physics.native import hover_state
+from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.world import CrossingTracker, Gap, LabVolume, World
+from hil.link import SimClock
+
+profile = load_profile("n3_tx2")
+start = hover_state(profile, (0.0, 0.0, 1.5))
+vehicle = EmulatedVehicle(profile, initial_state=start)
+tracker = CrossingTracker(World.for_profile(Gap(centre_m=(0.0, 2.0, 1.5)), LabVolume(), profile))
+RealtimeRunner(vehicle, [], clock=SimClock())  # the set-up a real-time loop has: it compiles now
+
+compiled = []
+
+class Count(event.Listener):
+    def on_start(self, e): pass
+    def on_end(self, e): compiled.append(str(e.data.get("dispatcher")))
+
+event.register("numba:compile", Count())
+fc = vehicle.fc
+hover_pct = profile.force_to_thrust_percent(profile.mass_kg * GRAVITY_M_S2)
+hover = N3Setpoint(ATTITUDE_THRUST_YAW_ANGLE, 5.0, 0.0, hover_pct, 0.0)
+fc.set_setpoint(hover, 0.0)
+fc.set_setpoint(hover, 0.0)
+assert fc.arm(0.0).accepted  # in the air: the FC's own hold (velocity hold, inner loop)
+vehicle.step(50)
+assert fc.request_offboard(vehicle.time_s).accepted  # the setpoint through the inner loop
+for _ in range(20):
+    fc.set_setpoint(hover, vehicle.time_s)
+    vehicle.step(10)
+    s = vehicle.state
+    tracker.update(s.time_s, s.pos_m, s.quat_wxyz)
+print(json.dumps({"compiled": compiled, "state": fc.state.value, "z": float(vehicle.state.pos_m[2])}))
+"""
+
+
+def test_a_real_time_loop_compiles_nothing_once_it_runs(tmp_path):
+    env = {**os.environ, "HIL_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env.pop("NUMBA_CACHE_DIR", None)  # (the empty cache of this test, not the machine's)
+    p = subprocess.run([sys.executable, "-c", FLIGHT], cwd=ROOT, env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out["state"] == "offboard" and out["z"] > 1.0  # it flew: hold, then the setpoints
+    assert out["compiled"] == []
