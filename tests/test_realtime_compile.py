@@ -63,3 +63,16 @@ def test_a_real_time_loop_compiles_nothing_once_it_runs(tmp_path):
     out = json.loads(p.stdout.strip().splitlines()[-1])
     assert out["state"] == "offboard" and out["z"] > 1.0  # it flew: hold, then the setpoints
     assert out["compiled"] == []
+
+
+def test_hil_fc_on_an_empty_cache_says_it_compiles_and_still_flies_its_whole_duration(tmp_path):
+    env = {**os.environ, "HIL_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env.pop("NUMBA_CACHE_DIR", None)
+    cmd = [sys.executable, "-m", "hil.cli", "fc", "--duration", "1"]
+    first = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert "hil fc: compiling the emulator's kernels once" in first.stderr
+    summary = json.loads(first.stdout.strip().splitlines()[-1])
+    assert summary["sim_time_s"] > 0.9  # the compile came before the clock, not out of the duration
+    again = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and "compiling" not in again.stderr  # cached now: said only once

@@ -32,3 +32,14 @@ def output_folder(path: str | Path, command: str) -> Path | None:
         print(f"{command}: cannot write into the output folder {out}", file=sys.stderr)
         return None
     return out
+
+
+def say_if_compiling(command: str) -> None:
+    """On stderr, when the emulator's kernels are not cached yet: the first run compiles them (seconds of
+    silence otherwise, before the first line of a run or `hil fc`'s endpoints)."""
+    from emulator.kernel_cache import cold
+
+    folder = cold()
+    if folder is not None:
+        print(f"{command}: compiling the emulator's kernels once, about 10-20 s (cached in {folder} for "
+              "the next runs)", file=sys.stderr, flush=True)

@@ -27,7 +27,7 @@ from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
 from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, World
-from hil.commands import port_number
+from hil.commands import port_number, say_if_compiling
 from hil.link.clock import WallClock
 from hil.link.endpoint import open_link
 from hil.link.mavlink import mav, parse_signing_key
@@ -217,6 +217,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
         start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
+        say_if_compiling("hil fc")
         warm_up(profile)  # before the clock starts
         if args.esc_bus is not None:
             import dronecan  # noqa: F401 (its message types load here, not on the clock)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from emulator.physics import backend_names
-from hil.commands import output_folder, port_number
+from hil.commands import output_folder, port_number, say_if_compiling
 from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
 from hil.runner.emulator_side import EmulatorSide
 from hil.scenario import ScenarioError, load_scenarios
@@ -142,6 +142,7 @@ def main(args: argparse.Namespace) -> int:
     base = output_folder(args.out or "reports", "hil run")
     if base is None:
         return EXIT_BAD_INPUT
+    say_if_compiling("hil run")
     failed = False
     view = None
     if args.view:

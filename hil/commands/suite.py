@@ -18,7 +18,7 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-from hil.commands import output_folder
+from hil.commands import output_folder, say_if_compiling
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.onboard_side import prestart
@@ -134,6 +134,7 @@ def main(args: argparse.Namespace) -> int:
     out = output_folder(args.out, "hil suite")
     if out is None:
         return EXIT_BAD_INPUT
+    say_if_compiling("hil suite")
     options = options_from(args)
     if options.vehicle is not None:  # refused once, not failed in every run
         from emulator.profile import load_profile
