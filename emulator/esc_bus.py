@@ -591,9 +591,6 @@ class EscBusStepper:
         self.fc_quiet_steps = 0  # of them, those flown by the inner loop alone (see `_fc_throttles`)
         self.physics_steps = 0
         self.polls = 0  # times the bus and its nodes were polled (at their events only)
-        from emulator.fc.modes import FcState
-
-        self._offboard = FcState.OFFBOARD
         #: the native backend's state rows (`NativeBackend.kernel_arrays`), None on another backend
         arrays = getattr(vehicle.backend, "kernel_arrays", None)
         self._x = None if arrays is None else arrays[0]
@@ -633,9 +630,8 @@ class EscBusStepper:
         inner loop on the state's rows, then `stepped_outside`'s bookkeeping; else its own `update`."""
         v, x = self.vehicle, self._x
         fc = v.fc
-        tg = fc.target
-        if (x is None or fc.state is not self._offboard or tg is None or tg.yaw_rate_rad_s is not None
-                or fc.quiet_steps(t, v.dt_s, 1) < 1):
+        tg = fc.held_target()
+        if x is None or tg is None or fc.quiet_steps(t, v.dt_s, 1) < 1:
             return fc.update(v.state)
         out = fc.inner.update(x[6:10], x[10:13], tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n)
         fc.stepped_outside(t, x.item(2), x.item(5))

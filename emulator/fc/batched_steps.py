@@ -126,8 +126,8 @@ class FastStepper:
         take another path)."""
         v = self.vehicle
         fc = v.fc
-        tg = fc.target
-        if not self.native or fc.state is not FcState.OFFBOARD or tg is None or tg.yaw_rate_rad_s is not None:
+        tg = fc.held_target()
+        if not self.native or tg is None:
             return 0
         n = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
         if n > 0:

@@ -287,6 +287,14 @@ class FlightController:
         """The climb rate (m/s, up) the FC's own hover/land controller holds in the state now."""
         return -self.config.land_speed_m_s if self.machine.state in LANDING_STATES else 0.0
 
+    def held_target(self) -> AttitudeThrustTarget | None:
+        """The offboard attitude target a stepper outside `update` may fly with the inner loop alone (in
+        OFFBOARD, a held heading, no yaw rate to integrate), else None; with `quiet_steps` for how long."""
+        tg = self.target
+        if self.machine.state is not FcState.OFFBOARD or tg is None or tg.yaw_rate_rad_s is not None:
+            return None
+        return tg
+
     def quiet_steps(self, time_s: float, dt_s: float, n_max: int) -> int:
         """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed
         change of state (the setpoint-loss failsafe, the failsafe hover's end): steps that a batched
