@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
@@ -88,3 +89,22 @@ def test_a_cpu_hog_beside_a_realtime_run_fails_its_realtime_check(tmp_path):
     assert loop["late_worst_ms"] > 20.0 and loop["caught_up_steps"] > 0
     assert "at most 20 ms late" in check.expected
     assert "ms late" in check.observed and check.time_s is not None
+
+
+def test_real_time_counts_from_the_programs_spawn_however_slow_the_harness_is_to_start_its_loop(tmp_path):
+    # the program is spawned, then the harness sets up its live view (here: half a second, as a loaded
+    # host may take) before its loop starts: the program's first frames wait on the link meanwhile; its
+    # start-up and its events are on one clock starting at its spawn, never before the loop's zero
+    def slow_view(emu, log_path):
+        time.sleep(0.5)
+        return None
+
+    s = loads_scenarios(SHORT)[0]
+    r = run_scenario(s, tmp_path, RunOptions(realtime=True, in_process=False), watch=slow_view)
+    sm = r.summary
+    contact = sm["realtime"]["contact_s"]
+    assert contact >= 0.5  # (it used to read 0.0: the frame was already waiting when the loop began)
+    assert abs(sm["sim_time_s"] - contact - 3.0) < 0.02
+    onboard = [e for e in sm["events"] if e["source"] == "onboard"]
+    assert onboard and min(e["time_s"] for e in onboard) >= 0.0
+    assert "takeoff" in [e["text"] for e in onboard]

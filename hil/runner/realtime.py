@@ -50,11 +50,14 @@ def run_realtime(
     duration_s: float,
     progress: Callable[[float], None] | None = None,
     compute_s: float = 0.0,
+    started_monotonic_s: float | None = None,
 ) -> LoopReport:
     """Fly ``duration_s`` seconds of wall time from the onboard program's first frame; returns what the
     loop saw, its real-time health in ``realtime``. ``compute_s`` (s) is the onboard computer's modelled
     compute time, as in lockstep: its outputs reach the link that long after the program wrote them (the
-    program runs on the harness's machine, faster than the TX2 it stands for)."""
+    program runs on the harness's machine, faster than the TX2 it stands for). ``started_monotonic_s``
+    (`time.monotonic`, s) is when the program was started, the loop's time zero, so its start-up counts
+    however long the harness took between spawning it and entering this loop (default: now)."""
     rep = LoopReport()
     emu.wire.compute_s = compute_s
     faults = emu.faults
@@ -64,7 +67,8 @@ def run_realtime(
     wire = emu.wire
     contact_s: float | None = None
     end_s = CONTACT_WAIT_S + duration_s  # until the first frame
-    wall0 = time.monotonic()  # (the clock the onboard program stamps its events with, too)
+    # (the clock the onboard program stamps its events with, too)
+    wall0 = time.monotonic() if started_monotonic_s is None else started_monotonic_s
     if isinstance(onboard, ProcessOnboard):
         onboard.harness_zero_monotonic_s = wall0
     next_progress = 0.5

@@ -240,6 +240,7 @@ def _run(
     emu = None
     onboard: InProcessOnboard | ProcessOnboard | None = None
     spawn_s = 0.0  # wall time the onboard process took to spawn (s)
+    started_monotonic_s = None  # when it was spawned (time.monotonic, s): real time's zero
     wall0 = time.perf_counter()
     try:
         if in_process:
@@ -281,6 +282,7 @@ def _run(
             # a program that has not opened its ports yet and are dropped, always (a program started
             # earlier would get them or not depending on how fast it starts)
             spawn0 = time.perf_counter()
+            started_monotonic_s = time.monotonic()
             onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
             spawn_s = time.perf_counter() - spawn0
 
@@ -292,7 +294,8 @@ def _run(
         compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
         if realtime:  # the modelled compute time as lockstep's (default: one tick)
             compute = options.tick_s if compute_s is None else compute_s
-            loop = run_realtime(emu, onboard, s.duration_s, progress=tell, compute_s=compute)
+            loop = run_realtime(emu, onboard, s.duration_s, progress=tell, compute_s=compute,
+                                started_monotonic_s=started_monotonic_s)
         else:
             loop = run_lockstep(
                 emu,
