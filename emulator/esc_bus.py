@@ -14,28 +14,36 @@ then follows the rpm that node reports).
 
 `EscBusStepper` steps a vehicle with its motors behind the bus: the FC's loop runs at the motor rate
 and the physics at its own rate, each motor at the throttle its ESC holds.
+
+The arithmetic of all of it (the wire, the queue, the emulated nodes, the stepper's loop) is compiled,
+in `emulator.esc_bus_kernels`, over flat arrays; the classes here are views of those arrays and do in
+Python only what needs Python: dronecan's encoding for a real bus, frames coming in from one, listeners
+attached from Python, the FC's reports and failsafe.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
 
+from emulator import esc_bus_kernels as k
+from emulator.esc_bus_kernels import ACTIONS
+from emulator.esc_bus_kernels import ESC_COMMAND_TIMEOUT_S as ESC_COMMAND_TIMEOUT_S
+from emulator.esc_bus_kernels import NODE_STATUS_PERIOD_S as NODE_STATUS_PERIOD_S
+from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
+from emulator.esc_bus_kernels import frame_bits as frame_bits
+
 ESC_STATUS_RATE_HZ = 50.0  # how often each ESC reports esc.Status
-NODE_STATUS_PERIOD_S = 1.0  # uavcan.protocol.NodeStatus, every node
-RAW_COMMAND_MAX = 8191  # int14: full throttle
-ESC_COMMAND_TIMEOUT_S = 0.1  # an ESC that hears no RawCommand this long stops its motor
-FRAME_OVERHEAD_BITS = 67  # a 29-bit-id data frame besides its data: SOF, id, control, CRC, ACK, EOF, IFS
-ERROR_FRAME_BITS = 20  # an error flag, its delimiter and the intermission
 BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP]", "socketcan:IFACE", "mcast[:N]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
-HEALTH_OK, HEALTH_CRITICAL = 0, 2
+HEALTH_OK, HEALTH_CRITICAL = k.HEALTH_OK, k.HEALTH_CRITICAL
 MODE_OPERATIONAL = 0
+DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
 
 
 @dataclass(frozen=True)
@@ -72,15 +80,8 @@ class EscBusConfig:
         for nid in self.external:
             if nid not in self.esc_node_ids:
                 raise ValueError(f"external ESC node {nid} is none of the ESC node ids {self.esc_node_ids}")
-        if self.failsafe_action not in ("report", "land", "disarm"):
+        if self.failsafe_action not in ACTIONS:
             raise ValueError(f"failsafe_action must be report, land or disarm, got {self.failsafe_action!r}")
-
-
-def frame_bits(data_len: int) -> int:
-    """Bits on the wire of an extended data frame with ``data_len`` bytes, with the stuff bits a typical
-    payload needs (one in five of the stuffed part, worst case one in four)."""
-    stuffed = 54 + 8 * data_len  # SOF through CRC
-    return FRAME_OVERHEAD_BITS + 8 * data_len + stuffed // 5
 
 
 @dataclass
@@ -199,6 +200,54 @@ def _plain(value: Any) -> Any:
     return list(value) if isinstance(value, ArrayValue) else value
 
 
+class _Slot:
+    """One float of the compiled model's arrays as an attribute: ``array`` names the array (a dotted path
+    from the owner), ``index`` the float in it."""
+
+    def __init__(self, array: str, index: int, doc: str) -> None:
+        self._array, self.index, self.__doc__ = attrgetter(array), index, doc
+
+    def __get__(self, owner: Any, cls: Any = None) -> Any:
+        return self if owner is None else float(self._array(owner)[self.index])
+
+    def __set__(self, owner: Any, value: float) -> None:
+        self._array(owner)[self.index] = value
+
+
+def _kind_types() -> tuple[Any, Any, Any]:
+    """The DSDL types of the kinds the compiled nodes send (`esc_bus_kernels` RAW_COMMAND, ESC_STATUS,
+    NODE_STATUS), in that order."""
+    from dronecan import uavcan
+
+    return uavcan.equipment.esc.RawCommand, uavcan.equipment.esc.Status, uavcan.protocol.NodeStatus
+
+
+def _fields_of(kind: int, p: np.ndarray) -> dict[str, Any]:
+    """A compiled node's payload as the DSDL fields of its kind."""
+    if kind == k.RAW_COMMAND:
+        return {"cmd": [int(v) for v in p[:int(p[k.PAYLOAD - 1])]]}
+    if kind == k.ESC_STATUS:
+        return {"error_count": int(p[0]), "voltage": float(p[1]), "current": float(p[2]),
+                "temperature": float(p[3]), "rpm": int(p[4]), "power_rating_pct": int(p[5]),
+                "esc_index": int(p[6])}
+    return {"uptime_sec": int(p[0]), "health": int(p[1]), "mode": MODE_OPERATIONAL, "sub_mode": 0,
+            "vendor_specific_status_code": 0}
+
+
+def _payload_of(kind: int, fields: dict[str, Any]) -> np.ndarray:
+    """The payload (`esc_bus_kernels.PAYLOAD`,) a compiled node takes from a message's fields."""
+    p = np.zeros(k.PAYLOAD)
+    if kind == k.RAW_COMMAND:
+        cmd = list(fields.get("cmd", ()))[:k.PAYLOAD - 1]
+        p[:len(cmd)] = cmd
+        p[k.PAYLOAD - 1] = len(cmd)
+    elif kind == k.ESC_STATUS:
+        for i, name in enumerate(("error_count", "voltage", "current", "temperature", "rpm",
+                                  "power_rating_pct", "esc_index")):
+            p[i] = float(fields.get(name, 0))
+    return p
+
+
 class CanBus:
     """The bus in the clock's time (see the module doc). Nodes attach with `attach(node_id, fn)`:
     ``fn(message, t)`` gets every complete `Message` but its own.
@@ -208,7 +257,10 @@ class CanBus:
     or lost, and a transfer with a lost frame never completes. Between the nodes of this process the
     message is handed on as its field values at the end of its last frame, without a byte-level round
     trip; its frames are encoded by dronecan whenever they leave for a real bus (``bridge``), and frames
-    from a real bus are reassembled and decoded by dronecan's transport."""
+    from a real bus are reassembled and decoded by dronecan's transport.
+
+    Its state is the compiled model's arrays (`emulator.esc_bus_kernels`): ``wire``, ``queue`` and the
+    nodes' (none until an `EscBus` puts its own there)."""
 
     def __init__(self, config: EscBusConfig, rng: np.random.Generator, bridge: Bridge | None = None) -> None:
         from dronecan.transport import TransferManager
@@ -216,28 +268,85 @@ class CanBus:
         self.config = config
         self.rng = rng
         self.bridge = bridge
-        self.stats = BusStats()
-        self._bit_s = 1.0 / config.bitrate_bps
-        self._free_s = 0.0  # the wire is busy until then
-        #: (done_s, seq, message or None, frames for a real bus or to reassemble, frames delivered)
-        self._queue: list[tuple[float, int, Message | None, list[tuple[int, bytes]], int]] = []
-        self._seq = 0
+        self.wire, self.queue = k.new_wire()
+        w = self.wire
+        w[k.W_BIT_S] = 1.0 / config.bitrate_bps
+        w[k.W_LOSS], w[k.W_CORRUPTION] = config.loss, config.corruption
+        w[k.W_BRIDGE] = bridge is not None
+        self.draws = rng.random(DRAW_BLOCK)
+        # the compiled nodes: none on a bare bus (an `EscBus` puts its FC and ESCs here)
+        self.escs = np.zeros((0, k.E_SIZE))
+        self.health = np.zeros((0, k.H_SIZE))
+        self.fc = np.zeros(k.F_SIZE)
+        self.fc[k.F_NODE] = -1.0
+        self.fc[k.F_NODES_DUE_S] = math.inf
+        self.events = np.zeros((k.EVENT_ROWS, 4))
+        self.throttle = np.zeros(4)
+        self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
+        types = _kind_types()
+        self._kinds = {dtype: i for i, dtype in enumerate(types)}
+        self.layouts = np.zeros((k.N_KINDS, k.MAX_FRAMES), dtype=np.int64)
+        self.n_frames = np.zeros(k.N_KINDS, dtype=np.int64)
+        for i, dtype in enumerate(types):
+            cut = self._frame_lengths(Message(dtype, 1, _fields_of(i, _payload_of(i, {"cmd": [0] * 4}))), 8)
+            self.layouts[i, :len(cut)] = cut
+            self.n_frames[i] = len(cut)
+        self.node_ids: set[int] = set()  # the compiled nodes' ids
+        #: what the compiled nodes say through the FC: rows (code, ESC index, value, t), see `EscBus`
+        self.on_events: Callable[[np.ndarray], None] = lambda rows: None
+        self._python: dict[int, tuple[Message | None, list[tuple[int, bytes]]]] = {}  # by sequence number
+        self._row = np.zeros(k.Q_SIZE)
         self._rx = TransferManager()
         self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
         self._by_type: dict[Any, list[tuple[int, Callable[[Message, float], None]]]] = {}  # (from _routes)
-        self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
-        self.bus_off_until_s = -math.inf
-        self.extra_loss = 0.0  # frames lost on top of ``config.loss`` (a fault), the larger counts
-        self.start_s: float | None = None
+
+    # the wire's settings and counters, as the arrays hold them
+    @property
+    def stats(self) -> BusStats:
+        w = self.wire
+        return BusStats(frames=int(w[k.W_FRAMES]), bits=int(w[k.W_BITS]), busy_s=float(w[k.W_BUSY_S]),
+                        lost=int(w[k.W_LOST]), error_frames=int(w[k.W_ERROR_FRAMES]),
+                        bus_off_dropped=int(w[k.W_BUS_OFF_DROPPED]), external_in=int(w[k.W_EXTERNAL_IN]),
+                        external_out=int(w[k.W_EXTERNAL_OUT]))
+
+    bus_off_until_s = _Slot("wire", k.W_BUS_OFF_UNTIL_S,
+                            "frames sent before this time (s) are dropped (a bus-off window)")
+    extra_loss = _Slot("wire", k.W_EXTRA_LOSS,
+                       "frames lost on top of ``config.loss`` (a fault), the larger counts")
+
+    @property
+    def start_s(self) -> float | None:
+        """When the first frame was sent (s), None before."""
+        s = float(self.wire[k.W_START_S])
+        return None if math.isnan(s) else s
 
     def attach(self, node_id: int, on_message: Callable[[Message, float], None],
                dtypes: tuple[Any, ...] | None = None) -> None:
         """``on_message(message, t)`` gets the messages of ``dtypes`` (None: of every type) but its own."""
         self._routes.append((node_id, on_message, dtypes))
         self._by_type.clear()
+        for dtype, kind in self._kinds.items():
+            if dtypes is None or dtype in dtypes:
+                self.wire[k.W_LISTEN + kind] = 1.0
 
     def next_event_s(self) -> float:
-        return self._queue[0][0] if self._queue else math.inf
+        return k.next_event_s(self.wire, self.queue, self.fc)
+
+    def ready(self, transfers: int = k.QUEUE_RESERVE) -> None:
+        """Room for ``transfers`` more in the queue and the draws a compiled call may use."""
+        w = self.wire
+        at = int(w[k.W_DRAW_AT])
+        if at > len(self.draws) - k.DRAW_RESERVE:
+            self.draws = np.concatenate([self.draws[at:], self.rng.random(DRAW_BLOCK)])
+            w[k.W_DRAW_AT] = 0.0
+        count, cap = int(w[k.W_COUNT]), len(self.queue)
+        if count + transfers > cap:  # (a bus past its capacity: the queue grows, in order)
+            head = int(w[k.W_HEAD])
+            order = (head + np.arange(count)) % cap
+            grown = np.zeros((2 * (count + transfers), k.Q_SIZE))
+            grown[:count] = self.queue[order]
+            self.queue = grown
+            w[k.W_HEAD] = 0.0
 
     def send(self, message: Message, transfer_id: int, priority: int, t: float) -> None:
         """Put ``message`` on the bus at ``t`` (s): its frames queue for the wire."""
@@ -247,7 +356,19 @@ class CanBus:
         else:
             frames = []
             lengths = self._frame_lengths(message, priority)
-        self._queue_transfer(message, frames, lengths, t)
+        self._queue_python(message, frames, lengths, transfer_id, priority, t)
+
+    def _queue_python(self, message: Message | None, frames: list[tuple[int, bytes]],
+                      lengths: tuple[int, ...], transfer_id: int, priority: int, t: float) -> None:
+        if len(lengths) > k.MAX_FRAMES:
+            raise ValueError(f"a transfer of {len(lengths)} frames: the bus model takes at most "
+                             f"{k.MAX_FRAMES}")
+        self.ready(1)
+        src = message.source_node_id if message is not None else frames[0][0] & 0x7F
+        seq = k.queue_transfer(self.wire, self.queue, self.draws, k.PYTHON, src, transfer_id, priority,
+                               self._row[:0], np.asarray(lengths, dtype=np.int64), len(lengths), t)
+        if seq >= 0:
+            self._python[seq] = (message, frames)
 
     def _frame_lengths(self, message: Message, priority: int) -> tuple[int, ...]:
         """Data bytes of each frame of ``message`` (dronecan's cut, worked out once per type, priority
@@ -259,71 +380,61 @@ class CanBus:
             lengths = self._layouts[key] = tuple(len(data) for _, data in message.encode(0, priority))
         return lengths
 
-    def _queue_transfer(self, message: Message | None, frames: list[tuple[int, bytes]],
-                        lengths: tuple[int, ...], t: float) -> None:
-        """Queue the frames of one transfer (``message`` None: a frame from the real bus, in ``frames``)
-        from ``t`` (s), in order, behind what the wire already carries."""
-        if self.start_s is None:
-            self.start_s = t
-        cfg, st = self.config, self.stats
-        if t < self.bus_off_until_s:
-            st.bus_off_dropped += len(lengths)
-            return
-        loss = cfg.loss if cfg.loss > self.extra_loss else self.extra_loss
-        start = max(t, self._free_s)
-        kept: list[tuple[int, bytes]] = []  # the frames not lost, when they have bytes
-        n_kept = 0
-        for i, n in enumerate(lengths):
-            bits = frame_bits(n)
-            while cfg.corruption > 0 and self.rng.random() < cfg.corruption:  # error frame, then resent
-                st.error_frames += 1
-                start += (bits // 2 + ERROR_FRAME_BITS) * self._bit_s
-            done = start + bits * self._bit_s
-            st.bits += bits
-            st.busy_s += done - start
-            start = done
-            if loss > 0 and self.rng.random() < loss:
-                st.lost += 1
-                continue
-            n_kept += 1
-            if frames:
-                kept.append(frames[i])
-        self._free_s = start
-        if n_kept:  # (a transfer short of a frame never completes: its other frames still pass)
-            self._seq += 1
-            complete = n_kept == len(lengths)
-            heapq.heappush(self._queue, (start, self._seq, message if complete else None, kept, n_kept))
-
     def take_external(self, t: float) -> None:
         """Put what the real bus brought on the wire at ``t`` (s)."""
         if self.bridge is None:
             return
         for can_id, data in self.bridge.receive():
             if self._from_outside(can_id & 0x7F):  # (a multicast bus hands back what this process sent)
-                self.stats.external_in += 1
-                self._queue_transfer(None, [(can_id, data)], (len(data),), t)
+                self.wire[k.W_EXTERNAL_IN] += 1
+                self._queue_python(None, [(can_id, data)], (len(data),), 0, 0, t)
 
     def advance_to(self, t: float) -> None:
         """Deliver every transfer whose frames are off the wire by ``t`` (s)."""
-        q = self._queue
-        while q and q[0][0] <= t + 1e-12:
-            done, _, message, frames, n = heapq.heappop(q)
-            self.stats.frames += n
-            if message is not None:  # ours, complete
-                self._send_out(frames)
-                self._hand_out(message, done)
-            elif frames and self._from_outside(frames[0][0] & 0x7F):  # a frame from the real bus
+        while k.deliver(self.wire, self.queue, self.escs, self.health, self.fc, self.events, self.throttle,
+                        t):
+            self.deliver_head()
+        self.flush_events()
+
+    def deliver_head(self) -> None:
+        """Deliver the transfer at the head of the queue through Python: one the compiled nodes cannot
+        take alone (a message from Python, a frame from a real bus, a real bus or a listener to serve)."""
+        row = self._row
+        k.pop_head(self.wire, self.queue, row)
+        kind, src, done = int(row[k.Q_KIND]), int(row[k.Q_SRC]), float(row[k.Q_DONE_S])
+        mask = int(row[k.Q_MASK])
+        frames: list[tuple[int, bytes]] | None
+        if kind == k.PYTHON:
+            message, frames = self._python.pop(int(row[k.Q_SEQ]))
+        else:
+            dtype = _kind_types()[kind]
+            message, frames = Message(dtype, src, _fields_of(kind, row[k.Q_PAYLOAD:])), None
+        if message is None:  # a frame from the real bus
+            if frames and self._from_outside(frames[0][0] & 0x7F):
                 got = self._reassemble(*frames[0])
                 if got is not None:
                     self._hand_out(got, done)
-            else:  # what was left of one of ours
-                self._send_out(frames)
+            return
+        if self.bridge is not None:
+            if frames is None:
+                frames = message.encode(int(row[k.Q_TID]), int(row[k.Q_PRIORITY]))
+            self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
+        if row[k.Q_KEPT] == row[k.Q_FRAMES]:
+            self._hand_out(message, done)
+
+    def flush_events(self) -> None:
+        """Hand what the compiled nodes have to say to ``on_events``."""
+        n = int(self.fc[k.F_EVENTS])
+        if n:
+            rows = self.events[:n].copy()
+            self.fc[k.F_EVENTS] = 0.0
+            self.on_events(rows)
 
     def _send_out(self, frames: list[tuple[int, bytes]]) -> None:
         if self.bridge is not None:
             for can_id, data in frames:
                 self.bridge.send(can_id, data)
-            self.stats.external_out += len(frames)
+            self.wire[k.W_EXTERNAL_OUT] += len(frames)
 
     def _reassemble(self, can_id: int, data: bytes) -> Message | None:
         from dronecan.transport import Frame, Transfer
@@ -339,109 +450,55 @@ class CanBus:
         return Message.decoded(tr)
 
     def _from_outside(self, src: int) -> bool:
-        return all(src != nid for nid, _, _ in self._routes)
+        return src not in self.node_ids and all(src != nid for nid, _, _ in self._routes)
 
     def _hand_out(self, message: Message, t: float) -> None:
+        src = message.source_node_id
+        kind = self._kinds.get(message.dtype)
+        if kind is not None and self.fc[k.F_NODE] >= 0:  # this process's compiled nodes
+            k.hand_to_nodes(self.escs, self.health, self.fc, self.events, self.throttle, kind, src,
+                            _payload_of(kind, message.fields), t)
         receivers = self._by_type.get(message.dtype)
         if receivers is None:
             receivers = self._by_type[message.dtype] = [
                 (nid, fn) for nid, fn, dtypes in self._routes if dtypes is None or message.dtype in dtypes]
-        src = message.source_node_id
         for nid, on_message in receivers:
             if nid != src:
                 on_message(message, t)
 
     def load(self, now_s: float) -> float:
         """Fraction of the time since the first frame the wire was busy."""
-        if self.start_s is None or now_s <= self.start_s:
+        start = self.start_s
+        if start is None or now_s <= start:
             return 0.0
-        return self.stats.busy_s / (now_s - self.start_s)
+        return float(self.wire[k.W_BUSY_S]) / (now_s - start)
 
     def close(self) -> None:
         if self.bridge is not None:
             self.bridge.close()
 
 
-class _Node:
-    """A DroneCAN node's own bookkeeping: its id, transfer ids by type, its NodeStatus."""
+class EmulatedEsc:
+    """One ESC node (a view of its row in the bus's arrays): takes channel ``index`` of each RawCommand,
+    holds its motor's throttle there, and reports esc.Status (rpm from the physics' rotor speed)."""
 
-    def __init__(self, bus: CanBus, node_id: int, t0: float) -> None:
-        self.bus, self.node_id = bus, node_id
-        self._tid: dict[int, int] = {}
-        self.t0 = t0
-        self.next_node_status_s = t0
-        self.health = HEALTH_OK
+    def __init__(self, bus: CanBus, row: int) -> None:
+        self._e = bus.escs[row]
+        self.index, self.node_id = int(self._e[k.E_INDEX]), int(self._e[k.E_NODE])
 
-    def broadcast(self, dtype: Any, fields: dict[str, Any], t: float, priority: int = 16) -> None:
-        key = dtype.default_dtid
-        tid = self._tid.get(key, 0)
-        self._tid[key] = (tid + 1) & 31
-        self.bus.send(Message(dtype, self.node_id, fields), tid, priority, t)
+    @property
+    def silent(self) -> bool:
+        """esc_silent: answers nothing and stops its motor."""
+        return bool(self._e[k.E_SILENT])
 
-    def node_status(self, t: float) -> None:
-        while t >= self.next_node_status_s - 1e-12:
-            from dronecan import uavcan
+    @property
+    def error_count(self) -> int:
+        """Commands it timed out on."""
+        return int(self._e[k.E_ERRORS])
 
-            self.broadcast(uavcan.protocol.NodeStatus, {
-                "uptime_sec": int(t - self.t0), "health": self.health, "mode": MODE_OPERATIONAL,
-                "sub_mode": 0, "vendor_specific_status_code": 0}, t, priority=24)
-            self.next_node_status_s += NODE_STATUS_PERIOD_S
-
-
-class EmulatedEsc(_Node):
-    """One ESC node: takes channel ``index`` of each RawCommand, holds its motor's throttle there, and
-    reports esc.Status (rpm from the physics' rotor speed)."""
-
-    def __init__(self, bus: CanBus, node_id: int, index: int, throttle: np.ndarray, t0: float) -> None:
-        super().__init__(bus, node_id, t0)
-        self.index, self.throttle = index, throttle
-        self.silent = False  # esc_silent: answers nothing and stops its motor
-        self.last_command_s = -math.inf
-        self.error_count = 0  # commands it timed out on
-        self.next_status_s = t0 + index * 1e-4  # (the four ESCs a little apart on the wire)
-        self.period_s = 1.0 / bus.config.status_rate_hz
-        from dronecan import uavcan
-
-        self._raw_command_type = uavcan.equipment.esc.RawCommand
-        self._status_type = uavcan.equipment.esc.Status
-        bus.attach(node_id, self.on_message, (self._raw_command_type,))
-
-    def due_s(self) -> float:
-        """When `poll` has something to do next (s): a status, a NodeStatus, or the command timeout."""
-        due = self.next_status_s if self.next_status_s < self.next_node_status_s else self.next_node_status_s
-        if self.throttle[self.index] != 0.0 and self.last_command_s + ESC_COMMAND_TIMEOUT_S < due:
-            due = self.last_command_s + ESC_COMMAND_TIMEOUT_S
-        return due
-
-    def on_message(self, msg: Message, t: float) -> None:
-        if self.silent or msg.dtype is not self._raw_command_type:
-            return
-        cmd = msg.fields["cmd"]
-        if self.index < len(cmd):
-            self.throttle[self.index] = max(0, int(cmd[self.index])) / RAW_COMMAND_MAX
-            self.last_command_s = t
-
-    def poll(self, t: float, rotor_speed_rad_s: float) -> None:
-        if self.silent:  # its slots pass unused (a stepper waits for the next one, not for this one)
-            self.throttle[self.index] = 0.0
-            while t >= self.next_status_s - 1e-12:
-                self.next_status_s += self.period_s
-            while t >= self.next_node_status_s - 1e-12:
-                self.next_node_status_s += NODE_STATUS_PERIOD_S
-            return
-        if t - self.last_command_s > ESC_COMMAND_TIMEOUT_S and self.throttle[self.index] != 0.0:
-            self.throttle[self.index] = 0.0  # the command stream stopped: the motor stops
-            self.error_count += 1
-        self.node_status(t)
-        if t >= self.next_status_s - 1e-12:
-            u = float(self.throttle[self.index])
-            self.broadcast(self._status_type, {
-                "error_count": self.error_count, "voltage": 15.2 - 1.2 * u, "current": 25.0 * u**1.5,
-                "temperature": 300.0 + 40.0 * u, "rpm": int(rotor_speed_rad_s * 60.0 / (2.0 * math.pi)),
-                "power_rating_pct": round(100 * u), "esc_index": self.index}, t)
-            self.next_status_s += self.period_s
-            if self.next_status_s <= t:
-                self.next_status_s = t + self.period_s
+    @property
+    def last_command_s(self) -> float:
+        return float(self._e[k.E_LAST_COMMAND_S])
 
 
 @dataclass
@@ -457,65 +514,37 @@ class EscHealth:
     failed: bool = False
 
 
-class FcEscNode(_Node):
-    """The FC's node: RawCommand from the FC's motor outputs at the motor rate, NodeStatus, and the
-    watch over each ESC's esc.Status (silent past the timeout, or counting errors: reported by
-    ``report(severity, text, t)``, and the failsafe when configured)."""
+class FcEscNode:
+    """The FC's node (a view of the bus's arrays): RawCommand from the FC's motor outputs at the motor
+    rate, NodeStatus, and the watch over each ESC's esc.Status (silent past the timeout, or counting
+    errors: reported, and the failsafe when configured; see `EscBus`)."""
 
-    def __init__(self, bus: CanBus, config: EscBusConfig, t0: float,
-                 report: Callable[[str, str, float], None], failsafe: Callable[[str, float], None]) -> None:
-        super().__init__(bus, config.fc_node_id, t0)
-        self.config = config
-        self.report, self.failsafe = report, failsafe
-        self.escs = [EscHealth(last_status_s=t0) for _ in config.esc_node_ids]
-        from dronecan import uavcan
+    def __init__(self, bus: CanBus, config: EscBusConfig) -> None:
+        self.bus, self.config = bus, config
+        self.node_id = config.fc_node_id
 
-        self._raw_command_type = uavcan.equipment.esc.RawCommand
-        self._status_type = uavcan.equipment.esc.Status
-        self.commands_sent = 0
-        bus.attach(self.node_id, self.on_message, (self._status_type,))
+    @property
+    def escs(self) -> list[EscHealth]:
+        """A snapshot of what it knows of each ESC."""
+        return [EscHealth(float(h[k.H_LAST_S]), int(h[k.H_ERRORS]), int(h[k.H_RPM]), float(h[k.H_VOLTAGE_V]),
+                          float(h[k.H_CURRENT_A]), float(h[k.H_TEMPERATURE_K]), bool(h[k.H_FAILED]))
+                for h in self.bus.health]
 
-    def due_s(self) -> float:
-        """When `poll` has something to do next (s): its NodeStatus or an ESC's status timeout."""
-        due = self.next_node_status_s
-        timeout = self.config.status_timeout_s
-        for h in self.escs:
-            if not h.failed and h.last_status_s + timeout < due:
-                due = h.last_status_s + timeout
-        return due
+    @property
+    def commands_sent(self) -> int:
+        return int(self.bus.fc[k.F_COMMANDS])
+
+    @property
+    def health(self) -> int:
+        """Its NodeStatus health (`HEALTH_OK`, `HEALTH_CRITICAL`)."""
+        return int(self.bus.fc[k.F_HEALTH])
 
     def send_command(self, throttles: np.ndarray | Sequence[float], t: float) -> None:
-        values = throttles.tolist() if isinstance(throttles, np.ndarray) else throttles
-        cmd = [min(RAW_COMMAND_MAX, max(0, round(u * RAW_COMMAND_MAX))) for u in values]
-        self.broadcast(self._raw_command_type, {"cmd": cmd}, t, priority=8)
-        self.commands_sent += 1
-
-    def on_message(self, msg: Message, t: float) -> None:
-        p = msg.fields
-        if msg.dtype is not self._status_type or not 0 <= p["esc_index"] < len(self.escs):
-            return
-        index, errors = p["esc_index"], p["error_count"]
-        h = self.escs[index]
-        if errors > h.error_count:
-            self.report("warning", f"ESC {index} errors: {errors}", t)
-        h.last_status_s, h.error_count, h.rpm = t, errors, p["rpm"]
-        h.voltage_v, h.current_a, h.temperature_k = p["voltage"], p["current"], p["temperature"]
-        if h.failed:
-            h.failed = False
-            self.report("info", f"ESC {index} answers again", t)
-            if not any(e.failed for e in self.escs):
-                self.health = HEALTH_OK
-
-    def poll(self, t: float, armed: bool) -> None:
-        self.node_status(t)
-        timeout = self.config.status_timeout_s
-        for i, h in enumerate(self.escs):
-            if not h.failed and t - h.last_status_s > timeout:
-                h.failed = True
-                self.health = HEALTH_CRITICAL
-                self.report("critical", f"ESC {i} silent for {timeout:g} s", t)
-                if armed and self.config.failsafe_action != "report":
-                    self.failsafe(self.config.failsafe_action, t)
+        """RawCommand from the motor outputs ``throttles`` (4,) in [0, 1] at ``t`` (s)."""
+        b = self.bus
+        b.ready()
+        k.send_command(b.wire, b.queue, b.draws, b.layouts, b.n_frames, b.fc,
+                       np.asarray(throttles, dtype=np.float64), t)
 
 
 class EscBus:
@@ -525,54 +554,93 @@ class EscBus:
                  report: Callable[[str, str, float], None], failsafe: Callable[[str, float], None],
                  bridge: Bridge | None = None) -> None:
         self.config = config
-        self.bus = CanBus(config, rng, bridge)
-        self.throttle = np.zeros(len(config.esc_node_ids))  # what each ESC drives its motor at (0..1)
-        self.fc_node = FcEscNode(self.bus, config, t0, report, failsafe)
-        self.escs = {nid: EmulatedEsc(self.bus, nid, i, self.throttle, t0)
-                     for i, nid in enumerate(config.esc_node_ids) if nid not in config.external}
-        self._external_index = {config.esc_node_ids.index(nid) for nid in config.external}
-        self.max_rotor_speed_rad_s = 1.0
-        self._nodes_due_s = t0  # the earliest `due_s` of the nodes, as of the last poll
+        self.report, self.failsafe = report, failsafe
+        self.bus = b = CanBus(config, rng, bridge)
+        n = len(config.esc_node_ids)
+        b.escs, b.health = np.zeros((n, k.E_SIZE)), np.zeros((n, k.H_SIZE))
+        for i, nid in enumerate(config.esc_node_ids):
+            e = b.escs[i]
+            e[k.E_INDEX], e[k.E_NODE], e[k.E_EMULATED] = i, nid, nid not in config.external
+            e[k.E_LAST_COMMAND_S] = -math.inf
+            e[k.E_NEXT_STATUS_S] = t0 + i * 1e-4  # (the four ESCs a little apart on the wire)
+            e[k.E_NEXT_NODE_S] = e[k.E_T0] = t0
+            b.health[i, k.H_LAST_S] = t0
+        f = b.fc
+        f[k.F_NODE], f[k.F_T0], f[k.F_NEXT_NODE_S], f[k.F_NODES_DUE_S] = config.fc_node_id, t0, t0, t0
+        f[k.F_COMMAND_PERIOD_S] = 1.0 / config.command_rate_hz
+        f[k.F_STATUS_PERIOD_S] = 1.0 / config.status_rate_hz
+        f[k.F_MAX_ROTOR] = 1.0
+        self._configure_watch()
+        b.node_ids = {config.fc_node_id, *(nid for nid in config.esc_node_ids if nid not in config.external)}
+        b.on_events = self._on_events
+        self.throttle = b.throttle  # what each ESC drives its motor at (0..1)
+        self.fc_node = FcEscNode(b, config)
+        self.escs = {nid: EmulatedEsc(b, i) for i, nid in enumerate(config.esc_node_ids)
+                     if nid not in config.external}
+
+    def _configure_watch(self) -> None:
+        f = self.bus.fc
+        f[k.F_TIMEOUT_S] = self.config.status_timeout_s
+        f[k.F_ACTION] = ACTIONS.index(self.config.failsafe_action)
+
+    max_rotor_speed_rad_s = _Slot("bus.fc", k.F_MAX_ROTOR,
+                                  "the motors' top speed (rad/s): an outside ESC's rpm is read against it")
 
     def reconfigure(self, **changes: Any) -> None:
         """Change the FC's ESC watch in flight (``status_timeout_s``, ``failsafe_action``)."""
         self.config = replace(self.config, **changes)
         self.fc_node.config = self.config
-        self._nodes_due_s = -math.inf  # (poll at the next step)
+        self._configure_watch()
+        self.bus.fc[k.F_NODES_DUE_S] = -math.inf  # (poll at the next step)
+
+    def _on_events(self, rows: np.ndarray) -> None:
+        for code, index, value, t in rows.tolist():
+            i = int(index)
+            if code == k.EV_ERRORS:
+                self.report("warning", f"ESC {i} errors: {int(value)}", t)
+            elif code == k.EV_ANSWERS_AGAIN:
+                self.report("info", f"ESC {i} answers again", t)
+            elif code == k.EV_SILENT:
+                self.report("critical", f"ESC {i} silent for {value:g} s", t)
+            elif code == k.EV_FAILSAFE:
+                self.failsafe(ACTIONS[int(value)], t)
 
     def poll(self, t: float, rotor_speed_rad_s: np.ndarray, armed: bool) -> None:
         """Everything due by ``t`` (s): frames delivered, ESC reports, the FC's watch."""
-        self.bus.advance_to(t)  # (what it delivers only moves the nodes' times later)
-        fc = self.fc_node
-        if t >= self._nodes_due_s - 1e-12:
-            due = math.inf
-            for esc in self.escs.values():
-                d = esc.due_s()
-                if t >= d - 1e-12 or esc.silent:
-                    esc.poll(t, float(rotor_speed_rad_s[esc.index]))
-                    d = esc.due_s()
-                due = d if d < due else due
-            d = fc.due_s()
-            if t >= d - 1e-12:
-                fc.poll(t, armed)
-                d = fc.due_s()
-            self._nodes_due_s = d if d < due else due
-        for i in self._external_index:  # an outside ESC's motor follows the rpm it reports
-            w = fc.escs[i].rpm * 2.0 * math.pi / 60.0
-            self.throttle[i] = min(1.0, max(0.0, w / self.max_rotor_speed_rad_s) ** 2)
+        b = self.bus
+        rotor = np.asarray(rotor_speed_rad_s, dtype=np.float64)
+        while True:
+            b.ready()
+            why = k.poll(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
+                         b.throttle, rotor, t, armed)
+            if why == k.FOR_PYTHON:
+                b.deliver_head()
+                continue
+            b.flush_events()
+            return
+
+    def command(self, throttles: np.ndarray, t: float) -> None:
+        """The FC's motor tick at ``t`` (s) with its outputs ``throttles`` (4,): sent, the next tick
+        scheduled, what is due delivered."""
+        b = self.bus
+        b.ready()
+        why = k.command(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
+                        b.throttle, np.asarray(throttles, dtype=np.float64), t)
+        if why == k.FOR_PYTHON:
+            b.advance_to(t)
+        b.flush_events()
 
     def set_silent(self, esc_index: int, silent: bool) -> None:
-        for esc in self.escs.values():
-            if esc.index == esc_index:
-                esc.silent = silent
-        self._nodes_due_s = -math.inf  # (poll at the next step)
+        for e in self.bus.escs:
+            if e[k.E_INDEX] == esc_index and e[k.E_EMULATED] and bool(e[k.E_SILENT]) != silent:
+                e[k.E_SILENT] = silent
+                self.bus.fc[k.F_NODES_DUE_S] = -math.inf  # (poll at the next step)
 
     def next_event_s(self) -> float:
         """When the bus or a node next has something to do (s). The nodes' times are those of the last
         poll: a status coming in only moves the FC's watch later, and a command due at an ESC arrives
         on the bus, whose own time is always current."""
-        head = self.bus.next_event_s()
-        return head if head < self._nodes_due_s else self._nodes_due_s
+        return self.bus.next_event_s()
 
     def close(self) -> None:
         self.bus.close()
@@ -580,63 +648,115 @@ class EscBus:
 
 class EscBusStepper:
     """Steps an EmulatedVehicle with its motors behind an `EscBus`: the FC's loop at the motor rate
-    (its output sent as RawCommand), the physics at its own rate with each motor at its ESC's throttle."""
+    (its output sent as RawCommand), the physics at its own rate with each motor at its ESC's throttle.
+
+    One compiled loop (`esc_bus_kernels.run`) does it, the FC's motor ticks included while it flies an
+    offboard attitude target with nothing timed due (its inner loop on the state's rows, then
+    `stepped_outside`'s bookkeeping, as the lockstep runner's batched steps do); it hands back to
+    Python for the FC's own `update` on its other ticks, for what a real bus or a listener needs, and
+    for the FC's reports. On a backend other than the native one it hands back each physics stretch."""
 
     def __init__(self, vehicle: Any, esc: EscBus) -> None:
         self.vehicle, self.esc = vehicle, esc
-        self.period_s = 1.0 / esc.config.command_rate_hz
-        self.next_command_s = vehicle.time_s
+        b = esc.bus
+        b.fc[k.F_NEXT_COMMAND_S] = vehicle.time_s
         esc.max_rotor_speed_rad_s = vehicle.profile.max_rotor_speed_rad_s
-        self.fc_steps = 0
-        self.fc_quiet_steps = 0  # of them, those flown by the inner loop alone (see `_fc_throttles`)
-        self.physics_steps = 0
-        self.polls = 0  # times the bus and its nodes were polled (at their events only)
-        #: the native backend's state rows (`NativeBackend.kernel_arrays`), None on another backend
-        arrays = getattr(vehicle.backend, "kernel_arrays", None)
-        self._x = None if arrays is None else arrays[0]
+        #: the FC's quiet motor ticks in the compiled loop (False: every tick through its own update)
+        self.quiet_commands = True
+        #: the native backend's arrays (`NativeBackend.kernel_arrays`), None on another backend
+        self._arrays = getattr(vehicle.backend, "kernel_arrays", None)
+        self._target = np.zeros(k.T_SIZE)
+        self._none = np.zeros(0)
+        self.compile_kernels()
+
+    fc_steps = property(lambda self: int(self.esc.bus.fc[k.F_FC_STEPS]), doc="motor ticks of the FC")
+    fc_quiet_steps = property(lambda self: int(self.esc.bus.fc[k.F_QUIET_STEPS]),
+                              doc="of them, those flown by the inner loop alone")
+    physics_steps = property(lambda self: int(self.esc.bus.fc[k.F_PHYSICS_STEPS]))
+    polls = property(lambda self: int(self.esc.bus.fc[k.F_POLLS]),
+                     doc="times the bus and its nodes were polled (at their events only)")
+
+    def compile_kernels(self) -> None:
+        """Compile (or load from numba's cache) every kernel the steps may call, now rather than in
+        flight (a real-time loop), on copies: no state changes."""
+        b, v = self.esc.bus, self.vehicle
+        inner = v.fc.inner
+        wire, queue, fc = b.wire.copy(), b.queue.copy(), b.fc.copy()
+        escs, health, events, throttle = b.escs.copy(), b.health.copy(), b.events.copy(), b.throttle.copy()
+        x = v.state_vector()
+        aux, p = (self._arrays[1].copy(), self._arrays[2]) if self._arrays is not None else (x, x)
+        k.run(x, aux, p, self._arrays is not None, wire, queue, b.draws, escs, health, fc, events, b.layouts,
+              b.n_frames, throttle, self._target, inner.params, inner.mix_inv, inner.motor_cmd.copy(), 0, 0.0,
+              0, v.dt_s, False)
+        k.poll(wire, queue, b.draws, escs, health, fc, events, b.layouts, b.n_frames, throttle, x[13:17],
+               -1.0, False)
+        k.command(wire, queue, b.draws, escs, health, fc, events, b.layouts, b.n_frames, throttle,
+                  np.zeros(4), -1.0)
+        k.pop_head(wire, queue, np.zeros(k.Q_SIZE))
+        k.hand_to_nodes(escs, health, fc, events, throttle, k.RAW_COMMAND, -1.0, np.zeros(k.PAYLOAD), -1.0)
+        k.queue_transfer(wire, queue, b.draws, k.PYTHON, 0, 0, 0, self._none, np.zeros(1, dtype=np.int64), 1,
+                         -1.0)
+        k.next_event_s(wire, queue, fc)
+        k.deliver(wire, queue, escs, health, fc, events, throttle, -1.0)
+        k.send_command(wire, queue, b.draws, b.layouts, b.n_frames, fc, np.zeros(4), -1.0)
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
         v, esc = self.vehicle, self.esc
+        b = esc.bus
         fc, be, dt = v.fc, v.backend, v.dt_s
-        rotor = slice(13, 17)  # (`VehicleState.to_vector` layout: the rotor speeds)
-        esc.bus.take_external(v.time_s)  # (a real bus: read once per call, about once a millisecond)
+        f, tg = b.fc, self._target
+        inner = fc.inner
+        b.take_external(v.time_s)  # (a real bus: read once per call, about once a millisecond)
+        native = self._arrays is not None
+        b.ready()
+        armed = fc.state.armed
         while n_steps > 0:
-            t = v.time_s
-            event_s = esc.next_event_s()
-            if t >= event_s - 1e-9:
-                esc.poll(t, v.state_vector()[rotor], fc.state.armed)
-                self.polls += 1
-                event_s = esc.next_event_s()
-            if t >= self.next_command_s - 1e-9:
-                esc.fc_node.send_command(self._fc_throttles(t), t)
-                self.fc_steps += 1
-                self.next_command_s += self.period_s
-                if self.next_command_s <= t:
-                    self.next_command_s = t + self.period_s
-                esc.bus.advance_to(t)
-                event_s = esc.next_event_s()
-            until = min(self.next_command_s, event_s)
-            k = max(1, min(n_steps, math.ceil((until - t) / dt - 1e-6)))
-            be.step(esc.throttle, k)
-            v.invalidate_state()
-            v.steps += k
-            self.physics_steps += k
-            n_steps -= k
-
-    def _fc_throttles(self, t: float) -> np.ndarray:
-        """The FC's motor outputs at ``t`` (s). While it flies an offboard attitude target with no timed
-        change due (`FlightController.quiet_steps`), as the lockstep runner's batched steps do: its
-        inner loop on the state's rows, then `stepped_outside`'s bookkeeping; else its own `update`."""
-        v, x = self.vehicle, self._x
-        fc = v.fc
-        tg = fc.held_target()
-        if x is None or tg is None or fc.quiet_steps(t, v.dt_s, 1) < 1:
-            return fc.update(v.state)
-        out = fc.inner.update(x[6:10], x[10:13], tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n)
-        fc.stepped_outside(t, x.item(2), x.item(5))
-        self.fc_quiet_steps += 1
-        return out
+            held = fc.held_target() if self.quiet_commands and native else None
+            if held is None:
+                tg[k.T_ON] = 0.0
+            else:
+                tg[k.T_ROLL], tg[k.T_PITCH], tg[k.T_YAW] = held.roll_rad, held.pitch_rad, held.yaw_rad
+                tg[k.T_THRUST], tg[k.T_ON] = held.thrust_n, 1.0
+                tg[k.T_QUIET_UNTIL_S] = fc.quiet_until_s()
+            f[k.F_REST_Z], f[k.F_LANDED_MARGIN] = fc.rest_height_m, fc.config.landed_margin_m
+            if native:
+                x, aux, p = self._arrays
+                t0, steps0 = be.clock
+            else:
+                x = v.state_vector()
+                aux = p = x
+                t0, steps0 = v.time_s, 0
+            taken, why = k.run(x, aux, p, native, b.wire, b.queue, b.draws, b.escs, b.health, f, b.events,
+                               b.layouts, b.n_frames, b.throttle, tg, inner.params, inner.mix_inv,
+                               inner.motor_cmd, n_steps, t0, steps0, dt, armed)
+            if taken:
+                be.advance_clock(taken)
+                v.steps += taken
+                v.invalidate_state()
+                n_steps -= taken
+            if f[k.F_QUIETED]:
+                f[k.F_QUIETED] = 0.0
+                fc.stepped_outside(float(f[k.F_QUIET_T]), float(f[k.F_QUIET_Z]), float(f[k.F_QUIET_VZ]))
+            if why == k.DONE:
+                return
+            if why == k.FOR_PYTHON:
+                b.deliver_head()
+            elif why == k.EVENTS:
+                b.flush_events()
+                armed = fc.state.armed  # (a failsafe may have disarmed it)
+            elif why == k.COMMAND:
+                esc.command(fc.update(v.state), v.time_s)
+                armed = fc.state.armed
+            elif why == k.REFILL:
+                b.ready()
+            elif why == k.PHYSICS:
+                n = int(f[k.F_PENDING_STEPS])
+                be.step(b.throttle, n)
+                v.invalidate_state()
+                v.steps += n
+                f[k.F_PHYSICS_STEPS] += n
+                n_steps -= n
 
     def summary(self, now_s: float) -> dict[str, Any]:
         bus = self.esc.bus
@@ -650,7 +770,6 @@ class EscBusStepper:
                 for i, (nid, h) in enumerate(zip(self.esc.config.esc_node_ids, self.esc.fc_node.escs,
                                                  strict=True))],
         }
-
 
 
 _SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY

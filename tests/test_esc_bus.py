@@ -130,7 +130,7 @@ def test_the_fcs_quiet_motor_ticks_fly_as_its_own_update_does():
     for quiet in (True, False):
         b, stepper = flying_bench()
         if not quiet:
-            stepper._x = None  # every motor tick through the FC's own update
+            stepper.quiet_commands = False  # every motor tick through the FC's own update
         take_off(b)
         b.stream(0.3, thrust=HOVER)
         b.run(1.0)  # no setpoints: the failsafe
@@ -307,3 +307,28 @@ def test_garbage_from_a_real_bus_is_dropped_and_the_vehicle_flies_on():
     assert stepper.esc.bus.stats.external_in > 1500  # taken in, and dropped as they decode to nothing
     assert b.vehicle.fc.state is FcState.OFFBOARD and b.vehicle.state.pos_m[2] > z0 + 0.3
     np.testing.assert_allclose(stepper.esc.throttle, b.vehicle.fc.motor_cmd, atol=2.0 / RAW_COMMAND_MAX)
+
+
+def test_an_overloaded_bus_queues_its_frames_in_order_and_a_hopeless_frame_is_given_up():
+    # 10 kbit/s cannot carry RawCommand at 400 Hz and four esc.Status at 50 Hz (about 90 kbit/s): the
+    # frames queue behind each other far past the queue's first size, and arrive late, in order
+    b, stepper = flying_bench(EscBusConfig(bitrate_bps=10_000))
+    seen: list[tuple[float, list[int]]] = []
+    stepper.esc.bus.attach(99, lambda m, t: seen.append((t, list(m.fields["cmd"]))),
+                           (uavcan.equipment.esc.RawCommand,))
+    b.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    b.stream(1.0, thrust=0.5 * HOVER)
+    bus = stepper.esc.bus
+    assert len(bus.queue) > 256 and bus.load(b.clock.now_s()) > 0.99
+    times = [t for t, _ in seen]
+    assert times == sorted(times) and 0 < len(seen) < 0.5 * stepper.esc.fc_node.commands_sent
+    # a frame corrupted on every try: its transmitter gives it up (it would be bus-off) instead of the
+    # model resending it for ever
+    doomed = CanBus(EscBusConfig(corruption=0.999), np.random.default_rng(0))
+    got: list[Message] = []
+    doomed.attach(99, lambda m, t: got.append(m))
+    msg = Message(uavcan.equipment.esc.RawCommand, 10, {"cmd": [1, 2, 3, 4]})
+    for i in range(20):
+        doomed.send(msg, i, 8, i * 0.1)
+    doomed.advance_to(10.0)
+    assert doomed.stats.lost >= 15 and doomed.stats.error_frames >= 15 * 32 and len(got) <= 5

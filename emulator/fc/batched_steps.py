@@ -21,9 +21,10 @@ import numpy as np
 from numba import njit, prange
 
 from emulator.fc import EmulatedVehicle, FcState
-from emulator.fc.flight_controller import HOLD_STATES, LANDED_MAX_SPEED_M_S
+from emulator.fc.flight_controller import HOLD_STATES
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import control, control_quat, target_quat_floats
+from emulator.fc.landed import body_landed
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
@@ -73,10 +74,10 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 def _hold_batch(x, aux, p, hold, hold_params, gains, mix_inv, out, n_steps):  # pragma: no cover
     """Velocity-hold steps (`FlightController._velocity_hold` per step) until ``n_steps`` or the body
     would count as landed (`FlightController.detect_landed`); returns the steps taken. ``hold``: climb
-    rate (m/s, up), yaw (NED, rad), rest height (m), landed margin (m), landed speed (m/s)."""
-    climb, yaw, rest_z, margin, speed = hold[0], hold[1], hold[2], hold[3], hold[4]
+    rate (m/s, up), yaw (NED, rad), rest height (m), landed margin (m)."""
+    climb, yaw, rest_z, margin = hold[0], hold[1], hold[2], hold[3]
     for k in range(n_steps):
-        if x[2] - rest_z <= margin and abs(x[5]) < speed:
+        if body_landed(x[2], x[5], rest_z, margin):
             return k  # the FC would see the landing at this step: its own step takes over
         roll, pitch, thrust = hold_command(x[3], x[4], x[5], climb, yaw, hold_params)
         control(x[6:10], x[10:13], roll, pitch, yaw, thrust, gains, mix_inv, out)
@@ -92,7 +93,7 @@ class FastStepper:
         self.native = native
         self.batched_steps = 0
         self.single_steps = 0
-        self._hold = np.zeros(5)
+        self._hold = np.zeros(4)
         # the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner loop's), taken
         # once: they stay the same objects for the backend's life, and a tick batches several times
         if native:
@@ -150,7 +151,7 @@ class FastStepper:
         h = self._hold
         h[0] = fc.hold_climb_m_s()
         h[1] = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        h[2], h[3], h[4] = fc.rest_height_m, fc.config.landed_margin_m, LANDED_MAX_SPEED_M_S
+        h[2], h[3] = fc.rest_height_m, fc.config.landed_margin_m
         n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
             self._after_batch(n, detect_landed=False)

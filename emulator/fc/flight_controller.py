@@ -15,6 +15,7 @@ import numpy as np
 
 from emulator.fc.hold import hold_command, pack_hold
 from emulator.fc.inner_loop import InnerLoop
+from emulator.fc.landed import body_landed
 from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
 from emulator.fc.n3 import (
     AttitudeThrustTarget,
@@ -34,7 +35,6 @@ FAILSAFE_ACTIONS = ("hover", "land")
 #: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
 HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
-LANDED_MAX_SPEED_M_S = 0.3  # on the ground: near the resting height and climbing or sinking slower than this
 
 
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
@@ -299,15 +299,21 @@ class FlightController:
         """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed
         change of state (the setpoint-loss failsafe, the failsafe hover's end): steps that a batched
         stepper may fly without `update`'s checks. Landing and arming are not timed here."""
-        cfg, m = self.config, self.machine
-        if m.state is FcState.OFFBOARD:  # checked before each step, at the step's start time
-            room = self.last_setpoint_s + cfg.failsafe_timeout_s - time_s
-        elif m.state is FcState.FAILSAFE_HOVER:
-            room = m.since_s + cfg.failsafe_hover_s - time_s
-        else:
+        room = self.quiet_until_s() - time_s  # (checked before each step, at the step's start time)
+        if room == math.inf:
             return n_max
         n_ok = int(room / dt_s) if room > 0 else 0
         return n_max if n_max < n_ok else n_ok
+
+    def quiet_until_s(self) -> float:
+        """When the next timed change of state is due (s; inf: none): the setpoint-loss failsafe in
+        OFFBOARD, the failsafe hover's end (see `quiet_steps`)."""
+        cfg, m = self.config, self.machine
+        if m.state is FcState.OFFBOARD:
+            return self.last_setpoint_s + cfg.failsafe_timeout_s
+        if m.state is FcState.FAILSAFE_HOVER:
+            return m.since_s + cfg.failsafe_hover_s
+        return math.inf
 
     def stepped_outside(self, last_step_s: float, z_m: float, vz_m_s: float, detect_landed: bool = True
                         ) -> None:
@@ -343,8 +349,7 @@ class FlightController:
 
     def detect_landed(self, z_m: float, vz_m_s: float, t: float) -> None:
         """Update ``landed`` from the body height ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) at ``t``."""
-        near = z_m - self.rest_height_m <= self.config.landed_margin_m
-        landed = bool(near and abs(vz_m_s) < LANDED_MAX_SPEED_M_S)
+        landed = bool(body_landed(z_m, vz_m_s, self.rest_height_m, self.config.landed_margin_m))
         if landed and not self.landed:
             self._landed_since_s = t
         elif not landed:

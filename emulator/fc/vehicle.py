@@ -104,12 +104,14 @@ class EmulatedVehicle:
         otherwise stall for seconds in flight the first time the FC arms. Changes no state."""
         from emulator.fc.hold import hold_command
         from emulator.fc.inner_loop import control
+        from emulator.fc.landed import body_landed
         from emulator.physics.native import NativeBackend
 
         st, fc = self.state, self.fc
         inner = fc.inner
         control(st.quat_wxyz, st.omega_rad_s, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, np.zeros(4))
         hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params)
+        body_landed(0.0, 0.0, 0.0, 0.0)
         if isinstance(self.backend, NativeBackend):
             self.backend.step(np.zeros(4), 0)  # (no step: the state stays as it is)
 

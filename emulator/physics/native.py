@@ -131,6 +131,12 @@ class NativeBackend:
         (`emulator.fc.batched_steps`); it reports the steps it took with `advance_clock`."""
         return self._x, self._aux, self._params
 
+    @property
+    def clock(self) -> tuple[float, int]:
+        """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s``, for a compiled caller that keeps the time
+        of the steps it takes through `kernel_arrays`."""
+        return self._t0_s, self._steps
+
     def advance_clock(self, n_steps: int) -> None:
         """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
         self._steps += n_steps
@@ -210,6 +216,12 @@ class BatchPhysics:
         """`NativeBackend.kernel_arrays` of the batch: state rows (n, STATE_SIZE), auxiliary rows
         (n, AUX_SIZE), parameters; a caller reports the steps it took with `advance_clock`."""
         return self._x, self._aux, self._params
+
+    @property
+    def clock(self) -> tuple[float, int]:
+        """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s``, for a compiled caller that keeps the time
+        of the steps it takes through `kernel_arrays`."""
+        return self._t0_s, self._steps
 
     def advance_clock(self, n_steps: int) -> None:
         """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""

@@ -20,25 +20,23 @@ RUNS = 3  # runs of each stack; the figure is their median
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
-    from dronecan import uavcan
+    from emulator.esc_bus import EscBus, EscBusConfig
 
-    from emulator.esc_bus import CanBus, EscBusConfig, Message
-
-    bus = CanBus(EscBusConfig(), np.random.default_rng(0))
-    got: list[float] = []
-    bus.attach(99, lambda msg, t: got.append(t))
+    esc = EscBus(EscBusConfig(), np.random.default_rng(0), 0.0, lambda *a: None, lambda *a: None)
+    throttles = np.array([0.1, 0.2, 0.3, 0.4])
     clock = [0.0]
 
-    def one_frame() -> None:
+    def one_frame() -> None:  # the FC's node to the four ESC nodes, as in flight
         clock[0] += 1e-3
-        cmd = [1000, 2000, 3000, int(clock[0] * 1e3) & 0x1FFF]
-        bus.send(Message(uavcan.equipment.esc.RawCommand, 10, {"cmd": cmd}), int(clock[0] * 1e3) & 31, 8,
-                 clock[0])
-        bus.advance_to(clock[0] + 1e-3)
+        esc.fc_node.send_command(throttles, clock[0])
+        esc.bus.advance_to(clock[0] + 1e-3)
 
+    frames0 = esc.bus.stats.frames
     per_frame = time_per_call(one_frame, 0.2 if quick else 1.0)
+    if esc.bus.stats.frames == frames0 or not np.allclose(esc.throttle, throttles, atol=1e-3):
+        raise RuntimeError("bench: the RawCommands did not reach the ESC nodes")
     yield BenchRow("can_frames_per_s", 1.0 / per_frame, "frames/s",
-                   "RawCommand (one frame) through the bus model between nodes of one process")
+                   "RawCommand (one frame) from the FC's node to its four ESC nodes through the bus model")
     base = loads_scenarios(RTF_SCENARIO)[0]
     on_bus = replace(base, links=replace(base.links, esc_bus=EscBusSpec()))
     runs = 1 if quick else RUNS
