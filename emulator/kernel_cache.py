@@ -4,8 +4,9 @@ numba checks a cached kernel against the timestamp of its own source file only, 
 compiled with functions and constants of other modules inlined (the FC's fused loop calls the mixer, the
 physics and the world check). After a change to one of those alone (a `git pull` that touches the mixer),
 numba's own cache would go on flying the old code, silently. So the cache lives in a folder named by a
-digest of every source file of the package (and of the run recorder, which has kernels too): any change
-compiles afresh, once (about 10 s), and runs of one checkout share it. Folders of other digests that
+digest of every source file of the package (and of the modules outside it that have kernels or feed
+them, `_OTHER_SOURCES`): any change compiles afresh, once (about 10 s), and runs of one checkout share
+it. Folders of other digests that
 have not been used for a day are removed, beyond the few most recent.
 
 ``NUMBA_CACHE_DIR``, when set, is used as it is: the user's choice.
@@ -25,7 +26,10 @@ KEEP_OTHERS = 4
 STALE_AFTER_S = 86400.0
 
 _ROOT = Path(__file__).resolve().parent
-_OTHER_SOURCES = (_ROOT.parent / "hil" / "runner" / "recorder.py",)
+#: modules outside the package with kernels, or with plain functions compiled into kernels elsewhere
+_OTHER_SOURCES = tuple(_ROOT.parent / f for f in (
+    "hil/runner/recorder.py", "hil/rl/observe.py", "hil/rl/reward.py", "hil/rl/targets.py",
+    "hil/link/mavlink.py", "policies/learning/learned_pilots.py"))
 
 
 def sources_digest() -> str:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from numba import njit
+
 from emulator.profile import VehicleProfile
 
 # the control flag byte is the OPEN protocol's (`hil.link.dji_open` owns it)
@@ -87,13 +89,16 @@ def check_flag(flag: int) -> None:
         raise SetpointRejected("BODY frame unsupported with ANGLE, use GROUND")
 
 
+@njit(cache=True)
 def tilt_of(roll_rad: float, pitch_rad: float) -> float:
     """Angle between the body's thrust axis and the vertical for these Euler angles (rad)."""
     return math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
 
 
+@njit(cache=True)
 def limit_tilt(roll_rad: float, pitch_rad: float, max_tilt_rad: float) -> tuple[float, float]:
-    """Scale roll and pitch together so that the tilt stays within ``max_tilt_rad``."""
+    """Scale roll and pitch together so that the tilt stays within ``max_tilt_rad`` (compiled: the FC's
+    setpoint path and the RL environment's rows use it)."""
     if tilt_of(roll_rad, pitch_rad) <= max_tilt_rad:
         return roll_rad, pitch_rad
     lo, hi = 0.0, 1.0

@@ -105,6 +105,7 @@ class EmulatedVehicle:
         from emulator.fc.hold import hold_command
         from emulator.fc.inner_loop import control
         from emulator.fc.landed import body_landed
+        from emulator.fc.n3 import limit_tilt
         from emulator.physics.native import NativeBackend
 
         st, fc = self.state, self.fc
@@ -112,6 +113,7 @@ class EmulatedVehicle:
         control(st.quat_wxyz, st.omega_rad_s, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, np.zeros(4))
         hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params)
         body_landed(0.0, 0.0, 0.0, 0.0)
+        limit_tilt(0.0, 0.0, 1.0)
         if isinstance(self.backend, NativeBackend):
             self.backend.step(np.zeros(4), 0)  # (no step: the state stays as it is)
 

@@ -431,16 +431,6 @@ def euler_from_quat(q_wxyz: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
-def euler_from_quat_batch(q_wxyz: np.ndarray) -> np.ndarray:
-    """`euler_from_quat` of attitudes (N, 4): roll, pitch, yaw (rad) as (N, 3)."""
-    w, x, y, z = q_wxyz[:, 0], q_wxyz[:, 1], q_wxyz[:, 2], q_wxyz[:, 3]
-    out = np.empty((len(q_wxyz), 3))
-    out[:, 0] = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    out[:, 1] = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    out[:, 2] = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return out
-
-
 def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """(w, x, y, z) of aerospace Z-Y-X Euler angles (rad)."""
     return np.array(quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))

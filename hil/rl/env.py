@@ -39,15 +39,14 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from emulator.fc import EmulatedVehicle
 from emulator.fc.batched_steps import fly_targets
-from emulator.fc.n3 import limit_tilt
 from emulator.physics.native import BatchPhysics, hover_state
 from emulator.profile import load_profile
-from hil.link.mavlink import euler_from_quat_batch
+from hil.rl.observe import observe_rows
 from hil.rl.reward import REWARD_TERMS, pack_weights, score_rows
 from hil.rl.scenarios import CrossingPool, CrossingRanges, draw_crossings
+from hil.rl.targets import fc_targets
 from policies.controller import ExpertGains, expert_command_batch
 from policies.learning.features import CONTROLLER_MASS_KG, E2E_IN
-from policies.learning.learned_pilots import e2e_state_inputs
 from policies.onboard.program import ProgramConfig
 
 
@@ -149,7 +148,7 @@ class CrossGapCore:
         self._truncated = np.zeros(self.n, bool)
         self._success = np.zeros(self.n, bool)
         self._obs = np.zeros((self.n, E2E_IN))
-        self._zero3 = np.zeros((self.n, 3))  # the acceleration input (the pilot's default: zero)
+        self._all = np.arange(self.n)
         self._codes = np.zeros(self.n, np.int64)
         self.clearance_m = np.zeros(self.n)
         # each row's crossing, copied from the pool at its reset (no gather per step)
@@ -194,23 +193,16 @@ class CrossGapCore:
         self._prev_a[rows] = 0.0
         self._observe(rows)
 
-    def observations(self) -> np.ndarray:
-        """The current observations (N, 29), float32."""
-        return self._obs.astype(np.float32)
+    def observations(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """The current observations (N, 29) of ``rows`` (None: all), float32."""
+        return (self._obs if rows is None else self._obs[rows]).astype(np.float32)
 
-    def _observe(self, rows: np.ndarray | slice) -> None:
-        """The policy's inputs of ``rows`` from their state (see the module doc)."""
+    def _observe(self, rows: np.ndarray | None = None) -> None:
+        """The policy's inputs of ``rows`` (None: all) from their state (see the module doc)."""
         x, aux, _ = self.physics.kernel_arrays
-        h = self.config.lead_s
-        pos, vel, acc = x[rows, 0:3], x[rows, 3:6], aux[rows, 3:6]
-        pred_pos = self._pred_pos[rows] = pos + vel * h + acc * (0.5 * h * h)
-        pred_vel = self._pred_vel[rows] = vel + acc * h
-        obs = self._obs[rows]  # (a view of all rows, a copy of some)
-        e2e_state_inputs(pred_pos - self._row_start[rows], pred_vel, self._zero3[: len(pred_pos)],
-                         euler_from_quat_batch(x[rows, 6:10]), self._row_yaw[rows], obs)
-        obs[:, 12] = np.clip(self.tick[rows] * self.config.dt_s + h, 0.0, self._row_t_approach[rows])
-        if not isinstance(rows, slice):
-            self._obs[rows] = obs
+        observe_rows(x, aux, self._all if rows is None else rows, self.config.lead_s, self._row_start,
+                     self._row_yaw, self.tick, self.config.dt_s, self._row_t_approach, self._pred_pos,
+                     self._pred_vel, self._obs)
 
     # --- one control step -----------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -225,25 +217,16 @@ class CrossGapCore:
         if not np.isfinite(a).all():
             raise ValueError("actions must be finite (roll, pitch in rad, thrust in N)")
         cfg = self.config
-        roll, pitch, thrust = a[:, 0], a[:, 1], a[:, 2] * self._mass_scale
+        roll, pitch, thrust = a[:, 0].copy(), a[:, 1].copy(), a[:, 2] * self._mass_scale  # (contiguous)
         expert = np.flatnonzero(self.tick * cfg.dt_s + cfg.lead_s >= self._row_t_approach)  # the traverse
         if expert.size:  # the expert flies the traverse
             ref = self.pool.ref[self.which[expert], self.tick[expert]]
             er, ep, _, et = expert_command_batch(ref[:, 0:3], ref[:, 3:6], ref[:, 6:9], self._row_yaw[expert],
                                                  self._pred_pos[expert], self._pred_vel[expert],
                                                  self.profile.mass_kg, self._expert)
-            roll, pitch, thrust = roll.copy(), pitch.copy(), thrust.copy()
             roll[expert], pitch[expert], thrust[expert] = er, ep, et
-        tg = self._targets
-        # ENU command -> the FC's NED target (the command link's SET_ATTITUDE_TARGET, as the FC reads it)
-        np.clip(roll, -math.pi / 2, math.pi / 2, out=tg[:, 0])
-        np.clip(pitch, -math.pi / 2, math.pi / 2, out=tg[:, 1])
-        np.negative(tg[:, 1], out=tg[:, 1])
-        tg[:, 2] = self._row_ned_yaw
-        np.clip(thrust, 0.0, self._full, out=tg[:, 3])
-        over = np.flatnonzero(np.cos(tg[:, 0]) * np.cos(tg[:, 1]) < math.cos(self._max_tilt))
-        for i in over:  # rare: the FC scales roll and pitch back to its tilt limit
-            tg[i, 0], tg[i, 1] = limit_tilt(tg[i, 0], tg[i, 1], self._max_tilt)
+        tg = self._targets  # (the command link's SET_ATTITUDE_TARGET, as the FC reads it)
+        fc_targets(roll, pitch, thrust, self._row_ned_yaw, self._full, self._max_tilt, tg)
         x, aux, p = self.physics.kernel_arrays
         fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
                     self.pool.worlds, self.which, cfg.world_check == "physics", self._codes, self.clearance_m)
@@ -252,7 +235,7 @@ class CrossGapCore:
         score_rows(x, aux, self._weights, self._row_centre, self._row_dir, self.tick, self._row_steps,
                    self._codes, self.arrived, self._prev_w, self._prev_a, self._terms, self._reward,
                    self._terminated, self._truncated, self._success)
-        self._observe(slice(None))
+        self._observe()
         return (self._reward.copy(), self._terminated.copy(), self._truncated.copy(), self._terms.copy(),
                 self._success.copy())
 
@@ -296,7 +279,7 @@ class CrossGapVecEnv(VecEnv):
         infos: list[dict[str, Any]] = [self._empty] * self.num_envs
         rows = np.flatnonzero(done)
         if rows.size:
-            final = core.observations()[rows]
+            final = core.observations(rows)
             elapsed = round(time.time() - self._start, 6)
             for j, i in enumerate(rows.tolist()):
                 infos[i] = {"terminal_observation": final[j], "TimeLimit.truncated": bool(truncated[i]),

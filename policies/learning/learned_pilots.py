@@ -38,20 +38,27 @@ def approach_planner_inputs(plan: MissionPlan, t_s: float,
     return x, p0
 
 
+def e2e_state_row(px: float, py: float, pz: float, vx: float, vy: float, vz: float, ax: float, ay: float,
+                  az: float, roll: float, pitch: float, yaw: float, plan_yaw: float, out: np.ndarray) -> None:
+    """The end-to-end policy's first 12 inputs of one sample into ``out[0:12]``: position relative to the
+    approach start (m), velocity (m/s), acceleration (m/s^2), world ENU turned by -``plan_yaw`` (rad),
+    and the Euler angles (roll, pitch, yaw; rad) with the yaw taken relative to ``plan_yaw`` and wrapped
+    to [-pi, pi). Plain arithmetic on floats: the onboard program runs it as it is, the RL environment
+    compiled over its rows (`hil.rl.observe`), one definition."""
+    c, s = math.cos(plan_yaw), math.sin(plan_yaw)
+    out[0], out[1], out[2] = c * px + s * py, c * py - s * px, pz  # rot_z(-yaw) @ v
+    out[3], out[4], out[5] = c * vx + s * vy, c * vy - s * vx, vz
+    out[6], out[7], out[8] = c * ax + s * ay, c * ay - s * ax, az
+    out[9], out[10] = roll, pitch
+    out[11] = (yaw - plan_yaw + math.pi) % (2 * math.pi) - math.pi
+
+
 def e2e_state_inputs(pos_rel_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, euler_rad: np.ndarray,
-                     yaw_rad: np.ndarray | float, out: np.ndarray) -> np.ndarray:
-    """The end-to-end policy's first 12 inputs into ``out[..., 0:12]``: position relative to the approach
-    start (m), velocity (m/s), acceleration (m/s^2), each (..., 3) world ENU turned by -``yaw_rad`` (the
-    plan's yaw, (...) or a float), and the Euler angles (..., 3) (roll, pitch, yaw; rad) with the yaw
-    taken relative to ``yaw_rad`` and wrapped to [-pi, pi). One sample or a batch (the RL environment's)."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    for k, v in enumerate((pos_rel_m, vel_m_s, acc_m_s2)):
-        x, y = v[..., 0], v[..., 1]
-        out[..., 3 * k] = c * x + s * y  # rot_z(-yaw) @ v
-        out[..., 3 * k + 1] = c * y - s * x
-        out[..., 3 * k + 2] = v[..., 2]
-    out[..., 9:11] = euler_rad[..., 0:2]
-    out[..., 11] = (euler_rad[..., 2] - yaw_rad + math.pi) % (2 * math.pi) - math.pi
+                     yaw_rad: float, out: np.ndarray) -> np.ndarray:
+    """`e2e_state_row` of one sample given as (3,) arrays: position relative to the approach start (m),
+    velocity (m/s), acceleration (m/s^2), Euler angles (rad), the plan's yaw (rad); into ``out[0:12]``."""
+    p, v, a, e = (np.asarray(u, dtype=float).tolist() for u in (pos_rel_m, vel_m_s, acc_m_s2, euler_rad))
+    e2e_state_row(*p, *v, *a, *e, float(yaw_rad), out)
     return out
 
 
