@@ -391,10 +391,14 @@ class CanBus:
 
     def advance_to(self, t: float) -> None:
         """Deliver every transfer whose frames are off the wire by ``t`` (s)."""
-        while k.deliver(self.wire, self.queue, self.escs, self.health, self.fc, self.events, self.throttle,
-                        t):
-            self.deliver_head()
-        self.flush_events()
+        while True:
+            why = k.deliver(self.wire, self.queue, self.escs, self.health, self.fc, self.events,
+                            self.throttle, t)
+            self.flush_events()
+            if why == k.FOR_PYTHON:
+                self.deliver_head()
+            elif why != k.EVENTS:
+                return
 
     def deliver_head(self) -> None:
         """Deliver the transfer at the head of the queue through Python: one the compiled nodes cannot
@@ -458,6 +462,7 @@ class CanBus:
         if kind is not None and self.fc[k.F_NODE] >= 0:  # this process's compiled nodes
             k.hand_to_nodes(self.escs, self.health, self.fc, self.events, self.throttle, kind, src,
                             _payload_of(kind, message.fields), t)
+            self.flush_events()
         receivers = self._by_type.get(message.dtype)
         if receivers is None:
             receivers = self._by_type[message.dtype] = [
@@ -613,11 +618,11 @@ class EscBus:
             b.ready()
             why = k.poll(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
                          b.throttle, rotor, t, armed)
+            b.flush_events()
             if why == k.FOR_PYTHON:
                 b.deliver_head()
-                continue
-            b.flush_events()
-            return
+            elif why != k.EVENTS:  # (after events: on, until nothing is left due at t)
+                return
 
     def command(self, throttles: np.ndarray, t: float) -> None:
         """The FC's motor tick at ``t`` (s) with its outputs ``throttles`` (4,): sent, the next tick
@@ -626,9 +631,9 @@ class EscBus:
         b.ready()
         why = k.command(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
                         b.throttle, np.asarray(throttles, dtype=np.float64), t)
-        if why == k.FOR_PYTHON:
-            b.advance_to(t)
         b.flush_events()
+        if why != k.DONE:  # (a delivery for Python, or events taken before the rest is delivered)
+            b.advance_to(t)
 
     def set_silent(self, esc_index: int, silent: bool) -> None:
         for e in self.bus.escs:

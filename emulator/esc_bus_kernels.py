@@ -74,7 +74,11 @@ T_ROLL, T_PITCH, T_YAW, T_THRUST, T_QUIET_UNTIL_S, T_ON = range(6)
 T_SIZE = 6
 # events for the caller
 EV_ERRORS, EV_ANSWERS_AGAIN, EV_SILENT, EV_FAILSAFE = 1, 2, 3, 4
-EVENT_ROWS = 16
+EVENT_ROWS = 32
+#: events one poll of the nodes may add (the FC's watch: a report and a failsafe for each of 4 ESCs), and
+#: one delivery (a status: its errors and its answering again); deliveries stop for the caller to take
+#: the events before the rows could run out, so none is ever dropped
+EVENTS_A_POLL, EVENTS_A_DELIVERY = 8, 2
 #: draws and queue rows a caller keeps ready before a call: far more than one poll's frames can use
 DRAW_RESERVE = 2048
 QUEUE_RESERVE = 64
@@ -179,10 +183,9 @@ def pop_head(wire, queue, out):  # pragma: no cover
 
 @njit(cache=True)
 def _event(fc, events, code, index, value, t):  # pragma: no cover
-    k = int(fc[F_EVENTS])
-    if k < events.shape[0]:
-        events[k, 0], events[k, 1], events[k, 2], events[k, 3] = code, index, value, t
-        fc[F_EVENTS] = k + 1
+    k = int(fc[F_EVENTS])  # (room by construction: `deliver` stops while a poll's worth is left)
+    events[k, 0], events[k, 1], events[k, 2], events[k, 3] = code, index, value, t
+    fc[F_EVENTS] = k + 1
 
 
 @njit(cache=True)
@@ -240,20 +243,23 @@ def _needs_caller(wire, row):  # pragma: no cover
 
 @njit(cache=True)
 def deliver(wire, queue, escs, health, fc, events, throttle, t):  # pragma: no cover
-    """Hand on every transfer off the wire by ``t`` (s) to the compiled nodes; stops (True) at one the
-    caller must see first (`_needs_caller`: it pops that one itself)."""
+    """Hand on every transfer off the wire by ``t`` (s) to the compiled nodes. Returns `DONE`, or stops
+    for the caller: `FOR_PYTHON` at a transfer it must see first (`_needs_caller`: it pops that one
+    itself), `EVENTS` when the events must be taken before more can come."""
     tmp = np.empty(Q_SIZE)
     while wire[W_COUNT] > 0:
         row = queue[int(wire[W_HEAD])]
         if row[Q_DONE_S] > t + 1e-12:
-            return False
+            return DONE
         if _needs_caller(wire, row):
-            return True
+            return FOR_PYTHON
+        if fc[F_EVENTS] > EVENT_ROWS - EVENTS_A_POLL - EVENTS_A_DELIVERY:
+            return EVENTS
         pop_head(wire, queue, tmp)
         if tmp[Q_KEPT] == tmp[Q_FRAMES]:  # complete
             hand_to_nodes(escs, health, fc, events, throttle, int(tmp[Q_KIND]), tmp[Q_SRC],
                           tmp[Q_PAYLOAD:], tmp[Q_DONE_S])
-    return False
+    return DONE
 
 
 @njit(cache=True)
@@ -353,9 +359,10 @@ def poll(wire, queue, draws, escs, health, fc, events, layouts, n_frames, thrott
     """Everything due by ``t`` (s): transfers delivered, the nodes' reports, the FC's watch, the motors of
     ESCs outside this process (they follow the rpm they report). Returns `FOR_PYTHON` when a delivery
     waits for the caller (the nodes are polled after it, at the next call), `EVENTS` when the nodes
-    have something to say, else `DONE`."""
-    if deliver(wire, queue, escs, health, fc, events, throttle, t):
-        return FOR_PYTHON
+    have something to say (or must be heard before more is delivered), else `DONE`."""
+    why = deliver(wire, queue, escs, health, fc, events, throttle, t)
+    if why != DONE:
+        return why
     if t >= fc[F_NODES_DUE_S] - 1e-12:
         due = math.inf
         for r in range(escs.shape[0]):
@@ -414,14 +421,16 @@ def send_command(wire, queue, draws, layouts, n_frames, fc, throttles, t):  # pr
 def command(wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle, throttles,
             t):  # pragma: no cover
     """The FC's motor tick at ``t`` (s): its outputs ``throttles`` sent, its next tick scheduled, what is
-    due delivered. Returns `FOR_PYTHON` when a delivery waits for the caller, else `DONE`."""
+    due delivered. Returns what `deliver` stops for, `EVENTS` when the nodes have something to say, else
+    `DONE`."""
     send_command(wire, queue, draws, layouts, n_frames, fc, throttles, t)
     fc[F_FC_STEPS] += 1
     fc[F_NEXT_COMMAND_S] += fc[F_COMMAND_PERIOD_S]
     if fc[F_NEXT_COMMAND_S] <= t:
         fc[F_NEXT_COMMAND_S] = t + fc[F_COMMAND_PERIOD_S]
-    if deliver(wire, queue, escs, health, fc, events, throttle, t):
-        return FOR_PYTHON
+    why = deliver(wire, queue, escs, health, fc, events, throttle, t)
+    if why != DONE:
+        return why
     return EVENTS if fc[F_EVENTS] > 0 else DONE
 
 

@@ -332,3 +332,30 @@ def test_an_overloaded_bus_queues_its_frames_in_order_and_a_hopeless_frame_is_gi
         doomed.send(msg, i, 8, i * 0.1)
     doomed.advance_to(10.0)
     assert doomed.stats.lost >= 15 and doomed.stats.error_frames >= 15 * 32 and len(got) <= 5
+
+
+def test_every_report_of_a_busy_moment_reaches_the_fc_none_dropped():
+    """All four ESCs fall silent at once and then come back with rising error counts, their statuses
+    delivered together: each "silent", each failsafe request, each "errors" and "answers again" is
+    reported, in order, however many pile up at one instant."""
+    from emulator import esc_bus_kernels as k
+    from emulator.esc_bus import EscBus
+
+    said: list[tuple[str, str]] = []
+    esc = EscBus(EscBusConfig(failsafe_action="land"), np.random.default_rng(0), 0.0,
+                 lambda sev, text, t: said.append((sev, text)), lambda action, t: said.append(("fs", action)))
+    rotor = np.full(4, 500.0)
+    for i in range(4):
+        esc.set_silent(i, True)
+    esc.poll(0.5, rotor, armed=True)  # past the 0.1 s timeout for all four at once
+    assert [t for s, t in said if s == "critical"] == [f"ESC {i} silent for 0.1 s" for i in range(4)]
+    assert [t for s, t in said if s == "fs"] == ["land"] * 4
+    said.clear()
+    b = esc.bus
+    for n in range(30):  # thirty esc.Status on the wire at once, each with more errors (the compiled path)
+        p = np.array([1 + n, 15.0, 1.0, 300.0, 900, 10, n % 4, 0])
+        k.queue_transfer(b.wire, b.queue, b.draws, k.ESC_STATUS, 20 + n % 4, n & 31, 16, p,
+                         b.layouts[k.ESC_STATUS], b.n_frames[k.ESC_STATUS], 0.5)
+    b.advance_to(1.0)
+    assert [t for s, t in said if s == "info"] == [f"ESC {i} answers again" for i in range(4)]
+    assert [t for s, t in said if s == "warning"] == [f"ESC {n % 4} errors: {1 + n}" for n in range(30)]
