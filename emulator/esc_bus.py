@@ -32,56 +32,19 @@ from typing import Any
 import numpy as np
 
 from emulator import esc_bus_kernels as k
-from emulator.esc_bus_kernels import ACTIONS
+from emulator.esc_bus_config import ACTIONS
+from emulator.esc_bus_config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
+from emulator.esc_bus_config import EscBusConfig as EscBusConfig
 from emulator.esc_bus_kernels import ESC_COMMAND_TIMEOUT_S as ESC_COMMAND_TIMEOUT_S
 from emulator.esc_bus_kernels import NODE_STATUS_PERIOD_S as NODE_STATUS_PERIOD_S
 from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
 from emulator.esc_bus_kernels import frame_bits as frame_bits
 
-ESC_STATUS_RATE_HZ = 50.0  # how often each ESC reports esc.Status
 BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP]", "socketcan:IFACE", "mcast[:N]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
 HEALTH_OK, HEALTH_CRITICAL = k.HEALTH_OK, k.HEALTH_CRITICAL
 MODE_OPERATIONAL = 0
 DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
-
-
-@dataclass(frozen=True)
-class EscBusConfig:
-    """The ESC bus: its wire, its nodes and what the FC does about a failed ESC (SI units)."""
-
-    bitrate_bps: int = 1_000_000
-    command_rate_hz: float = 400.0  # RawCommand (and the FC's loop) rate
-    status_rate_hz: float = ESC_STATUS_RATE_HZ
-    fc_node_id: int = 10
-    esc_node_ids: tuple[int, ...] = (20, 21, 22, 23)  # ESC index i (the FC's motor i) is this node
-    #: ESC node ids served by a node outside this process (their motor follows its esc.Status rpm)
-    external: tuple[int, ...] = ()
-    loss: float = 0.0  # fraction of frames lost (never reach a receiver)
-    corruption: float = 0.0  # fraction of frames hit by a bit error (an error frame, then resent)
-    status_timeout_s: float = 0.1  # an ESC silent this long is reported failed
-    failsafe_action: str = "report"  # on a failed ESC: report, land or disarm
-
-    def __post_init__(self) -> None:
-        if not 10_000 <= self.bitrate_bps <= 1_000_000:
-            raise ValueError(f"ESC bus bitrate must be 10 kbit/s..1 Mbit/s, got {self.bitrate_bps}")
-        for name in ("command_rate_hz", "status_rate_hz", "status_timeout_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"EscBusConfig.{name} must be a positive number, got {v!r}")
-        for name in ("loss", "corruption"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0.0 <= v < 1.0):
-                raise ValueError(f"EscBusConfig.{name} must be in [0, 1), got {v!r}")
-        ids = (self.fc_node_id, *self.esc_node_ids)
-        if len(self.esc_node_ids) != 4 or len(set(ids)) != len(ids) or not all(1 <= i <= 127 for i in ids):
-            raise ValueError(f"node ids must be 1..127 and distinct, four ESCs: fc {self.fc_node_id}, "
-                             f"escs {self.esc_node_ids}")
-        for nid in self.external:
-            if nid not in self.esc_node_ids:
-                raise ValueError(f"external ESC node {nid} is none of the ESC node ids {self.esc_node_ids}")
-        if self.failsafe_action not in ACTIONS:
-            raise ValueError(f"failsafe_action must be report, land or disarm, got {self.failsafe_action!r}")
 
 
 @dataclass

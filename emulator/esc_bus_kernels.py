@@ -40,7 +40,6 @@ ERROR_FRAME_BITS = 20  # an error flag, its delimiter and the intermission
 #: error adds 8 to its transmit error count, 256 is bus-off); the frame counts as lost
 MAX_RESENDS = 32
 HEALTH_OK, HEALTH_CRITICAL = 0, 2  # uavcan.protocol.NodeStatus health
-ACTIONS = ("report", "land", "disarm")  # what the FC does about a failed ESC (``F_ACTION``)
 
 # message kinds
 RAW_COMMAND, ESC_STATUS, NODE_STATUS, PYTHON = 0, 1, 2, 3
@@ -63,7 +62,7 @@ E_SIZE = 12
 # what the FC knows of each ESC
 H_LAST_S, H_ERRORS, H_RPM, H_VOLTAGE_V, H_CURRENT_A, H_TEMPERATURE_K, H_FAILED = range(7)
 H_SIZE = 7
-# the FC's node, its command schedule and the stepper
+# the FC's node, its command schedule and the stepper (``F_ACTION``: an index of `esc_bus_config.ACTIONS`)
 (F_NODE, F_T0, F_NEXT_NODE_S, F_HEALTH, F_TID_RAW, F_TID_NODE, F_COMMANDS, F_TIMEOUT_S, F_ACTION,
  F_NODES_DUE_S, F_NEXT_COMMAND_S, F_COMMAND_PERIOD_S, F_STATUS_PERIOD_S, F_MAX_ROTOR, F_POLLS,
  F_FC_STEPS, F_QUIET_STEPS, F_PHYSICS_STEPS, F_EVENTS, F_QUIET_T, F_QUIET_Z, F_QUIET_VZ, F_QUIETED,
@@ -314,7 +313,9 @@ def esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w)
         u = throttle[i]
         p = np.zeros(PAYLOAD)
         p[0], p[1], p[2], p[3] = e[E_ERRORS], 15.2 - 1.2 * u, 25.0 * u**1.5, 300.0 + 40.0 * u
-        p[4], p[5], p[6] = int(rotor_w * 60.0 / (2.0 * math.pi)), np.rint(100 * u), i
+        rpm = rotor_w * 60.0 / (2.0 * math.pi)
+        p[4] = int(rpm) if abs(rpm) < 1e9 else 0  # (a diverged rotor: no number to report)
+        p[5], p[6] = np.rint(100 * u), i
         tid = int(e[E_TID_STATUS])
         _broadcast(wire, queue, draws, layouts, n_frames, ESC_STATUS, src, tid, 16, p, t)
         e[E_TID_STATUS] = (tid + 1) & 31

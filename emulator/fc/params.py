@@ -16,7 +16,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from emulator.esc_bus import EscBusConfig
+from emulator.esc_bus_config import EscBusConfig
 from emulator.fc.flight_controller import FcConfig, FlightController
 from hil.link.mavlink import mav
 
