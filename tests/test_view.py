@@ -273,3 +273,44 @@ def test_the_page_follows_each_scenario_of_a_file_live_in_turn(tmp_path):
         b.close()
         _stop(proc)
     assert {p.name for p in (tmp_path / "runs").iterdir()} == {"first", "second"}
+
+
+class _Scripted:
+    """A view source that says which run it is in each frame."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def scene(self) -> dict:
+        return {"title": self.name}
+
+    def frame(self) -> dict:
+        return {"t": 0.0, "run": self.name}
+
+
+def test_a_runs_stream_ends_when_it_ends_even_if_the_next_starts_at_once():
+    """The runner finishes one scenario and starts the next within microseconds: a page's stream of the
+    first ends with `done` and never carries the second's frames (under load it used to go on with
+    them, so the page showed the next run inside the last one's)."""
+    from hil.view.server import ViewServer
+
+    view = ViewServer(rate_hz=200.0)
+    host, port = view._httpd.server_address[:2]
+    try:
+        for _ in range(5):
+            view.live(_Scripted("first"))
+            got: list[bytes] = []
+            reader = threading.Thread(target=lambda out=got: out.append(
+                urllib.request.urlopen(f"http://{host}:{port}/stream", timeout=10).read()))
+            reader.start()
+            time.sleep(0.1)  # frames of the first run on the stream
+            view.finish(None)
+            view.live(_Scripted("second"))  # at once, in the same thread, as the runner does
+            reader.join(timeout=10)
+            assert not reader.is_alive(), "the stream did not end with its run"
+            body = got[0].decode()
+            assert '"run":"first"' in body and '"run":"second"' not in body
+            assert body.rstrip().endswith("event: done\ndata: {}")
+            view.finish(None)
+    finally:
+        view.close()

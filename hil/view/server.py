@@ -68,6 +68,7 @@ class ViewServer:
             self._source, self._done, self._replay, self._replay_dir = source, False, None, None
             self._frame, self._holding = None, False
             self._run += 1
+            self._cond.notify_all()  # (a page's stream of the run before ends now)
         self._sampler = threading.Thread(target=self._sample, args=(source,), name="hil-view-sampler",
                                          daemon=True)
         self._sampler.start()
@@ -149,16 +150,19 @@ class ViewServer:
         return data
 
     def _stream(self, write: Any) -> None:
+        """The frames of the run live when the page asked, ended by ``done`` when that run is over, also
+        when the next one has already started (a stream never goes on with another run's frames)."""
         seq = -1
+        with self._cond:
+            run = self._run
         while True:
             with self._cond:
-                self._cond.wait_for(lambda last=seq: self._seq != last or self._done, timeout=1.0)
-                if self._done:
-                    frame, seq = None, self._seq
-                else:
-                    frame, seq = self._frame, self._seq
+                self._cond.wait_for(lambda last=seq: self._seq != last or self._done or self._run != run,
+                                    timeout=1.0)
+                over = self._done or self._run != run
+                frame, seq = (None, self._seq) if over else (self._frame, self._seq)
             if frame is None:
-                if self._done:
+                if over:
                     write(b"event: done\ndata: {}\n\n")
                     return
                 write(b": keep-alive\n\n")
