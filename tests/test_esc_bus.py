@@ -359,3 +359,14 @@ def test_every_report_of_a_busy_moment_reaches_the_fc_none_dropped():
     b.advance_to(1.0)
     assert [t for s, t in said if s == "info"] == [f"ESC {i} answers again" for i in range(4)]
     assert [t for s, t in said if s == "warning"] == [f"ESC {n % 4} errors: {1 + n}" for n in range(30)]
+
+
+def test_a_non_finite_motor_output_goes_on_the_wire_as_a_defined_command():
+    # (a NaN out of a diverged controller must not become an undefined int14: off; +inf full, -inf off)
+    _, stepper = flying_bench()
+    seen: list[list[int]] = []
+    stepper.esc.bus.attach(99, lambda m, t: seen.append(list(m.fields["cmd"])),
+                           (uavcan.equipment.esc.RawCommand,))
+    stepper.esc.fc_node.send_command([math.nan, math.inf, -math.inf, 0.5], 50.0)
+    stepper.esc.bus.advance_to(51.0)
+    assert seen == [[0, RAW_COMMAND_MAX, 0, round(0.5 * RAW_COMMAND_MAX)]]
