@@ -35,14 +35,11 @@ from emulator import esc_bus_kernels as k
 from emulator.esc_bus_config import ACTIONS
 from emulator.esc_bus_config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
 from emulator.esc_bus_config import EscBusConfig as EscBusConfig
-from emulator.esc_bus_kernels import ESC_COMMAND_TIMEOUT_S as ESC_COMMAND_TIMEOUT_S
-from emulator.esc_bus_kernels import NODE_STATUS_PERIOD_S as NODE_STATUS_PERIOD_S
 from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
 from emulator.esc_bus_kernels import frame_bits as frame_bits
 
 BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP]", "socketcan:IFACE", "mcast[:N]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
-HEALTH_OK, HEALTH_CRITICAL = k.HEALTH_OK, k.HEALTH_CRITICAL
 MODE_OPERATIONAL = 0
 DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
 
@@ -185,14 +182,17 @@ def _kind_types() -> tuple[Any, Any, Any]:
     return uavcan.equipment.esc.RawCommand, uavcan.equipment.esc.Status, uavcan.protocol.NodeStatus
 
 
+#: esc.Status's fields in the order of an `ESC_STATUS` payload, each with its Python type
+STATUS_FIELDS = (("error_count", int), ("voltage", float), ("current", float), ("temperature", float),
+                 ("rpm", int), ("power_rating_pct", int), ("esc_index", int))
+
+
 def _fields_of(kind: int, p: np.ndarray) -> dict[str, Any]:
     """A compiled node's payload as the DSDL fields of its kind."""
     if kind == k.RAW_COMMAND:
         return {"cmd": [int(v) for v in p[:int(p[k.PAYLOAD - 1])]]}
     if kind == k.ESC_STATUS:
-        return {"error_count": int(p[0]), "voltage": float(p[1]), "current": float(p[2]),
-                "temperature": float(p[3]), "rpm": int(p[4]), "power_rating_pct": int(p[5]),
-                "esc_index": int(p[6])}
+        return {name: kind_of(p[i]) for i, (name, kind_of) in enumerate(STATUS_FIELDS)}
     return {"uptime_sec": int(p[0]), "health": int(p[1]), "mode": MODE_OPERATIONAL, "sub_mode": 0,
             "vendor_specific_status_code": 0}
 
@@ -205,8 +205,7 @@ def _payload_of(kind: int, fields: dict[str, Any]) -> np.ndarray:
         p[:len(cmd)] = cmd
         p[k.PAYLOAD - 1] = len(cmd)
     elif kind == k.ESC_STATUS:
-        for i, name in enumerate(("error_count", "voltage", "current", "temperature", "rpm",
-                                  "power_rating_pct", "esc_index")):
+        for i, (name, _) in enumerate(STATUS_FIELDS):
             p[i] = float(fields.get(name, 0))
     return p
 
@@ -446,29 +445,6 @@ class CanBus:
             self.bridge.close()
 
 
-class EmulatedEsc:
-    """One ESC node (a view of its row in the bus's arrays): takes channel ``index`` of each RawCommand,
-    holds its motor's throttle there, and reports esc.Status (rpm from the physics' rotor speed)."""
-
-    def __init__(self, bus: CanBus, row: int) -> None:
-        self._e = bus.escs[row]
-        self.index, self.node_id = int(self._e[k.E_INDEX]), int(self._e[k.E_NODE])
-
-    @property
-    def silent(self) -> bool:
-        """esc_silent: answers nothing and stops its motor."""
-        return bool(self._e[k.E_SILENT])
-
-    @property
-    def error_count(self) -> int:
-        """Commands it timed out on."""
-        return int(self._e[k.E_ERRORS])
-
-    @property
-    def last_command_s(self) -> float:
-        return float(self._e[k.E_LAST_COMMAND_S])
-
-
 @dataclass
 class EscHealth:
     """What the FC knows about one ESC from its esc.Status."""
@@ -501,11 +477,6 @@ class FcEscNode:
     @property
     def commands_sent(self) -> int:
         return int(self.bus.fc[k.F_COMMANDS])
-
-    @property
-    def health(self) -> int:
-        """Its NodeStatus health (`HEALTH_OK`, `HEALTH_CRITICAL`)."""
-        return int(self.bus.fc[k.F_HEALTH])
 
     def send_command(self, throttles: np.ndarray | Sequence[float], t: float) -> None:
         """RawCommand from the motor outputs ``throttles`` (4,) in [0, 1] at ``t`` (s)."""
@@ -543,8 +514,6 @@ class EscBus:
         b.on_events = self._on_events
         self.throttle = b.throttle  # what each ESC drives its motor at (0..1)
         self.fc_node = FcEscNode(b, config)
-        self.escs = {nid: EmulatedEsc(b, i) for i, nid in enumerate(config.esc_node_ids)
-                     if nid not in config.external}
 
     def _configure_watch(self) -> None:
         f = self.bus.fc
@@ -603,12 +572,6 @@ class EscBus:
             if e[k.E_INDEX] == esc_index and e[k.E_EMULATED] and bool(e[k.E_SILENT]) != silent:
                 e[k.E_SILENT] = silent
                 self.bus.fc[k.F_NODES_DUE_S] = -math.inf  # (poll at the next step)
-
-    def next_event_s(self) -> float:
-        """When the bus or a node next has something to do (s). The nodes' times are those of the last
-        poll: a status coming in only moves the FC's watch later, and a command due at an ESC arrives
-        on the bus, whose own time is always current."""
-        return self.bus.next_event_s()
 
     def close(self) -> None:
         self.bus.close()

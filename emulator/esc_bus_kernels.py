@@ -311,7 +311,7 @@ def esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w)
                                                    e[E_HEALTH], e[E_NEXT_NODE_S], int(e[E_TID_NODE]), t)
     if t >= e[E_NEXT_STATUS_S] - 1e-12:
         u = throttle[i]
-        p = np.zeros(PAYLOAD)
+        p = np.zeros(PAYLOAD)  # (in the order of `esc_bus.STATUS_FIELDS`)
         p[0], p[1], p[2], p[3] = e[E_ERRORS], 15.2 - 1.2 * u, 25.0 * u**1.5, 300.0 + 40.0 * u
         rpm = rotor_w * 60.0 / (2.0 * math.pi)
         p[4] = int(rpm) if abs(rpm) < 1e9 else 0  # (a diverged rotor: no number to report)
