@@ -91,9 +91,16 @@ class Chart:
 def _path(xs: np.ndarray, ys: np.ndarray) -> str:
     """An SVG path through the points; a point that is not finite lifts the pen."""
     ok = np.isfinite(xs) & np.isfinite(ys)
-    starts = ok & ~np.concatenate(([False], ok[:-1]))  # after a gap (or first): a new line
-    cmd, x, y = np.where(starts[ok], "M", "L").tolist(), xs[ok].tolist(), ys[ok].tolist()
-    return "".join(f"{c}{a:.1f},{b:.1f}" for c, a, b in zip(cmd, x, y, strict=True))
+    if not ok.any():
+        return ""
+    # each run of finite points, one line: M at its first point, L before each of the others
+    edges = np.flatnonzero(np.diff(np.concatenate(([False], ok, [False])).astype(np.int8)))
+    x, y = xs.tolist(), ys.tolist()
+    return "".join("M" + "L".join(map(_POINT.__mod__, zip(x[a:b], y[a:b], strict=True)))
+                   for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
+_POINT = "%.1f,%.1f"  # (x, y) with one decimal, as the charts and scenes draw it
 
 
 def line_chart(chart: Chart) -> str:
@@ -192,10 +199,11 @@ class View:
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(right, up, towards-viewer) unit vectors in world ENU."""
         a, e = self.azimuth_rad, self.elevation_rad
-        towards = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-        right = np.array([-math.sin(a), math.cos(a), 0.0])
-        up = np.cross(towards, right)
-        return right, up, towards
+        tx, ty, tz = math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)
+        rx, ry = -math.sin(a), math.cos(a)
+        # up = towards x right (right has no z)
+        up = np.array([ty * 0.0 - tz * ry, tz * rx - tx * 0.0, tx * ry - ty * rx])
+        return np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
 
     def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Screen (x right, y up) and depth (towards the viewer) of world points (N, 3)."""
@@ -279,7 +287,8 @@ def scene_svg(
         )
 
     def poly(points: np.ndarray) -> str:
-        return " ".join(f"{x:.1f},{y:.1f}" for x, y in to_screen(points))
+        xy = to_screen(points)
+        return " ".join(map(_POINT.__mod__, zip(xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True)))
 
     out = [
         f'<svg class="scene" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
