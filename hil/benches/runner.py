@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.benches import BenchRow
+from hil.benches import BenchRow, time_per_call
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
+from hil.scenario.loader import find_scenario_files, load_scenarios
 
 SCENARIOS_DIR = Path(__file__).resolve().parents[2] / "scenarios"
 RTF_SCENARIO = """
@@ -31,6 +32,11 @@ RTF_RUNS = 3
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
+    if SCENARIOS_DIR.is_dir():
+        files = find_scenario_files(SCENARIOS_DIR)
+        per_load = time_per_call(lambda: [load_scenarios(f) for f in files], min_time_s=0.3 if quick else 1.0)
+        yield BenchRow("scenario_load_ms", 1e3 * per_load, "ms",
+                       f"the {len(files)} files under scenarios/ parsed and validated, dispersions too")
     s = loads_scenarios(RTF_SCENARIO)[0]
     with tempfile.TemporaryDirectory() as tmp:
         for in_process, name in ((False, "full_stack_rtf"), (True, "in_process_rtf")):
