@@ -201,7 +201,7 @@ class View:
         a, e = self.azimuth_rad, self.elevation_rad
         tx, ty, tz = math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)
         rx, ry = -math.sin(a), math.cos(a)
-        # up = towards x right (right has no z)
+        # up = towards x right, term by term as np.cross computes it (the same bits; right has no z)
         up = np.array([ty * 0.0 - tz * ry, tz * rx - tx * 0.0, tx * ry - ty * rx])
         return np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
 
