@@ -429,3 +429,25 @@ def test_esc_faults_need_the_esc_bus() -> None:
                         "  - {kind: esc_silent, start_s: 1, params: {esc: 4}}\n")
     [s] = loads_scenarios(MINIMAL + "links: {esc_bus: {}}\n")
     assert s.links.esc_bus == schema.EscBusSpec()
+
+
+
+def test_either_yaml_parser_reads_files_and_reports_errors_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    """libyaml's parser (used where PyYAML has it) and the pure-Python one read every shipped file the same,
+    dispersions included, and report a file that is not YAML in the same words at the same line."""
+    import hil.scenario.loader as loader
+
+    files = sorted((ROOT / "scenarios").rglob("*.scenario.yaml"))
+    assert len(files) >= 35
+    broken = "description: x\ngap: {roll_deg: 30\nduration_s: 5\n"
+    parsers = {"pure": yaml.SafeLoader, "libyaml": getattr(yaml, "CSafeLoader", None), "used": loader._LOADER}
+    read: dict[str, list[object]] = {}
+    for name, parser in parsers.items():
+        if parser is None:  # a PyYAML built without libyaml: the pure-Python parser is the one used
+            continue
+        monkeypatch.setattr(loader, "_LOADER", parser)
+        with pytest.raises(ScenarioError) as info:
+            loads_scenarios(broken, source="broken.scenario.yaml")
+        assert str(info.value).startswith("broken.scenario.yaml:3: <yaml>: not valid YAML: expected ','")
+        read[name] = [[s.to_dict() for s in load_scenarios(f)] for f in files] + [str(info.value)]
+    assert all(r == read["pure"] for r in read.values())
