@@ -173,3 +173,19 @@ def test_timeseries_columns_are_checked(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match=words):
             write_timeseries(tmp_path, columns)
     assert not (tmp_path / "timeseries.npz").exists()
+
+
+def test_a_chart_line_lifts_the_pen_at_each_sample_that_is_not_finite() -> None:
+    """A NaN or an infinity in a series breaks its line there (a new 'M'), the finite stretches drawn as
+    lines, a single point as a move only; a series with nothing finite draws no path."""
+    from hil.report.svg import Chart, Series, line_chart
+
+    t = np.arange(9.0)
+    y = np.array([0.0, 1.0, np.nan, 3.0, 4.0, np.inf, 6.0, -np.inf, 8.0])
+    series = [Series("a", y, "#000000"), Series("b", np.full(9, np.nan), "#111111")]
+    svg = line_chart(Chart("x", "m", t, series))
+    paths = re.findall(r'<path d="([^"]*)"', svg)
+    assert len(paths) == 1  # the all-NaN series draws nothing
+    runs = re.findall(r"M[^M]*", paths[0])
+    assert [r.count("L") for r in runs] == [1, 1, 0, 0]  # (0, 1), (3, 4), (6), (8)
+    assert all(re.fullmatch(r"M-?\d+\.\d,-?\d+\.\d(L-?\d+\.\d,-?\d+\.\d)*", r) for r in runs)
