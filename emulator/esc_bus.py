@@ -37,6 +37,7 @@ from emulator.esc_bus_config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
 from emulator.esc_bus_config import EscBusConfig as EscBusConfig
 from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
 from emulator.esc_bus_kernels import frame_bits as frame_bits
+from hil.link.can_multicast import own_group_only
 
 BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP]", "socketcan:IFACE", "mcast[:N]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
@@ -82,6 +83,8 @@ class Bridge:
 
                 channel = arg or ("239.74.163.2" if kind == "udp_multicast" else "")
                 self._bus = can.Bus(interface=kind, channel=channel, bitrate=bitrate_bps)
+                if kind == "udp_multicast":
+                    own_group_only(self._bus)
                 self._message = can.Message
         except Exception as exc:  # (python-can's CanError family, a socket's OSError, a bad group)
             raise OSError(f"cannot open the CAN bus {spec!r}: {exc}") from exc

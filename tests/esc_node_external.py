@@ -21,6 +21,8 @@ import time
 import dronecan
 from dronecan import uavcan
 
+from hil.link.can_multicast import own_group_only
+
 
 def main() -> None:
     sys.setswitchinterval(2e-4)  # (hand the GIL to the receiving thread at once: an ESC answers fast)
@@ -32,6 +34,7 @@ def main() -> None:
         # (dronecan's python-can driver flushes after each send; the multicast bus sends at once and has
         # no flush, so the flush is a no-op here rather than an error on the next send)
         node._can_driver._bus.flush_tx_buffer = lambda: None
+        own_group_only(node._can_driver._bus)  # (not the groups of other tests running beside it)
     else:
         node = dronecan.make_node(uri, node_id=node_id)
     seen: dict = {"raw_commands": 0, "cmd_max": 0, "status_from": {}, "node_status_from": []}

@@ -112,6 +112,25 @@ def test_python_can_udp_multicast_carries_the_frames_out_and_an_outside_status_i
         stepper.esc.close()
 
 
+def test_two_benches_on_two_multicast_groups_do_not_hear_each_other():
+    """python-can binds its multicast socket to the port on every address, and Linux hands such a socket
+    every group's datagrams to that port: two `hil fc --esc-bus udp_multicast:GROUP` on one host, on two
+    groups, would drive each other's motors. Each bench's bus hears its own group only."""
+    mine, theirs = (f"239.74.{os.getpid() % 200 + 20}.{n}" for n in (11, 12))
+    bridge, other_bench = (Bridge(f"udp_multicast:{g}", 1_000_000) for g in (mine, theirs))
+    peer = can.Bus(interface="udp_multicast", channel=mine)  # another node on this bench's group
+    try:
+        other_bench.send(0x1234, b"theirs")
+        peer.send(can.Message(arbitration_id=0x5678, data=b"mine", is_extended_id=True))
+        time.sleep(0.1)
+        assert bridge.receive() == [(0x5678, b"mine")]  # (not the other group's frame)
+        assert other_bench.receive() == [(0x1234, b"theirs")]  # (its own, looped back; not this group's)
+    finally:
+        peer.shutdown()
+        bridge.close()
+        other_bench.close()
+
+
 def test_the_vehicle_flies_on_its_escs_throttles():
     b, stepper = flying_bench()
     take_off(b)
