@@ -13,105 +13,98 @@ CODE_NONE, CODE_WALL, CODE_GROUND, CODE_LAB = 0, 1, 2, 3
 
 
 @njit(cache=True)
-def _box_gap(c: np.ndarray, a: np.ndarray, h: np.ndarray, ht: float, hw: float, hh: float) -> tuple:
-    """Clearance (m), in_slab, limiting edge (0..3) of a box: centre c and axes a (columns) in gap
-    coordinates (u, n, v), half sizes h; slab half thickness ht, opening half sizes hw x hh."""
-    ru = abs(a[0, 0]) * h[0] + abs(a[0, 1]) * h[1] + abs(a[0, 2]) * h[2]
-    rn = abs(a[1, 0]) * h[0] + abs(a[1, 1]) * h[1] + abs(a[1, 2]) * h[2]
-    rv = abs(a[2, 0]) * h[0] + abs(a[2, 1]) * h[1] + abs(a[2, 2]) * h[2]
-    umin, umax, vmin, vmax = c[0] - ru, c[0] + ru, c[2] - rv, c[2] + rv
-    in_slab = abs(c[1]) <= ht + rn
-    if in_slab and abs(c[1]) + rn > ht:  # the box reaches out of the slab: clip it by the two faces
-        vu = np.empty(8)
-        vn = np.empty(8)
-        vv = np.empty(8)
-        for k in range(8):
-            sx = h[0] if k & 4 else -h[0]
-            sy = h[1] if k & 2 else -h[1]
-            sz = h[2] if k & 1 else -h[2]
-            vu[k] = c[0] + a[0, 0] * sx + a[0, 1] * sy + a[0, 2] * sz
-            vn[k] = c[1] + a[1, 0] * sx + a[1, 1] * sy + a[1, 2] * sz
-            vv[k] = c[2] + a[2, 0] * sx + a[2, 1] * sy + a[2, 2] * sz
-        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
-        lim = ht * (1 + 1e-12) + 1e-15
-        for k in range(8):
-            if abs(vn[k]) <= lim:
-                umin, umax = min(umin, vu[k]), max(umax, vu[k])
-                vmin, vmax = min(vmin, vv[k]), max(vmax, vv[k])
-        for k in range(8):
-            for bit in (4, 2, 1):
-                j = k | bit
-                if j == k:
-                    continue
-                dn = vn[j] - vn[k]
-                if dn == 0.0:
-                    continue
-                for level in (-ht, ht):
-                    alpha = (level - vn[k]) / dn
-                    if 0.0 <= alpha <= 1.0:
-                        u = vu[k] + alpha * (vu[j] - vu[k])
-                        v = vv[k] + alpha * (vv[j] - vv[k])
-                        umin, umax = min(umin, u), max(umax, u)
-                        vmin, vmax = min(vmin, v), max(vmax, v)
-        if umin > umax:  # only grazing a face within rounding: use the corners
-            umin, umax = vu.min(), vu.max()
-            vmin, vmax = vv.min(), vv.max()
-    margins = (hw - umax, hw + umin, hh - vmax, hh + vmin)
-    edge = 0
-    for i in range(1, 4):
-        if margins[i] < margins[edge]:
-            edge = i
-    return margins[edge], in_slab, edge
+def _slab_extent(c0: float, c1: float, c2: float, a: tuple, h0: float, h1: float, h2: float,
+                 ht: float) -> tuple:
+    """(umin, umax, vmin, vmax) (m) of the part of a box (centre c, axes ``a`` = its 3x3 matrix's
+    entries row by row, half sizes h) within the slab |n| <= ``ht``: the box clipped by the two faces."""
+    vu = np.empty(8)
+    vn = np.empty(8)
+    vv = np.empty(8)
+    for k in range(8):
+        sx = h0 if k & 4 else -h0
+        sy = h1 if k & 2 else -h1
+        sz = h2 if k & 1 else -h2
+        vu[k] = c0 + a[0] * sx + a[1] * sy + a[2] * sz
+        vn[k] = c1 + a[3] * sx + a[4] * sy + a[5] * sz
+        vv[k] = c2 + a[6] * sx + a[7] * sy + a[8] * sz
+    umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+    lim = ht * (1 + 1e-12) + 1e-15
+    for k in range(8):
+        if abs(vn[k]) <= lim:
+            umin, umax = min(umin, vu[k]), max(umax, vu[k])
+            vmin, vmax = min(vmin, vv[k]), max(vmax, vv[k])
+    for k in range(8):
+        for bit in (4, 2, 1):
+            j = k | bit
+            if j == k:
+                continue
+            dn = vn[j] - vn[k]
+            if dn == 0.0:
+                continue
+            for level in (-ht, ht):
+                alpha = (level - vn[k]) / dn
+                if 0.0 <= alpha <= 1.0:
+                    u = vu[k] + alpha * (vu[j] - vu[k])
+                    v = vv[k] + alpha * (vv[j] - vv[k])
+                    umin, umax = min(umin, u), max(umax, u)
+                    vmin, vmax = min(vmin, v), max(vmax, v)
+    if umin > umax:  # only grazing a face within rounding: use the corners
+        umin, umax = vu.min(), vu.max()
+        vmin, vmax = vv.min(), vv.max()
+    return umin, umax, vmin, vmax
+
+
+@njit(cache=True, inline="always")
+def _box_gap(c0: float, c1: float, c2: float, a: tuple, h0: float, h1: float, h2: float, ht: float,
+             hw: float, hh: float) -> tuple:
+    """Clearance (m), in_slab, limiting edge (0..3) of a box: centre c and axes ``a`` (its 3x3 matrix's
+    entries row by row; columns: the box's axes) in gap coordinates (u, n, v), half sizes h; slab half
+    thickness ht, opening half sizes hw x hh."""
+    ru = abs(a[0]) * h0 + abs(a[1]) * h1 + abs(a[2]) * h2
+    rn = abs(a[3]) * h0 + abs(a[4]) * h1 + abs(a[5]) * h2
+    rv = abs(a[6]) * h0 + abs(a[7]) * h1 + abs(a[8]) * h2
+    umin, umax, vmin, vmax = c0 - ru, c0 + ru, c2 - rv, c2 + rv
+    in_slab = abs(c1) <= ht + rn
+    if in_slab and abs(c1) + rn > ht:  # the box reaches out of the slab: clip it by the two faces
+        umin, umax, vmin, vmax = _slab_extent(c0, c1, c2, a, h0, h1, h2, ht)
+    m0, m1, m2, m3 = hw - umax, hw + umin, hh - vmax, hh + vmin
+    edge, least = 0, m0
+    if m1 < least:
+        edge, least = 1, m1
+    if m2 < least:
+        edge, least = 2, m2
+    if m3 < least:
+        edge, least = 3, m3
+    return least, in_slab, edge
 
 
 @njit(cache=True)
-def _overlaps_block(t: np.ndarray, r: np.ndarray, b: np.ndarray, a: np.ndarray) -> bool:
-    """Separating-axis test: box (centre t, axes r columns, half sizes b) vs the AABB of half sizes a."""
+def _overlaps_block(t0: float, t1: float, t2: float, a: tuple, b0: float, b1: float, b2: float,
+                    w: np.ndarray) -> bool:
+    """Separating-axis test: box (centre t, axes ``a`` = its 3x3 matrix's entries row by row, columns its
+    axes, half sizes b) vs the AABB of half sizes ``w`` (3,)."""
+    t = np.array((t0, t1, t2))
+    b = np.array((b0, b1, b2))
+    r = np.empty((3, 3))
+    for k in range(9):
+        r[k // 3, k % 3] = a[k]
     absr = np.abs(r) + 1e-12
     for k in range(3):
-        if abs(t[k]) > a[k] + absr[k, 0] * b[0] + absr[k, 1] * b[1] + absr[k, 2] * b[2]:
+        if abs(t[k]) > w[k] + absr[k, 0] * b[0] + absr[k, 1] * b[1] + absr[k, 2] * b[2]:
             return False
     for i in range(3):
         d = abs(t[0] * r[0, i] + t[1] * r[1, i] + t[2] * r[2, i])
-        if d > b[i] + a[0] * absr[0, i] + a[1] * absr[1, i] + a[2] * absr[2, i]:
+        if d > b[i] + w[0] * absr[0, i] + w[1] * absr[1, i] + w[2] * absr[2, i]:
             return False
     for k in range(3):
         k1, k2 = (k + 1) % 3, (k + 2) % 3
         for i in range(3):
             i1, i2 = (i + 1) % 3, (i + 2) % 3
-            ra = a[k1] * absr[k2, i] + a[k2] * absr[k1, i]
+            ra = w[k1] * absr[k2, i] + w[k2] * absr[k1, i]
             rb = b[i1] * absr[k, i2] + b[i2] * absr[k, i1]
             if abs(t[k2] * r[k1, i] - t[k1] * r[k2, i]) > ra + rb:
                 return False
     return True
-
-
-@njit(cache=True)
-def check_pose(
-    p: np.ndarray, rot: np.ndarray, centre: np.ndarray, axes: np.ndarray, h: np.ndarray,
-    wall_half: np.ndarray, hw: float, hh: float, lab_min: np.ndarray, lab_max: np.ndarray, tol: float,
-) -> tuple:
-    """(obstacle code, clearance_m, in_slab, limiting edge) for one pose; codes as CODE_* above,
-    priority wall > ground > lab."""
-    buf = np.empty(12)  # one allocation: c (3,) and a (3, 3)
-    c = buf[0:3]  # no `@` inside numba without scipy's BLAS: write the products out
-    a = buf[3:12].reshape((3, 3))
-    d0, d1, d2 = p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]
-    for k in range(3):
-        c[k] = axes[k, 0] * d0 + axes[k, 1] * d1 + axes[k, 2] * d2
-        for i in range(3):
-            a[k, i] = axes[k, 0] * rot[0, i] + axes[k, 1] * rot[1, i] + axes[k, 2] * rot[2, i]
-    clr, in_slab, edge = _box_gap(c, a, h, wall_half[1], hw, hh)
-    if in_slab and clr < -tol and _overlaps_block(c, a, h, wall_half):
-        return CODE_WALL, clr, in_slab, edge
-    code = CODE_NONE
-    for k in range(3):
-        ext = abs(rot[k, 0]) * h[0] + abs(rot[k, 1]) * h[1] + abs(rot[k, 2]) * h[2]
-        if k == 2 and p[2] - ext < -tol:
-            return CODE_GROUND, clr, in_slab, edge
-        if p[k] - ext < lab_min[k] - tol or p[k] + ext > lab_max[k] + tol:
-            code = CODE_LAB
-    return code, clr, in_slab, edge
 
 
 @njit(cache=True)
@@ -122,7 +115,7 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     return r
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quat_to_rot_into(q: np.ndarray, r: np.ndarray) -> None:
     """`quat_to_rot` written into ``r`` (3, 3)."""
     n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -140,7 +133,9 @@ def pack_world(
     centre: np.ndarray, axes: np.ndarray, h: np.ndarray, wall_half: np.ndarray, hw: float, hh: float,
     lab_min: np.ndarray, lab_max: np.ndarray, tol: float,
 ) -> np.ndarray:
-    """`check_pose`'s constant arguments in one float64 array (27,), for `check_packed`."""
+    """The world's constants in one float64 array (27,), for `check_packed`: the gap's centre (m), its
+    axes (rows e0, e1, e2), the box's half sizes (m), the wall's half sizes (m), the opening's half width
+    and height (m), the lab's corners (m) and the contact tolerance (m)."""
     return np.concatenate([
         np.asarray(centre, np.float64).ravel(), np.asarray(axes, np.float64).ravel(),
         np.asarray(h, np.float64).ravel(), np.asarray(wall_half, np.float64).ravel(), [hw, hh],
@@ -148,14 +143,39 @@ def pack_world(
     ]).astype(np.float64)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def check_packed(p: np.ndarray, rot: np.ndarray, world: np.ndarray) -> tuple:
-    """`check_pose` of position ``p`` and rotation ``rot`` with the world constants of `pack_world`."""
-    return check_pose(
-        p, rot, world[_P_CENTRE:_P_AXES], world[_P_AXES:_P_HALF].reshape((3, 3)),
-        world[_P_HALF:_P_WALL], world[_P_WALL:_P_HW], world[_P_HW], world[_P_HH], world[_P_MIN:_P_MAX],
-        world[_P_MAX:_P_TOL], world[_P_TOL],
-    )
+    """(obstacle code, clearance_m, in_slab, limiting edge) of position ``p`` (3,) and rotation ``rot``
+    (3, 3) in the world of `pack_world`; codes as CODE_* above, priority wall > ground > lab. (Scalars
+    throughout: the array views numba makes per call cost it more than the arithmetic does.)"""
+    w = world
+    d0, d1, d2 = p[0] - w[_P_CENTRE], p[1] - w[_P_CENTRE + 1], p[2] - w[_P_CENTRE + 2]
+    x0, x1, x2 = w[_P_AXES], w[_P_AXES + 1], w[_P_AXES + 2]  # the gap's axes (rows)
+    y0, y1, y2 = w[_P_AXES + 3], w[_P_AXES + 4], w[_P_AXES + 5]
+    z0, z1, z2 = w[_P_AXES + 6], w[_P_AXES + 7], w[_P_AXES + 8]
+    # the box's centre and axes in gap coordinates: c = axes (p - centre), a = axes rot
+    c0 = x0 * d0 + x1 * d1 + x2 * d2
+    c1 = y0 * d0 + y1 * d1 + y2 * d2
+    c2 = z0 * d0 + z1 * d1 + z2 * d2
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    a = (x0 * r00 + x1 * r10 + x2 * r20, x0 * r01 + x1 * r11 + x2 * r21, x0 * r02 + x1 * r12 + x2 * r22,
+         y0 * r00 + y1 * r10 + y2 * r20, y0 * r01 + y1 * r11 + y2 * r21, y0 * r02 + y1 * r12 + y2 * r22,
+         z0 * r00 + z1 * r10 + z2 * r20, z0 * r01 + z1 * r11 + z2 * r21, z0 * r02 + z1 * r12 + z2 * r22)
+    h0, h1, h2 = w[_P_HALF], w[_P_HALF + 1], w[_P_HALF + 2]
+    tol = w[_P_TOL]
+    clr, in_slab, edge = _box_gap(c0, c1, c2, a, h0, h1, h2, w[_P_WALL + 1], w[_P_HW], w[_P_HH])
+    if in_slab and clr < -tol and _overlaps_block(c0, c1, c2, a, h0, h1, h2, w[_P_WALL:_P_HW]):
+        return CODE_WALL, clr, in_slab, edge
+    code = CODE_NONE
+    for k in range(3):
+        ext = abs(rot[k, 0]) * h0 + abs(rot[k, 1]) * h1 + abs(rot[k, 2]) * h2
+        if k == 2 and p[2] - ext < -tol:
+            return CODE_GROUND, clr, in_slab, edge
+        if p[k] - ext < w[_P_MIN + k] - tol or p[k] + ext > w[_P_MAX + k] + tol:
+            code = CODE_LAB
+    return code, clr, in_slab, edge
 
 
 @njit(cache=True)
@@ -164,8 +184,13 @@ def check_states(
 ) -> None:
     """`check_packed` of each row of positions ``p`` (N, 3) and quaternions ``q`` (N, 4; non-zero) or
     rotations (N, 3, 3), written to ``codes``, ``clr`` and ``in_slab`` (N,)."""
+    r = np.empty((3, 3))
     for i in range(p.shape[0]):
-        rot = quat_to_rot(q[i]) if q.ndim == 2 else q[i]
+        if q.ndim == 2:
+            quat_to_rot_into(q[i], r)
+            rot = r
+        else:
+            rot = q[i]
         c, cl, s, _ = check_packed(p[i], rot, world)
         codes[i] = c
         clr[i] = cl
