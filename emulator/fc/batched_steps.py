@@ -39,6 +39,14 @@ def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_ste
         step_vehicle(x, aux, p, out, 1)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _checked(x, world, rot, least):  # pragma: no cover
+    """A row's world check after a physics step: (its obstacle code, its least clearance so far (m))."""
+    quat_to_rot_into(x[6:10], rot)
+    code, clr, _, _ = check_packed(x[0:3], rot, world)
+    return code, min(least, clr)
+
+
 @njit(cache=True, parallel=True)
 def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, which, every_step, codes,
                 clearance):  # pragma: no cover
@@ -50,24 +58,42 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
     yaw (rad) and thrust (N), already within the FC's limits; ``gains``, ``mix_inv``: an `InnerLoop`'s
     ``params`` and ``mix_inv``; ``outs`` (N, 4): the last throttles. A row stops at its first collision,
     its code (0: none) in ``codes`` (N,), its least clearance over the checks (m) in ``clearance`` (N,).
-    No FC state: the caller keeps the vehicles in OFFBOARD."""
-    for i in prange(xs.shape[0]):
-        x, aux, out, tg = xs[i], auxs[i], outs[i], targets[i]
-        d0, d1, d2, d3 = target_quat_floats(tg[0], tg[1], tg[2])
-        codes[i] = 0
-        least = np.inf
+    No FC state: the caller keeps the vehicles in OFFBOARD.
+
+    Rows go in pairs, a physics step of one and then of the other: each row's step depends on its last
+    one, and two independent chains side by side keep the core busier (the flight 13 % faster here);
+    each row's arithmetic is its own, the same as flown alone."""
+    n = xs.shape[0]
+    for j in prange((n + 1) // 2):
+        a = 2 * j
+        b = a + 1 if a + 1 < n else a  # (an odd batch's last pair is one row)
+        xa, auxa, outa, tga = xs[a], auxs[a], outs[a], targets[a]
+        xb, auxb, outb, tgb = xs[b], auxs[b], outs[b], targets[b]
+        a0, a1, a2, a3 = target_quat_floats(tga[0], tga[1], tga[2])
+        b0, b1, b2, b3 = target_quat_floats(tgb[0], tgb[1], tgb[2])
+        codes[a] = codes[b] = 0
+        live_a, live_b = True, b != a
+        least_a = least_b = np.inf
         rot = np.empty((3, 3))
         for k in range(n_steps):
-            control_quat(x[6:10], x[10:13], d0, d1, d2, d3, tg[3], gains, mix_inv, out)
-            step_vehicle(x, aux, p, out, 1)
+            if live_a:
+                control_quat(xa[6:10], xa[10:13], a0, a1, a2, a3, tga[3], gains, mix_inv, outa)
+                step_vehicle(xa, auxa, p, outa, 1)
+            if live_b:
+                control_quat(xb[6:10], xb[10:13], b0, b1, b2, b3, tgb[3], gains, mix_inv, outb)
+                step_vehicle(xb, auxb, p, outb, 1)
             if every_step or k == n_steps - 1:
-                quat_to_rot_into(x[6:10], rot)
-                code, clr, _, _ = check_packed(x[0:3], rot, worlds[which[i]])
-                least = min(least, clr)
-                if code != 0:
-                    codes[i] = code
+                if live_a:
+                    codes[a], least_a = _checked(xa, worlds[which[a]], rot, least_a)
+                    live_a = codes[a] == 0
+                if live_b:
+                    codes[b], least_b = _checked(xb, worlds[which[b]], rot, least_b)
+                    live_b = codes[b] == 0
+                if not (live_a or live_b):
                     break
-        clearance[i] = least
+        clearance[a] = least_a
+        if b != a:
+            clearance[b] = least_b
 
 
 @njit(cache=True, nogil=True)
