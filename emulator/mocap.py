@@ -17,6 +17,7 @@ MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not repl
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
 _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
+_NO_NOISE = [0.0, 0.0, 0.0]  # the draws of a noiseless position or attitude
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -277,30 +278,13 @@ class MocapSystem:
         i = 0
         for body_id, valid, px, py, pz, qw, qx, qy, qz, sq in seen:
             if valid:
-                if pos_sd > 0:  # as normal(0, sd) makes them from the same draws: 0 + sd * z
-                    px += 0.0 + pos_sd * noise[i]
-                    py += 0.0 + pos_sd * noise[i + 1]
-                    pz += 0.0 + pos_sd * noise[i + 2]
-                    i += 3
-                n = math.sqrt(sq)
-                aw, ax, ay, az = qw / n, qx / n, qy / n, qz / n
-                if att_sd > 0:  # times the small rotation of a noise rotation vector
-                    rx = 0.0 + att_sd * noise[i]
-                    ry = 0.0 + att_sd * noise[i + 1]
-                    rz = 0.0 + att_sd * noise[i + 2]
-                    i += 3
-                    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-                    if angle < 1e-12:
-                        bw, bx, by, bz = 1.0, 0.5 * rx, 0.5 * ry, 0.5 * rz
-                    else:
-                        sk = math.sin(0.5 * angle) / angle
-                        bw, bx, by, bz = math.cos(0.5 * angle), rx * sk, ry * sk, rz * sk
-                    aw, ax, ay, az = (aw * bw - ax * bx - ay * by - az * bz,
-                                      aw * bx + ax * bw + ay * bz - az * by,
-                                      aw * by - ax * bz + ay * bw + az * bx,
-                                      aw * bz + ax * by - ay * bx + az * bw)
-                if aw < 0:
-                    aw, ax, ay, az = -aw, -ax, -ay, -az
+                z = noise[i:i + n_noise]
+                i += n_noise
+                if n_noise == 3:  # one of the two noiseless: only the other's draws were taken
+                    z = z + _NO_NOISE if pos_sd > 0 else _NO_NOISE + z
+                elif n_noise == 0:
+                    z = _NO_NOISE + _NO_NOISE
+                px, py, pz, aw, ax, ay, az = measured_pose(px, py, pz, qw, qx, qy, qz, sq, pos_sd, att_sd, *z)
                 rows.append((body_id, True, t_s, [px, py, pz, aw, ax, ay, az]))
             else:
                 self.stats.bodies_occluded += 1
@@ -313,3 +297,35 @@ class MocapSystem:
             extra = self._exponential(cfg.processing_s)
         self.stats.frames += 1
         return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
+
+
+def measured_pose(px: float, py: float, pz: float, qw: float, qx: float, qy: float, qz: float, sq: float,
+                  pos_sd: float, att_sd: float, z0: float, z1: float, z2: float, z3: float, z4: float,
+                  z5: float) -> tuple[float, float, float, float, float, float, float]:
+    """A body's pose as the tracker measures it: the position (m) plus ``pos_sd`` (m) x the standard
+    normal draws ``z0..z2``, the attitude (w, x, y, z; ``sq`` its squared norm) normalised and turned by
+    the small rotation whose vector is ``att_sd`` (rad) x ``z3..z5``, with w >= 0. Plain arithmetic on
+    floats: the tracker runs it per body and frame, the RL environment compiled over its rows."""
+    if pos_sd > 0:  # as normal(0, sd) makes them from the same draws: 0 + sd * z
+        px += 0.0 + pos_sd * z0
+        py += 0.0 + pos_sd * z1
+        pz += 0.0 + pos_sd * z2
+    n = math.sqrt(sq)
+    aw, ax, ay, az = qw / n, qx / n, qy / n, qz / n
+    if att_sd > 0:  # times the small rotation of a noise rotation vector
+        rx = 0.0 + att_sd * z3
+        ry = 0.0 + att_sd * z4
+        rz = 0.0 + att_sd * z5
+        angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if angle < 1e-12:
+            bw, bx, by, bz = 1.0, 0.5 * rx, 0.5 * ry, 0.5 * rz
+        else:
+            sk = math.sin(0.5 * angle) / angle
+            bw, bx, by, bz = math.cos(0.5 * angle), rx * sk, ry * sk, rz * sk
+        aw, ax, ay, az = (aw * bw - ax * bx - ay * by - az * bz,
+                          aw * bx + ax * bw + ay * bz - az * by,
+                          aw * by - ax * bz + ay * bw + az * bx,
+                          aw * bz + ax * by - ay * bx + az * bw)
+    if aw < 0:
+        aw, ax, ay, az = -aw, -ax, -ay, -az
+    return px, py, pz, aw, ax, ay, az

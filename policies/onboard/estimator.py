@@ -68,7 +68,7 @@ class PoseEstimator:
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config or EstimatorConfig()
         self._ready = False
-        self._x = [0.0] * 9  # p, v, a of x, then of y, then of z (m, m/s, m/s^2)
+        self._x = (0.0,) * 9  # p, v, a of x, then of y, then of z (m, m/s, m/s^2)
         self._P = (0.0,) * 6  # shared covariance: p00, p01, p02, p11, p12, p22
         self._stamp_s = -math.inf
         self._received_s = -math.inf
@@ -104,38 +104,11 @@ class PoseEstimator:
             return False
         dt = stamp_s - self._stamp_s
         delay = received_s - stamp_s
-        r2 = cfg.pos_noise_m * cfg.pos_noise_m
-        if not self._ready or not 0.0 < dt <= cfg.reset_after_s:
-            self._x = [px, 0.0, 0.0, py, 0.0, 0.0, pz, 0.0, 0.0]
-            self._P = (r2, 0.0, 0.0, 1.0, 0.0, 10.0)
-            self._mean_delay_s = delay
-            self._ready = True
-        else:
-            self._mean_delay_s += min(1.0, dt / cfg.delay_window_s) * (delay - self._mean_delay_s)
-            p00, p01, p02, p11, p12, p22 = self._P
-            h = dt * dt / 2
-            # F P F^T + Q, F = [[1, dt, h], [0, 1, dt], [0, 0, 1]], Q = q [dt^5/20 ...] (white jerk)
-            a0, a1, a2 = p00 + dt * p01 + h * p02, p01 + dt * p11 + h * p12, p02 + dt * p12 + h * p22
-            b1, b2 = p11 + dt * p12, p12 + dt * p22
-            q, dt2 = cfg.jerk_psd, dt * dt
-            dt3 = dt2 * dt
-            n00 = a0 + dt * a1 + h * a2 + q * dt3 * dt2 / 20
-            n01 = a1 + dt * a2 + q * dt2 * dt2 / 8
-            n02 = a2 + q * dt3 / 6
-            n11 = b1 + dt * b2 + q * dt3 / 3
-            n12 = b2 + q * dt2 / 2
-            n22 = p22 + q * dt
-            s = n00 + r2
-            k0, k1, k2 = n00 / s, n01 / s, n02 / s
-            self._P = (n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n11 - k1 * n01, n12 - k1 * n02,
-                       n22 - k2 * n02)
-            # predict and correct each axis (written out: this runs at the mocap rate)
-            xp, xv, xa, yp, yv, ya, zp, zv, za = self._x
-            xp, yp, zp = xp + dt * xv + h * xa, yp + dt * yv + h * ya, zp + dt * zv + h * za
-            ex, ey, ez = px - xp, py - yp, pz - zp
-            self._x = [xp + k0 * ex, xv + dt * xa + k1 * ex, xa + k2 * ex,
-                       yp + k0 * ey, yv + dt * ya + k1 * ey, ya + k2 * ey,
-                       zp + k0 * ez, zv + dt * za + k1 * ez, za + k2 * ez]
+        restart = not self._ready or not 0.0 < dt <= cfg.reset_after_s
+        self._x, self._P, self._mean_delay_s = filter_update(
+            self._x, self._P, self._mean_delay_s, restart, dt, delay, px, py, pz, cfg.pos_noise_m,
+            cfg.jerk_psd, cfg.delay_window_s)
+        self._ready = True
         self._stamp_s = stamp_s
         self._received_s = received_s
         self._delay_s = delay
@@ -160,16 +133,14 @@ class PoseEstimator:
         if not self._ready:
             raise ValueError("no pose received yet")
         cfg = self.config
-        age = max(0.0, now_s - self._received_s)
-        h = age + cfg.latency_s + (self._delay_s - self._mean_delay_s)
-        h = min(max(h, 0.0), cfg.reset_after_s)
-        hh = h * h / 2
-        px, vx, ax, py, vy, ay, pz, vz, az = self._x
+        h = prediction_horizon_s(now_s - self._received_s, cfg.latency_s, self._delay_s, self._mean_delay_s,
+                                 cfg.reset_after_s)
+        px, py, pz, vx, vy, vz = predicted(self._x, h)
+        ax, ay, az = self._x[2], self._x[5], self._x[8]
         euler = self._euler
         if euler is None:
             euler = self._euler = euler_from_quat(self._quat)
-        return _new_estimate(np.array((px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh)),
-                             np.array((vx + ax * h, vy + ay * h, vz + az * h)), np.array((ax, ay, az)),
+        return _new_estimate(np.array((px, py, pz)), np.array((vx, vy, vz)), np.array((ax, ay, az)),
                              np.array(euler), np.array(self._quat))
 
 
@@ -186,3 +157,60 @@ def _new_estimate(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, 
     est.__dict__.update(pos_m=pos_m, vel_m_s=vel_m_s, acc_m_s2=acc_m_s2, euler_rad=euler_rad,
                         quat_wxyz=quat_wxyz)
     return est
+
+
+# --- the filter's arithmetic, on plain floats and tuples: `PoseEstimator` runs it once per pose and
+# control step, and the RL environment compiles the same functions over its rows (`hil.rl.link_observe`)
+
+
+def filter_update(x: tuple, P: tuple, mean_delay_s: float, restart: bool, dt: float, delay: float,
+                  px: float, py: float, pz: float, pos_noise_m: float, jerk_psd: float,
+                  delay_window_s: float) -> tuple:
+    """One pose into the filter: (state (p, v, a of x, y, z: m, m/s, m/s^2), shared covariance (p00,
+    p01, p02, p11, p12, p22), running mean of arrival - stamp (s)) after the pose at position
+    ``px, py, pz`` (m), ``dt`` (s) after the last one, that arrived ``delay`` (s) after its stamp;
+    ``restart``: start at rest at the pose instead."""
+    r2 = pos_noise_m * pos_noise_m
+    if restart:
+        return (px, 0.0, 0.0, py, 0.0, 0.0, pz, 0.0, 0.0), (r2, 0.0, 0.0, 1.0, 0.0, 10.0), delay
+    mean_delay_s += min(1.0, dt / delay_window_s) * (delay - mean_delay_s)
+    p00, p01, p02, p11, p12, p22 = P
+    h = dt * dt / 2
+    # F P F^T + Q, F = [[1, dt, h], [0, 1, dt], [0, 0, 1]], Q = q [dt^5/20 ...] (white jerk)
+    a0, a1, a2 = p00 + dt * p01 + h * p02, p01 + dt * p11 + h * p12, p02 + dt * p12 + h * p22
+    b1, b2 = p11 + dt * p12, p12 + dt * p22
+    q, dt2 = jerk_psd, dt * dt
+    dt3 = dt2 * dt
+    n00 = a0 + dt * a1 + h * a2 + q * dt3 * dt2 / 20
+    n01 = a1 + dt * a2 + q * dt2 * dt2 / 8
+    n02 = a2 + q * dt3 / 6
+    n11 = b1 + dt * b2 + q * dt3 / 3
+    n12 = b2 + q * dt2 / 2
+    n22 = p22 + q * dt
+    s = n00 + r2
+    k0, k1, k2 = n00 / s, n01 / s, n02 / s
+    P = (n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n11 - k1 * n01, n12 - k1 * n02, n22 - k2 * n02)
+    # predict and correct each axis (written out: this runs at the mocap rate)
+    xp, xv, xa, yp, yv, ya, zp, zv, za = x
+    xp, yp, zp = xp + dt * xv + h * xa, yp + dt * yv + h * ya, zp + dt * zv + h * za
+    ex, ey, ez = px - xp, py - yp, pz - zp
+    return ((xp + k0 * ex, xv + dt * xa + k1 * ex, xa + k2 * ex,
+             yp + k0 * ey, yv + dt * ya + k1 * ey, ya + k2 * ey,
+             zp + k0 * ez, zv + dt * za + k1 * ez, za + k2 * ez), P, mean_delay_s)
+
+
+def prediction_horizon_s(age_s: float, latency_s: float, delay_s: float, mean_delay_s: float,
+                         reset_after_s: float) -> float:
+    """How far (s) to predict the latest pose: over its age since arrival (``age_s``, 0 if negative),
+    the mean latency, and how much later than the average it arrived; within [0, reset_after_s]."""
+    h = max(0.0, age_s) + latency_s + (delay_s - mean_delay_s)
+    return min(max(h, 0.0), reset_after_s)
+
+
+def predicted(x: tuple, h: float) -> tuple:
+    """Position (m) and velocity (m/s) of the filter's state ``x`` predicted ``h`` (s) ahead at its
+    constant acceleration: (px, py, pz, vx, vy, vz)."""
+    px, vx, ax, py, vy, ay, pz, vz, az = x
+    hh = h * h / 2
+    return (px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh,
+            vx + ax * h, vy + ay * h, vz + az * h)
