@@ -147,3 +147,70 @@ def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision
     np.testing.assert_array_equal(ra, rb)
     _, terminated, _, info = _fall(CrossGapEnv(fine, pool))
     assert terminated and info["reward_terms"]["collision"] == -1e6
+
+
+def test_observation_through_the_link_is_the_onboard_programs_estimate(pool):
+    """With `EnvConfig.link`, a row's inputs are what the onboard program's own filter makes of the
+    frames: each control step's pose (rounded as LinkTrack carries it) arriving after the tracker's and
+    the radio's latency, fed in order into a `PoseEstimator`, its estimate taken at the step plus the
+    control lead. Rebuilt here from the row's true states with the program's classes."""
+    from emulator.mocap import MocapConfig
+    from emulator.uwb import UwbConfig
+    from hil.rl.link_observe import LinkModel
+    from policies.onboard.estimator import PoseEstimator
+
+    link = LinkModel(MocapConfig(pos_noise_m=0.0, att_noise_rad=0.0, processing_s=0.0), UwbConfig(jitter_s=0.0))
+    cfg = EnvConfig(pool_size=6, seed=3, link=link)
+    core = CrossGapCore(2, cfg, pool)
+    core.reset_rows(np.arange(2), np.array([1, 4]))
+    lk = link.packed()
+    delay = lk[2] + lk[4] + lk[10]  # camera + radio + air and UART time (s): no noise, no jitter here
+    pilot = EndToEndPilot(model=object())
+    x = core.physics.kernel_arrays[0]
+    est = [PoseEstimator(link.estimator) for _ in range(2)]
+    for i in range(2):  # settled on the hover: 100 exact frames 10 ms apart, the last stamped -delay
+        for k in range(100):
+            stamp = -delay - (99 - k) * 0.01
+            est[i].update(stamp, x[i, 0:3], x[i, 6:10], stamp + delay)
+    frames: list[list[tuple]] = [[], []]
+    rng = np.random.default_rng(2)
+    for step in range(1, 60):
+        core.step(np.column_stack([rng.normal(0, 0.1, 2), rng.normal(0, 0.1, 2), np.full(2, 9.4)]))
+        t = step * cfg.dt_s
+        for i in range(2):
+            pose = x[i, 0:7].astype(np.float32).astype(float)
+            q = x[i, 6:10] / np.linalg.norm(x[i, 6:10])
+            q = (q if q[0] >= 0 else -q).astype(np.float32).astype(float)
+            frames[i].append((round(t * 1e6) * 1e-6, pose[0:3], q, t + delay))
+            while frames[i] and frames[i][0][3] <= t:
+                est[i].update(*frames[i].pop(0))
+            e = est[i].estimate(t + cfg.lead_s)
+            plan = pool.crossings[core.which[i]].plan
+            obs = Observation(t + cfg.lead_s, e.pos_m, e.vel_m_s, e.acc_m_s2,
+                              e.euler_rad, plan.gap, plan)
+            np.testing.assert_allclose(core._obs[i], pilot.inputs(obs), rtol=0, atol=1e-9)
+    assert core.link.q_count.tolist() == [3, 3]  # 26.8 ms of latency: three frames in flight
+    # the same link with its noise and jitter: the inputs move off the true state's by millimetres
+    noisy = CrossGapCore(2, EnvConfig(pool_size=6, seed=3, link=LinkModel()), pool)
+    true = CrossGapCore(2, EnvConfig(pool_size=6, seed=3), pool)
+    for c in (noisy, true):
+        c.reset_rows(np.arange(2), np.array([1, 4]))
+        for _ in range(40):
+            c.step(np.column_stack([np.full(2, 0.05), np.full(2, -0.05), np.full(2, 9.0)]))
+    d = noisy._obs[:, 0:3] - true._obs[:, 0:3]
+    assert 1e-5 < np.abs(d).max() < 0.02
+
+
+def test_the_link_refuses_occlusions_and_counts_what_the_radio_loses(pool):
+    from emulator.mocap import MocapConfig
+    from emulator.uwb import UwbConfig
+    from hil.rl.link_observe import LinkModel
+
+    with pytest.raises(ValueError, match="occlusion"):
+        LinkModel(MocapConfig(occlusion_prob=0.1))
+    core = CrossGapCore(64, EnvConfig(pool_size=6, seed=3, link=LinkModel(uwb=UwbConfig(loss_prob=0.3))), pool)
+    core.reset_rows(np.arange(64), np.zeros(64, np.int64))
+    for _ in range(50):
+        core.step(np.column_stack([np.zeros(64), np.zeros(64), np.full(64, 8.83)]))
+    assert core.link.lost.sum() / (64 * 50) == pytest.approx(0.3, abs=0.03)
+    assert np.isfinite(core._obs).all()

@@ -62,6 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rl.add_argument("--world-check", choices=("control", "physics"), default="control",
                     help="when the environment checks the world, in training and in the held-out evaluation: "
                          "once a control step (default) or after every physics step, as the runner does")
+    rl.add_argument("--observe", choices=("state", "link"), default="state",
+                    help="what the policy sees, in training and in the held-out evaluation: the true state "
+                         "(default) or the onboard filter's estimate from the mocap frames through the radio")
     rl.add_argument("--envs", type=int, default=None,
                     help="vehicles flown at once (default 64; the batch stays about 10,240 steps)")
     rl.add_argument("--seed", type=int, default=0, help="seed of the crossings and of TRPO (default 0)")
@@ -83,7 +86,7 @@ def main_rl(args: argparse.Namespace) -> int:
 
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
                            progress=not args.no_progress, updates=args.updates,
-                           cfg=RLConfig(world_check=args.world_check))
+                           cfg=RLConfig(world_check=args.world_check, observe=args.observe))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"hil train rl: {exc}", file=sys.stderr)
         return 1

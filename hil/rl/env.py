@@ -19,7 +19,12 @@ by the expert controller on the plan's reference (the action is then ignored).
 
 Observation (29,): the end-to-end policy's inputs exactly as the `e2e` pilot builds them
 (`policies.learning.learned_pilots`): the state predicted ``lead_s`` ahead (the onboard program's control
-lead; here from the true state), acceleration input zero (the pilot's default), mission time + lead.
+lead), acceleration input zero (the pilot's default), mission time + lead. The state is the true one by
+default; with ``EnvConfig.link`` (a `hil.rl.link_observe.LinkModel`) it is what the onboard program
+would estimate from the mocap frames as the radio delivers them (noise, latency, jitter, loss, its
+filter's prediction; the latest frame's attitude), so that the policy sees what it will see through the
+link. (The first observation of an episode is the true state's either way: the filter has settled on
+the hover by then.)
 
 Reward: the paper's (Lin et al. 2019, section V-B) with the release's constants, each term kept apart
 (`hil.rl.reward`, compiled over the rows).
@@ -41,6 +46,7 @@ from emulator.fc import EmulatedVehicle
 from emulator.fc.batched_steps import fly_targets
 from emulator.physics.native import BatchPhysics, hover_state
 from emulator.profile import load_profile
+from hil.rl.link_observe import DRAWS, LinkModel, LinkRows, link_observe_rows
 from hil.rl.observe import observe_rows
 from hil.rl.reward import REWARD_TERMS, pack_weights, score_rows
 from hil.rl.scenarios import CrossingPool, CrossingRanges, draw_crossings
@@ -78,6 +84,8 @@ class EnvConfig:
     #: when the world is checked: "control" once a control step (fast, training), "physics" after every
     #: physics step as the runner does (a graze shorter than a control step counts; about 2x slower)
     world_check: str = "control"
+    #: the observation through the mocap/UWB link and the onboard filter (None: the true state)
+    link: LinkModel | None = None
 
     def __post_init__(self) -> None:
         if self.world_check not in ("control", "physics"):
@@ -159,6 +167,7 @@ class CrossGapCore:
         self._row_dir = np.zeros((self.n, 3))
         self._row_t_approach = np.zeros(self.n)
         self._row_steps = np.zeros(self.n, np.int64)
+        self.link = None if cfg.link is None else LinkRows(self.n, cfg.link)
         self.reset_rows(np.arange(self.n))
 
     # --- episodes -------------------------------------------------------------------------------------
@@ -191,6 +200,8 @@ class CrossGapCore:
         aux[rows] = 0.0
         self._prev_w[rows] = 0.0
         self._prev_a[rows] = 0.0
+        if self.link is not None:
+            self.link.reset(rows, x, 0.0)
         self._observe(rows)
 
     def observations(self, rows: np.ndarray | None = None) -> np.ndarray:
@@ -203,6 +214,21 @@ class CrossGapCore:
         observe_rows(x, aux, self._all if rows is None else rows, self.config.lead_s, self._row_start,
                      self._row_yaw, self.tick, self.config.dt_s, self._row_t_approach, self._pred_pos,
                      self._pred_vel, self._obs)
+
+    def _observe_link(self) -> None:
+        """Every row's inputs through the link (`hil.rl.link_observe`), its draws from the Generator."""
+        n, rng, lk, cfg = self.n, self.rng, self.link, self.config
+        assert lk is not None
+        draws = np.empty((n, DRAWS))
+        draws[:, 0:6] = rng.standard_normal((n, 6))
+        draws[:, 6] = rng.standard_exponential(n)
+        draws[:, 7] = rng.standard_normal(n)
+        draws[:, 8:11] = rng.random((n, 3))
+        x, _, _ = self.physics.kernel_arrays
+        link_observe_rows(x, self.tick * cfg.dt_s, draws, lk.consts, cfg.lead_s, self._row_start,
+                          self._row_yaw, self.tick, cfg.dt_s, self._row_t_approach, lk.kx, lk.kp, lk.kt,
+                          lk.quat, lk.bad, lk.q_stamp, lk.q_arrival, lk.q_values, lk.q_head, lk.q_count,
+                          lk.lost, self._pred_pos, self._pred_vel, self._obs)
 
     # --- one control step -----------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -235,7 +261,10 @@ class CrossGapCore:
         score_rows(x, aux, self._weights, self._row_centre, self._row_dir, self.tick, self._row_steps,
                    self._codes, self.arrived, self._prev_w, self._prev_a, self._terms, self._reward,
                    self._terminated, self._truncated, self._success)
-        self._observe()
+        if self.link is None:
+            self._observe()
+        else:
+            self._observe_link()
         return (self._reward.copy(), self._terminated.copy(), self._truncated.copy(), self._terms.copy(),
                 self._success.copy())
 

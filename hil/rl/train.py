@@ -21,6 +21,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapVecEnv, EnvConfig
+from hil.rl.link_observe import LinkModel
 from hil.rl.policy import ImitationInitPolicy, imitation_policy
 from hil.rl.scenarios import CrossingPool, draw_crossings
 from policies.learning.export import EXPORT_DTYPES, EXPORT_HIDDEN, N_INPUTS, export_onnx
@@ -68,6 +69,9 @@ class RLConfig:
     #: when the environment checks the world (`EnvConfig.world_check`), in training and in the held-out
     #: evaluation: "control", once a control step, or "physics", after every physics step as the runner does
     world_check: str = "control"
+    #: what the policy observes, in training and in the held-out evaluation (`EnvConfig.link`): "state",
+    #: the true state, or "link", the onboard filter's estimate from the mocap frames through the radio
+    observe: str = "state"
     threads: int = 2  # torch CPU threads
     checkpoint_every: int = 10  # updates
 
@@ -221,6 +225,8 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
         raise ValueError(f"minutes must be positive, got {minutes}")
     if cfg.world_check not in ("control", "physics"):
         raise ValueError(f"world_check must be 'control' or 'physics', got {cfg.world_check!r}")
+    if cfg.observe not in ("state", "link"):
+        raise ValueError(f"observe must be 'state' or 'link', got {cfg.observe!r}")
     if updates is not None and (isinstance(updates, bool) or not isinstance(updates, int) or updates < 1):
         raise ValueError(f"updates must be a whole number >= 1, got {updates!r}")
     if n_envs is not None:
@@ -231,7 +237,8 @@ def train_rl(out_dir: str | Path, minutes: float, seed: int = 0, resume: bool = 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    env_cfg = EnvConfig(pool_size=cfg.pool_size, seed=seed, world_check=cfg.world_check)
+    env_cfg = EnvConfig(pool_size=cfg.pool_size, seed=seed, world_check=cfg.world_check,
+                        link=LinkModel() if cfg.observe == "link" else None)
     venv = CrossGapVecEnv(cfg.n_envs, env_cfg)
     env = _ScaledReward(venv, cfg.reward_scale)
     ckpt = out / "checkpoint.zip"

@@ -1,0 +1,204 @@
+"""The RL environment's observations through the link: what the onboard program would estimate from the
+mocap stream as the UWB radio delivers it, compiled over the environment's rows.
+
+Each control step every vehicle is exposed once (the mocap frame at the control rate: the environment
+holds states at control-step ends only): its pose as the tracker measures it (`emulator.mocap`'s
+`measured_pose`: position and attitude noise), rounded as the LinkTrack frame carries it (float32 values,
+microsecond stamps), sent after the camera latency and the processing time, then over the radio (the
+channel model's latency with its jitter, order kept, Gilbert-Elliott and independent loss, the frame's
+air time) and the UART into the onboard computer. Frames that have arrived by the control step go, in
+order, into the onboard program's filter (`policies.onboard.estimator`: `filter_update`,
+`prediction_horizon_s`, `predicted`); the policy sees the estimate predicted to the step plus the control
+lead, the attitude of the latest frame, through the same `e2e_state_row` as the pilot. One definition of
+each: the tracker's, the channel's and the program's arithmetic, plain floats compiled here.
+
+Not modelled: occlusions (a config with ``occlusion_prob`` > 0 is refused), the mocap rate (frames come
+at the control rate, 100 Hz, not the tracker's 120 Hz), the reader's checks of a frame (every frame is a
+good one here), and the gap's own pose (the planner's inputs are the plan's, fixed at the reset).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit, prange
+
+from emulator.mocap import MocapConfig, measured_pose
+from emulator.uwb import UwbConfig
+from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
+from hil.link.mavlink import euler_from_quat
+from policies.learning.learned_pilots import e2e_state_row
+from policies.onboard.estimator import EstimatorConfig, filter_update, predicted, prediction_horizon_s
+
+QUEUE = 16  # frames in flight a row can hold (at 100 Hz: 160 ms of latency)
+#: the draws each row takes a control step: 6 normals (noise), 1 exponential (processing), 1 normal
+#: (jitter), 3 uniforms (the burst state, the burst loss, the independent loss)
+DRAWS = 11
+
+_measured = njit(cache=True)(measured_pose)
+_update = njit(cache=True)(filter_update)
+_horizon = njit(cache=True)(prediction_horizon_s)
+_predicted = njit(cache=True)(predicted)
+_euler = njit(cache=True)(euler_from_quat)
+_state_row = njit(cache=True)(e2e_state_row)
+
+
+@dataclass(frozen=True)
+class LinkModel:
+    """The link the observations come through: the tracker, the radio and the onboard filter, each with
+    the harness's defaults (`MocapConfig`, `UwbConfig`, `EstimatorConfig`)."""
+
+    mocap: MocapConfig = field(default_factory=MocapConfig)
+    uwb: UwbConfig = field(default_factory=UwbConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+
+    def __post_init__(self) -> None:
+        if self.mocap.occlusion_prob > 0:
+            raise ValueError("the RL environment's link model has no occlusions: set mocap occlusion_prob 0")
+
+    def frame_bytes(self) -> int:
+        """Bytes of one LinkTrack frame with the vehicle and the gap (what the radio and the UART carry)."""
+        body = BodySample(body_id=1, stamp_s=0.0, pos_m=(0.0, 0.0, 0.0), quat_wxyz=(1.0, 0.0, 0.0, 0.0))
+        return len(encode_mocap_frame(MocapPacket(frame_no=0, bodies=(body, body))))
+
+    def packed(self) -> np.ndarray:
+        """The constants the kernel reads (see `link_observe_rows`)."""
+        m, u, e = self.mocap, self.uwb, self.estimator
+        n = self.frame_bytes()
+        return np.array([m.pos_noise_m, m.att_noise_rad, m.camera_latency_s, m.processing_s, u.latency_s,
+                         u.jitter_s, u.loss_prob, u.burst_enter_prob, u.burst_exit_prob, u.burst_loss_prob,
+                         u.air_time_s(n) + u.uart_time_s(n), e.pos_noise_m, e.jerk_psd, e.delay_window_s,
+                         e.latency_s, e.reset_after_s])
+
+
+(L_POS_SD, L_ATT_SD, L_CAMERA_S, L_PROCESSING_S, L_LATENCY_S, L_JITTER_S, L_LOSS, L_BURST_ENTER, L_BURST_EXIT,
+ L_BURST_LOSS, L_WIRE_S, L_KF_NOISE_M, L_KF_JERK, L_KF_WINDOW_S, L_KF_LATENCY_S, L_KF_RESET_S) = range(16)
+
+
+class LinkRows:
+    """Per row: the frames in flight and the onboard filter's state (arrays the kernel advances)."""
+
+    def __init__(self, n: int, model: LinkModel) -> None:
+        self.model = model
+        self.consts = model.packed()
+        self.kx = np.zeros((n, 9))  # the filter's state: p, v, a of x, y, z
+        self.kp = np.zeros((n, 6))  # its covariance
+        #: the latest frame's stamp (s), its arrival (s), arrival - stamp (s), that delay's running mean (s),
+        #: and the radio's last arrival (s: it keeps the order)
+        self.kt = np.zeros((n, 5))
+        self.quat = np.zeros((n, 4))  # the latest frame's attitude
+        self.bad = np.zeros(n, np.bool_)  # the radio's burst state
+        self.q_stamp = np.zeros((n, QUEUE))
+        self.q_arrival = np.zeros((n, QUEUE))
+        self.q_values = np.zeros((n, QUEUE, 7))
+        self.q_head = np.zeros(n, np.int64)
+        self.q_count = np.zeros(n, np.int64)
+        self.lost = np.zeros(n, np.int64)  # frames the radio lost (per row, since its reset)
+
+    def reset(self, rows: np.ndarray, x: np.ndarray, t_s: float) -> None:
+        """Rows ``rows`` start hovering at the state rows ``x`` at episode time ``t_s``: the filter settled
+        on that pose (a hover long before the episode), nothing in flight."""
+        link_reset_rows(rows, x, t_s, self.consts, self.kx, self.kp, self.kt, self.quat)
+        self.bad[rows] = False
+        self.q_head[rows] = 0
+        self.q_count[rows] = 0
+        self.lost[rows] = 0
+
+
+@njit(cache=True)
+def link_reset_rows(rows, x, t_s, c, kx, kp, kt, quat):  # pragma: no cover
+    """The filter of each of ``rows`` after a second of exact frames of its hover (see `LinkRows.reset`)."""
+    delay = c[L_CAMERA_S] + c[L_PROCESSING_S] + c[L_LATENCY_S] + c[L_WIRE_S]  # the mean arrival - stamp
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        xs = (0.0,) * 9
+        ps = (0.0,) * 6
+        mean = 0.0
+        for k in range(100):
+            xs, ps, mean = _update(xs, ps, mean, k == 0, 0.01, delay, x[i, 0], x[i, 1], x[i, 2],
+                                   c[L_KF_NOISE_M], c[L_KF_JERK], c[L_KF_WINDOW_S])
+        for k in range(9):
+            kx[i, k] = xs[k]
+        for k in range(6):
+            kp[i, k] = ps[k]
+        kt[i, 0], kt[i, 1], kt[i, 2], kt[i, 3], kt[i, 4] = t_s - delay, t_s, delay, mean, t_s
+        for k in range(4):
+            quat[i, k] = x[i, 6 + k]
+
+
+@njit(cache=True, inline="always")
+def _filter_state(kx, i):  # pragma: no cover
+    """Row ``i`` of the filter states as the tuple `filter_update` takes."""
+    return (kx[i, 0], kx[i, 1], kx[i, 2], kx[i, 3], kx[i, 4], kx[i, 5], kx[i, 6], kx[i, 7], kx[i, 8])
+
+
+@njit(cache=True, parallel=True)
+def link_observe_rows(x, now_s, draws, c, lead_s, row_start, row_yaw, tick, dt_s, t_approach_s, kx, kp, kt,
+                      quat, bad, q_stamp, q_arrival, q_values, q_head, q_count, lost, pred_pos, pred_vel,
+                      obs):  # pragma: no cover
+    """Every row: expose its state ``x`` at ``now_s`` (N,) (s, its episode time) with its ``draws``
+    (N, DRAWS) of the seeded Generator, send the frame (or lose it), deliver the frames that have arrived
+    into the filter, and write the estimate ``lead_s`` ahead into ``pred_pos``, ``pred_vel`` (N, 3) and the
+    policy's first 13 inputs into ``obs`` (N, 29) (`hil.rl.observe.observe_rows`'s columns)."""
+    nq = q_stamp.shape[1]
+    for i in prange(x.shape[0]):
+        d = draws[i]
+        t = now_s[i]
+        # --- the tracker: the frame of this instant, rounded as LinkTrack carries it -------------
+        qw, qx, qy, qz = x[i, 6], x[i, 7], x[i, 8], x[i, 9]
+        sq = qw * qw + qx * qx + qy * qy + qz * qz
+        m = _measured(x[i, 0], x[i, 1], x[i, 2], qw, qx, qy, qz, sq, c[L_POS_SD], c[L_ATT_SD], d[0], d[1],
+                      d[2], d[3], d[4], d[5])
+        stamp = round(t * 1e6) * 1e-6
+        ready = t + c[L_CAMERA_S] + (c[L_PROCESSING_S] * d[6] if c[L_PROCESSING_S] > 0 else 0.0)
+        # --- the radio: burst state, losses, latency with jitter (order kept), air and UART time --
+        if c[L_BURST_ENTER] > 0:
+            bad[i] = (d[8] >= c[L_BURST_EXIT]) if bad[i] else (d[8] < c[L_BURST_ENTER])
+        gone = (bad[i] and d[9] < c[L_BURST_LOSS]) or (c[L_LOSS] > 0 and d[10] < c[L_LOSS])
+        if gone or q_count[i] == nq:  # (a full queue: 16 frames in flight, 160 ms behind)
+            lost[i] += 1
+        else:
+            latency = c[L_LATENCY_S]
+            if c[L_JITTER_S] > 0:
+                latency = max(0.0, latency + c[L_JITTER_S] * d[7])
+            arrival = max(ready + latency, kt[i, 4])
+            kt[i, 4] = arrival
+            slot = (q_head[i] + q_count[i]) % nq
+            q_stamp[i, slot] = stamp
+            q_arrival[i, slot] = arrival + c[L_WIRE_S]
+            for k in range(7):
+                q_values[i, slot, k] = np.float32(m[k])
+            q_count[i] += 1
+        # --- the onboard program: the frames that have arrived, in order, into its filter --------
+        while q_count[i] > 0 and q_arrival[i, q_head[i]] <= t:
+            h = q_head[i]
+            s, a = q_stamp[i, h], q_arrival[i, h]
+            if s > kt[i, 0]:
+                dt = s - kt[i, 0]
+                restart = not (0.0 < dt <= c[L_KF_RESET_S])
+                v = q_values[i, h]
+                ps = (kp[i, 0], kp[i, 1], kp[i, 2], kp[i, 3], kp[i, 4], kp[i, 5])
+                xs, ps, kt[i, 3] = _update(_filter_state(kx, i), ps, kt[i, 3], restart, dt, a - s, v[0], v[1],
+                                           v[2], c[L_KF_NOISE_M], c[L_KF_JERK], c[L_KF_WINDOW_S])
+                for k in range(9):
+                    kx[i, k] = xs[k]
+                for k in range(6):
+                    kp[i, k] = ps[k]
+                kt[i, 0], kt[i, 1], kt[i, 2] = s, a, a - s
+                n = math.sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6])
+                for k in range(4):
+                    quat[i, k] = v[3 + k] / n
+            q_head[i] = (h + 1) % nq
+            q_count[i] -= 1
+        # --- the policy's inputs: the estimate predicted to the step plus the control lead ---------
+        hz = _horizon(t + lead_s - kt[i, 1], c[L_KF_LATENCY_S], kt[i, 2], kt[i, 3], c[L_KF_RESET_S])
+        px, py, pz, vx, vy, vz = _predicted(_filter_state(kx, i), hz)
+        pred_pos[i, 0], pred_pos[i, 1], pred_pos[i, 2] = px, py, pz
+        pred_vel[i, 0], pred_vel[i, 1], pred_vel[i, 2] = vx, vy, vz
+        roll, pitch, yaw = _euler(quat[i])
+        o = obs[i]
+        _state_row(px - row_start[i, 0], py - row_start[i, 1], pz - row_start[i, 2], vx, vy, vz, 0.0, 0.0,
+                   0.0, roll, pitch, yaw, row_yaw[i], o)  # (acceleration input: the pilot's zero)
+        o[12] = min(max(tick[i] * dt_s + lead_s, 0.0), t_approach_s[i])
