@@ -12,12 +12,16 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
+from emulator.mocap import MocapConfig
+from emulator.uwb import UwbConfig
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
 from hil.rl import ENV_ID
 from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig
+from hil.rl.link_observe import LinkModel
 from hil.rl.scenarios import CrossingPool, draw_crossings
 from policies.learning.learned_pilots import EndToEndPilot
 from policies.learning.onnx_runtime import load_shipped
+from policies.onboard.estimator import PoseEstimator
 from policies.onboard.pilots import Observation
 
 SMALL = EnvConfig(pool_size=6, seed=3)
@@ -154,12 +158,8 @@ def test_observation_through_the_link_is_the_onboard_programs_estimate(pool):
     frames: each control step's pose (rounded as LinkTrack carries it) arriving after the tracker's and
     the radio's latency, fed in order into a `PoseEstimator`, its estimate taken at the step plus the
     control lead. Rebuilt here from the row's true states with the program's classes."""
-    from emulator.mocap import MocapConfig
-    from emulator.uwb import UwbConfig
-    from hil.rl.link_observe import LinkModel
-    from policies.onboard.estimator import PoseEstimator
-
-    link = LinkModel(MocapConfig(pos_noise_m=0.0, att_noise_rad=0.0, processing_s=0.0), UwbConfig(jitter_s=0.0))
+    exact = MocapConfig(pos_noise_m=0.0, att_noise_rad=0.0, processing_s=0.0)
+    link = LinkModel(exact, UwbConfig(jitter_s=0.0))
     cfg = EnvConfig(pool_size=6, seed=3, link=link)
     core = CrossGapCore(2, cfg, pool)
     core.reset_rows(np.arange(2), np.array([1, 4]))
@@ -202,13 +202,10 @@ def test_observation_through_the_link_is_the_onboard_programs_estimate(pool):
 
 
 def test_the_link_refuses_occlusions_and_counts_what_the_radio_loses(pool):
-    from emulator.mocap import MocapConfig
-    from emulator.uwb import UwbConfig
-    from hil.rl.link_observe import LinkModel
-
     with pytest.raises(ValueError, match="occlusion"):
         LinkModel(MocapConfig(occlusion_prob=0.1))
-    core = CrossGapCore(64, EnvConfig(pool_size=6, seed=3, link=LinkModel(uwb=UwbConfig(loss_prob=0.3))), pool)
+    lossy = LinkModel(uwb=UwbConfig(loss_prob=0.3))
+    core = CrossGapCore(64, EnvConfig(pool_size=6, seed=3, link=lossy), pool)
     core.reset_rows(np.arange(64), np.zeros(64, np.int64))
     for _ in range(50):
         core.step(np.column_stack([np.zeros(64), np.zeros(64), np.full(64, 8.83)]))
