@@ -258,9 +258,7 @@ class MocapSystem:
             sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
             # seen only inside the tracked volume (NaN fails every comparison): a body that left it, or
             # a diverged simulation, is reported invalid, as an occluded body is
-            valid = math.isfinite(sq) and sq > 0.25 and (
-                -TRACKED_LIMIT_M <= px <= TRACKED_LIMIT_M and -TRACKED_LIMIT_M <= py <= TRACKED_LIMIT_M
-                and -TRACKED_LIMIT_M <= pz <= TRACKED_LIMIT_M)
+            valid = trackable(px, py, pz, sq)
             if occlusion > 0:
                 until = self._occluded_until.get(body_id, -1.0)
                 if t_s >= until and rng.random() < occlusion:
@@ -297,6 +295,15 @@ class MocapSystem:
             extra = self._exponential(cfg.processing_s)
         self.stats.frames += 1
         return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
+
+
+def trackable(px: float, py: float, pz: float, sq: float) -> bool:
+    """Whether the tracker sees a body at ``px, py, pz`` (m) whose attitude quaternion has the squared norm
+    ``sq``: inside the tracked volume and a real attitude (NaN fails every comparison: a diverged
+    simulation is reported invalid, as an occluded body is)."""
+    return math.isfinite(sq) and sq > 0.25 and (
+        -TRACKED_LIMIT_M <= px <= TRACKED_LIMIT_M and -TRACKED_LIMIT_M <= py <= TRACKED_LIMIT_M
+        and -TRACKED_LIMIT_M <= pz <= TRACKED_LIMIT_M)
 
 
 def measured_pose(px: float, py: float, pz: float, qw: float, qx: float, qy: float, qz: float, sq: float,

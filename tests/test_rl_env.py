@@ -211,3 +211,10 @@ def test_the_link_refuses_occlusions_and_counts_what_the_radio_loses(pool):
         core.step(np.column_stack([np.zeros(64), np.zeros(64), np.full(64, 8.83)]))
     assert core.link.lost.sum() / (64 * 50) == pytest.approx(0.3, abs=0.03)
     assert np.isfinite(core._obs).all()
+    # a pose the tracker cannot see (NaN: a diverged state) sends no frame: the row's estimate ages on
+    x = core.physics.kernel_arrays[0]
+    x[5, 0:10] = np.nan
+    for _ in range(5):  # 50 ms: the frames in flight arrive, no new one is sent
+        core.tick += 1
+        core._observe_link()
+    assert core.link.q_count[5] == 0 and np.isfinite(core._obs[5]).all()

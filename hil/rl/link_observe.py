@@ -12,7 +12,9 @@ order, into the onboard program's filter (`policies.onboard.estimator`: `filter_
 lead, the attitude of the latest frame, through the same `e2e_state_row` as the pilot. One definition of
 each: the tracker's, the channel's and the program's arithmetic, plain floats compiled here.
 
-Not modelled: occlusions (a config with ``occlusion_prob`` > 0 is refused), the mocap rate (frames come
+A pose the tracker cannot see (not finite, outside its volume: `emulator.mocap.trackable`) sends no
+frame, and the estimate ages on the last one. Not modelled: occlusions (a config with
+``occlusion_prob`` > 0 is refused), the mocap rate (frames come
 at the control rate, 100 Hz, not the tracker's 120 Hz), the reader's checks of a frame (every frame is a
 good one here), and the gap's own pose (the planner's inputs are the plan's, fixed at the reset).
 """
@@ -25,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from emulator.mocap import MocapConfig, measured_pose
+from emulator.mocap import MocapConfig, measured_pose, trackable
 from emulator.uwb import UwbConfig
 from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
 from hil.link.mavlink import euler_from_quat
@@ -38,6 +40,7 @@ QUEUE = 16  # frames in flight a row can hold (at 100 Hz: 160 ms of latency)
 DRAWS = 11
 
 _measured = njit(cache=True)(measured_pose)
+_trackable = njit(cache=True)(trackable)
 _update = njit(cache=True)(filter_update)
 _horizon = njit(cache=True)(prediction_horizon_s)
 _predicted = njit(cache=True)(predicted)
@@ -157,7 +160,9 @@ def link_observe_rows(x, now_s, draws, c, lead_s, row_start, row_yaw, tick, dt_s
         if c[L_BURST_ENTER] > 0:
             bad[i] = (d[8] >= c[L_BURST_EXIT]) if bad[i] else (d[8] < c[L_BURST_ENTER])
         gone = (bad[i] and d[9] < c[L_BURST_LOSS]) or (c[L_LOSS] > 0 and d[10] < c[L_LOSS])
-        if gone or q_count[i] == nq:  # (a full queue: 16 frames in flight, 160 ms behind)
+        if not _trackable(x[i, 0], x[i, 1], x[i, 2], sq):  # (a frame flagged invalid: the program skips it)
+            pass
+        elif gone or q_count[i] == nq:  # (a full queue: 16 frames in flight, 160 ms behind)
             lost[i] += 1
         else:
             latency = c[L_LATENCY_S]
