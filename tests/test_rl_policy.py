@@ -98,6 +98,11 @@ def test_a_number_of_updates_gives_the_same_weights_whatever_the_clock(tmp_path)
     assert judged["config"]["world_check"] == "physics" and judged["updates"] == 1
     with pytest.raises(ValueError, match="world_check must be 'control' or 'physics'"):
         train_rl(tmp_path / "d", 1.0, cfg=replace(cfg, world_check="sometimes"), progress=False, updates=1)
+    linked = train_rl(tmp_path / "e", 30.0, seed=3, cfg=replace(cfg, observe="link"), progress=False,
+                      updates=1)  # trained and evaluated observing through the link model
+    assert linked["config"]["observe"] == "link" and linked["held_out"]["crossings"] == 2
+    with pytest.raises(ValueError, match="observe must be 'state' or 'link'"):
+        train_rl(tmp_path / "f", 1.0, cfg=replace(cfg, observe="mocap"), progress=False, updates=1)
 
 
 @pytest.mark.slow
