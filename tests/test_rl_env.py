@@ -12,7 +12,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-from emulator.mocap import MocapConfig
+from emulator.mocap import MocapConfig, measured_pose
 from emulator.uwb import UwbConfig
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
 from hil.rl import ENV_ID
@@ -155,9 +155,10 @@ def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision
 
 def test_observation_through_the_link_is_the_onboard_programs_estimate(pool):
     """With `EnvConfig.link`, a row's inputs are what the onboard program's own filter makes of the
-    frames: each control step's pose (rounded as LinkTrack carries it) arriving after the tracker's and
-    the radio's latency, fed in order into a `PoseEstimator`, its estimate taken at the step plus the
-    control lead. Rebuilt here from the row's true states with the program's classes."""
+    frames: the pose at each of the tracker's exposures (120 Hz; between two control steps, interpolated
+    from the states at their ends), rounded as LinkTrack carries it, arriving after the tracker's and the
+    radio's latency, fed in order into a `PoseEstimator`, its estimate taken at the step plus the control
+    lead. Rebuilt here from the row's true states with the program's classes."""
     exact = MocapConfig(pos_noise_m=0.0, att_noise_rad=0.0, processing_s=0.0)
     link = LinkModel(exact, UwbConfig(jitter_s=0.0))
     cfg = EnvConfig(pool_size=6, seed=3, link=link)
@@ -165,31 +166,50 @@ def test_observation_through_the_link_is_the_onboard_programs_estimate(pool):
     core.reset_rows(np.arange(2), np.array([1, 4]))
     lk = link.packed()
     delay = lk[2] + lk[4] + lk[10]  # camera + radio + air and UART time (s): no noise, no jitter here
+    period = exact.period_s
     pilot = EndToEndPilot(model=object())
     x = core.physics.kernel_arrays[0]
     est = [PoseEstimator(link.estimator) for _ in range(2)]
-    for i in range(2):  # settled on the hover: 100 exact frames 10 ms apart, the last stamped -delay
+    for i in range(2):  # settled on the hover: 100 exact frames a period apart, the last stamped -delay
         for k in range(100):
-            stamp = -delay - (99 - k) * 0.01
+            stamp = -delay - (99 - k) * period
             est[i].update(stamp, x[i, 0:3], x[i, 6:10], stamp + delay)
-    frames: list[list[tuple]] = [[], []]
+    frames: list[list[tuple]] = [[], []]  # in flight: those exposed since the last one arrived
+    exposure = [-delay + period] * 2
+    for i in range(2):
+        q = x[i, 6:10]
+        m = np.array(measured_pose(*x[i, 0:3], *q, q @ q, 0.0, 0.0, 0, 0, 0, 0, 0, 0), np.float32)
+        m = m.astype(float)
+        while exposure[i] <= 1e-9:
+            frames[i].append((round(exposure[i] * 1e6) * 1e-6, m[0:3], m[3:7], exposure[i] + delay))
+            exposure[i] += period
     rng = np.random.default_rng(2)
+    dt = cfg.dt_s
     for step in range(1, 60):
+        before = x[:, 0:10].copy()
         core.step(np.column_stack([rng.normal(0, 0.1, 2), rng.normal(0, 0.1, 2), np.full(2, 9.4)]))
-        t = step * cfg.dt_s
+        t = step * dt
         for i in range(2):
-            pose = x[i, 0:7].astype(np.float32).astype(float)
-            q = x[i, 6:10] / np.linalg.norm(x[i, 6:10])
-            q = (q if q[0] >= 0 else -q).astype(np.float32).astype(float)
-            frames[i].append((round(t * 1e6) * 1e-6, pose[0:3], q, t + delay))
+            while exposure[i] <= t + 1e-9:
+                te = exposure[i]
+                exposure[i] += period
+                f = min(max((te - (t - dt)) / dt, 0.0), 1.0)
+                a = before[i]
+                sgn = -1.0 if before[i, 6:10] @ x[i, 6:10] < 0 else 1.0
+                pos = a[0:3] + f * (x[i, 0:3] - a[0:3])
+                q = sgn * a[6:10] + f * (x[i, 6:10] - sgn * a[6:10])
+                m = measured_pose(*pos, *q, q @ q, 0.0, 0.0, 0, 0, 0, 0, 0, 0)
+                m = np.array(m, np.float32).astype(float)
+                arrival = te + lk[2] + lk[4] + lk[10]  # (summed in the radio's order: the same float)
+                frames[i].append((round(te * 1e6) * 1e-6, m[0:3], m[3:7], arrival))
             while frames[i] and frames[i][0][3] <= t:
                 est[i].update(*frames[i].pop(0))
             e = est[i].estimate(t + cfg.lead_s)
             plan = pool.crossings[core.which[i]].plan
-            obs = Observation(t + cfg.lead_s, e.pos_m, e.vel_m_s, e.acc_m_s2,
-                              e.euler_rad, plan.gap, plan)
+            obs = Observation(t + cfg.lead_s, e.pos_m, e.vel_m_s, e.acc_m_s2, e.euler_rad, plan.gap, plan)
             np.testing.assert_allclose(core._obs[i], pilot.inputs(obs), rtol=0, atol=1e-9)
-    assert core.link.q_count.tolist() == [3, 3]  # 26.8 ms of latency: three frames in flight
+    # 26.8 ms of latency at 120 Hz: three or four frames in flight
+    assert core.link.q_count.tolist() == [len(frames[0]), len(frames[1])] and 3 <= len(frames[0]) <= 4
     # the same link with its noise and jitter: the inputs move off the true state's by millimetres
     noisy = CrossGapCore(2, EnvConfig(pool_size=6, seed=3, link=LinkModel()), pool)
     true = CrossGapCore(2, EnvConfig(pool_size=6, seed=3), pool)
@@ -209,7 +229,7 @@ def test_the_link_refuses_occlusions_and_counts_what_the_radio_loses(pool):
     core.reset_rows(np.arange(64), np.zeros(64, np.int64))
     for _ in range(50):
         core.step(np.column_stack([np.zeros(64), np.zeros(64), np.full(64, 8.83)]))
-    assert core.link.lost.sum() / (64 * 50) == pytest.approx(0.3, abs=0.03)
+    assert core.link.lost.sum() / (64 * 60) == pytest.approx(0.3, abs=0.03)  # (60 exposures in 0.5 s)
     assert np.isfinite(core._obs).all()
     # a pose the tracker cannot see (NaN: a diverged state) sends no frame: the row's estimate ages on
     x = core.physics.kernel_arrays[0]

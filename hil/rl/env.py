@@ -168,6 +168,7 @@ class CrossGapCore:
         self._row_t_approach = np.zeros(self.n)
         self._row_steps = np.zeros(self.n, np.int64)
         self.link = None if cfg.link is None else LinkRows(self.n, cfg.link)
+        self._exposures = 0 if cfg.link is None else cfg.link.exposures_per_step(cfg.dt_s)
         self.reset_rows(np.arange(self.n))
 
     # --- episodes -------------------------------------------------------------------------------------
@@ -219,16 +220,18 @@ class CrossGapCore:
         """Every row's inputs through the link (`hil.rl.link_observe`), its draws from the Generator."""
         n, rng, lk, cfg = self.n, self.rng, self.link, self.config
         assert lk is not None
-        draws = np.empty((n, DRAWS))
-        draws[:, 0:6] = rng.standard_normal((n, 6))
-        draws[:, 6] = rng.standard_exponential(n)
-        draws[:, 7] = rng.standard_normal(n)
-        draws[:, 8:11] = rng.random((n, 3))
+        k = self._exposures
+        draws = np.empty((n, k, DRAWS))  # each exposure's (`link_observe.DRAWS`)
+        draws[..., 0:6] = rng.standard_normal((n, k, 6))
+        draws[..., 6] = rng.standard_exponential((n, k))
+        draws[..., 7] = rng.standard_normal((n, k))
+        draws[..., 8:11] = rng.random((n, k, 3))
         x, _, _ = self.physics.kernel_arrays
-        link_observe_rows(x, self.tick * cfg.dt_s, draws, lk.consts, cfg.lead_s, self._row_start,
-                          self._row_yaw, self.tick, cfg.dt_s, self._row_t_approach, lk.kx, lk.kp, lk.kt,
-                          lk.quat, lk.bad, lk.q_stamp, lk.q_arrival, lk.q_values, lk.q_head, lk.q_count,
-                          lk.lost, self._pred_pos, self._pred_vel, self._obs)
+        link_observe_rows(x, lk.before, self.tick * cfg.dt_s, cfg.dt_s, draws.reshape(n, k * DRAWS),
+                          lk.consts, cfg.lead_s, self._row_start, self._row_yaw, self._row_t_approach, lk.kx,
+                          lk.kp, lk.kt, lk.quat, lk.bad, lk.next_exposure_s, lk.q_stamp, lk.q_arrival,
+                          lk.q_values, lk.q_head, lk.q_count, lk.lost, self._pred_pos, self._pred_vel,
+                          self._obs)
 
     # --- one control step -----------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -254,6 +257,8 @@ class CrossGapCore:
         tg = self._targets  # (the command link's SET_ATTITUDE_TARGET, as the FC reads it)
         fc_targets(roll, pitch, thrust, self._row_ned_yaw, self._full, self._max_tilt, tg)
         x, aux, p = self.physics.kernel_arrays
+        if self.link is not None:
+            self.link.save(x)
         fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
                     self.pool.worlds, self.which, cfg.world_check == "physics", self._codes, self.clearance_m)
         self.physics.advance_clock(cfg.physics_steps)
