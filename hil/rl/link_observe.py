@@ -2,11 +2,12 @@
 mocap stream as the UWB radio delivers it, compiled over the environment's rows.
 
 Every vehicle is exposed at the tracker's rate (120 Hz by default; its pose at an exposure interpolated
-between the states at the ends of the control step, which the environment holds: over 10 ms that is
-within a tenth of a millimetre and of a milliradian, below the tracker's noise): the pose as the tracker
-measures it (`emulator.mocap`'s `measured_pose`: position and attitude noise), rounded as the LinkTrack
-frame carries it (float32 values, microsecond stamps), sent after the camera latency and the processing
-time, then over the radio (the channel model's latency with its jitter, order kept, Gilbert-Elliott and
+between the states at the ends of the control step, which the environment holds: against the states of
+the physics steps in between, within 0.06 mm and 2.4 mrad under commands that jump by 0.3 rad every
+step, beside the tracker's noise of 0.2 mm and 1 mrad): the pose as the tracker measures it
+(`emulator.mocap`'s `measured_pose`: position and attitude noise), rounded as the LinkTrack frame
+carries it (float32 values, microsecond stamps), sent after the camera latency and the processing time,
+then over the radio (the channel model's latency with its jitter, order kept, Gilbert-Elliott and
 independent loss, the frame's air time) and the UART into the onboard computer. Frames that have
 arrived by the control step go, in order, into the onboard program's filter
 (`policies.onboard.estimator`: `filter_update`, `prediction_horizon_s`, `predicted`); the policy sees
