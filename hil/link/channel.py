@@ -53,6 +53,19 @@ class ChannelModel:
         return 1.0 - (1.0 - self.loss_prob) * (1.0 - p_bad * self.burst_loss_prob)
 
 
+def next_burst_state(bad: bool, u: float, enter_prob: float, exit_prob: float) -> bool:
+    """Gilbert-Elliott: whether a channel is in the bad state for the next message, from its state
+    ``bad`` and a uniform draw ``u`` in [0, 1). Plain arithmetic: `Channel` runs it, and the RL
+    environment compiled over its rows (`hil.rl.link_observe`)."""
+    return (u >= exit_prob) if bad else (u < enter_prob)
+
+
+def delivery_s(ready_s: float, latency_s: float, jitter_s: float, last_arrival_s: float) -> float:
+    """When a message whose last byte is out at ``ready_s`` arrives (s): after the latency with this
+    message's ``jitter_s`` (the sum not below 0), never before the one before (``last_arrival_s``)."""
+    return max(ready_s + max(0.0, latency_s + jitter_s), last_arrival_s)
+
+
 class Channel:
     """One direction of a link on ``model``: `drop()` says whether a message is lost, `arrival_s()`
     when one ready at a time arrives (latency, jitter, order kept). Draws only from ``rng`` (and may
@@ -72,8 +85,7 @@ class Channel:
         Draws: the state change (bursts on), the burst loss (bad state), then the independent loss."""
         m, rng = self.model, self.rng
         if m.burst_enter_prob > 0:
-            bad = self._bad
-            self._bad = (rng.random() >= m.burst_exit_prob) if bad else (rng.random() < m.burst_enter_prob)
+            self._bad = next_burst_state(self._bad, rng.random(), m.burst_enter_prob, m.burst_exit_prob)
         if self._bad and rng.random() < m.burst_loss_prob:
             return "burst"
         if m.loss_prob > 0 and rng.random() < m.loss_prob:
@@ -84,13 +96,8 @@ class Channel:
         """When a message whose last byte is out at ``ready_s`` arrives: after the latency with its
         jitter, never before the one before it (s)."""
         m = self.model
-        latency = m.latency_s
-        if m.jitter_s > 0:
-            latency = max(0.0, latency + self._jitter(m.jitter_s))
-        arrival = ready_s + latency
-        if arrival < self._last_arrival_s:
-            arrival = self._last_arrival_s
-        self._last_arrival_s = arrival
+        jitter = self._jitter(m.jitter_s) if m.jitter_s > 0 else 0.0
+        arrival = self._last_arrival_s = delivery_s(ready_s, m.latency_s, jitter, self._last_arrival_s)
         return arrival
 
     def _jitter(self, jitter_s: float) -> float:

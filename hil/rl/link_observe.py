@@ -31,9 +31,9 @@ from numba import njit, prange
 
 from emulator.mocap import MocapConfig, measured_pose, trackable
 from emulator.uwb import UwbConfig
+from hil.link.channel import delivery_s, next_burst_state
 from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
-from hil.link.mavlink import euler_from_quat
-from policies.learning.learned_pilots import e2e_state_row
+from hil.rl.observe import euler_angles, write_inputs
 from policies.onboard.estimator import EstimatorConfig, filter_update, predicted, prediction_horizon_s
 
 QUEUE = 32  # frames in flight a row can hold (at 120 Hz: 260 ms of latency)
@@ -46,8 +46,8 @@ _trackable = njit(cache=True)(trackable)
 _update = njit(cache=True)(filter_update)
 _horizon = njit(cache=True)(prediction_horizon_s)
 _predicted = njit(cache=True)(predicted)
-_euler = njit(cache=True)(euler_from_quat)
-_state_row = njit(cache=True)(e2e_state_row)
+_burst = njit(cache=True)(next_burst_state)
+_delivery = njit(cache=True)(delivery_s)
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,6 @@ class LinkRows:
     """Per row: the frames in flight and the onboard filter's state (arrays the kernel advances)."""
 
     def __init__(self, n: int, model: LinkModel) -> None:
-        self.model = model
         self.consts = model.packed()
         self.kx = np.zeros((n, 9))  # the filter's state: p, v, a of x, y, z
         self.kp = np.zeros((n, 6))  # its covariance
@@ -116,7 +115,7 @@ class LinkRows:
 
     def reset(self, rows: np.ndarray, x: np.ndarray, t_s: float) -> None:
         """Rows ``rows`` start hovering at the state rows ``x`` at episode time ``t_s``: the filter settled
-        on that pose (a hover long before the episode), nothing in flight."""
+        on that pose and the frames of it in flight, as after a long hover (`link_reset_rows`)."""
         self.q_head[rows] = 0
         self.q_count[rows] = 0
         link_reset_rows(rows, x, t_s, self.consts, self.kx, self.kp, self.kt, self.quat, self.next_exposure_s,
@@ -211,18 +210,15 @@ def link_observe_rows(x, before, now_s, dt_s, draws, c, lead_s, row_start, row_y
             ready = te + c[L_CAMERA_S] + (c[L_PROCESSING_S] * d[6] if c[L_PROCESSING_S] > 0 else 0.0)
             # --- the radio: burst state, losses, latency with jitter (order kept), air and UART time
             if c[L_BURST_ENTER] > 0:
-                bad[i] = (d[8] >= c[L_BURST_EXIT]) if bad[i] else (d[8] < c[L_BURST_ENTER])
+                bad[i] = _burst(bad[i], d[8], c[L_BURST_ENTER], c[L_BURST_EXIT])
             gone = (bad[i] and d[9] < c[L_BURST_LOSS]) or (c[L_LOSS] > 0 and d[10] < c[L_LOSS])
             if not _trackable(px, py, pz, sq):  # (a frame flagged invalid: the program skips it)
                 continue
             if gone or q_count[i] == nq:  # (a full queue: 32 frames in flight, 260 ms behind)
                 lost[i] += 1
                 continue
-            latency = c[L_LATENCY_S]
-            if c[L_JITTER_S] > 0:
-                latency = max(0.0, latency + c[L_JITTER_S] * d[7])
-            arrival = max(ready + latency, kt[i, 4])
-            kt[i, 4] = arrival
+            jitter = c[L_JITTER_S] * d[7] if c[L_JITTER_S] > 0 else 0.0  # (as normal(0, sd) of the draw)
+            arrival = kt[i, 4] = _delivery(ready, c[L_LATENCY_S], jitter, kt[i, 4])
             slot = (q_head[i] + q_count[i]) % nq
             q_stamp[i, slot] = stamp
             q_arrival[i, slot] = arrival + c[L_WIRE_S]
@@ -255,8 +251,6 @@ def link_observe_rows(x, before, now_s, dt_s, draws, c, lead_s, row_start, row_y
         px, py, pz, vx, vy, vz = _predicted(_filter_state(kx, i), hz)
         pred_pos[i, 0], pred_pos[i, 1], pred_pos[i, 2] = px, py, pz
         pred_vel[i, 0], pred_vel[i, 1], pred_vel[i, 2] = vx, vy, vz
-        roll, pitch, yaw = _euler(quat[i])
-        o = obs[i]
-        _state_row(px - row_start[i, 0], py - row_start[i, 1], pz - row_start[i, 2], vx, vy, vz, 0.0, 0.0,
-                   0.0, roll, pitch, yaw, row_yaw[i], o)  # (acceleration input: the pilot's zero)
-        o[12] = min(max(t + lead_s, 0.0), t_approach_s[i])
+        roll, pitch, yaw = euler_angles(quat[i])
+        write_inputs(obs[i], px, py, pz, vx, vy, vz, roll, pitch, yaw, row_start[i], row_yaw[i], t + lead_s,
+                     t_approach_s[i])

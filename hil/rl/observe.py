@@ -13,8 +13,20 @@ from numba import njit, prange
 from hil.link.mavlink import euler_from_quat
 from policies.learning.learned_pilots import e2e_state_row
 
-_euler = njit(cache=True)(euler_from_quat)
+euler_angles = njit(cache=True)(euler_from_quat)
 _state_row = njit(cache=True)(e2e_state_row)
+
+
+@njit(cache=True, inline="always")
+def write_inputs(o, px, py, pz, vx, vy, vz, roll, pitch, yaw, start, plan_yaw, t_s,
+                 t_approach_s):  # pragma: no cover
+    """The policy's first 13 inputs into ``o`` (29,): the pilot's 12 state inputs of position ``px..pz``
+    (m) relative to the approach start ``start`` (3,), velocity ``vx..vz`` (m/s) and attitude (rad) in
+    the frame of the plan's yaw ``plan_yaw`` (rad; acceleration input: the pilot's zero), then the
+    mission time ``t_s`` within [0, ``t_approach_s``] (s)."""
+    _state_row(px - start[0], py - start[1], pz - start[2], vx, vy, vz, 0.0, 0.0, 0.0, roll, pitch, yaw,
+               plan_yaw, o)
+    o[12] = min(max(t_s, 0.0), t_approach_s)
 
 
 @njit(cache=True, parallel=True)
@@ -32,10 +44,7 @@ def observe_rows(x, aux, rows, lead_s, row_start, row_yaw, tick, dt_s, t_approac
         for k in range(3):
             pred_pos[i, k] = x[i, k] + x[i, 3 + k] * lead_s + aux[i, 3 + k] * c
             pred_vel[i, k] = x[i, 3 + k] + aux[i, 3 + k] * lead_s
-        roll, pitch, yaw = _euler(x[i, 6:10])
-        o = obs[i]
-        _state_row(pred_pos[i, 0] - row_start[i, 0], pred_pos[i, 1] - row_start[i, 1],
-                   pred_pos[i, 2] - row_start[i, 2], pred_vel[i, 0], pred_vel[i, 1], pred_vel[i, 2],
-                   0.0, 0.0, 0.0, roll, pitch, yaw, row_yaw[i], o)  # (acceleration input: the pilot's zero)
-        t = tick[i] * dt_s + lead_s
-        o[12] = min(max(t, 0.0), t_approach_s[i])
+        roll, pitch, yaw = euler_angles(x[i, 6:10])
+        write_inputs(obs[i], pred_pos[i, 0], pred_pos[i, 1], pred_pos[i, 2], pred_vel[i, 0], pred_vel[i, 1],
+                     pred_vel[i, 2], roll, pitch, yaw, row_start[i], row_yaw[i], tick[i] * dt_s + lead_s,
+                     t_approach_s[i])
