@@ -17,7 +17,7 @@ from emulator.uwb import UwbConfig
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
 from hil.rl import ENV_ID
 from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig
-from hil.rl.link_observe import LinkModel
+from hil.rl.link_observe import QUEUE, LinkModel
 from hil.rl.scenarios import CrossingPool, draw_crossings
 from policies.learning.learned_pilots import EndToEndPilot
 from policies.learning.onnx_runtime import load_shipped
@@ -238,3 +238,11 @@ def test_the_link_refuses_occlusions_and_counts_what_the_radio_loses(pool):
         core.tick += 1
         core._observe_link()
     assert core.link.q_count[5] == 0 and np.isfinite(core._obs[5]).all()
+    # a radio slower than the queue holds (400 ms: 48 frames in flight at 120 Hz, room for 32): the frames
+    # that do not fit are counted lost, and the inputs stay finite
+    slow = CrossGapCore(4, EnvConfig(pool_size=6, seed=3, link=LinkModel(uwb=UwbConfig(latency_s=0.4))), pool)
+    slow.reset_rows(np.arange(4), np.zeros(4, np.int64))
+    for _ in range(60):
+        slow.step(np.column_stack([np.zeros(4), np.zeros(4), np.full(4, 8.83)]))
+    assert (slow.link.q_count >= QUEUE - 2).all() and (slow.link.lost > 0).all()
+    assert np.isfinite(slow._obs).all()
