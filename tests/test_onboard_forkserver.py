@@ -58,6 +58,21 @@ def test_two_warm_runs_give_the_same_tlog_bytes_as_two_cold_starts(tmp_path):
     assert counters[("warm", 1)] == counters[("cold", 0)] == counters[("warm", 0)]
 
 
+def test_a_run_reports_the_cpu_time_of_each_side(tmp_path):
+    """The summary's ``cpu_s``: the harness's process and, forked warm, the onboard program's (from its
+    exit status, as its fork server reaped it); unknown for a cold start or one sharing the process."""
+    s = loads_scenarios(SHORT)[0]
+    options = {"warm": RunOptions(), "cold": RunOptions(cold_start=True),
+               "shared": RunOptions(in_process=True)}
+    warm, cold, shared = (run_scenario(s, tmp_path / k, o) for k, o in options.items())
+    cpu = warm.summary["cpu_s"]
+    assert cpu["harness"] > 0.0
+    # 500 ticks of the program's work, in a process that lived no longer than the run (one thread works)
+    assert 0.01 < cpu["onboard"] < warm.summary["wall_time_s"] + 0.5
+    assert cold.summary["cpu_s"]["onboard"] is None and cold.summary["cpu_s"]["harness"] > 0.0
+    assert shared.summary["cpu_s"]["onboard"] is None and shared.summary["cpu_s"]["harness"] > 0.0
+
+
 @pytest.mark.parametrize("name", ["onboard_killed_approach", "onboard_stalled"])
 def test_a_killed_or_stalled_warm_program_behaves_as_a_cold_one(tmp_path, name):
     s = load_scenarios(SCENARIOS / f"{name}.scenario.yaml")[0]
@@ -81,6 +96,7 @@ def test_a_forked_program_reports_its_exit_code_and_bad_options_as_a_cold_one(se
     with open(tmp_path / "err", "wb") as err:
         proc = server.spawn(["--command-link", "memory", "--mocap-link", "memory", "--rate-hz", "10"], err)
         assert proc.wait(10) == 2  # refused below the N3's 50 Hz, as `python -m policies.onboard` exits
+        assert proc.cpu_s is not None and 0.0 < proc.cpu_s < 5.0  # its CPU time, from its exit status
     assert "50" in (tmp_path / "err").read_text()
     cold = subprocess.run(
         [sys.executable, "-m", "policies.onboard", "--command-link", "memory", "--mocap-link", "memory",

@@ -84,8 +84,9 @@ def collect(quick: bool) -> Iterator[BenchRow]:
 
 
 def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
-    """``suite_rtf`` and ``onboard_startup_ms``: the shipped suite as `hil suite` flies it (``jobs``
-    workers, two processes per run over ptys, lockstep, the onboard program started warm)."""
+    """``suite_rtf``, ``onboard_startup_ms`` and ``suite_cpu_ms_per_sim_s``: the shipped suite as
+    `hil suite` flies it (``jobs`` workers, two processes per run over ptys, lockstep, the onboard
+    program started warm)."""
     proc = subprocess.run(
         [sys.executable, "-m", "hil.cli", "suite", str(SCENARIOS_DIR), "--out", str(out), "-j", str(jobs)],
         capture_output=True, text=True, timeout=3600,
@@ -103,10 +104,8 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
         f"hil suite scenarios/ -j {jobs}: {len(results)} runs, {sim_s:.0f} s sim in "
         f"{index['wall_time_s']:.1f} s wall, all passed",
     )
-    startups = sorted(
-        json.loads((out / r["id"] / "summary.json").read_text(encoding="utf-8"))["onboard_startup_s"]
-        for r in results
-    )
+    summaries = [json.loads((out / r["id"] / "summary.json").read_text(encoding="utf-8")) for r in results]
+    startups = sorted(sm["onboard_startup_s"] for sm in summaries)
     yield BenchRow(
         "onboard_startup_ms",
         1e3 * float(np.median(startups)),
@@ -114,3 +113,14 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
         f"median over the suite's {len(startups)} runs, from the onboard program's spawn to its first "
         f"answered tick (max {1e3 * startups[-1]:.0f} ms)",
     )
+    harness = sum(sm["cpu_s"]["harness"] for sm in summaries)
+    onboard = [sm["cpu_s"]["onboard"] for sm in summaries]
+    if all(isinstance(v, float) for v in onboard):  # (every program forked warm: its CPU time is known)
+        yield BenchRow(
+            "suite_cpu_ms_per_sim_s",
+            1e3 * (harness + sum(onboard)) / sim_s,
+            "ms",
+            f"CPU time of both sides a simulated second over the suite's runs (harness {harness:.1f} s + "
+            f"onboard programs {sum(onboard):.1f} s, reports excluded): what a suite costs, which the "
+            "host's load moves less than its wall time",
+        )

@@ -173,6 +173,12 @@ class ProcessOnboard:
     def exited(self) -> bool:
         return self.proc.poll() is not None
 
+    @property
+    def cpu_s(self) -> float | None:
+        """The program's CPU time in all (user + system, s) once it has exited, as its fork server
+        reaped it; None while it runs, or when it was started cold."""
+        return getattr(self.proc, "cpu_s", None)
+
     def kill(self) -> None:
         if self.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):

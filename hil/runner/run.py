@@ -242,6 +242,7 @@ def _run(
     spawn_s = 0.0  # wall time the onboard process took to spawn (s)
     started_monotonic_s = None  # when it was spawned (time.monotonic, s): real time's zero
     wall0 = time.perf_counter()
+    cpu0 = time.process_time()
     try:
         if in_process:
             cmd_fc, cmd_ob = MemoryTransport.pair(MEMORY_CAPACITY_BYTES, name="command")
@@ -313,9 +314,13 @@ def _run(
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
         onboard_events = onboard.events()
         wall_s = time.perf_counter() - wall0
+        # each side's CPU time (s): this process's up to here (both sides when they share it), the
+        # onboard program's whole life where its fork server reaped it (None in this process or cold)
+        cpu = {"harness": time.process_time() - cpu0,
+               "onboard": None if isinstance(onboard, InProcessOnboard) else onboard.cpu_s}
         started = None if isinstance(onboard, InProcessOnboard) else ("warm" if onboard.warm else "cold")
         return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime, started,
-                       options.html_report)
+                       options.html_report, cpu)
     finally:
         if onboard is not None:
             onboard.close()
@@ -338,6 +343,7 @@ def _finish(
     realtime: bool,
     onboard_start: str | None,
     html_report: bool | str = True,
+    cpu_s: dict[str, float | None] | None = None,
 ) -> RunResult:
     rec = emu.recorder
     cols = rec.columns()
@@ -430,6 +436,9 @@ def _finish(
         "loop_wall_time_s": loop.wall_loop_s,
         "loop_sim_time_s": loop_sim,
         "onboard_startup_s": loop.startup_wall_s,
+        # CPU time (s, user + system) of the harness's process over the run, its reports excluded
+        # (both sides when they share it), and of the onboard program's process (None when unknown)
+        "cpu_s": cpu_s or {"harness": None, "onboard": None},
         "real_time_factor": loop_sim / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
         "mode": {
             "in_process": in_process,

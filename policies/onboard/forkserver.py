@@ -124,9 +124,12 @@ class _Server:
     def _reap(self, pidfd: int) -> None:
         pid, chan = self.children.pop(pidfd)
         self.sel.unregister(pidfd)
-        _, status = os.waitpid(pid, 0)
+        _, status, usage = os.wait4(pid, 0)
+        # its exit code, and the CPU time it used in all (user + system, s): a run's own cost, which
+        # wall time on a shared machine does not tell
+        message = {"exit": os.waitstatus_to_exitcode(status), "cpu_s": usage.ru_utime + usage.ru_stime}
         with contextlib.suppress(OSError):
-            chan.send(json.dumps({"exit": os.waitstatus_to_exitcode(status)}).encode())
+            chan.send(json.dumps(message).encode())
         chan.close()
         os.close(pidfd)
         if self.spare is None:  # the next run's child, forked now that this one is over (not while it
@@ -253,6 +256,7 @@ class ForkedProcess:
     def __init__(self, pid: int, pidfd: int, chan: socket.socket) -> None:
         self.pid = pid
         self.returncode: int | None = None
+        self.cpu_s: float | None = None  # its CPU time in all (user + system, s), once it has exited
         self._pidfd: int | None = pidfd
         self._chan = chan
 
@@ -296,6 +300,8 @@ class ForkedProcess:
             msg = json.loads(data) if data else {}
         if isinstance(msg.get("exit"), int):
             self.returncode = msg["exit"]
+            cpu = msg.get("cpu_s")
+            self.cpu_s = float(cpu) if isinstance(cpu, int | float) else None
         elif not data:  # the server has gone without a word: end the program, as a harness would
             if self._pidfd is not None:
                 with contextlib.suppress(ProcessLookupError):
