@@ -16,8 +16,8 @@ The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descripto
         "cpus": [...]|null}`` (the CPUs the child keeps to: the asking harness's) with two descriptors:
         the run's channel and the child's stderr;
     run channel (one per child): the server's ``{"pid": N}`` with the child's pidfd, then
-        ``{"exit": code}`` (negative: the signal that ended it) once it has been reaped; the channel
-        closes after it.
+        ``{"exit": code, "cpu_s": s}`` (negative code: the signal that ended it; its CPU time, user
+        + system) once it has been reaped; the channel closes after it.
 The server ends when its control socket closes (its harness exited); children it leaves behind end as
 cold ones do, when their links close.
 
