@@ -4,8 +4,10 @@ as cold starts; faults on the process as cold."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -103,6 +105,17 @@ def test_a_forked_program_reports_its_exit_code_and_bad_options_as_a_cold_one(se
          "--rate-hz", "10"], capture_output=True, env=program_env(),
     )
     assert cold.returncode == 2
+
+
+@pytest.mark.parametrize(("cpu", "kept"), [(0.25, 0.25), (0, 0.0), (float("nan"), None), (-1.0, None),
+                                         (float("inf"), None), ("0.3", None), (True, None), (None, None)])
+def test_the_cpu_time_beside_an_exit_code_is_kept_only_when_it_is_a_time(cpu, kept):
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    proc = forkserver.ForkedProcess(0, os.open(os.devnull, os.O_RDONLY), ours)
+    theirs.send(json.dumps({"exit": 0, "cpu_s": cpu}).encode())
+    assert proc.poll() == 0  # the exit code stands whatever came beside it
+    assert proc.cpu_s == kept
+    theirs.close()
 
 
 def test_a_forked_program_is_stopped_continued_and_killed_through_its_pidfd(server, tmp_path):

@@ -30,6 +30,7 @@ import atexit
 import contextlib
 import gc
 import json
+import math
 import os
 import runpy
 import select
@@ -300,8 +301,9 @@ class ForkedProcess:
             msg = json.loads(data) if data else {}
         if isinstance(msg.get("exit"), int):
             self.returncode = msg["exit"]
-            cpu = msg.get("cpu_s")
-            self.cpu_s = float(cpu) if isinstance(cpu, int | float) else None
+            cpu = msg.get("cpu_s")  # (a figure that is not a time is no figure)
+            ok = isinstance(cpu, int | float) and not isinstance(cpu, bool) and 0.0 <= cpu < math.inf
+            self.cpu_s = float(cpu) if ok else None
         elif not data:  # the server has gone without a word: end the program, as a harness would
             if self._pidfd is not None:
                 with contextlib.suppress(ProcessLookupError):
