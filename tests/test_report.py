@@ -159,6 +159,23 @@ def test_sparse_or_hostile_inputs_still_render(tmp_path: Path, scenario: Scenari
     parse(html)
 
 
+@pytest.mark.parametrize(("cpu", "shown"), [
+    ({"harness": 0.291, "onboard": 0.224}, "harness 0.29 s, onboard 0.22 s"),
+    ({"harness": 0.5, "onboard": None}, "harness 0.50 s"),
+    ({"harness": "x", "onboard": float("nan")}, None),
+    ("0.3", None),
+])
+def test_the_verdict_line_gives_each_side_s_cpu_time_that_is_known(tmp_path: Path, scenario: Scenario,
+                                                                  cpu, shown) -> None:
+    html = write_report_html(tmp_path, {"passed": True, "cpu_s": cpu}, {"t_s": np.linspace(0, 1, 5)},
+                             scenario).read_text()
+    parse(html)
+    if shown is None:
+        assert "CPU time" not in html
+    else:
+        assert f"<b>CPU time</b> {shown}</span>" in html
+
+
 def test_timeseries_columns_are_checked(tmp_path: Path) -> None:
     t = np.arange(4.0)
     bad = [

@@ -157,6 +157,7 @@ def _verdict(summary: dict[str, Any], scenario: Scenario) -> str:
         ("end", summary.get("end_reason")),
         ("sim time", _seconds(summary.get("sim_time_s"))),
         ("wall time", _seconds(summary.get("wall_time_s"))),
+        ("CPU time", _cpu(summary.get("cpu_s"))),
     ]
     meta_html = "".join(
         f"<span><b>{escape(k)}</b> {escape(_fmt(v))}</span>" for k, v in meta if v is not None
@@ -182,6 +183,14 @@ def _flown_by(flies: Any) -> str | None:
 
 def _seconds(value: Any) -> str | None:
     return None if not isinstance(value, int | float) else f"{value:.2f} s"
+
+
+def _cpu(value: Any) -> str | None:
+    """"harness 0.29 s, onboard 0.22 s" from the summary's ``cpu_s`` (the sides whose time is known)."""
+    if not isinstance(value, dict):
+        return None
+    known = [f"{k} {v:.2f} s" for k, v in value.items() if isinstance(v, int | float) and math.isfinite(v)]
+    return ", ".join(known) or None
 
 
 def _checks(summary: dict[str, Any]) -> str:
