@@ -342,8 +342,8 @@ def _finish(
     in_process: bool,
     realtime: bool,
     onboard_start: str | None,
-    html_report: bool | str = True,
-    cpu_s: dict[str, float | None] | None = None,
+    html_report: bool | str,
+    cpu_s: dict[str, float | None],
 ) -> RunResult:
     rec = emu.recorder
     cols = rec.columns()
@@ -438,7 +438,7 @@ def _finish(
         "onboard_startup_s": loop.startup_wall_s,
         # CPU time (s, user + system) of the harness's process over the run, its reports excluded
         # (both sides when they share it), and of the onboard program's process (None when unknown)
-        "cpu_s": cpu_s or {"harness": None, "onboard": None},
+        "cpu_s": cpu_s,
         "real_time_factor": loop_sim / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
         "mode": {
             "in_process": in_process,
