@@ -72,14 +72,15 @@ def configure() -> Path | None:
     return folder
 
 
-def cold() -> Path | None:
-    """This digest's folder when no kernel is cached in it yet (the first use after an install or a
-    change compiles them, about 10-20 s on two cores), else None; None too when ``NUMBA_CACHE_DIR`` is
-    the user's own."""
+def cold(module: str = "") -> Path | None:
+    """This digest's folder when no kernel (of ``module``, e.g. ``esc_bus_kernels``, if named) is cached
+    in it yet (the first use after an install or a change compiles them, about 10-20 s on two cores),
+    else None; None too when ``NUMBA_CACHE_DIR`` is the user's own."""
     folder = os.environ.get("NUMBA_CACHE_DIR")
     if not folder or Path(folder) != cache_root() / sources_digest():
         return None
-    return Path(folder) if next(Path(folder).rglob("*.nbi"), None) is None else None
+    pattern = f"{module}.*.nbi" if module else "*.nbi"
+    return Path(folder) if next(Path(folder).rglob(pattern), None) is None else None
 
 
 def _remove_stale(current: Path) -> None:

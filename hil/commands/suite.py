@@ -4,12 +4,10 @@ index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import multiprocessing
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -23,7 +21,8 @@ from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_o
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
-from hil.scenario import ScenarioError, find_scenario_files, load_scenarios, loads_scenarios
+from hil.runner.warm_up import Compiling, compile_beside, families_of, warm_up
+from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
 from hil.scenario.schema import Scenario
 
 
@@ -43,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     s, out, options = args
     options = replace(options, worker=_worker)
+    _compiling.wait_for(s)  # (rather than compile them a second time)
     try:
         r = run_scenario(s, out, options)
     except (RunSetupError, ValueError) as exc:
@@ -59,20 +59,8 @@ def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
     }
 
 
-#: a short flight that loads what every run loads on its first use
-WARM_UP_SCENARIO = "description: warm-up, not part of any suite\nduration_s: 0.3\n"
-
-
-def warm_up(options: RunOptions) -> None:
-    """Load here, once, what each run loads on its first use in a process (numba's compiled kernels,
-    from its cache, for the options' physics and vehicle): a short in-process flight, its files thrown
-    away. Nothing of it is seen by a run but the time it saves."""
-    flight = RunOptions(in_process=True, backend=options.backend, vehicle=options.vehicle)
-    with contextlib.suppress(RunSetupError, ValueError), tempfile.TemporaryDirectory() as tmp:
-        run_scenario(loads_scenarios(WARM_UP_SCENARIO)[0], tmp, flight)
-
-
 _worker: int | None = None  # this worker's number (in a worker process)
+_compiling = Compiling()  # kernel families compiling beside the warm-up (the workers inherit it)
 
 
 def _start_worker(numbers: Any, warm: bool) -> None:
@@ -101,15 +89,22 @@ def _results(work: list[tuple[Scenario, str, RunOptions]], workers: int, ray_add
                                                         "error": f"its Ray task failed: {res}"}
         return
     fork = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+    global _compiling
     if fork is not None and work:  # the workers are forked from this process: they start with what it
         if warm:  # loaded, and share its onboard fork server (which imports meanwhile)
             prestart()
+        # on a cold kernel cache, the families only some runs use compile on the other cores meanwhile
+        _compiling = compile_beside(families_of(w[0] for w in work), work[0][2])
         warm_up(work[0][2])
     numbers = (fork or multiprocessing).Value("i", 0)
-    with ProcessPoolExecutor(
-        max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, warm)
-    ) as pool:
-        yield from pool.map(_run, work)
+    try:
+        with ProcessPoolExecutor(
+            max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, warm)
+        ) as pool:
+            yield from pool.map(_run, work)
+    finally:
+        _compiling.join()
+        _compiling = Compiling()
 
 
 def main(args: argparse.Namespace) -> int:
