@@ -14,7 +14,8 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 
@@ -24,11 +25,23 @@ from hil.scenario.schema import Scenario
 
 #: a short flight that loads what every run loads on its first use
 WARM_UP_SCENARIO = "description: warm-up, not part of any suite\nduration_s: 0.3\n"
-#: a family of kernels only some runs use -> the module its kernels live in, and a flight that uses them
-FAMILIES = {
-    "esc_bus": ("esc_bus_kernels", WARM_UP_SCENARIO + "links:\n  esc_bus: {}\n"),
-}
 
+
+@dataclass(frozen=True)
+class Family:
+    """Kernels that only some runs use: the module they live in, a short flight that compiles them, and
+    which scenarios use them."""
+
+    module: str
+    flight: str
+    used_by: Callable[[Scenario], bool]
+
+
+#: the families, by name
+FAMILIES = {
+    "esc_bus": Family("esc_bus_kernels", WARM_UP_SCENARIO + "links:\n  esc_bus: {}\n",
+                      lambda s: s.links.esc_bus is not None),
+}
 
 #: the longest a run waits for its family's kernels (s): a compile takes 10-30 s on a busy host
 WAIT_TIMEOUT_S = 300.0
@@ -46,7 +59,7 @@ def warm_up(options: RunOptions, scenario_text: str = WARM_UP_SCENARIO) -> None:
 def families_of(scenarios: Iterable[Scenario]) -> list[str]:
     """The kernel families beyond every run's that ``scenarios`` use."""
     scenarios = list(scenarios)
-    return ["esc_bus"] if any(s.links.esc_bus is not None for s in scenarios) else []
+    return [name for name, f in FAMILIES.items() if any(f.used_by(s) for s in scenarios)]
 
 
 class Compiling:
@@ -63,7 +76,7 @@ class Compiling:
         """Fork a child that compiles family ``name`` into the cache with a short flight."""
         read_end, write_end = multiprocessing.Pipe(duplex=False)
         proc = multiprocessing.get_context("fork").Process(
-            target=_compile, args=(options, FAMILIES[name][1], write_end), name=f"compile {name}",
+            target=_compile, args=(options, FAMILIES[name].flight, write_end), name=f"compile {name}",
             daemon=True)
         proc.start()
         write_end.close()  # (the child's copy alone holds the pipe open now)
@@ -84,7 +97,6 @@ class Compiling:
             proc.join()
 
 
-
 def _compile(options: RunOptions, scenario_text: str, write_end: Connection) -> None:
     try:
         warm_up(options, scenario_text)
@@ -102,6 +114,6 @@ def compile_beside(families: Iterable[str], options: RunOptions) -> Compiling:
     if "fork" not in multiprocessing.get_all_start_methods():
         return compiling
     for name in families:
-        if cold(FAMILIES[name][0]) is not None:
+        if cold(FAMILIES[name].module) is not None:
             compiling.start(name, options)
     return compiling
