@@ -163,6 +163,8 @@ def test_sparse_or_hostile_inputs_still_render(tmp_path: Path, scenario: Scenari
     ({"harness": 0.291, "onboard": 0.224}, "harness 0.29 s, onboard 0.22 s"),
     ({"harness": 0.5, "onboard": None}, "harness 0.50 s"),
     ({"harness": "x", "onboard": float("nan")}, None),
+    ({"harness": True, "onboard": -0.2}, None),  # a bool and a negative figure are not times either
+    ({"harness": float("inf"), "onboard": 0.1}, "onboard 0.10 s"),
     ("0.3", None),
 ])
 def test_the_verdict_line_gives_each_side_s_cpu_time_that_is_known(tmp_path: Path, scenario: Scenario,

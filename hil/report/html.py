@@ -189,7 +189,8 @@ def _cpu(value: Any) -> str | None:
     """"harness 0.29 s, onboard 0.22 s" from the summary's ``cpu_s`` (the sides whose time is known)."""
     if not isinstance(value, dict):
         return None
-    known = [f"{k} {v:.2f} s" for k, v in value.items() if isinstance(v, int | float) and math.isfinite(v)]
+    known = [f"{k} {v:.2f} s" for k, v in value.items()
+             if isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < math.inf]
     return ", ".join(known) or None
 
 
