@@ -37,12 +37,16 @@ from emulator.esc_bus_config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
 from emulator.esc_bus_config import EscBusConfig as EscBusConfig
 from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
 from emulator.esc_bus_kernels import frame_bits as frame_bits
-from hil.link.can_multicast import own_group_only
+from hil.link.can_multicast import FORMATS as MCAST_FORMATS
+from hil.link.can_multicast import McastCanSocket, split_interface
 
-BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP]", "socketcan:IFACE", "mcast[:N]")
+BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP][@ADDR]", "socketcan:IFACE", "mcast[:N][@ADDR]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
 MODE_OPERATIONAL = 0
 DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
+#: frames taken from a real bus in one pass (`CanBus.take_external`, about once a millisecond): above what
+#: a 1 Mbit/s wire carries (about 8 a millisecond), and a bound on the time a pass spends on them
+MAX_INTAKE_FRAMES = 64
 
 
 @dataclass
@@ -63,72 +67,87 @@ class BusStats:
 
 
 class Bridge:
-    """A real CAN bus beside the model: frames out (`send`) and in (`receive`), through python-can
-    (``virtual:CHANNEL``, ``udp_multicast[:GROUP]``, ``socketcan:IFACE``) or dronecan's own multicast
-    driver (``mcast[:N]``, the one dronecan nodes and ArduPilot's simulation join). A frame the real bus
-    refuses is counted in ``errors``, never fatal."""
+    """A real CAN bus beside the model: frames out (`send`) and in (`receive`). ``mcast[:N]`` (dronecan's
+    multicast datagrams, the bus dronecan nodes and ArduPilot's simulation join) and
+    ``udp_multicast[:GROUP]`` (python-can's) cross processes on this machine's loopback interface only,
+    or on a lab network's with ``@ADDR`` (an interface's IPv4 address: `hil.link.can_multicast`);
+    ``virtual:CHANNEL`` and ``socketcan:IFACE`` go through python-can. A frame the real bus refuses is
+    counted in ``errors``, never fatal; a multicast bus never hands back this process's own frames."""
 
     def __init__(self, spec: str, bitrate_bps: int) -> None:
-        kind, _, arg = parse_bus_spec(spec).partition(":")
+        bus, interface = split_interface(parse_bus_spec(spec))
+        kind, _, arg = bus.partition(":")
         self.spec, self.errors = spec, 0
+        self.mcast: McastCanSocket | None = None
         self._bus: Any = None
-        self._driver: Any = None
         try:
-            if kind == "mcast":
-                from dronecan.driver import make_driver
-
-                self._driver = make_driver(f"mcast:{arg or 0}")
+            if kind in MCAST_FORMATS:
+                self.mcast = McastCanSocket(kind, arg, interface)
             else:
-                import can
+                import can  # (python-can's buses load on first use: only for a bus that needs them)
 
-                channel = arg or ("239.74.163.2" if kind == "udp_multicast" else "")
-                self._bus = can.Bus(interface=kind, channel=channel, bitrate=bitrate_bps)
-                if kind == "udp_multicast":
-                    own_group_only(self._bus)
+                self._bus = can.Bus(interface=kind, channel=arg, bitrate=bitrate_bps)
                 self._message = can.Message
         except Exception as exc:  # (python-can's CanError family, a socket's OSError, a bad group)
             raise OSError(f"cannot open the CAN bus {spec!r}: {exc}") from exc
 
     def send(self, can_id: int, data: bytes) -> None:
+        if self.mcast is not None:
+            if not self.mcast.send(can_id, data):
+                self.errors += 1
+            return
         try:
-            if self._driver is not None:
-                self._driver.send(can_id, bytes(data), extended=True)
-            else:
-                self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=True))
+            self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=True))
         except Exception:  # (python-can's CanError, an OSError of the socket): counted, the run goes on
             self.errors += 1
 
-    def receive(self) -> list[tuple[int, bytes]]:
-        """The extended frames that have come in."""
+    def receive(self, max_frames: int) -> tuple[list[tuple[int, bytes]], bool]:
+        """Up to ``max_frames`` extended frames that have come in, and whether more may be waiting."""
+        if self.mcast is not None:
+            return self.mcast.receive(max_frames)
         out = []
-        while True:
-            if self._driver is not None:
-                # (its receive waits 1 ms for nothing: ask only when its queue holds something)
-                frame = None if self._driver.rx_queue.empty() else self._driver.receive(0)
-                if frame is None:
-                    return out
-                can_id, data, extended = frame.id, frame.data, frame.extended
-            else:
-                msg = self._bus.recv(0)
-                if msg is None:
-                    return out
-                can_id, data, extended = msg.arbitration_id, msg.data, msg.is_extended_id
-            if extended:
-                out.append((can_id, bytes(data)))
+        while len(out) < max_frames:
+            msg = self._bus.recv(0)
+            if msg is None:
+                return out, False
+            if msg.is_extended_id and not msg.is_error_frame and not msg.is_remote_frame:
+                out.append((msg.arbitration_id, bytes(msg.data)))
+        return out, True
 
     def close(self) -> None:
-        if self._driver is not None:
-            self._driver.close()
+        if self.mcast is not None:
+            self.mcast.close()
         else:
             self._bus.shutdown()
 
 
 def parse_bus_spec(spec: str) -> str:
     """``spec`` checked (ValueError naming the kinds); "sim": the model alone."""
-    kind, _, arg = spec.partition(":")
-    if kind in ("sim", "mcast", "udp_multicast") or (kind in ("virtual", "socketcan") and arg):
+    bus, at, _ = spec.partition("@")
+    kind, _, arg = bus.partition(":")
+    if at and kind not in MCAST_FORMATS:
+        raise ValueError(f"ESC bus {spec!r}: @ADDR (a network interface) is for "
+                         f"{' and '.join(MCAST_FORMATS)}")
+    if kind in ("sim", *MCAST_FORMATS) or (kind in ("virtual", "socketcan") and arg):
+        split_interface(spec)  # (ValueError for an address that is none)
         return spec
     raise ValueError(f"ESC bus {spec!r}: expected one of {', '.join(BUS_SPECS)}")
+
+
+@dataclass
+class OutsideNode:
+    """A node heard on the real bus (times in s): another process's or machine's, or one that uses a
+    node id of this process (``conflict``: two nodes with one id, which DroneCAN forbids)."""
+
+    node_id: int
+    first_heard_s: float
+    last_heard_s: float
+    frames: int = 0
+    conflict: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"node_id": self.node_id, "frames": self.frames, "conflict": self.conflict,
+                "first_heard_s": round(self.first_heard_s, 4), "last_heard_s": round(self.last_heard_s, 4)}
 
 
 @dataclass(frozen=True, slots=True)
@@ -264,6 +283,10 @@ class CanBus:
         self._rx = TransferManager()
         self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
         self._by_type: dict[Any, list[tuple[int, Callable[[Message, float], None]]]] = {}  # (from _routes)
+        #: the nodes heard on the real bus, by node id; each new one is handed to ``on_outside_node``
+        self.outside_nodes: dict[int, OutsideNode] = {}
+        self.on_outside_node: Callable[[OutsideNode, float], None] = lambda node, t: None
+        self.intake_deferred = 0  # passes that left frames waiting on the real bus (`MAX_INTAKE_FRAMES`)
 
     # the wire's settings and counters, as the arrays hold them
     @property
@@ -346,13 +369,33 @@ class CanBus:
         return lengths
 
     def take_external(self, t: float) -> None:
-        """Put what the real bus brought on the wire at ``t`` (s)."""
+        """Put what the real bus brought on the wire at ``t`` (s): at most `MAX_INTAKE_FRAMES` a pass, so
+        that a flood from outside cannot stall the caller's loop (the rest wait in the real bus's
+        socket for the next pass; what overflows it is counted there, `Bridge.stats`)."""
         if self.bridge is None:
             return
-        for can_id, data in self.bridge.receive():
-            if self._from_outside(can_id & 0x7F):  # (a multicast bus hands back what this process sent)
-                self.wire[k.W_EXTERNAL_IN] += 1
-                self._queue_python(None, [(can_id, data)], (len(data),), 0, 0, t)
+        frames, more = self.bridge.receive(MAX_INTAKE_FRAMES)
+        self.intake_deferred += more
+        for can_id, data in frames:
+            self._heard(can_id & 0x7F, t)
+            self.wire[k.W_EXTERNAL_IN] += 1
+            self._queue_python(None, [(can_id, data)], (len(data),), 0, 0, t)
+
+    def _heard(self, src: int, t: float) -> None:
+        """A frame from node ``src`` of the real bus (0: anonymous) at ``t`` (s): noted, and the first one
+        from a node handed to ``on_outside_node`` (a conflict when it uses this process's id)."""
+        if src == 0:
+            return
+        node = self.outside_nodes.get(src)
+        if node is None:
+            node = self.outside_nodes[src] = OutsideNode(src, t, t, conflict=src in self.local_ids())
+            self.on_outside_node(node, t)
+        node.frames += 1
+        node.last_heard_s = t
+
+    def local_ids(self) -> set[int]:
+        """The node ids this process's nodes use (the compiled ones and those attached from Python)."""
+        return self.node_ids | {nid for nid, _, _ in self._routes}
 
     def advance_to(self, t: float) -> None:
         """Deliver every transfer whose frames are off the wire by ``t`` (s)."""
@@ -379,10 +422,9 @@ class CanBus:
             dtype = _kind_types()[kind]
             message, frames = Message(dtype, src, _fields_of(kind, row[k.Q_PAYLOAD:])), None
         if message is None:  # a frame from the real bus
-            if frames and self._from_outside(frames[0][0] & 0x7F):
-                got = self._reassemble(*frames[0])
-                if got is not None:
-                    self._hand_out(got, done)
+            got = self._reassemble(*frames[0])
+            if got is not None:
+                self._hand_out(got, done)
             return
         if self.bridge is not None:
             if frames is None:
@@ -417,9 +459,6 @@ class CanBus:
         except Exception:  # a transfer of a type this process does not know, or a bad CRC: not ours
             return None
         return Message.decoded(tr)
-
-    def _from_outside(self, src: int) -> bool:
-        return src not in self.node_ids and all(src != nid for nid, _, _ in self._routes)
 
     def _hand_out(self, message: Message, t: float) -> None:
         src = message.source_node_id

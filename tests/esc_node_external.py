@@ -4,7 +4,8 @@ would turn at: sqrt(throttle) x the full speed), and prints what it saw on the b
 
     python esc_node_external.py URI NODE_ID ESC_INDEX SECONDS FULL_SPEED_RAD_S
 
-URI: dronecan's (``mcast:N``) or ``udp_multicast:GROUP`` (python-can's multicast bus).
+URI: a cross-process bus of `hil fc` (``mcast:N`` or ``udp_multicast:GROUP``), joined through
+`hil.link.can_dronecan.McastDriver`, on this machine's loopback interface as the FC's side is.
 
 It stops after SECONDS or at SIGTERM, whichever comes first.
 """
@@ -21,22 +22,13 @@ import time
 import dronecan
 from dronecan import uavcan
 
-from hil.link.can_multicast import own_group_only
+from hil.link.can_dronecan import McastDriver
 
 
 def main() -> None:
-    sys.setswitchinterval(2e-4)  # (hand the GIL to the receiving thread at once: an ESC answers fast)
     uri, node_id, index, seconds, w_max = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), \
         float(sys.argv[4]), float(sys.argv[5])
-    kind, _, group = uri.partition(":")
-    if kind == "udp_multicast":  # python-can's multicast bus, through dronecan's python-can driver
-        node = dronecan.make_node(group, node_id=node_id, bustype="udp_multicast", bitrate=1_000_000)
-        # (dronecan's python-can driver flushes after each send; the multicast bus sends at once and has
-        # no flush, so the flush is a no-op here rather than an error on the next send)
-        node._can_driver._bus.flush_tx_buffer = lambda: None
-        own_group_only(node._can_driver._bus)  # (not the groups of other tests running beside it)
-    else:
-        node = dronecan.make_node(uri, node_id=node_id)
+    node = dronecan.node.Node(McastDriver(uri), node_id=node_id)
     seen: dict = {"raw_commands": 0, "cmd_max": 0, "status_from": {}, "node_status_from": []}
 
     def on_raw(e) -> None:
@@ -66,8 +58,7 @@ def main() -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end and not stop:
         with contextlib.suppress(dronecan.transport.TransferError):
-            node.spin(0)  # what has come in (dronecan's python-can driver takes a spin's timeout as
-            time.sleep(2e-4)  # milliseconds in python-can's seconds: a 50 ms spin would wait 50 s)
+            node.spin(0.05)  # (answers each frame as it comes: the driver waits on its socket)
     print(json.dumps(seen), flush=True)
 
 

@@ -28,6 +28,7 @@ from emulator.esc_bus import (
 )
 from emulator.fc import FcState
 from emulator.fc.batched_steps import FastStepper
+from hil.link.can_multicast import McastCanSocket
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, mav
 
 
@@ -45,10 +46,11 @@ def take_off(b: Bench, thrust: float = 1.3 * HOVER) -> None:
     b.stream(1.0, thrust=thrust)
 
 
-def decode(frames: list[can.Message]) -> list[Transfer]:
+def decode(frames: list[can.Message] | list[tuple[int, bytes]]) -> list[Transfer]:
     tm, out = TransferManager(), []
     for m in frames:
-        got = tm.receive_frame(Frame(m.arbitration_id, m.data))
+        can_id, data = (m.arbitration_id, m.data) if isinstance(m, can.Message) else m
+        got = tm.receive_frame(Frame(can_id, data))
         if got:
             tr = Transfer()
             tr.from_frames(got)
@@ -89,44 +91,44 @@ def test_a_python_can_virtual_bus_sees_rawcommand_and_esc_status_at_their_rates(
 def test_python_can_udp_multicast_carries_the_frames_out_and_an_outside_status_in():
     group = f"239.74.{os.getpid() % 200 + 20}.7"  # (a group of its own: tests may run side by side)
     bridge = Bridge(f"udp_multicast:{group}", 1_000_000)
-    other = can.Bus(interface="udp_multicast", channel=group)  # another python-can node on the bus
+    other = McastCanSocket("udp_multicast", group)  # another process's node: python-can's datagrams
     try:
         b, stepper = flying_bench(EscBusConfig(external=(23,)), bridge=bridge)
         b.run(0.2)
-        frames = []
-        while (m := other.recv(0.05)) is not None:
-            frames.append(m)
+        time.sleep(0.05)
+        frames, _ = other.receive(10_000)
         raw = [t for t in decode(frames) if t.payload._type is uavcan.equipment.esc.RawCommand]
         assert len(raw) == pytest.approx(80, abs=8)  # 0.2 s at 400 Hz
         # ESC 3 answers from outside: its status reaches the FC, and its motor follows the rpm
         w = 0.5 * b.vehicle.profile.max_rotor_speed_rad_s
         status = uavcan.equipment.esc.Status(rpm=int(w * 60 / (2 * math.pi)), esc_index=3)
         for frame in Transfer(payload=status, source_node_id=23, transfer_id=0).to_frames():
-            other.send(can.Message(arbitration_id=frame.message_id, data=frame.bytes, is_extended_id=True))
+            other.send(frame.message_id, frame.bytes)
         time.sleep(0.1)
         b.run(0.01)
         assert stepper.esc.bus.stats.external_in >= 2
         assert stepper.esc.throttle[3] == pytest.approx(0.25, abs=1e-3)
+        assert bridge.mcast.stats.own > 80  # (its own frames came back through the loop: not taken in)
     finally:
-        other.shutdown()
+        other.close()
         stepper.esc.close()
 
 
 def test_two_benches_on_two_multicast_groups_do_not_hear_each_other():
-    """python-can binds its multicast socket to the port on every address, and Linux hands such a socket
-    every group's datagrams to that port: two `hil fc --esc-bus udp_multicast:GROUP` on one host, on two
-    groups, would drive each other's motors. Each bench's bus hears its own group only."""
+    """Two `hil fc --esc-bus udp_multicast:GROUP` on one host, on two groups, on python-can's one port:
+    each bench's bus hears its own group only (it binds to its group), and never its own frames."""
     mine, theirs = (f"239.74.{os.getpid() % 200 + 20}.{n}" for n in (11, 12))
     bridge, other_bench = (Bridge(f"udp_multicast:{g}", 1_000_000) for g in (mine, theirs))
-    peer = can.Bus(interface="udp_multicast", channel=mine)  # another node on this bench's group
+    peer = McastCanSocket("udp_multicast", mine)  # another node on this bench's group
     try:
         other_bench.send(0x1234, b"theirs")
-        peer.send(can.Message(arbitration_id=0x5678, data=b"mine", is_extended_id=True))
+        peer.send(0x5678, b"mine")
         time.sleep(0.1)
-        assert bridge.receive() == [(0x5678, b"mine")]  # (not the other group's frame)
-        assert other_bench.receive() == [(0x1234, b"theirs")]  # (its own, looped back; not this group's)
+        assert bridge.receive(10) == ([(0x5678, b"mine")], False)  # (not the other group's frame)
+        assert other_bench.receive(10) == ([], False)  # (its own came back, and was known for its own)
+        assert other_bench.mcast.stats.own == 1
     finally:
-        peer.shutdown()
+        peer.close()
         bridge.close()
         other_bench.close()
 
@@ -250,7 +252,13 @@ def test_hil_fc_refuses_bad_esc_bus_options(capsys):
     assert "--esc-bus: ESC bus 'can0': expected one of" in capsys.readouterr().err
     assert main(["fc", "--esc-bus", "mcast:0", "--external-esc", "5", "--mocap-link", "none"]) == 2
     assert "external ESC node 5" in capsys.readouterr().err
-    for spec in ("udp_multicast:999.1.1.1", "socketcan:nosuchcan0"):  # buses that cannot be opened
+    assert main(["fc", "--esc-bus", "mcast:0@lab", "--mocap-link", "none"]) == 2
+    assert "an interface's IPv4 address" in capsys.readouterr().err
+    assert main(["fc", "--esc-bus", "virtual:x@127.0.0.1", "--mocap-link", "none"]) == 2
+    assert "@ADDR (a network interface) is for mcast and udp_multicast" in capsys.readouterr().err
+    # buses that cannot be opened (192.0.2.77: no interface of this machine has it)
+    for spec in ("udp_multicast:999.1.1.1", "udp_multicast:10.1.1.1", "socketcan:nosuchcan0",
+                 "mcast:0@192.0.2.77"):
         assert main(["fc", "--esc-bus", spec, "--mocap-link", "none"]) == 2
         assert f"--esc-bus: cannot open the CAN bus '{spec}'" in capsys.readouterr().err
 

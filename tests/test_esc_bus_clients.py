@@ -1,6 +1,7 @@
-"""`hil fc --esc-bus` with a separate process on a cross-process bus (dronecan's multicast driver, and
-python-can's multicast bus): its own dronecan node sees RawCommand, esc.Status and NodeStatus, and,
-standing in for ESC 3, receives that ESC's commands and drives its motor, in a hover."""
+"""`hil fc --esc-bus mcast:N` with a separate process on that cross-process bus, both kept to the loopback
+interface: its own dronecan node (through `hil.link.can_dronecan.McastDriver`) sees RawCommand,
+esc.Status and NodeStatus, and, standing in for ESC 3, receives that ESC's commands and drives its
+motor, in a hover."""
 
 from __future__ import annotations
 
@@ -71,11 +72,9 @@ def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor(
 
 def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3(tmp_path):
     """Take off on setpoints, then let the FC's failsafe hover hold the vehicle: with motor 3 following
-    the rpm the outside node reports, the height holds. On python-can's multicast bus: dronecan's own
-    multicast driver queues each frame to a helper process that sends only between 10 ms waits, and a
-    motor that lags its command by 10-20 ms (plus the Python node's stalls on a busy machine) cannot
-    hold a hover; python-can's answers in under a millisecond."""
-    bus = f"udp_multicast:239.74.{os.getpid() % 200 + 20}.9"
+    the rpm the outside node reports, the height holds. On dronecan's multicast bus, both sides on the
+    loopback interface (the FC's bridge and the node's `McastDriver` answer each frame as it comes)."""
+    bus = f"mcast:{40 + os.getpid() % 200}"
     heights: list[tuple[float, float]] = []  # (FC time s, height m) from LOCAL_POSITION_NED
     modes: list[int] = []
     # (the FC hovers on its own 0.3 s after the setpoints stop; it counts ESC 3 failed after 0.5 s without

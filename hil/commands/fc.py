@@ -91,7 +91,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--esc-bus", default=None, metavar="SPEC",
         help="the motors behind DroneCAN ESCs on a CAN bus: sim (the model alone), virtual:CHANNEL, "
-        "udp_multicast[:GROUP], socketcan:IFACE, mcast[:N] (dronecan's multicast); default: off",
+        "socketcan:IFACE, and the cross-process buses mcast[:N] (dronecan's multicast) and "
+        "udp_multicast[:GROUP] (python-can's), which stay on this machine (loopback interface); add @ADDR, "
+        "an interface's IPv4 address, to put them on a lab network (mcast:0@192.168.1.20); default: off",
     )
     p.add_argument("--external-esc", type=int, action="append", default=[], metavar="NODE_ID",
                    help="an ESC node served by another node on the bus (20-23: ESC 0-3); repeatable")
