@@ -17,8 +17,8 @@ from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
-from emulator.fc.params import BY_NAME, INT, PARAMS, ParamError, Parameters, read_param_file
-from emulator.fc.telemetry import Home, TelemetryEncoder
+from emulator.fc.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
+from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
@@ -34,19 +34,6 @@ from hil.link.mavlink import (
 )
 
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
-MIN_INTERVAL_S = 0.002  # fastest stream rate granted by SET_MESSAGE_INTERVAL (500 Hz)
-#: default telemetry intervals (s), by message id
-DEFAULT_INTERVALS_S: dict[int, float] = {
-    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mav.MAVLINK_MSG_ID_ATTITUDE: 1 / 50,
-    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 1 / 50,
-    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1 / 30,
-    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1 / 10,
-    mav.MAVLINK_MSG_ID_HIGHRES_IMU: 1 / 50,
-    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
-    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
-}
 ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 #: ids the server can take as undecoded frames: a codec built with these as its ``raw_ids`` hands the
 #: setpoints over as bytes, and `handle` reads them without a message object
@@ -495,15 +482,9 @@ class MavlinkServer:
             self._param_refused(msg, name, -1, mav.MAV_PARAM_ERROR_DOES_NOT_EXIST,
                                 f"unknown parameter {name}", now_s)
             return
-        p = PARAMS[index]
-        want = mav.MAV_PARAM_TYPE_INT32 if p.kind == INT else mav.MAV_PARAM_TYPE_REAL32
         try:
-            if msg.param_type != want:
-                raise ParamError(f"{name} is {'INT32' if p.kind == INT else 'REAL32'}", "type")
-            value: float | int = msg.param_value
-            if p.kind == INT:
-                value = _INT_BYTES.unpack(_INT_AS_FLOAT.pack(value))[0]
-            self.params.set(name, value)  # broadcasts the new value
+            self.params.set(name, _param_set_value(PARAMS[index], msg.param_type, msg.param_value))
+            # (broadcasts the new value, with the parameter's own type)
         except ParamError as exc:
             error = mav.MAV_PARAM_ERROR_PERMISSION_DENIED if exc.kind == "invalid" else \
                 mav.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE  # (a wrong type: a value it cannot take)
@@ -610,6 +591,20 @@ def attitude_target_values(
 
 
 _INT_BYTES, _INT_AS_FLOAT = struct.Struct("<i"), struct.Struct("<f")  # PX4's bytewise int32 encoding
+
+
+def _param_set_value(p: ParamDef, param_type: int, wire: float) -> float | int:
+    """The value a PARAM_SET carries for ``p``: REAL32 as it is; INT32 bytewise (PX4's encoding), or
+    as a REAL32 holding a whole number (MAVProxy's `param load` sends integers so); ParamError else."""
+    if p.kind != INT:
+        if param_type != mav.MAV_PARAM_TYPE_REAL32:
+            raise ParamError(f"{p.name} is REAL32", "type")
+        return wire
+    if param_type == mav.MAV_PARAM_TYPE_INT32:
+        return _INT_BYTES.unpack(_INT_AS_FLOAT.pack(wire))[0]
+    if param_type == mav.MAV_PARAM_TYPE_REAL32 and math.isfinite(wire) and wire == int(wire):
+        return int(wire)
+    raise ParamError(f"{p.name} is INT32", "type")
 
 
 def _param_name(param_id: str | bytes) -> str:

@@ -11,6 +11,7 @@ field, the vehicle profile's limit, the telemetry's `DEFAULT_INTERVALS_S`, an `E
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -18,6 +19,7 @@ from typing import Any
 
 from emulator.esc_bus_config import EscBusConfig
 from emulator.fc.flight_controller import FcConfig, FlightController
+from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S
 from hil.link.mavlink import mav
 
 FLOAT, INT = "float", "int"
@@ -52,7 +54,8 @@ class ParamDef:
     choices: tuple[tuple[int, Any], ...] = ()
 
     def check(self, value: Any) -> float | int:
-        """``value`` as this parameter's type, or ParamError with the reason."""
+        """``value`` as this parameter's type, or ParamError with the reason. A float parameter takes a
+        value within its range as float32 carries it (0.8 travels as 0.800000012), clamped to the range."""
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ParamError(f"{self.name}: expected a number, got {value!r}", "type")
         if self.kind == INT:
@@ -66,6 +69,8 @@ class ParamDef:
             raise ParamError(f"{self.name}: expected a finite number, got {value!r}", "range")
         else:
             value = float(value)
+            if _float32(self.lo) <= value <= _float32(self.hi):
+                value = min(max(value, self.lo), self.hi)
         if not self.lo <= value <= self.hi:
             raise ParamError(f"{self.name}: {value:g} outside {self.lo:g}..{self.hi:g} {self.unit}".rstrip(),
                              "range")
@@ -86,8 +91,6 @@ class ParamDef:
                 raise ValueError(f"{self.name}: the default depends on the vehicle")
             return float(getattr(fc.base_profile, str(self.key)))
         if self.applies == "stream":
-            from emulator.fc.mavlink_server import DEFAULT_INTERVALS_S
-
             interval = DEFAULT_INTERVALS_S.get(int(self.key))
             return 0.0 if interval is None else 1.0 / interval
         return self._to_wire(_ESC_DEFAULTS[str(self.key)])
@@ -102,6 +105,14 @@ class ParamDef:
         return dict(self.choices)[int(value)] if self.choices else value
 
 
+_F32 = struct.Struct("<f")
+
+
+def _float32(x: float) -> float:
+    """``x`` rounded to the nearest float32 (MAVLink's REAL32), as a float."""
+    return _F32.unpack(_F32.pack(x))[0]
+
+
 _FC_DEFAULTS = {f.name: f.default for f in fields(FcConfig)}
 _ESC_DEFAULTS = {f.name: f.default for f in fields(EscBusConfig)}
 
@@ -109,7 +120,8 @@ _ESC_DEFAULTS = {f.name: f.default for f in fields(EscBusConfig)}
 
 def _rate(name: str, what: str) -> ParamDef:
     msg_id = getattr(mav, f"MAVLINK_MSG_ID_{what}")
-    return ParamDef(name, FLOAT, 0.0, 500.0, "Hz", "stream", msg_id, f"{what} telemetry rate (0: off)")
+    return ParamDef(name, FLOAT, 0.0, 1.0 / MIN_INTERVAL_S, "Hz", "stream", msg_id,
+                    f"{what} telemetry rate (0: off)")
 
 
 #: every parameter, in index order (PARAM_VALUE's param_index)
