@@ -47,6 +47,14 @@ class Lines:
         return any(text in line for line in self.lines)
 
 
+def stop_gcs(gcs: subprocess.Popen) -> None:
+    gcs.terminate()
+    try:
+        gcs.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        gcs.kill()
+
+
 def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(tmp_path: Path):
     tlog = tmp_path / "fc.tlog"
     proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--tlog", str(tlog), "--mocap-link", "none")
@@ -112,11 +120,7 @@ def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(
         got = recv_all(2.0)
         assert any(m.get_type() == "STATUSTEXT" and "Failsafe" in m.text for m in got)
     finally:
-        gcs.terminate()
-        try:
-            gcs.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            gcs.kill()
+        stop_gcs(gcs)
         if codec is not None:
             codec.close()
         summary = stop_fc(proc)
@@ -208,11 +212,7 @@ def test_mavproxy_fetches_loads_and_sets_parameters_on_a_signed_fc(tmp_path: Pat
 
         wait_for(shown, 10.0, "the set echoed")
     finally:
-        gcs.terminate()
-        try:
-            gcs.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            gcs.kill()
+        stop_gcs(gcs)
         summary = stop_fc(proc)
     assert not out.seen("timeout setting")
     assert summary["server"]["params_set"] == 5 and summary["server"]["params_refused"] == 0
