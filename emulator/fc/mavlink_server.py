@@ -33,6 +33,9 @@ from hil.link.mavlink import (
     message_from_payload,
 )
 
+#: messages acted on in one `MavlinkServer.poll` at most: the rest wait for the next pass (and a flood
+#: waits in the transport, where a UDP socket counts what it drops), so a flood cannot stall the loop
+MAX_MESSAGES_PER_POLL = 32
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
 ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 #: ids the server can take as undecoded frames: a codec built with these as its ``raw_ids`` hands the
@@ -73,6 +76,7 @@ class ServerStats:
     params_set: int = 0  # PARAM_SETs that changed a value (or set the same)
     params_refused: int = 0  # PARAM_SETs refused: unknown name, wrong type, out of range
     ftp_nak: int = 0  # MAVLink FTP requests answered NAK (this FC has no file system)
+    intake_deferred: int = 0  # messages put off to the next pass (more than MAX_MESSAGES_PER_POLL waited)
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -94,6 +98,7 @@ class MavlinkServer:
         self._next_due: dict[int, float] = {}
         self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
         self._events_seen = 0
+        self._backlog: list[Any] = []  # received, to be acted on in the next passes
         self._timed_transport: object | None = None  # what `_input_due` last looked up
         self._arrival: Callable[[], float] | None = None
         self._arrival_clock: Any = None
@@ -149,12 +154,18 @@ class MavlinkServer:
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
-        """Parse and act on what arrived, then send what is due at ``now_s``.
+        """Parse and act on what arrived (at most `MAX_MESSAGES_PER_POLL`), then send what is due at
+        ``now_s``.
 
         A transport that models arrival times (``next_arrival_s()``, s on its ``clock``: the runner's
         command wire) is read only when something has arrived."""
-        if self._input_due():
-            for msg in self.codec.receive():
+        if self._backlog or self._input_due():
+            msgs = self._backlog or self.codec.receive()
+            self._backlog = msgs[MAX_MESSAGES_PER_POLL:]
+            if self._backlog:
+                self.stats.intake_deferred += len(self._backlog)
+                msgs = msgs[:MAX_MESSAGES_PER_POLL]
+            for msg in msgs:
                 self.handle(msg, now_s)
         if self._events_seen != len(self.fc.events):
             self._report_events(now_s)

@@ -9,6 +9,7 @@ import math
 import signal
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -274,6 +275,7 @@ def main(args: argparse.Namespace) -> int:
                 for e in vehicle.fc.events
             ],
             "link": codec.stats.as_dict(),
+            "transport": asdict(link.stats),
             "server": server.stats.as_dict(),
             "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
         }
