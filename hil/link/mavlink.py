@@ -374,6 +374,23 @@ _CRC_EXTRA_MIRRORED: dict[int, bytes] = {
 }
 
 
+def frame_ok(frame: bytes) -> bool:
+    """Whether ``frame`` is one whole MAVLink 2 or 1 frame (signature included) of an id pymavlink knows,
+    its length as its header says and its CRC good (the signature is not judged)."""
+    if not frame or frame_size(frame, 0) != len(frame):
+        return False
+    if frame[0] == MAVLINK_V2_MAGIC:
+        msg_id, crc_at = frame[7] | frame[8] << 8 | frame[9] << 16, 10 + frame[1]
+    else:
+        msg_id, crc_at = frame[5], 6 + frame[1]
+    extra = _CRC_EXTRA_MIRRORED.get(msg_id)
+    if extra is None:
+        return False
+    rev = _BIT_REVERSED
+    crc = binascii.crc_hqx(extra, binascii.crc_hqx(frame[1:crc_at].translate(rev), 0xFFFF))
+    return crc == rev[frame[crc_at]] << 8 | rev[frame[crc_at + 1]]
+
+
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 
 
