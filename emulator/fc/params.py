@@ -40,7 +40,8 @@ class ParamDef:
     """One parameter: ``applies`` says where it acts and ``key`` which setting there:
     ``fc`` (an `FcConfig` field, in flight from the next step), ``limit`` (a setpoint limit of the FC's
     vehicle profile, from the next setpoint), ``stream`` (the rate of the telemetry message with id
-    ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on)."""
+    ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on),
+    ``link`` (the MAVLink link's data-rate budget, `emulator.fc.link_budget`)."""
 
     name: str
     kind: str  # FLOAT or INT (MAV_PARAM_TYPE_REAL32 / INT32 on the wire)
@@ -93,6 +94,8 @@ class ParamDef:
         if self.applies == "stream":
             interval = DEFAULT_INTERVALS_S.get(int(self.key))
             return 0.0 if interval is None else 1.0 / interval
+        if self.applies == "link":
+            return 0.0
         return self._to_wire(_ESC_DEFAULTS[str(self.key)])
 
     def _to_wire(self, value: Any) -> float | int:
@@ -160,6 +163,8 @@ PARAMS: tuple[ParamDef, ...] = (
     ParamDef("N3_ESC_FS_ACT", INT, 0, 2, "", "esc", "failsafe_action",
              "ESC bus, an ESC failed: 0 report only, 1 land, 2 disarm",
              choices=((0, "report"), (1, "land"), (2, "disarm"))),
+    ParamDef("MAV_0_RATE", FLOAT, 0.0, 1e6, "B/s", "link", "rate_bytes_s",
+             "telemetry streams' data-rate budget, scaled down to fit (0: half a serial line, none else)"),
 )
 BY_NAME: dict[str, int] = {p.name: i for i, p in enumerate(PARAMS)}
 assert all(len(p.name) <= NAME_MAX_CHARS for p in PARAMS)
@@ -182,7 +187,7 @@ def describe(fc: FlightController | None = None) -> list[str]:
     depend on the vehicle read "vehicle" without ``fc``."""
     rows = ["| name | type | range | unit | default | applies to | meaning |", "|---" * 7 + "|"]
     where = {"fc": "FC, next step", "limit": "FC, next setpoint", "stream": "telemetry, at once",
-             "esc": "ESC bus, at once"}
+             "esc": "ESC bus, at once", "link": "telemetry, at once"}
     for p in PARAMS:
         if fc is None and (p.applies == "limit" or (p.applies == "fc" and _FC_DEFAULTS[str(p.key)] is None)):
             default = "vehicle"
@@ -203,7 +208,8 @@ class Parameters:
     """The parameters of one FC, its MAVLink server's streams and its ESC bus."""
 
     def __init__(self, fc: FlightController, streams: Any) -> None:
-        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``, or None on a
+        """``streams``: has ``stream_rate_hz(msg_id)``, ``set_stream_rate(msg_id, hz)``,
+        ``link_rate_bytes_s()`` and ``set_link_rate(bytes_s)``, or None on a
         link without MAVLink telemetry (the rates then refuse to be set); ``esc`` (set
         when an ESC bus is on): has ``config`` and ``reconfigure(**changes)``."""
         self.fc, self.streams = fc, streams
@@ -230,6 +236,8 @@ class Parameters:
             if self.streams is None:  # a link without MAVLink telemetry: the rate nobody sends at
                 return p._to_wire(p.default(self.fc))
             return float(self.streams.stream_rate_hz(int(p.key)))
+        if p.applies == "link":
+            return 0.0 if self.streams is None else float(self.streams.link_rate_bytes_s())
         if self.esc is not None:
             return p._to_wire(getattr(self.esc.config, key))
         return self._esc_values.get(key, p.default(self.fc))
@@ -246,15 +254,17 @@ class Parameters:
         v = p.check(value)
         meant, key = p._from_wire(v), str(p.key)
         try:
+            if p.applies in ("stream", "link") and self.streams is None:
+                raise ParamError(f"{name}: a MAVLink telemetry setting, and this link has no MAVLink "
+                                 "telemetry", "invalid")
             if p.applies == "fc":
                 self.fc.reconfigure(**{key: meant})
             elif p.applies == "limit":
                 self.fc.set_limits(**{key: meant})
             elif p.applies == "stream":
-                if self.streams is None:
-                    raise ParamError(f"{name}: a MAVLink telemetry rate, and this link has no MAVLink "
-                                     "telemetry", "invalid")
                 self.streams.set_stream_rate(int(p.key), meant)
+            elif p.applies == "link":
+                self.streams.set_link_rate(meant)
             elif self.esc is not None:
                 self.esc.reconfigure(**{key: meant})
             else:
