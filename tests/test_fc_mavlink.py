@@ -222,7 +222,7 @@ def test_bad_setpoints_and_foreign_commands_are_counted_and_answered():
 def test_signing_rejects_unsigned_and_wrongly_signed_commands_and_accepts_signed_ones():
     unsigned = Bench(signing_key=KEY)
     assert unsigned.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == []
-    assert unsigned.server.codec.stats.bad_signature == 1 and unsigned.vehicle.fc.state is FcState.DISARMED
+    assert unsigned.server.codec.stats.unsigned_refused == 1 and unsigned.vehicle.fc.state is FcState.DISARMED
     wrong = Bench(signing_key=KEY, client_key=bytes(32))
     assert wrong.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == []
     wrong.send(wrong.attitude())
@@ -231,7 +231,8 @@ def test_signing_rejects_unsigned_and_wrongly_signed_commands_and_accepts_signed
     good = Bench(signing_key=KEY, client_key=KEY)
     [ack] = good.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
     assert ack.result == mav.MAV_RESULT_ACCEPTED and good.vehicle.fc.state is FcState.HOLD
-    assert of_type(good.received, "HEARTBEAT")[0].get_signed()  # the FC signs what it sends
+    beat = of_type(good.received, "HEARTBEAT")[0].get_msgbuf()  # the FC signs what it sends
+    assert beat[2] & mav.MAVLINK_IFLAG_SIGNED and good.client.stats.signing_refused == 0
 
 
 def fly_recorded(path: Path) -> None:

@@ -108,7 +108,7 @@ def test_refusals_echo_the_value_in_force_and_say_why():
     got = param_set(b, "COM_OBL_RC_ACT", int_wire(3), INT32)
     assert as_int(values(got, "COM_OBL_RC_ACT")[0].param_value) == 5
     assert any("not one of 4 land, 5 hover" in t.text for t in of_type(got, "STATUSTEXT"))
-    got = param_set(b, "COM_OBL_RC_ACT", 4.0, REAL32)  # a float where an int32 is kept: refused
+    got = param_set(b, "COM_OBL_RC_ACT", 4.5, REAL32)  # a fraction where an int32 is kept: refused
     assert as_int(values(got, "COM_OBL_RC_ACT")[0].param_value) == 5
     got = param_set(b, "COM_OBL_RC_ACT", int_wire(4), INT32)
     assert as_int(values(got, "COM_OBL_RC_ACT")[0].param_value) == 4
@@ -116,6 +116,28 @@ def test_refusals_echo_the_value_in_force_and_say_why():
     got = param_set(b, "NO_SUCH_PARAM", 1.0)
     assert not of_type(got, "PARAM_VALUE") and of_type(got, "PARAM_ERROR")
     assert b.server.stats.params_refused == 6 and b.server.stats.params_set == 2
+
+
+def test_range_edges_are_taken_as_float32_carries_them():
+    b = Bench()
+    for name, edge in (("MPC_THR_HOVER", 0.1), ("MPC_THR_HOVER", 0.8), ("N3_ESC_TOUT", 0.01)):
+        got = param_set(b, name, edge)  # on the wire 0.800000012 and 0.00999999978
+        assert not of_type(got, "PARAM_ERROR"), name
+        assert values(got, name)[-1].param_value == pytest.approx(edge, rel=1e-7)
+    assert b.vehicle.fc.config.hover_throttle == 0.8  # held as the documented limit, not past it
+    assert b.server.params.get("N3_ESC_TOUT") == 0.01
+    got = param_set(b, "MPC_THR_HOVER", 0.8001)  # past the edge by more than float32's rounding
+    assert of_type(got, "PARAM_ERROR") and b.vehicle.fc.config.hover_throttle == 0.8
+
+
+def test_an_int32_set_as_a_whole_real32_is_taken_and_echoed_as_int32():
+    b = Bench()
+    got = param_set(b, "COM_OBL_RC_ACT", 4.0, REAL32)  # as MAVProxy's `param load` sends it
+    [echo] = values(got, "COM_OBL_RC_ACT")
+    assert echo.param_type == INT32 and as_int(echo.param_value) == 4
+    assert b.vehicle.fc.config.failsafe_action == "land" and b.server.stats.params_set == 1
+    got = param_set(b, "N3_ESC_FS_ACT", 7.0, REAL32)  # whole, but not a choice: refused by range
+    assert any("not one of" in t.text for t in of_type(got, "STATUSTEXT"))
 
 
 def test_failsafe_action_land_lands_at_once():

@@ -4,8 +4,10 @@ sets refused and the failsafe fire at the new timeout, and `--params FILE` over 
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -43,6 +45,14 @@ class Lines:
 
     def seen(self, text: str) -> bool:
         return any(text in line for line in self.lines)
+
+
+def stop_gcs(gcs: subprocess.Popen) -> None:
+    gcs.terminate()
+    try:
+        gcs.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        gcs.kill()
 
 
 def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(tmp_path: Path):
@@ -110,11 +120,7 @@ def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(
         got = recv_all(2.0)
         assert any(m.get_type() == "STATUSTEXT" and "Failsafe" in m.text for m in got)
     finally:
-        gcs.terminate()
-        try:
-            gcs.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            gcs.kill()
+        stop_gcs(gcs)
         if codec is not None:
             codec.close()
         summary = stop_fc(proc)
@@ -167,3 +173,60 @@ def test_hil_fc_refuses_a_bad_params_file(tmp_path: Path, capsys):
     assert main(["fc", "--params", str(tmp_path / "new.params"), "--mocap-link", "none",
                  "--duration", "0.2"]) == 0
     assert "does not exist yet: the defaults, written there" in capsys.readouterr().err
+
+
+def test_mavproxy_fetches_loads_and_sets_parameters_on_a_signed_fc(tmp_path: Path):
+    """MAVProxy with `signing key PASSPHRASE` (the key is the passphrase's SHA-256) against `hil fc
+    --signing-key`: the table downloads, `param load` of INT32 and REAL32 values (the range's edge among
+    them) and `param set` are all taken, echoed with each parameter's own type."""
+
+
+    tlog = tmp_path / "fc.tlog"
+    key = hashlib.sha256(b"bench").hexdigest()
+    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--signing-key", key, "--tlog", str(tlog),
+                              "--mocap-link", "none")
+    (tmp_path / "load.parm").write_text("COM_OBL_RC_ACT 4\nN3_ESC_FS_ACT 2\nCOM_OF_LOSS_T 0.5\n"
+                                        "MPC_THR_HOVER 0.8\n")
+    _, host, port = endpoint.split(":")
+    gcs = subprocess.Popen(
+        [sys.executable, MAVPROXY, f"--master=udpout:{host}:{port}", f"--state-basedir={tmp_path}",
+         "--cmd=signing key bench"],
+        cwd=tmp_path, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    out = Lines(gcs)
+
+    def command(text: str) -> None:
+        gcs.stdin.write(text + "\n")
+        gcs.stdin.flush()
+
+    try:
+        wait_for(lambda: out.seen(f"Received {len(PARAMS)} parameters"), 20.0, "the parameter download")
+        command("param load load.parm")
+        wait_for(lambda: out.seen("Loaded 4 parameters from load.parm (changed 4)"), 15.0, "param load")
+        command("param set N3_FS_HOVER_T 7")
+
+        def shown() -> bool:  # MAVProxy's table takes the value the FC echoes
+            command("param show N3_FS_HOVER_T")
+            time.sleep(0.3)
+            return any(line.split()[-2:] == ["N3_FS_HOVER_T", "7.0"] for line in out.lines)
+
+        wait_for(shown, 10.0, "the set echoed")
+    finally:
+        stop_gcs(gcs)
+        summary = stop_fc(proc)
+    assert not out.seen("timeout setting")
+    assert summary["server"]["params_set"] == 5 and summary["server"]["params_refused"] == 0
+    assert summary["link"]["unsigned_refused"] == summary["link"]["bad_signature"] == 0
+    echoed = {m.param_id: m for _, m in _tlog_messages(tlog) if m.get_type() == "PARAM_VALUE"}
+    ints = {n: struct.unpack("<i", struct.pack("<f", echoed[n].param_value))[0]
+            for n in ("COM_OBL_RC_ACT", "N3_ESC_FS_ACT")}
+    assert ints == {"COM_OBL_RC_ACT": 4, "N3_ESC_FS_ACT": 2}
+    assert {echoed[n].param_type for n in ints} == {mav.MAV_PARAM_TYPE_INT32}
+    assert echoed["COM_OF_LOSS_T"].param_value == 0.5
+    assert echoed["MPC_THR_HOVER"].param_value == pytest.approx(0.8, rel=1e-7)
+
+
+def _tlog_messages(path: Path) -> list:
+    """(time, message) of every frame a .tlog holds so far (signed frames decoded without judging)."""
+    parser = mav.MAVLink(None)
+    return [(t, parser.decode(bytearray(f))) for t, f in read_tlog(path)]

@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import math
 import struct
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from emulator.fc.link_budget import FIXED_STREAMS, LinkBudget
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
-from emulator.fc.params import BY_NAME, INT, PARAMS, ParamError, Parameters, read_param_file
-from emulator.fc.telemetry import Home, TelemetryEncoder
+from emulator.fc.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
+from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
@@ -33,20 +35,10 @@ from hil.link.mavlink import (
     message_from_payload,
 )
 
+#: messages acted on in one `MavlinkServer.poll` at most: the rest wait for the next pass (and a flood
+#: waits in the transport, where a UDP socket counts what it drops), so a flood cannot stall the loop
+MAX_MESSAGES_PER_POLL = 32
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
-MIN_INTERVAL_S = 0.002  # fastest stream rate granted by SET_MESSAGE_INTERVAL (500 Hz)
-#: default telemetry intervals (s), by message id
-DEFAULT_INTERVALS_S: dict[int, float] = {
-    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mav.MAVLINK_MSG_ID_ATTITUDE: 1 / 50,
-    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 1 / 50,
-    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1 / 30,
-    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1 / 10,
-    mav.MAVLINK_MSG_ID_HIGHRES_IMU: 1 / 50,
-    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
-    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
-}
 ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 #: ids the server can take as undecoded frames: a codec built with these as its ``raw_ids`` hands the
 #: setpoints over as bytes, and `handle` reads them without a message object
@@ -67,6 +59,9 @@ class ServerConfig:
     stream_intervals_s: dict[int, float] = field(default_factory=lambda: dict(DEFAULT_INTERVALS_S))
     #: the parameter file MAV_CMD_PREFLIGHT_STORAGE reads (param1 0) and writes (param1 1); None: none
     param_file: str | None = None
+    #: the command link's baud when it is a serial line (bit/s): the streams then keep to its data rate
+    #: (`emulator.fc.link_budget`); None: no budget unless MAV_0_RATE sets one
+    link_baud: int | None = None
 
 
 @dataclass
@@ -86,6 +81,7 @@ class ServerStats:
     params_set: int = 0  # PARAM_SETs that changed a value (or set the same)
     params_refused: int = 0  # PARAM_SETs refused: unknown name, wrong type, out of range
     ftp_nak: int = 0  # MAVLink FTP requests answered NAK (this FC has no file system)
+    intake_deferred: int = 0  # messages put off to the next pass (more than MAX_MESSAGES_PER_POLL waited)
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -103,10 +99,19 @@ class MavlinkServer:
         self.config = config or ServerConfig()
         self.stats = ServerStats()
         self.telemetry = TelemetryEncoder(vehicle, codec.mav, self.config.home)
-        self._intervals = dict(self.config.stream_intervals_s)
+        self._requested = dict(self.config.stream_intervals_s)  # intervals asked for (s)
+        self._now_s = 0.0  # the last poll's time (s)
+        #: the link's data-rate budget (None: none, every stream at the rate asked)
+        self.budget: LinkBudget | None = None
+        if self.config.link_baud is not None:
+            self.budget = LinkBudget(self.config.link_baud, getattr(codec.transport, "uart", None),
+                                     codec.signing)
+        self._intervals = self._granted()  # intervals streamed at (s)
         self._next_due: dict[int, float] = {}
         self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
         self._events_seen = 0
+        self._backlog: list[Any] = []  # received, to be acted on in the next passes
+        self._param_list: deque[int] = deque()  # parameter indices still to send (a budgeted link)
         self._timed_transport: object | None = None  # what `_input_due` last looked up
         self._arrival: Callable[[], float] | None = None
         self._arrival_clock: Any = None
@@ -162,13 +167,22 @@ class MavlinkServer:
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
-        """Parse and act on what arrived, then send what is due at ``now_s``.
+        """Parse and act on what arrived (at most `MAX_MESSAGES_PER_POLL`), then send what is due at
+        ``now_s``.
 
         A transport that models arrival times (``next_arrival_s()``, s on its ``clock``: the runner's
         command wire) is read only when something has arrived."""
-        if self._input_due():
-            for msg in self.codec.receive():
+        self._now_s = now_s
+        if self._backlog or self._input_due():
+            msgs = self._backlog or self.codec.receive()
+            self._backlog = msgs[MAX_MESSAGES_PER_POLL:]
+            if self._backlog:
+                self.stats.intake_deferred += len(self._backlog)
+                msgs = msgs[:MAX_MESSAGES_PER_POLL]
+            for msg in msgs:
                 self.handle(msg, now_s)
+        if self._param_list:
+            self._send_param_list()
         if self._events_seen != len(self.fc.events):
             self._report_events(now_s)
         self.telemetry.track_battery(now_s)
@@ -216,7 +230,9 @@ class MavlinkServer:
             self.statustext(mav.MAV_SEVERITY_ERROR, f"{name} ignored: {type(exc).__name__}", now_s)
 
     def send(self, msg: MAVLinkMessage) -> None:
-        self.codec.send(msg)
+        """Send an answer (or anything not streamed); on a budgeted line only while it fits whole."""
+        if self.budget is None or self.budget.admit(msg.get_msgId(), False):
+            self.codec.send(msg)
 
     def statustext(self, severity: int, text: str, now_s: float, key: str | None = None) -> bool:
         """Send a STATUSTEXT (at most 50 characters), rate-limited per ``key``; True if sent."""
@@ -234,14 +250,16 @@ class MavlinkServer:
         if now_s < self._streams_due_s:
             return  # nothing due yet (most polls)
         due_min = math.inf
-        next_due, payloads = self._next_due, self._payloads
+        next_due, payloads, budget = self._next_due, self._payloads, self.budget
         x = None  # the vehicle's state values, read once for all the streams due now
         for msg_id, interval in self._intervals.items():
             due = next_due.get(msg_id, now_s)
             if now_s >= due:
                 make = payloads.get(msg_id)
-                if make is None:
-                    self.send(self._senders[msg_id](now_s))
+                if budget is not None and msg_id not in FIXED_STREAMS and not budget.admit(msg_id, True):
+                    pass  # the line's queue is too deep: this one is dropped (counted)
+                elif make is None:
+                    self.codec.send(self._senders[msg_id](now_s))
                 else:
                     if x is None and msg_id in _STATE_STREAMS:
                         x = self.telemetry.state_values()
@@ -268,6 +286,8 @@ class MavlinkServer:
         self._send_payload(mav.MAVLINK_MSG_ID_HEARTBEAT, self.telemetry.heartbeat_payload())
 
     def _send_payload(self, msg_id: int, payload: bytes) -> None:
+        if self.budget is not None and msg_id in FIXED_STREAMS and not self.budget.admit(msg_id, False):
+            return
         codec = self.codec
         codec.transport.send(codec.pack_payload(msg_id, payload))
 
@@ -415,9 +435,34 @@ class MavlinkServer:
         return CommandResult(True), mav.MAV_RESULT_ACCEPTED, None
 
     def stream_rate_hz(self, msg_id: int) -> float:
+        """The rate (Hz) asked for message ``msg_id`` (0: not streamed); `granted_rate_hz` is what the
+        link's budget grants."""
+        interval = self._requested.get(msg_id)
+        return 0.0 if interval is None else 1.0 / interval
+
+    def granted_rate_hz(self, msg_id: int) -> float:
         """The rate (Hz) message ``msg_id`` is streamed at now (0: not streamed)."""
         interval = self._intervals.get(msg_id)
         return 0.0 if interval is None else 1.0 / interval
+
+    def _granted(self) -> dict[int, float]:
+        return dict(self._requested) if self.budget is None else self.budget.grant(self._requested)
+
+    def link_rate_bytes_s(self) -> float:
+        """MAV_0_RATE: the streams' budget (bytes/s; 0: half the line, no budget off a serial line)."""
+        return 0.0 if self.budget is None else self.budget.rate_param_bytes_s
+
+    def set_link_rate(self, rate_bytes_s: float) -> None:
+        """Set MAV_0_RATE (bytes/s, 0: from the baud) and scale the streams to it, from now."""
+        if self.budget is None:
+            self.budget = LinkBudget(None, getattr(self.codec.transport, "uart", None), self.codec.signing)
+        self.budget.rate_param_bytes_s = float(rate_bytes_s)
+        self._regrant()
+
+    def _regrant(self) -> None:
+        self._intervals = self._granted()
+        self._next_due.clear()
+        self._streams_due_s = -math.inf
 
     def set_stream_rate(self, msg_id: int, rate_hz: float) -> None:
         """Stream message ``msg_id`` at ``rate_hz`` (Hz; at most 1 / `MIN_INTERVAL_S`; 0: stop), from now."""
@@ -426,11 +471,19 @@ class MavlinkServer:
         if not (math.isfinite(rate_hz) and rate_hz >= 0):
             raise ValueError(f"stream rate must be a finite number >= 0 Hz, got {rate_hz!r}")
         if rate_hz == 0:
-            self._intervals.pop(msg_id, None)
+            self._requested.pop(msg_id, None)
         else:
-            self._intervals[msg_id] = max(MIN_INTERVAL_S, 1.0 / rate_hz)
-        self._next_due.pop(msg_id, None)
-        self._streams_due_s = -math.inf
+            self._requested[msg_id] = max(MIN_INTERVAL_S, 1.0 / rate_hz)
+        if self.budget is None:
+            self._intervals = dict(self._requested)
+            self._next_due.pop(msg_id, None)
+            self._streams_due_s = -math.inf
+            return
+        self._regrant()
+        asked, granted = self.stream_rate_hz(msg_id), self.granted_rate_hz(msg_id)
+        if granted < asked * (1 - 1e-9):  # the line cannot carry it: say so
+            self.statustext(mav.MAV_SEVERITY_WARNING, self.budget.capped(msg_id, asked, granted),
+                            self._now_s, key=f"cap:{msg_id}")
 
     def _set_mode(self, base_mode: int, main: int, sub: int, now_s: float) -> CommandResult:
         if not base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -458,19 +511,35 @@ class MavlinkServer:
 
     # --- parameters (PX4's parameter protocol; integers encoded bytewise, as PX4 does) -----------
     def _send_param(self, index: int, value: float | int) -> None:
+        self.send(self._param_value(index, value))
+        self.stats.params_sent += 1
+
+    def _param_value(self, index: int, value: float | int) -> MAVLinkMessage:
         p = PARAMS[index]
         if p.kind == INT:
             wire, ptype = _INT_AS_FLOAT.unpack(_INT_BYTES.pack(int(value)))[0], mav.MAV_PARAM_TYPE_INT32
         else:
             wire, ptype = float(value), mav.MAV_PARAM_TYPE_REAL32
-        self.send(self.codec.mav.param_value_encode(p.name.encode(), wire, ptype, len(PARAMS), index))
-        self.stats.params_sent += 1
+        return self.codec.mav.param_value_encode(p.name.encode(), wire, ptype, len(PARAMS), index)
 
     def _on_param_request_list(self, msg: MAVLinkMessage, now_s: float) -> None:
         if not self._for_me(msg.target_system, msg.target_component):
             return
-        for index, _, value in self.params.items():
-            self._send_param(index, value)
+        if self.budget is None:
+            for index, _, value in self.params.items():
+                self._send_param(index, value)
+            return
+        self._param_list = deque(range(len(PARAMS)))  # at the streams' pace (`_send_param_list`)
+        self._send_param_list()
+
+    def _send_param_list(self) -> None:
+        """The parameter list's next PARAM_VALUEs, as many as the line takes now without queueing
+        answers behind them; the rest in later passes."""
+        budget, pending = self.budget, self._param_list
+        while pending and (budget is None or budget.has_room(mav.MAVLINK_MSG_ID_PARAM_VALUE)):
+            index = pending.popleft()
+            self.codec.send(self._param_value(index, self.params.get(PARAMS[index].name)))
+            self.stats.params_sent += 1
 
     def _on_param_request_read(self, msg: MAVLinkMessage, now_s: float) -> None:
         if not self._for_me(msg.target_system, msg.target_component):
@@ -495,15 +564,9 @@ class MavlinkServer:
             self._param_refused(msg, name, -1, mav.MAV_PARAM_ERROR_DOES_NOT_EXIST,
                                 f"unknown parameter {name}", now_s)
             return
-        p = PARAMS[index]
-        want = mav.MAV_PARAM_TYPE_INT32 if p.kind == INT else mav.MAV_PARAM_TYPE_REAL32
         try:
-            if msg.param_type != want:
-                raise ParamError(f"{name} is {'INT32' if p.kind == INT else 'REAL32'}", "type")
-            value: float | int = msg.param_value
-            if p.kind == INT:
-                value = _INT_BYTES.unpack(_INT_AS_FLOAT.pack(value))[0]
-            self.params.set(name, value)  # broadcasts the new value
+            self.params.set(name, _param_set_value(PARAMS[index], msg.param_type, msg.param_value))
+            # (broadcasts the new value, with the parameter's own type)
         except ParamError as exc:
             error = mav.MAV_PARAM_ERROR_PERMISSION_DENIED if exc.kind == "invalid" else \
                 mav.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE  # (a wrong type: a value it cannot take)
@@ -610,6 +673,20 @@ def attitude_target_values(
 
 
 _INT_BYTES, _INT_AS_FLOAT = struct.Struct("<i"), struct.Struct("<f")  # PX4's bytewise int32 encoding
+
+
+def _param_set_value(p: ParamDef, param_type: int, wire: float) -> float | int:
+    """The value a PARAM_SET carries for ``p``: REAL32 as it is; INT32 bytewise (PX4's encoding), or
+    as a REAL32 holding a whole number (MAVProxy's `param load` sends integers so); ParamError else."""
+    if p.kind != INT:
+        if param_type != mav.MAV_PARAM_TYPE_REAL32:
+            raise ParamError(f"{p.name} is REAL32", "type")
+        return wire
+    if param_type == mav.MAV_PARAM_TYPE_INT32:
+        return _INT_BYTES.unpack(_INT_AS_FLOAT.pack(wire))[0]
+    if param_type == mav.MAV_PARAM_TYPE_REAL32 and math.isfinite(wire) and wire == int(wire):
+        return int(wire)
+    raise ParamError(f"{p.name} is INT32", "type")
 
 
 def _param_name(param_id: str | bytes) -> str:

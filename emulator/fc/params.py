@@ -11,6 +11,7 @@ field, the vehicle profile's limit, the telemetry's `DEFAULT_INTERVALS_S`, an `E
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -18,6 +19,7 @@ from typing import Any
 
 from emulator.esc_bus_config import EscBusConfig
 from emulator.fc.flight_controller import FcConfig, FlightController
+from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S
 from hil.link.mavlink import mav
 
 FLOAT, INT = "float", "int"
@@ -38,7 +40,8 @@ class ParamDef:
     """One parameter: ``applies`` says where it acts and ``key`` which setting there:
     ``fc`` (an `FcConfig` field, in flight from the next step), ``limit`` (a setpoint limit of the FC's
     vehicle profile, from the next setpoint), ``stream`` (the rate of the telemetry message with id
-    ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on)."""
+    ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on),
+    ``link`` (the MAVLink link's data-rate budget, `emulator.fc.link_budget`)."""
 
     name: str
     kind: str  # FLOAT or INT (MAV_PARAM_TYPE_REAL32 / INT32 on the wire)
@@ -52,7 +55,8 @@ class ParamDef:
     choices: tuple[tuple[int, Any], ...] = ()
 
     def check(self, value: Any) -> float | int:
-        """``value`` as this parameter's type, or ParamError with the reason."""
+        """``value`` as this parameter's type, or ParamError with the reason. A float parameter takes a
+        value within its range as float32 carries it (0.8 travels as 0.800000012), clamped to the range."""
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ParamError(f"{self.name}: expected a number, got {value!r}", "type")
         if self.kind == INT:
@@ -66,6 +70,8 @@ class ParamDef:
             raise ParamError(f"{self.name}: expected a finite number, got {value!r}", "range")
         else:
             value = float(value)
+            if _float32(self.lo) <= value <= _float32(self.hi):
+                value = min(max(value, self.lo), self.hi)
         if not self.lo <= value <= self.hi:
             raise ParamError(f"{self.name}: {value:g} outside {self.lo:g}..{self.hi:g} {self.unit}".rstrip(),
                              "range")
@@ -86,10 +92,10 @@ class ParamDef:
                 raise ValueError(f"{self.name}: the default depends on the vehicle")
             return float(getattr(fc.base_profile, str(self.key)))
         if self.applies == "stream":
-            from emulator.fc.mavlink_server import DEFAULT_INTERVALS_S
-
             interval = DEFAULT_INTERVALS_S.get(int(self.key))
             return 0.0 if interval is None else 1.0 / interval
+        if self.applies == "link":
+            return 0.0
         return self._to_wire(_ESC_DEFAULTS[str(self.key)])
 
     def _to_wire(self, value: Any) -> float | int:
@@ -102,6 +108,14 @@ class ParamDef:
         return dict(self.choices)[int(value)] if self.choices else value
 
 
+_F32 = struct.Struct("<f")
+
+
+def _float32(x: float) -> float:
+    """``x`` rounded to the nearest float32 (MAVLink's REAL32), as a float."""
+    return _F32.unpack(_F32.pack(x))[0]
+
+
 _FC_DEFAULTS = {f.name: f.default for f in fields(FcConfig)}
 _ESC_DEFAULTS = {f.name: f.default for f in fields(EscBusConfig)}
 
@@ -109,7 +123,8 @@ _ESC_DEFAULTS = {f.name: f.default for f in fields(EscBusConfig)}
 
 def _rate(name: str, what: str) -> ParamDef:
     msg_id = getattr(mav, f"MAVLINK_MSG_ID_{what}")
-    return ParamDef(name, FLOAT, 0.0, 500.0, "Hz", "stream", msg_id, f"{what} telemetry rate (0: off)")
+    return ParamDef(name, FLOAT, 0.0, 1.0 / MIN_INTERVAL_S, "Hz", "stream", msg_id,
+                    f"{what} telemetry rate (0: off)")
 
 
 #: every parameter, in index order (PARAM_VALUE's param_index)
@@ -148,6 +163,8 @@ PARAMS: tuple[ParamDef, ...] = (
     ParamDef("N3_ESC_FS_ACT", INT, 0, 2, "", "esc", "failsafe_action",
              "ESC bus, an ESC failed: 0 report only, 1 land, 2 disarm",
              choices=((0, "report"), (1, "land"), (2, "disarm"))),
+    ParamDef("MAV_0_RATE", FLOAT, 0.0, 1e6, "B/s", "link", "rate_bytes_s",
+             "telemetry streams' data-rate budget, scaled down to fit (0: half a serial line, none else)"),
 )
 BY_NAME: dict[str, int] = {p.name: i for i, p in enumerate(PARAMS)}
 assert all(len(p.name) <= NAME_MAX_CHARS for p in PARAMS)
@@ -170,7 +187,7 @@ def describe(fc: FlightController | None = None) -> list[str]:
     depend on the vehicle read "vehicle" without ``fc``."""
     rows = ["| name | type | range | unit | default | applies to | meaning |", "|---" * 7 + "|"]
     where = {"fc": "FC, next step", "limit": "FC, next setpoint", "stream": "telemetry, at once",
-             "esc": "ESC bus, at once"}
+             "esc": "ESC bus, at once", "link": "telemetry, at once"}
     for p in PARAMS:
         if fc is None and (p.applies == "limit" or (p.applies == "fc" and _FC_DEFAULTS[str(p.key)] is None)):
             default = "vehicle"
@@ -191,7 +208,8 @@ class Parameters:
     """The parameters of one FC, its MAVLink server's streams and its ESC bus."""
 
     def __init__(self, fc: FlightController, streams: Any) -> None:
-        """``streams``: has ``stream_rate_hz(msg_id)`` and ``set_stream_rate(msg_id, hz)``, or None on a
+        """``streams``: has ``stream_rate_hz(msg_id)``, ``set_stream_rate(msg_id, hz)``,
+        ``link_rate_bytes_s()`` and ``set_link_rate(bytes_s)``, or None on a
         link without MAVLink telemetry (the rates then refuse to be set); ``esc`` (set
         when an ESC bus is on): has ``config`` and ``reconfigure(**changes)``."""
         self.fc, self.streams = fc, streams
@@ -218,6 +236,8 @@ class Parameters:
             if self.streams is None:  # a link without MAVLink telemetry: the rate nobody sends at
                 return p._to_wire(p.default(self.fc))
             return float(self.streams.stream_rate_hz(int(p.key)))
+        if p.applies == "link":
+            return 0.0 if self.streams is None else float(self.streams.link_rate_bytes_s())
         if self.esc is not None:
             return p._to_wire(getattr(self.esc.config, key))
         return self._esc_values.get(key, p.default(self.fc))
@@ -234,15 +254,17 @@ class Parameters:
         v = p.check(value)
         meant, key = p._from_wire(v), str(p.key)
         try:
+            if p.applies in ("stream", "link") and self.streams is None:
+                raise ParamError(f"{name}: a MAVLink telemetry setting, and this link has no MAVLink "
+                                 "telemetry", "invalid")
             if p.applies == "fc":
                 self.fc.reconfigure(**{key: meant})
             elif p.applies == "limit":
                 self.fc.set_limits(**{key: meant})
             elif p.applies == "stream":
-                if self.streams is None:
-                    raise ParamError(f"{name}: a MAVLink telemetry rate, and this link has no MAVLink "
-                                     "telemetry", "invalid")
                 self.streams.set_stream_rate(int(p.key), meant)
+            elif p.applies == "link":
+                self.streams.set_link_rate(meant)
             elif self.esc is not None:
                 self.esc.reconfigure(**{key: meant})
             else:

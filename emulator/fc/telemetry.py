@@ -28,6 +28,19 @@ EARTH_RADIUS_M = 6378137.0
 MAG_FIELD_NED_GAUSS = np.array([0.38, -0.02, 0.23])  # a mid-latitude field (gauss)
 BATTERY_CELLS = 4
 BATTERY_ENDURANCE_S = 900.0  # armed time from full to empty (s)
+MIN_INTERVAL_S = 0.002  # fastest stream rate granted by SET_MESSAGE_INTERVAL and the rate parameters (500 Hz)
+#: default telemetry intervals (s), by message id
+DEFAULT_INTERVALS_S: dict[int, float] = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mav.MAVLINK_MSG_ID_ATTITUDE: 1 / 50,
+    mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 1 / 50,
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1 / 30,
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1 / 10,
+    mav.MAVLINK_MSG_ID_HIGHRES_IMU: 1 / 50,
+    mav.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1 / 5,
+}
 #: PX4 custom mode shown for each state (HOLD = AUTO.LOITER)
 CUSTOM_MODE = {
     FcState.DISARMED: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),

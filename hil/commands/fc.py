@@ -9,6 +9,7 @@ import math
 import signal
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -29,7 +30,7 @@ from emulator.uwb import UwbConfig
 from emulator.world import CrossingTracker, Gap, World
 from hil.commands import port_number, say_if_compiling
 from hil.link.clock import WallClock
-from hil.link.endpoint import open_link
+from hil.link.endpoint import open_link, parse_endpoint
 from hil.link.mavlink import mav, parse_signing_key
 from hil.link.tlog import TlogWriter
 from hil.runner.realtime import WireWatch
@@ -119,6 +120,7 @@ class MocapPoll:
 
 def _serial_stats(link: object) -> dict[str, int] | None:
     """A serial link's unplugs and replugs (None for other links)."""
+    link = getattr(link, "inner", link)  # (under its UART pacing)
     if not hasattr(link, "disconnects"):
         return None
     return {"disconnects": link.disconnects, "reconnects": link.reconnects}  # type: ignore[attr-defined]
@@ -197,7 +199,10 @@ def main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return fail(str(exc))
     try:
-        link = open_link(args.link, "fc")
+        spec = parse_endpoint(args.link)
+        # a serial line carries baud / 10 bytes a second: MAVLink leaves at that pace, within its budget
+        link_baud = spec.baud if spec.kind == "serial" and protocol == "mavlink" else None
+        link = open_link(spec, "fc", uart_baud=link_baud)
     except (ValueError, OSError) as exc:
         return fail(str(exc))
     mocap_link = None
@@ -230,7 +235,8 @@ def main(args: argparse.Namespace) -> int:
             profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
             mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
-            signing_epoch_unix_s=epoch_unix_s, server_config=ServerConfig(param_file=args.params),
+            signing_epoch_unix_s=epoch_unix_s,
+            server_config=ServerConfig(param_file=args.params, link_baud=link_baud),
             protocol=protocol, dji_config=dji_config,
         )
         try:
@@ -276,9 +282,13 @@ def main(args: argparse.Namespace) -> int:
                 for e in vehicle.fc.events
             ],
             "link": codec.stats.as_dict(),
+            "transport": asdict(link.stats),
             "server": server.stats.as_dict(),
             "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
         }
+        budget = getattr(server, "budget", None)
+        if budget is not None:
+            summary["link_budget"] = budget.summary(link, clock.now_s())
         if esc_stepper is not None:
             summary["esc_bus"] = esc_stepper.summary(clock.now_s())
         if mocap is not None:

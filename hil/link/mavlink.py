@@ -4,6 +4,7 @@ ENU/FLU <-> NED/FRD conversions both sides need at the wire (common dialect, pym
 from __future__ import annotations
 
 import binascii
+import hashlib
 import math
 import struct
 from collections.abc import Callable, Collection
@@ -23,14 +24,22 @@ MAVLinkMessage = mavlink2.MAVLink_message
 MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC = 0xFD, 0xFE
 MAX_FRAME_BYTES = 280  # the longest MAVLink 2 frame: header, 255 payload bytes, CRC, signature
 SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us units from 2015-01-01
-#: messages that must be signed when a key is configured (commands and setpoints)
-SIGNED_ONLY_MSG_IDS: frozenset[int] = frozenset(
+#: a stream (link id, system, component) first heard may start at most this far (10 us units: one
+#: minute) behind the receiver's own signing timestamp (the MAVLink signing spec's window)
+SIGNING_NEW_STREAM_WINDOW = 6_000_000
+SIGNATURE_BYTES = 13  # link id (1), timestamp (6), signature (6)
+#: messages a signed link also takes unsigned: they ask or announce and change nothing (PX4 and ArduPilot
+#: let RADIO_STATUS through unsigned for the same reason). Every other message (parameters, commands,
+#: setpoints, modes, missions, FTP, SETUP_SIGNING, ...) must be signed with the key and a fresh timestamp.
+UNSIGNED_OK_MSG_IDS: frozenset[int] = frozenset(
     {
-        mavlink2.MAVLINK_MSG_ID_COMMAND_LONG,
-        mavlink2.MAVLINK_MSG_ID_COMMAND_INT,
-        mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
-        mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
-        mavlink2.MAVLINK_MSG_ID_SET_MODE,
+        mavlink2.MAVLINK_MSG_ID_HEARTBEAT,
+        mavlink2.MAVLINK_MSG_ID_RADIO_STATUS,
+        mavlink2.MAVLINK_MSG_ID_PING,
+        mavlink2.MAVLINK_MSG_ID_TIMESYNC,
+        mavlink2.MAVLINK_MSG_ID_PARAM_REQUEST_LIST,
+        mavlink2.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
+        mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_LIST,
     }
 )
 
@@ -51,15 +60,25 @@ class MavlinkStats:
     garbage_bytes: int = 0  # bytes skipped while looking for a frame start
     bad_crc: int = 0
     unknown_msg_id: int = 0
-    bad_signature: int = 0  # unsigned or wrongly signed frames of a signed-only type, rejected
     malformed: int = 0  # bad length, bad flags, undecodable payload
+    # signed links: frames refused, by kind (none of them is acted on or recorded)
+    unsigned_refused: int = 0  # unsigned, of a type that must be signed
+    bad_signature: int = 0  # signed, but not with the key (never taken as unsigned)
+    replayed: int = 0  # timestamp not newer than the last one of its stream (link id, system, component)
+    stale_timestamp: int = 0  # a new stream's first timestamp more than a minute behind ours
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
     @property
     def errors(self) -> int:
-        return self.garbage_bytes + self.bad_crc + self.unknown_msg_id + self.bad_signature + self.malformed
+        return (self.garbage_bytes + self.bad_crc + self.unknown_msg_id + self.malformed
+                + self.signing_refused)
+
+    @property
+    def signing_refused(self) -> int:
+        """Frames a signed link refused, all kinds."""
+        return self.unsigned_refused + self.bad_signature + self.replayed + self.stale_timestamp
 
 
 def frame_size(buf: bytes | bytearray, i: int) -> int:
@@ -123,8 +142,10 @@ class MavlinkCodec:
     """MAVLink 2 frames over a byte-stream Transport, stamped by a Clock.
 
     ``receive()`` returns the good messages now available and counts everything else in ``stats``.
-    With ``signing_key`` set, outgoing frames are signed and incoming frames whose id is in
-    ``signed_only`` must carry a valid signature (others may come unsigned).
+    With ``signing_key`` set, outgoing frames are signed, and an incoming frame is taken only when it
+    is signed with the key and a timestamp newer than the last of its stream (link id, system,
+    component; a new stream within a minute of ours), or unsigned with an id in ``unsigned_ok``. A
+    frame with a bad signature is refused whatever its id; refusals are counted by kind in ``stats``.
     """
 
     def __init__(
@@ -135,7 +156,7 @@ class MavlinkCodec:
         component_id: int,
         *,
         signing_key: bytes | None = None,
-        signed_only: Collection[int] = SIGNED_ONLY_MSG_IDS,
+        unsigned_ok: Collection[int] = UNSIGNED_OK_MSG_IDS,
         link_id: int = 0,
         signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
         recorder: FrameRecorder | None = None,
@@ -157,7 +178,9 @@ class MavlinkCodec:
         #: packs (and signs) what the codec does not frame itself; its signing state is the parser's
         self._mav = mavlink2.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._parser = self._new_parser()
-        self._signed_only = frozenset(signed_only)
+        self._unsigned_ok = frozenset(unsigned_ok)
+        #: the last timestamp taken of each signed stream (link id, system, component)
+        self._stream_stamps: dict[tuple[int, int, int], int] = {}
         self._signing_epoch_unix_s = signing_epoch_unix_s
         self._accept = None if accept_ids is None else frozenset(accept_ids)
         self._raw = frozenset(raw_ids)
@@ -167,14 +190,14 @@ class MavlinkCodec:
             self._mav.signing.secret_key = signing_key
             self._mav.signing.sign_outgoing = True
             self._mav.signing.link_id = link_id
-            self._mav.signing.allow_unsigned_callback = self._allow_unsigned
             self._refresh_signing_time()
 
     def _new_parser(self) -> mavlink2.MAVLink:
-        """pymavlink's parser for incoming bytes, sharing the signing state of the packer."""
+        """pymavlink's parser for incoming bytes. It holds no key: it frames and decodes signed frames,
+        and `_refusal` judges their signatures (pymavlink's own check takes a frame with a bad signature
+        for an unsigned one and moves a stream's timestamp before it knows the signature is good)."""
         parser = mavlink2.MAVLink(None, srcSystem=self._mav.srcSystem, srcComponent=self._mav.srcComponent)
         parser.robust_parsing = True
-        parser.signing = self._mav.signing
         return parser
 
     @property
@@ -233,7 +256,7 @@ class MavlinkCodec:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
         as bytes for ``raw_ids``, see `__init__`)."""
         good: list[Any] = []
-        if self._parser.buf_len() == 0 and (self._accept is not None or not self.signing):
+        if self._parser.buf_len() == 0:
             data = self._take_leading(data, good)
             if not data:
                 return good
@@ -249,11 +272,14 @@ class MavlinkCodec:
             self._parser = self._new_parser()
             return
         now_s = self.clock.now_s()
+        signing = self.signing
         for m in msgs:
             if isinstance(m, mavlink2.MAVLink_bad_data):
                 self._count_bad(m)
             elif isinstance(m, mavlink2.MAVLink_unknown):
                 self.stats.unknown_msg_id += 1
+            elif signing and self._refused(bytes(m.get_msgbuf()), m.get_msgId()):
+                continue
             else:
                 self.stats.frames_received += 1
                 if self.recorder is not None:
@@ -262,12 +288,11 @@ class MavlinkCodec:
 
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
-        not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded
-        (unsigned links) or go through pymavlink's parser (signed: it checks the signature) one by one,
-        all in stream order. Returns the rest (from the first byte that is not such a frame on), for
-        pymavlink's parser."""
+        not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded, all
+        in stream order (a signed link refuses those that must be signed). Returns the rest (from the
+        first byte that is not such a frame on: signed frames too), for pymavlink's parser."""
         accept, raw, n, i = self._accept, self._raw, len(data), 0
-        fast = not self.signing
+        signing = self.signing
         recorder = self.recorder
         extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
         mirrored = b""  # ``data`` bit-reversed byte by byte (see `encode_frame`), made for the first frame
@@ -285,18 +310,18 @@ class MavlinkCodec:
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
-            if accept is not None and msg_id not in accept:
+            if signing and msg_id not in self._unsigned_ok:
+                self.stats.unsigned_refused += 1
+            elif accept is not None and msg_id not in accept:
                 self.stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
-            elif fast:
+            else:
                 frame = bytes(data[i:end])
                 good.append(frame if msg_id in raw else decode_frame(frame))
                 self.stats.frames_received += 1
                 if recorder is not None:
                     recorder.record(frame, self.clock.now_s())
-            else:
-                self._parse_slow(bytes(data[i:end]), good)
             i = end
         return data[i:] if i else data
 
@@ -306,16 +331,36 @@ class MavlinkCodec:
             self.stats.garbage_bytes += len(m.data)
         elif reason.startswith("invalid MAVLink CRC"):
             self.stats.bad_crc += 1
-        elif reason == "Invalid signature":
-            pass  # counted in _allow_unsigned
         else:
             self.stats.malformed += 1
 
-    def _allow_unsigned(self, _mav: mavlink2.MAVLink, msg_id: int) -> bool:
-        if msg_id in self._signed_only:
-            self.stats.bad_signature += 1
-            return False
-        return True
+    def _refused(self, frame: bytes, msg_id: int) -> bool:
+        """On a signed link: whether ``frame`` (CRC checked) is refused, counted by kind. A good
+        signature moves its stream's timestamp, as the MAVLink signing spec says; nothing else does."""
+        stats = self.stats
+        if frame[0] != MAVLINK_V2_MAGIC or not frame[2] & mavlink2.MAVLINK_IFLAG_SIGNED:
+            if msg_id in self._unsigned_ok:
+                return False
+            stats.unsigned_refused += 1
+            return True
+        signing = self._mav.signing
+        if hashlib.sha256(signing.secret_key + frame[:-6]).digest()[:6] != frame[-6:]:
+            stats.bad_signature += 1
+            return True
+        stamp = int.from_bytes(frame[-12:-6], "little")
+        stream = (frame[-SIGNATURE_BYTES], frame[5], frame[6])  # link id, system, component
+        last = self._stream_stamps.get(stream)
+        if last is not None and stamp <= last:
+            stats.replayed += 1
+            return True
+        if last is None:
+            self._refresh_signing_time()
+            if stamp + SIGNING_NEW_STREAM_WINDOW < signing.timestamp:
+                stats.stale_timestamp += 1
+                return True
+        self._stream_stamps[stream] = stamp
+        signing.timestamp = max(signing.timestamp, stamp)  # what we sign with next is never older
+        return False
 
     def _refresh_signing_time(self) -> None:
         stamp = int((self._signing_epoch_unix_s - SIGNING_EPOCH_UNIX_S + self.clock.now_s()) * 1e5)
@@ -327,6 +372,23 @@ _BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 _CRC_EXTRA_MIRRORED: dict[int, bytes] = {
     msg_id: bytes((_BIT_REVERSED[cls.crc_extra],)) for msg_id, cls in mavlink2.mavlink_map.items()
 }
+
+
+def frame_ok(frame: bytes) -> bool:
+    """Whether ``frame`` is one whole MAVLink 2 or 1 frame (signature included) of an id pymavlink knows,
+    its length as its header says and its CRC good (the signature is not judged)."""
+    if not frame or frame_size(frame, 0) != len(frame):
+        return False
+    if frame[0] == MAVLINK_V2_MAGIC:
+        msg_id, crc_at = frame[7] | frame[8] << 8 | frame[9] << 16, 10 + frame[1]
+    else:
+        msg_id, crc_at = frame[5], 6 + frame[1]
+    extra = _CRC_EXTRA_MIRRORED.get(msg_id)
+    if extra is None:
+        return False
+    rev = _BIT_REVERSED
+    crc = binascii.crc_hqx(extra, binascii.crc_hqx(frame[1:crc_at].translate(rev), 0xFFFF))
+    return crc == rev[frame[crc_at]] << 8 | rev[frame[crc_at + 1]]
 
 
 _V2_HEADER = struct.Struct("<BBBBBBBHB")

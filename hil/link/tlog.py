@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import struct
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
 from hil.link import dji_open
-from hil.link.mavlink import frame_size
+from hil.link.mavlink import frame_ok, frame_size
 
 FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
 
@@ -68,18 +69,60 @@ class TlogWriter:
         self.close()
 
 
+@dataclass(frozen=True)
+class TlogScan:
+    """What a .tlog holds: its good records, and the damaged spots skipped between them."""
+
+    records: list[tuple[int, bytes]]  # (timestamp_us, frame), in file order
+    skipped: list[tuple[int, int]]  # (byte offset, bytes skipped) of each damaged spot
+
+    @property
+    def skipped_bytes(self) -> int:
+        return sum(n for _, n in self.skipped)
+
+
+def scan_tlog(data: bytes) -> TlogScan:
+    """The records of a .tlog's bytes, resynchronising past damage (a cut tail, a flipped byte): a record
+    is taken where a timestamp is followed by a whole frame of either protocol whose CRC is good; bytes
+    that start no such record are skipped a byte at a time and reported, as mavlogdump does."""
+    records: list[tuple[int, bytes]] = []
+    skipped: list[tuple[int, int]] = []
+    i, n, bad_from = 0, len(data), -1
+    while i + 8 < n:
+        j = i + 8
+        frame = _good_frame(data, j)
+        if frame is None:
+            if bad_from < 0:
+                bad_from = i
+            i += 1
+            continue
+        if bad_from >= 0:
+            skipped.append((bad_from, i - bad_from))
+            bad_from = -1
+        records.append((struct.unpack_from(">Q", data, i)[0], frame))
+        i = j + len(frame)
+    start = bad_from if bad_from >= 0 else i
+    if start < n:
+        skipped.append((start, n - start))
+    return TlogScan(records, skipped)
+
+
+def _good_frame(data: bytes, j: int) -> bytes | None:
+    """The whole, CRC-checked MAVLink or DJI OPEN frame that starts at ``data[j]``, or None."""
+    if data[j] == dji_open.SOF:
+        size = dji_open.frame_size(data, j)
+        frame = data[j : j + size]
+        return frame if size > 0 and len(frame) == size and dji_open.crc32(frame) == 0 else None
+    size = frame_size(data, j)
+    frame = data[j : j + size]
+    return frame if size > 0 and frame_ok(frame) else None
+
+
 def read_tlog(path: str | Path) -> list[tuple[int, bytes]]:
     """(timestamp_us, frame) pairs of a .tlog written by TlogWriter (MAVLink 2 and 1 frames, DJI OPEN
-    frames)."""
-    data = Path(path).read_bytes()
-    out: list[tuple[int, bytes]] = []
-    i = 0
-    while i + 8 < len(data):
-        (stamp,) = struct.unpack_from(">Q", data, i)
-        i += 8
-        n = dji_open.frame_size(data, i) if data[i] == dji_open.SOF else frame_size(data, i)
-        if n <= 0 or i + n > len(data):
-            raise ValueError(f"{path}: no MAVLink or DJI OPEN frame at byte {i}")
-        out.append((stamp, data[i : i + n]))
-        i += n
-    return out
+    frames); ValueError naming the first damaged spot (`scan_tlog` reads past them)."""
+    scan = scan_tlog(Path(path).read_bytes())
+    if scan.skipped:
+        offset, size = scan.skipped[0]
+        raise ValueError(f"{path}: {size} bytes at byte {offset} are no MAVLink or DJI OPEN record")
+    return scan.records

@@ -26,6 +26,7 @@ class LinkStats:
     bytes_sent: int = 0
     bytes_received: int = 0
     bytes_dropped: int = 0  # refused or lost because a buffer was full
+    datagrams_lost_in: int = 0  # arrived, but dropped by the kernel before they were read (UDP, Linux)
     send_calls: int = 0
     recv_calls: int = 0
 

@@ -55,6 +55,14 @@ class UartModel:
         """Bytes written but not yet released (whether or not their time has come)."""
         return self._queued_bytes
 
+    def backlog_bytes(self) -> int:
+        """Bytes in the transmit buffer now (written, their last bit not yet on the wire)."""
+        return self._in_buffer_bytes(self.clock.now_s())
+
+    def free_bytes(self) -> int:
+        """Room left in the transmit buffer now (bytes)."""
+        return self.tx_buffer_bytes - self.backlog_bytes()
+
     def write(self, data: bytes) -> int:
         """Queue ``data``; return how many bytes fit in the transmit buffer (the rest is dropped).
 

@@ -9,17 +9,25 @@ Two modes, named as MAVLink tools name them:
 UDP cannot tell whether a peer is alive: datagrams to a peer that has gone are sent and lost, never
 an error (ICMP "port unreachable" is ignored), and a peer that restarts is served again as soon as
 it sends. Each `send` goes out as one datagram (split above 65000 bytes); a datagram larger than
-`recv`'s ``max_bytes`` is handed out over several calls, nothing is cut off.
+`recv`'s ``max_bytes`` is handed out over several calls, nothing is cut off. A `recv` drains every
+datagram waiting, up to ``max_bytes`` (the bound on one pass's intake; the rest waits in the socket).
+Datagrams the kernel drops because the socket's buffer was full are counted in
+`stats.datagrams_lost_in` (Linux's SO_RXQ_OVFL; elsewhere they go uncounted).
 """
 
 from __future__ import annotations
 
 import socket
+import sys
 
 from hil.link.transport import LinkError, Transport
 
 MAX_DATAGRAM_BYTES = 65000
 LOOPBACK = "127.0.0.1"
+#: the socket option that makes Linux hand over its count of datagrams dropped for a full receive
+#: buffer with each datagram read (Python's socket module does not name it)
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+_DROP_COUNT_SPACE = socket.CMSG_SPACE(4)
 
 
 class UdpTransport(Transport):
@@ -46,6 +54,11 @@ class UdpTransport(Transport):
             mode = "bind" if server else "reach"
             raise LinkError(f"cannot {mode} UDP {host}:{port}: {e}") from e
         self._sock.setblocking(False)
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+            self._count_drops = True
+        except OSError:  # not Linux: drops in the socket go uncounted
+            self._count_drops = False
         h, p = self._sock.getsockname() if server else self._peer
         self.endpoint = f"{'udp' if server else 'udpout'}:{h}:{p}"
 
@@ -90,18 +103,34 @@ class UdpTransport(Transport):
         return sent
 
     def _recv_internal(self, max_bytes: int) -> bytes:
-        if not self._pending:
-            try:
-                data, addr = self._sock.recvfrom(65536)
-            except (BlockingIOError, InterruptedError, ConnectionRefusedError):
-                return b""
-            except OSError as e:
-                raise LinkError(f"{self.endpoint}: receive failed: {e}") from e
-            if self.server:
-                self._peer = addr
-            self._pending = data
-        out, self._pending = self._pending[:max_bytes], self._pending[max_bytes:]
-        return out
+        out = bytearray()
+        while True:
+            if not self._pending:
+                self._pending = self._next_datagram()
+                if not self._pending:
+                    break
+            take = max_bytes - len(out)
+            out += self._pending[:take]
+            self._pending = self._pending[take:]
+            if len(out) >= max_bytes:
+                break
+        return bytes(out)
+
+    def _next_datagram(self) -> bytes:
+        """The next datagram waiting (b"" if none), counting what the kernel dropped before it."""
+        try:
+            data, anc, _, addr = self._sock.recvmsg(65536, _DROP_COUNT_SPACE if self._count_drops else 0)
+        except (BlockingIOError, InterruptedError, ConnectionRefusedError):
+            return b""
+        except OSError as e:
+            raise LinkError(f"{self.endpoint}: receive failed: {e}") from e
+        for level, kind, value in anc:
+            if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
+                # the kernel's running count since the socket opened
+                self.stats.datagrams_lost_in = int.from_bytes(value[:4], sys.byteorder)
+        if self.server:
+            self._peer = addr
+        return data
 
     def _wait_readable(self, timeout_s: float | None) -> None:
         if not self._pending:

@@ -1,0 +1,148 @@
+"""The data-rate budget of the FC's MAVLink link, as PX4 keeps one per MAVLink instance: the telemetry
+streams are scaled to fit a share of what the line carries (``MAV_0_RATE`` bytes/s, or with 0 half the
+line: baud / 20 at 10 bits a byte), the rest left for answers (parameters, command ACKs, status text).
+
+On a paced line (`hil.link.uart.UartTransport`) the budget also watches the line's queue: a stream frame
+that would wait behind more than `STREAM_QUEUE_S` of queued bytes is not sent (counted in
+``frames_dropped``), so answers never wait long; answers and heartbeats always go while the transmit
+buffer has room for the whole frame (else they are dropped whole, counted, never cut).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from hil.link.channel import BITS_PER_BYTE
+from hil.link.mavlink import SIGNATURE_BYTES, mav
+
+STREAM_QUEUE_S = 0.05  # a stream frame waits behind at most this much of the line's queue (s)
+LINE_SHARE_DEFAULT = 0.5  # MAV_0_RATE 0: the streams get this share of the line (PX4: baud / 20)
+FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header (10) and CRC (2)
+#: streams kept at their rate whatever the budget (a ground station counts a link lost without them)
+FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
+CAPS_KEPT = 20  # the summary lists at most this many capped requests
+
+
+def frame_bytes(msg_id: int, signed: bool) -> int:
+    """The longest frame of message ``msg_id`` on the wire (bytes; trailing zeros may make it shorter)."""
+    size = mav.mavlink_map[msg_id].unpacker.size + FRAME_OVERHEAD_BYTES
+    return size + SIGNATURE_BYTES if signed else size
+
+
+@dataclass
+class BudgetStats:
+    """What the budget did (counts, bytes)."""
+
+    bytes_dropped: int = 0  # bytes of the frames not sent for lack of line
+    frames_dropped: int = 0  # stream frames not sent: the line's queue was too deep
+    answers_dropped: int = 0  # answers and heartbeats dropped whole: the transmit buffer was full
+    queue_bytes_max: int = 0  # the deepest line queue seen when a frame was queued
+    answer_wait_max_s: float = 0.0  # the longest an answer waited behind the line's queue (s)
+    rates_capped: int = 0  # rate requests granted less than asked (SET_MESSAGE_INTERVAL, N3_RATE_*)
+    caps: list[dict[str, Any]] = field(default_factory=list)  # the first `CAPS_KEPT` of them
+
+    def as_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class LinkBudget:
+    """The budget of one link: which stream rates fit, and whether a frame may be queued now."""
+
+    def __init__(self, baud: int | None, uart: Any = None, signed: bool = False) -> None:
+        """``baud``: the line's (bit/s; None: not a serial line); ``uart``: its `UartModel` when the
+        link is paced, else None."""
+        self.baud, self.uart, self.signed = baud, uart, signed
+        self.rate_param_bytes_s = 0.0  # MAV_0_RATE (0: from the baud)
+        self.stats = BudgetStats()
+        self._sizes: dict[int, int] = {}
+
+    @property
+    def line_bytes_s(self) -> float | None:
+        """What the line carries (bytes/s), None if not a serial line."""
+        return None if self.baud is None else self.baud / BITS_PER_BYTE
+
+    @property
+    def stream_bytes_s(self) -> float | None:
+        """What the streams may use (bytes/s); None: no budget (not a serial line, MAV_0_RATE 0)."""
+        if self.rate_param_bytes_s > 0:
+            return self.rate_param_bytes_s
+        line = self.line_bytes_s
+        return None if line is None else LINE_SHARE_DEFAULT * line
+
+    def grant(self, requested_s: dict[int, float]) -> dict[int, float]:
+        """The intervals (s) the streams get: ``requested_s`` (msg id -> interval) scaled alike until
+        they fit the budget (`FIXED_STREAMS` kept)."""
+        budget = self.stream_bytes_s
+        if budget is None:
+            return dict(requested_s)
+        fixed = sum(self.frame_bytes(i) / s for i, s in requested_s.items() if i in FIXED_STREAMS)
+        demand = sum(self.frame_bytes(i) / s for i, s in requested_s.items() if i not in FIXED_STREAMS)
+        room = max(budget - fixed, 0.01 * budget)
+        scale = 1.0 if demand <= room else room / demand
+        return {i: s if i in FIXED_STREAMS or scale == 1.0 else s / scale for i, s in requested_s.items()}
+
+    def capped(self, msg_id: int, requested_hz: float, granted_hz: float) -> str:
+        """Record a request granted less than asked; the STATUSTEXT that says so (<= 50 characters)."""
+        self.stats.rates_capped += 1
+        name = mav.mavlink_map[msg_id].msgname
+        if len(self.stats.caps) < CAPS_KEPT:
+            self.stats.caps.append({"message": name, "requested_hz": round(requested_hz, 3),
+                                    "granted_hz": round(granted_hz, 3),
+                                    "stream_budget_bytes_s": round(self.stream_bytes_s or 0.0, 1)})
+        return f"{name[:19]} {requested_hz:.4g}Hz capped {granted_hz:.3g}Hz: line"
+
+    def frame_bytes(self, msg_id: int) -> int:
+        """`frame_bytes` of ``msg_id`` on this link (cached)."""
+        n = self._sizes.get(msg_id)
+        if n is None:
+            n = self._sizes[msg_id] = frame_bytes(msg_id, self.signed)
+        return n
+
+    def has_room(self, msg_id: int) -> bool:
+        """Whether a frame of ``msg_id`` sent at a stream's pace may go now (nothing counted)."""
+        uart = self.uart
+        if uart is None:
+            return True
+        queued = uart.backlog_bytes()
+        return queued * BITS_PER_BYTE / uart.baud <= STREAM_QUEUE_S and \
+            uart.tx_buffer_bytes - queued >= self.frame_bytes(msg_id)
+
+    def admit(self, msg_id: int, stream: bool) -> bool:
+        """Whether a frame of ``msg_id`` may be written now (a periodic ``stream`` frame, or an answer or
+        heartbeat); a frame refused is counted in ``bytes_offered`` here (one sent, by the transport)."""
+        uart = self.uart
+        if uart is None:
+            return True
+        st = self.stats
+        n_bytes = self.frame_bytes(msg_id)
+        queued = uart.backlog_bytes()
+        wait_s = queued * BITS_PER_BYTE / uart.baud
+        if stream and wait_s > STREAM_QUEUE_S:
+            st.frames_dropped += 1
+        elif uart.tx_buffer_bytes - queued < n_bytes:
+            if stream:
+                st.frames_dropped += 1
+            else:
+                st.answers_dropped += 1
+        else:
+            if queued > st.queue_bytes_max:
+                st.queue_bytes_max = queued
+            if not stream and wait_s > st.answer_wait_max_s:
+                st.answer_wait_max_s = wait_s
+            return True
+        st.bytes_dropped += n_bytes
+        return False
+
+    def summary(self, transport: Any, elapsed_s: float) -> dict[str, Any]:
+        """The budget's figures for a summary: rates (bytes/s) over ``elapsed_s`` of the paced
+        ``transport`` (a `UartTransport`: what it took, and what left on the line), and the counters."""
+        out: dict[str, Any] = {"baud": self.baud, "line_bytes_s": self.line_bytes_s,
+                               "stream_budget_bytes_s": self.stream_bytes_s}
+        stats = self.stats.as_dict()
+        if self.uart is not None and elapsed_s > 0:
+            taken = transport.stats.bytes_sent + transport.stats.bytes_dropped
+            out["bytes_offered_per_s"] = round((taken + self.stats.bytes_dropped) / elapsed_s, 1)
+            out["bytes_written_per_s"] = round(self.uart.bytes_released / elapsed_s, 1)
+            out["queue_bytes_now"] = self.uart.backlog_bytes()
+        return {**out, **stats}
