@@ -101,7 +101,7 @@ class Client:
 
     def latest(self, bit: int, layout: str) -> tuple:
         """The item of flag ``bit`` in the latest flight data that has it (items before it skipped)."""
-        sizes = [9, 16, 12, 13, 12, 25, 6, 12, 13, 1, 1, 2]
+        sizes = [15, 16, 12, 13, 12, 50, 68, 44, 6, 12, 13, 4, 13, 2]  # the N3's items
         for flags, items in reversed(self.flight_data):
             if flags >> bit & 1:
                 off = sum(sizes[i] for i in range(bit) if flags >> i & 1)
@@ -149,19 +149,22 @@ def test_a_public_protocol_client_activates_obtains_control_arms_climbs_and_sees
     rig.activate()
     v = rig.client.command(0x00, 0x00, b"\x00")
     rig.run(0.02)
-    assert c.code(v) == 0 and c.acks[v][6:].rstrip(b"\x00").startswith(b"SDK")
-    # broadcast: status and control device at 50 Hz, position (height) at 10 Hz, the rest off
-    assert rig.ask(0x00, 0x10, bytes([0, 0, 0, 3, 0, 2, 0, 0, 0, 3, 0, 3, 0, 0, 0, 0])) == 0
+    # after the code: the serial number and its NUL, then the name OSDK parses (hardware N3, firmware)
+    serial, name = c.acks[v][2:].split(b"\x00", 1)
+    assert c.code(v) == 0 and 0 < len(serial) <= 16 and name.startswith(b"SDK-v1.0 BETA N3-03.03.08.47\x00")
+    # broadcast (the N3's items): status and control device at 50 Hz, position (height) at 10 Hz
+    assert rig.ask(0x00, 0x10, bytes([0, 0, 0, 3, 0, 2, 0, 0, 0, 0, 0, 3, 0, 3, 7, 7])) == 0
     c.flight_data.clear()
     rig.run(1.0)
-    counts = {b: sum(1 for f, _ in c.flight_data if f >> b & 1) for b in range(12)}
-    assert counts[9] == pytest.approx(50, abs=2) and counts[11] == pytest.approx(50, abs=2)
+    counts = {b: sum(1 for f, _ in c.flight_data if f >> b & 1) for b in range(14)}
+    assert counts[11] == pytest.approx(50, abs=2) and counts[13] == pytest.approx(50, abs=2)
     assert counts[5] == pytest.approx(10, abs=1) and counts[3] == pytest.approx(50, abs=2)
     assert counts[1] == counts[0] == 0
-    assert c.latest(9, "<B") == (1,)  # standby
+    assert c.latest(11, "<4B")[0] == 0  # motors stopped
     assert rig.ask(0x01, 0x05, b"\x01") == 0x0001  # arm before obtaining control: refused
     assert rig.ask(0x01, 0x00, b"\x01") == 0x0002  # control obtained
-    assert c.latest(11, "<BB")[1] & 0x07 == 2  # the onboard device holds control
+    rig.run(0.05)
+    assert c.latest(13, "<BB")[1] & 0x07 == 2  # the onboard device holds control
     assert rig.ask(0x01, 0x05, b"\x01") == 0x0000  # armed
     assert rig.ask(0x01, 0x05, b"\x01") == 0x0002  # already armed
     h0 = c.latest(5, "<ddffB")[3]
@@ -169,11 +172,12 @@ def test_a_public_protocol_client_activates_obtains_control_arms_climbs_and_sees
     assert rig.vehicle.fc.state is FcState.OFFBOARD
     h1 = c.latest(5, "<ddffB")[3]
     assert h1 > h0 + 0.5, f"no climb seen in the broadcast: {h0:.2f} -> {h1:.2f} m"
-    assert c.latest(9, "<B") == (3,)  # in the air
+    assert c.latest(11, "<4B")[:2] == (2, 17)  # in the air, SDK control
     assert c.latest(3, "<3fB")[2] > 0.2  # climbing (ground frame, up)
     rig.run(1.0)  # the stream stops
     assert rig.vehicle.fc.state is FcState.FAILSAFE_HOVER
-    assert c.control_lost == 1 and c.latest(11, "<BB")[1] & 0x07 == 0  # the FC took over
+    # the FC hovers (P-GPS) and, as an N3, leaves the authority with the onboard device
+    assert c.control_lost == 0 and c.latest(13, "<BB")[1] & 0x07 == 2 and c.latest(11, "<4B")[1] == 6
 
 
 def test_activation_refused_as_configured_and_commands_before_it_are_unauthorised():
@@ -209,12 +213,14 @@ def test_tasks_land_and_stop_motors():
     rig = Rig()
     rig.activate()
     rig.ask(0x01, 0x00, b"\x01")
-    assert rig.ask(0x01, 0x01, b"\x07") == 0x0002  # start motors
+    assert rig.ask(0x01, 0x01, b"\x07") == 0x0000  # start motors (an N3's success: 0)
     assert rig.vehicle.fc.state.armed
-    assert rig.ask(0x01, 0x01, b"\x08") == 0x0002  # stop motors (on the ground)
+    assert rig.ask(0x01, 0x01, b"\x07") == 0x0001  # the motors already run
+    assert rig.ask(0x01, 0x01, b"\x08") == 0x0000  # stop motors (on the ground)
     assert not rig.vehicle.fc.state.armed
-    assert rig.ask(0x01, 0x01, b"\x02") == 0x0001  # land while disarmed: fails
-    assert rig.ask(0x01, 0x01, b"\x63") == 0x0001  # no such task
+    assert rig.ask(0x01, 0x01, b"\x08") == 0x0002  # the motors do not run
+    assert rig.ask(0x01, 0x01, b"\x02") == 0x0004  # land on the ground: not in the air
+    assert rig.ask(0x01, 0x01, b"\x63") == 0x000A  # no such task
 
 
 def test_encrypted_unknown_and_resent_commands_get_their_documented_answers():
@@ -324,7 +330,7 @@ def test_hil_fc_answers_the_open_protocol_on_a_pty_and_hil_decode_prints_its_cap
             client.read()
             time.sleep(0.01)
         assert client.code(seq) == 0x0000  # the RC is in A mode: not in F mode
-        assert client.latest(7, "<6h")[4] == 0  # the RC item's mode channel: A
+        assert client.latest(9, "<6h")[4] == 0  # the RC item's mode channel: A
         link.close()
     finally:
         proc.terminate()

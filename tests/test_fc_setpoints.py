@@ -9,6 +9,7 @@ import struct
 from dataclasses import astuple
 
 import numpy as np
+import pytest
 
 from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
 from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values
@@ -198,9 +199,23 @@ def test_setpoint_values_give_the_reference_target_for_any_field_types_and_flags
         f[2] = f[2] if rng.random() < 0.3 else float(rng.uniform(0, 100))
         cases.append(N3Setpoint(flag, *f))
     for sp in cases:
+        if isinstance(sp.flag, int) and 0 <= sp.flag <= 0xFF and sp.flag & 0xC0:
+            continue  # the velocity and position modes came later: `test_velocity_and_position_flags`
         want = _outcome(_ref_to_target, sp, PROFILE)
         assert _outcome(to_target, sp, PROFILE) == want, sp
         assert _outcome(check_flag, sp.flag) == _outcome(_ref_check_flag, sp.flag)
+
+
+def test_velocity_and_position_flags_are_flown_with_a_velocity_or_height_and_the_rest_refused():
+    accepted = {f for f in range(0x40, 0x100) if _outcome(check_flag, f)[0] != "rejected"}
+    want = {h | v | y | fr | st for h in (0x40, 0x80) for v in (0x00, 0x10) for y in (0, 8) for fr in (0, 2)
+            for st in (0, 1)}
+    assert accepted == want  # angular rate, thrust with a velocity or position, frame bit 0x04: refused
+    tg = to_target(N3Setpoint(0x91, 2.0, -1.0, 300.0, 30.0), PROFILE)  # OSDK's positionAndYawCtrl
+    assert (tg.horizontal_position, tg.vertical_position, tg.body_frame) == (True, True, False)
+    assert (tg.x, tg.y, tg.z) == (2.0, -1.0, 120.0) and tg.yaw_rad == pytest.approx(math.radians(30))
+    tg = to_target(N3Setpoint(0x48, 40.0, 0.0, -9.0, 10.0), PROFILE)  # velocity, yaw rate
+    assert (tg.x, tg.z) == (30.0, -5.0) and tg.yaw_rate_rad_s == pytest.approx(math.radians(10))
 
 
 def test_a_yaw_rate_stream_still_starts_from_the_heading():

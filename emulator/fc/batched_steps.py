@@ -105,7 +105,7 @@ def _hold_batch(x, aux, p, hold, hold_params, gains, mix_inv, out, n_steps):  # 
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
             return k  # the FC would see the landing at this step: its own step takes over
-        roll, pitch, thrust = hold_command(x[3], x[4], x[5], climb, yaw, hold_params)
+        roll, pitch, thrust = hold_command(x[3], x[4], x[5], climb, yaw, hold_params, 0.0, 0.0)
         control(x[6:10], x[10:13], roll, pitch, yaw, thrust, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
     return n_steps

@@ -1,7 +1,8 @@
-"""The FC's DJI OPEN-protocol endpoint (Onboard SDK 3.x, as an N3 answers on its API UART), over the same
-FC core as the MAVLink server: activation and version query, control authority, arm/disarm, flight
-tasks, the flight-control setpoint (the N3 attitude-thrust interface, `emulator.fc.n3`), and the pushed
-flight data at the rates the onboard side sets.
+"""The FC's DJI OPEN-protocol endpoint (Onboard SDK 3.x, as an N3 with FC firmware 3.3 answers on its API
+UART), over the same FC core as the MAVLink server: version query and activation, control authority,
+arm/disarm, flight tasks (take-off, landing, motors), the flight-control setpoint (`emulator.fc.n3`), the
+telemetry subscription (`emulator.fc.dji_subscription`) and the broadcast flight data at the rates the
+onboard side sets (values: `emulator.fc.dji_telemetry`).
 
 `DjiOpenServer.poll(now_s)` parses what arrived, acts on it and sends what is due at ``now_s`` (clock
 seconds), as `MavlinkServer.poll` does. Bad input is counted in `stats` (and the codec's) and answered
@@ -16,25 +17,26 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 
-from emulator.fc.modes import FcState
+from emulator.fc import dji_telemetry
+from emulator.fc.dji_subscription import Subscriptions
+from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import SetpointRejected
 from emulator.fc.params import Parameters
 from emulator.fc.telemetry import Home, TelemetryEncoder
 from emulator.fc.vehicle import EmulatedVehicle
 from hil.link import dji_open as dj
-from hil.link.mavlink import quat_enu_flu_to_ned_frd_tuple
 
-#: the SDK version (activation's third word) this FC accepts: OSDK 3.x's 0x03010A00 and later
+#: the version (activation's third word: OSDK puts the FC firmware there) this FC accepts: 3.1.10 on
 MIN_SDK_VERSION = 0x03010A00
-ACTIVATION_BYTES = 44  # u32 app id, u32 reserved, u32 SDK version, 32-byte bundle id
-#: broadcast rates (Hz) by item before the onboard side sets them: Appendix.md's defaults
-DEFAULT_RATES_HZ: tuple[float, ...] = (100.0, 100.0, 100.0, 100.0, 100.0, 100.0, 0.0, 50.0, 50.0, 10.0, 1.0,
-                                       0.0)
-CONTROL_LOST_CODE = 0x04  # the payload of the pushed "control lost" (0x02 0x01)
-_SEC_TICKS = 400  # the time item counts 1/400 s
-_STATE_FLAGS = 1 << dj.BROADCAST_BIT["status"] | 1 << dj.BROADCAST_BIT["control_device"]
+ACTIVATION_BYTES = 44  # u32 app id, u32 reserved, u32 version, 32-byte bundle id
+#: broadcast rates (Hz) by item before the onboard side sets them: OSDK's defaults for an A3/N3
+DEFAULT_RATES_HZ: tuple[float, ...] = (50.0, 50.0, 50.0, 50.0, 50.0, 50.0, 0.0, 0.0, 0.0, 50.0, 50.0, 10.0,
+                                       1.0, 1.0)
 _TASKS = frozenset({dj.TASK_TAKEOFF, dj.TASK_LAND, dj.TASK_GO_HOME, dj.TASK_START_MOTORS,
                     dj.TASK_STOP_MOTORS})
+#: the FC states whose flight the onboard device's setpoints take over (with authority): the FC's
+#: hover, the setpoint-loss failsafe, and motors off (the FC then arms straight into them)
+_TAKEOVER_STATES = frozenset({FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.FAILSAFE_LAND})
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,8 @@ class DjiServerConfig:
     rc_mode: str = "F"
     home: Home = field(default_factory=Home)
     broadcast_rates_hz: tuple[float, ...] = DEFAULT_RATES_HZ
-    #: the highest broadcast rate granted (Hz): the N3's 100 Hz UART push (200, 400 in OSDK 4 are not)
+    #: the highest broadcast rate granted (Hz): the N3's 100 Hz UART push (codes 6, 7, OSDK's 200 and
+    #: 400 Hz, are granted this)
     max_rate_hz: float = 100.0
 
     def __post_init__(self) -> None:
@@ -74,6 +77,8 @@ class DjiServerStats:
     retries_answered: int = 0  # a reliable command sent again: its ACK again, not acted on twice
     malformed: int = 0  # payloads of the wrong size or value
     broadcasts_sent: int = 0
+    subscription_pushes: int = 0
+    subscription_refused: int = 0  # 0x0B commands answered with a code other than success
     handler_errors: int = 0
 
     def as_dict(self) -> dict[str, int]:
@@ -100,7 +105,7 @@ class DjiOpenServer:
         self._rates_hz = list(self.config.broadcast_rates_hz)
         self._next_due = [0.0] * len(self._rates_hz)
         self._next_push_s = 0.0
-        self._urgent = 0  # flag bits pushed at the next push whether due or not
+        self.subscriptions = Subscriptions(frozenset(dji_telemetry.TOPIC_VALUES))
         self._last_ack: dict[int, tuple[int, bytes]] = {}  # session -> (seq, ACK frame) of reliable ones
         self._events_seen = 0
         self._statustexts: list[str] = []
@@ -113,6 +118,10 @@ class DjiOpenServer:
             (dj.SET_CONTROL, dj.CMD_CONTROL_AUTHORITY): self._on_control_authority,
             (dj.SET_CONTROL, dj.CMD_TASK): self._on_task,
             (dj.SET_CONTROL, dj.CMD_ARM): self._on_arm,
+            (dj.SET_SUBSCRIBE, dj.CMD_SUB_VERSION): self._on_sub_version,
+            (dj.SET_SUBSCRIBE, dj.CMD_SUB_ADD): self._on_sub_add,
+            (dj.SET_SUBSCRIBE, dj.CMD_SUB_RESET): self._on_sub_reset,
+            (dj.SET_SUBSCRIBE, dj.CMD_SUB_REMOVE): self._on_sub_remove,
         }
 
     @property
@@ -131,6 +140,8 @@ class DjiOpenServer:
         self.telemetry.track_battery(now_s)
         if self.activated and now_s >= self._next_push_s:
             self._push(now_s)
+        if self.subscriptions.packages and now_s >= self.subscriptions.next_due_s() - 1e-9:
+            self._push_packages(now_s)
 
     def handle(self, f: dj.Frame, now_s: float) -> None:
         """Act on one good command frame; never raises."""
@@ -192,9 +203,7 @@ class DjiOpenServer:
             self.stats.commands_denied += 1
 
     def _on_version(self, f: dj.Frame, now_s: float) -> bytes:
-        code = dj.ACK_SUCCESS if self.activated else dj.ACK_NO_AUTHORISATION
-        name = dj.FC_VERSION_NAME.ljust(32, b"\x00")
-        return dj.ack_code(code) + struct.pack("<I", dj.crc32(name)) + name
+        return dj.version_value(dj.ACK_SUCCESS if self.activated else dj.ACK_NO_AUTHORISATION)
 
     def _on_activate(self, f: dj.Frame, now_s: float) -> bytes:
         p = f.payload
@@ -215,6 +224,7 @@ class DjiOpenServer:
     def _on_broadcast_freq(self, f: dj.Frame, now_s: float) -> bytes:
         p = f.payload
         n = len(dj.BROADCAST_ITEMS)
+        # (the codes past the N3's 14 items are not read: OSDK's own sample leaves them unset)
         if len(p) != 16 or any(c not in dj.BROADCAST_RATES_HZ and c != dj.BROADCAST_KEEP for c in p[:n]):
             self.stats.malformed += 1
             self._count(False)
@@ -240,19 +250,19 @@ class DjiOpenServer:
         arg = self._byte_arg(f, (0, 1))
         if arg is None:
             return dj.ack_code(dj.CONTROL_OBTAIN_FAILED)
+        fc = self.fc
         if arg == 1:
             if self.config.rc_mode != "F":
                 self._count(False)
                 return dj.ack_code(dj.CONTROL_NEEDS_F_MODE)
             self.sdk_control = True
-            self._push_state_now(now_s)  # the onboard side sees its authority at once
-            if self.fc.state.armed and self.fc.state is not FcState.OFFBOARD:
-                self.fc.request_offboard(now_s)  # flies the setpoints once they stream (`_on_setpoint`)
+            if fc.state in _TAKEOVER_STATES:
+                fc.request_offboard(now_s)  # a stream already flowing flies now; else once it flows
             self._count(True)
             return dj.ack_code(dj.CONTROL_OBTAINED)
         self.sdk_control = False
-        self._push_state_now(now_s)
-        self.fc.request_hold(now_s, "control authority released")
+        if fc.state is FcState.OFFBOARD:  # the FC hovers; its own tasks (take-off, landing) go on
+            fc.request_hold(now_s, "control authority released")
         self._count(True)
         return dj.ack_code(dj.CONTROL_RELEASED)
 
@@ -274,24 +284,57 @@ class DjiOpenServer:
     def _on_task(self, f: dj.Frame, now_s: float) -> bytes:
         task = self._byte_arg(f, _TASKS)
         if task is None:
-            return dj.ack_code(dj.TASK_FAILED)
+            return dj.ack_code(dj.TASK_INVALID_COMMAND)
         if not self.sdk_control:
             self._count(False)
             return dj.ack_code(dj.ACK_NO_RIGHTS)
-        fc = self.fc
-        if task == dj.TASK_START_MOTORS:
-            res = fc.arm(now_s)
-        elif task == dj.TASK_STOP_MOTORS:
-            res = fc.disarm(now_s)
-        elif task == dj.TASK_TAKEOFF:
-            # the N3 spins up and climbs on its own; here: armed, and the onboard setpoints fly the climb
-            res = fc.arm(now_s)
-        elif task == dj.TASK_LAND:
-            res = fc.request_land(now_s)
-        else:  # go home: no home to fly to indoors, the FC holds instead
-            res = fc.request_hold(now_s, "go home: holding (no home indoors)")
+        code, res = self._task(task, now_s)
         self._count(res.accepted)
-        return dj.ack_code(dj.TASK_STARTED if res.accepted else dj.TASK_FAILED)
+        return dj.ack_code(code if not res.accepted else dj.TASK_SUCCESS)
+
+    def _task(self, task: int, now_s: float) -> tuple[int, CommandResult]:
+        """(the code a refusal gets, the FC's answer) of a flight task."""
+        fc = self.fc
+        refused = CommandResult(False)
+        if task == dj.TASK_START_MOTORS:
+            return (dj.TASK_MOTOR_ON, refused) if fc.state.armed else (dj.TASK_MOTOR_ON, fc.arm(now_s))
+        if task == dj.TASK_STOP_MOTORS:
+            if not fc.state.armed:
+                return dj.TASK_MOTOR_OFF, refused
+            return dj.TASK_IN_AIR, fc.disarm(now_s)
+        if task == dj.TASK_TAKEOFF:
+            if fc.state is FcState.TAKEOFF:
+                return dj.TASK_ALREADY_RUNNING, refused
+            return dj.TASK_IN_AIR, fc.request_takeoff(now_s)
+        if fc.landed:
+            return dj.TASK_NOT_IN_AIR, refused
+        if task == dj.TASK_LAND:
+            return dj.TASK_ALREADY_RUNNING, fc.request_land(now_s)
+        # go home: no home to fly to indoors, the FC holds instead
+        return dj.TASK_NOT_IN_AIR, fc.request_hold(now_s, "go home: holding (no home indoors)")
+
+    # --- subscription (0x0B): one-byte codes ------------------------------------------------------
+    def _sub_code(self, code: int) -> bytes:
+        if code != dj.SUB_SUCCESS:
+            self.stats.subscription_refused += 1
+        self._count(code == dj.SUB_SUCCESS)
+        return bytes((code,))
+
+    def _on_sub_version(self, f: dj.Frame, now_s: float) -> bytes:
+        p = f.payload
+        if len(p) != 4:
+            return self._sub_code(dj.SUB_ILLEGAL_DATA_LENGTH)
+        ok = struct.unpack("<I", p)[0] == dj.SUB_DB_VERSION
+        return self._sub_code(dj.SUB_SUCCESS if ok else dj.SUB_VERSION_MISMATCH)
+
+    def _on_sub_add(self, f: dj.Frame, now_s: float) -> bytes:
+        return self._sub_code(self.subscriptions.add(f.payload, now_s))
+
+    def _on_sub_remove(self, f: dj.Frame, now_s: float) -> bytes:
+        return self._sub_code(self.subscriptions.remove(f.payload))
+
+    def _on_sub_reset(self, f: dj.Frame, now_s: float) -> bytes:
+        return self._sub_code(self.subscriptions.reset())
 
     # --- setpoints -------------------------------------------------------------------------------
     def _on_setpoint(self, f: dj.Frame, now_s: float) -> None:
@@ -313,34 +356,29 @@ class DjiOpenServer:
         fc = self.fc
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
-        elif fc.state is FcState.HOLD or (fc.state is FcState.DISARMED and not fc.offboard_selected):
+        elif fc.state in _TAKEOVER_STATES or (fc.state is FcState.DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)
 
     def _on_events(self, now_s: float) -> None:
         events = self.fc.events
-        for ev in events[self._events_seen :]:
-            self._statustexts.append(ev.reason)
-            if ev.to_state.failsafe and self.sdk_control:
-                # setpoints lost: the FC takes over, the onboard device must obtain control again
-                self.sdk_control = False
-                self.codec.transport.send(self.codec.pack_command(
-                    dj.SET_BROADCAST, dj.CMD_CONTROL_LOST, bytes((CONTROL_LOST_CODE,))))
+        # (setpoints lost: the FC hovers, then lands, and the onboard device keeps its authority, as an
+        # N3 does: OSDK's own samples pause their stream between moves and go on flying after)
+        self._statustexts.extend(ev.reason for ev in events[self._events_seen :])
         self._events_seen = len(events)
-        self._push_state_now(now_s)  # let the onboard side see the new state now
 
-    # --- broadcast ------------------------------------------------------------------------------
-    def _push_state_now(self, now_s: float) -> None:
-        """Push the flight status and control device items (those with a rate) at the next poll."""
-        if self.activated:
-            self._urgent = _STATE_FLAGS
-            self._next_push_s = now_s
+    # --- broadcast and subscription pushes -------------------------------------------------------
+    def _push_packages(self, now_s: float) -> None:
+        send, pack = self.codec.transport.send, self.codec.pack_command
+        for pkg, p in self.subscriptions.due(now_s):
+            data = dji_telemetry.package_data(self, pkg, p.uids, p.timestamp, now_s)
+            send(pack(dj.SET_BROADCAST, dj.CMD_SUBSCRIPTION_DATA, data))
+            self.stats.subscription_pushes += 1
 
     def _push(self, now_s: float) -> None:
-        """One flight-data frame of the items due at ``now_s`` (and the state items after a change); the
-        next push at the earliest due."""
-        flags, self._urgent = self._urgent, 0
+        """One flight-data frame of the items due at ``now_s``; the next push at the earliest due."""
+        flags = 0
         nxt = math.inf
         due, rates = self._next_due, self._rates_hz
         for i, hz in enumerate(rates):
@@ -355,79 +393,13 @@ class DjiOpenServer:
                 nxt = due[i]
         self._next_push_s = nxt
         if flags:
-            payload = flight_data(self, now_s, flags)
+            payload = dji_telemetry.flight_data(self, now_s, flags)
             self.codec.transport.send(self.codec.pack_command(dj.SET_BROADCAST, dj.CMD_FLIGHT_DATA, payload))
             self.stats.broadcasts_sent += 1
 
     def flight_status(self) -> int:
-        """The broadcast's flight status: standby (motors off), take-off (motors on, on the ground), in
-        air, landing, finished landing."""
-        fc = self.fc
-        st = fc.state
-        if st is FcState.DISARMED:
-            return dj.FLIGHT_STANDBY
-        landing = st in (FcState.LAND, FcState.FAILSAFE_LAND)
-        if fc.landed:
-            return dj.FLIGHT_LANDED if landing else dj.FLIGHT_TAKEOFF
-        return dj.FLIGHT_LANDING if landing else dj.FLIGHT_IN_AIR
-
-    def control_device(self) -> tuple[int, int]:
-        """(API control mode, device byte): the device is the onboard computer while it holds authority
-        and the FC flies its setpoints, else the RC; bit 3 says the onboard device has asked for it."""
-        fc = self.fc
-        flying_sdk = self.sdk_control and fc.state in (FcState.OFFBOARD, FcState.HOLD, FcState.DISARMED)
-        device = dj.DEVICE_ONBOARD if flying_sdk else dj.DEVICE_RC
-        mode = 0
-        if flying_sdk and fc.target is not None and fc.state is FcState.OFFBOARD:
-            mode = 14 if fc.target.yaw_rate_rad_s is not None else 13  # HORIZ_ANG_VERT_THR_YAW_RATE/ANG
-        return mode, device | (0x08 if self.sdk_control else 0)
-
-
-_S = dj.BROADCAST_STRUCTS
-_RC_MODE = {"P": dj.RC_MODE_P, "A": dj.RC_MODE_A, "F": dj.RC_MODE_F}
-
-
-def flight_data(server: DjiOpenServer, now_s: float, flags: int) -> bytes:
-    """The flight-data payload (0x02 0x00) of the items in ``flags`` at ``now_s`` (s)."""
-    parts = [struct.pack("<H", flags)]
-    x = server.vehicle.state_vector().tolist() if flags & 0b111110 else None
-    for i in range(len(_S)):
-        if not flags >> i & 1:
-            continue
-        if i == 0:
-            parts.append(_S[0].pack(int(now_s * _SEC_TICKS) & 0xFFFFFFFF, int(now_s % 1.0 * 1e9), 0))
-        elif i == 1:
-            assert x is not None
-            parts.append(_S[1].pack(*quat_enu_flu_to_ned_frd_tuple(*x[6:10])))
-        elif i == 2:
-            acc = server.vehicle.state.accel_m_s2.tolist()  # world ENU (m/s^2), gravity excluded
-            parts.append(_S[2].pack(acc[1], acc[0], acc[2]))
-        elif i == 3:
-            assert x is not None
-            parts.append(_S[3].pack(x[4], x[3], x[5], 1))
-        elif i == 4:
-            assert x is not None
-            parts.append(_S[4].pack(x[10], -x[11], -x[12]))
-        elif i == 5:
-            assert x is not None
-            lat, lon = server.telemetry.lat_lon_deg(x[0:3])
-            h = x[2] - server.fc.config.ground_z_m
-            alt = server.config.home.alt_m + x[2]
-            parts.append(_S[5].pack(math.radians(lat), math.radians(lon), alt, h, 0))
-        elif i == 6:
-            parts.append(_S[6].pack(0, 0, 0))
-        elif i == 7:
-            parts.append(_S[7].pack(0, 0, 0, 0, _RC_MODE[server.config.rc_mode], -4545))
-        elif i == 8:
-            parts.append(_S[8].pack(0.0, 0.0, 0.0, 0))
-        elif i == 9:
-            parts.append(_S[9].pack(server.flight_status()))
-        elif i == 10:
-            _, pct = server.telemetry.battery()
-            parts.append(_S[10].pack(pct))
-        else:
-            parts.append(_S[11].pack(*server.control_device()))
-    return b"".join(parts)
+        """The N3's flight status now (`dji_telemetry.flight_status`)."""
+        return dji_telemetry.flight_status(self)
 
 
 def _input_due(transport: object) -> bool:

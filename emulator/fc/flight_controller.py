@@ -19,6 +19,7 @@ from emulator.fc.landed import body_landed
 from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
 from emulator.fc.n3 import (
     AttitudeThrustTarget,
+    MotionTarget,
     N3Setpoint,
     check_flag,
     target_from_values,
@@ -35,6 +36,8 @@ FAILSAFE_ACTIONS = ("hover", "land")
 #: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
 HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
+#: the states whose heading the FC holds itself (latched on entry, see `hold_heading_rad`)
+HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF}
 
 
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
@@ -61,6 +64,15 @@ class FcConfig:
     #: the profile's true hover throttle (a wrong one makes the hover sag or climb until corrected)
     hover_throttle: float | None = None
     gains: FcGains | None = None  # None: tuned from the vehicle profile (emulator.fc.tuning)
+    #: the FC's own take-off (an N3's task 1): motors spin this long on the ground, then it climbs at
+    #: ``takeoff_speed_m_s`` to ``takeoff_height_m`` above its resting height and hovers
+    takeoff_spinup_s: float = 1.0
+    takeoff_speed_m_s: float = 1.0
+    takeoff_height_m: float = 1.2
+    #: position-offset control: speed (m/s) per metre to go, horizontally and vertically, and the
+    #: largest speed it asks (m/s); the climb rate also stops at the SDK's 5 m/s
+    position_gain_per_s: float = 1.0
+    position_speed_m_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.failsafe_action not in FAILSAFE_ACTIONS:
@@ -88,7 +100,10 @@ class FlightController:
         #: the velocity hold's parameters as `emulator.fc.hold.hold_command` reads them
         self.hold_params = self._pack_hold()
         self.offboard_selected = False  # OFFBOARD chosen while disarmed: arming goes straight to it
-        self.target: AttitudeThrustTarget | None = None
+        self.target: AttitudeThrustTarget | MotionTarget | None = None
+        #: a position-offset target's goal (world ENU east, north, m), fixed at the first step after
+        #: the setpoint arrived (None: to be fixed)
+        self._goal_en_m: tuple[float, float] | None = None
         self.last_setpoint_s = -math.inf
         self.setpoints_accepted = 0
         self._arrivals: deque[float] = deque(maxlen=2)
@@ -154,21 +169,23 @@ class FlightController:
         )
 
     # --- inputs ----------------------------------------------------------------------------
-    def set_setpoint(self, sp: N3Setpoint, time_s: float) -> AttitudeThrustTarget:
+    def set_setpoint(self, sp: N3Setpoint, time_s: float) -> AttitudeThrustTarget | MotionTarget:
         """Take a setpoint that arrived at ``time_s``; raises SetpointRejected with the reason."""
         return self._take(to_target(sp, self.profile), time_s)
 
     def set_setpoint_values(
         self, flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float, time_s: float
-    ) -> AttitudeThrustTarget:
+    ) -> AttitudeThrustTarget | MotionTarget:
         """`set_setpoint` of the N3Setpoint with these fields (degrees, percent), without building it."""
         check_flag(flag)
         return self._take(
             target_from_values(flag, roll_deg, pitch_deg, thrust_percent, yaw, self.profile), time_s
         )
 
-    def _take(self, target: AttitudeThrustTarget, time_s: float) -> AttitudeThrustTarget:
+    def _take(self, target: AttitudeThrustTarget | MotionTarget, time_s: float
+              ) -> AttitudeThrustTarget | MotionTarget:
         """Make a validated ``target`` that arrived at ``time_s`` (s) the one flown."""
+        self._goal_en_m = None
         if target.yaw_rate_rad_s is not None:
             old = self.target
             if old is None or old.yaw_rate_rad_s is None:  # a yaw-rate stream starts: from the heading
@@ -217,6 +234,16 @@ class FlightController:
         self._go(FcState.HOLD, time_s, reason)
         return ACCEPTED
 
+    def request_takeoff(self, time_s: float) -> CommandResult:
+        """The FC's own take-off from the ground: arm, spin up, climb to the take-off height, hover."""
+        if self.state is FcState.TAKEOFF:
+            return CommandResult(False, "take-off refused: already taking off")
+        if not self.landed:
+            return CommandResult(False, "take-off refused: in the air")
+        self.offboard_selected = False
+        self._go(FcState.TAKEOFF, time_s, "take-off")
+        return ACCEPTED
+
     def request_land(self, time_s: float) -> CommandResult:
         if not self.state.armed:
             return CommandResult(False, "land refused: not armed")
@@ -238,7 +265,7 @@ class FlightController:
     def _go(self, to_state: FcState, time_s: float, reason: str) -> None:
         """Change state; entering the FC's own hover/land from anything else releases the held heading
         (the next step latches the heading it finds, see `hold_heading_rad`)."""
-        if to_state in HOLD_STATES and self.machine.state not in HOLD_STATES:
+        if to_state in HEADING_STATES and self.machine.state not in HEADING_STATES:
             self._hold_yaw_rad = None
         self.machine.go(to_state, time_s, reason)
 
@@ -259,7 +286,7 @@ class FlightController:
             if self.target.yaw_rate_rad_s is None:
                 return self.target.yaw_rad
             return math.nan if self._yaw_sp_fresh else self._yaw_sp_rad
-        if st in HOLD_STATES and not self.landed and self._hold_yaw_rad is not None:
+        if st in HEADING_STATES and not self.landed and self._hold_yaw_rad is not None:
             return self._hold_yaw_rad
         return math.nan
 
@@ -276,6 +303,8 @@ class FlightController:
             cmd = self._off
         elif st is FcState.OFFBOARD:
             cmd = self._fly_target(state, dt)
+        elif st is FcState.TAKEOFF:
+            cmd = self._take_off(state, t)
         elif self.landed and (st is FcState.HOLD or st in LANDING_STATES):
             cmd = self._idle
         else:  # HOLD in the air, FAILSAFE_HOVER, landing in the air
@@ -291,7 +320,8 @@ class FlightController:
         """The offboard attitude target a stepper outside `update` may fly with the inner loop alone (in
         OFFBOARD, a held heading, no yaw rate to integrate), else None; with `quiet_steps` for how long."""
         tg = self.target
-        if self.machine.state is not FcState.OFFBOARD or tg is None or tg.yaw_rate_rad_s is not None:
+        if (self.machine.state is not FcState.OFFBOARD or not isinstance(tg, AttitudeThrustTarget)
+                or tg.yaw_rate_rad_s is not None):
             return None
         return tg
 
@@ -367,13 +397,54 @@ class FlightController:
             yaw = self._yaw_sp_rad
         else:
             yaw = tg.yaw_rad
+        if isinstance(tg, MotionTarget):
+            return self._fly_motion(state, tg, yaw)
         return self.inner.update(
             state.quat_wxyz, state.omega_rad_s, tg.roll_rad, tg.pitch_rad, yaw, tg.thrust_n
         )
 
-    def _velocity_hold(self, state: VehicleState, climb_m_s: float) -> np.ndarray:
-        """The FC's own hover/land controller: hold horizontal velocity 0 and climb rate ``climb_m_s``."""
+    def _fly_motion(self, state: VehicleState, tg: MotionTarget, yaw: float) -> np.ndarray:
+        """A velocity or position-offset target, flown by the velocity controller of the FC's hover."""
+        cfg = self.config
+        x, y = tg.x, tg.y
+        if tg.body_frame:  # forward, right -> north, east by the heading now
+            psi = heading_ned_rad(state.quat_wxyz)
+            x, y = x * math.cos(psi) - y * math.sin(psi), x * math.sin(psi) + y * math.cos(psi)
+        pos = state.pos_m
+        if tg.horizontal_position:
+            if self._goal_en_m is None:
+                self._goal_en_m = (float(pos[0]) + y, float(pos[1]) + x)
+            ve_sp = cfg.position_gain_per_s * (self._goal_en_m[0] - float(pos[0]))
+            vn_sp = cfg.position_gain_per_s * (self._goal_en_m[1] - float(pos[1]))
+            speed = math.hypot(ve_sp, vn_sp)
+            if speed > cfg.position_speed_m_s:
+                ve_sp, vn_sp = ve_sp * cfg.position_speed_m_s / speed, vn_sp * cfg.position_speed_m_s / speed
+        else:
+            ve_sp, vn_sp = y, x
+        climb = tg.z
+        if tg.vertical_position:
+            climb = cfg.position_gain_per_s * (cfg.ground_z_m + tg.z - float(pos[2]))
+            climb = max(-cfg.position_speed_m_s, min(cfg.position_speed_m_s, climb))
+        return self._velocity_hold(state, climb, yaw, ve_sp, vn_sp)
+
+    def _take_off(self, state: VehicleState, t: float) -> np.ndarray:
+        """The FC's own take-off: the motors idle through the spin-up, then it climbs to the take-off
+        height, where it hands over to HOLD."""
+        cfg = self.config
+        if t - self.machine.since_s < cfg.takeoff_spinup_s:
+            return self._idle
+        if state.pos_m[2] >= self.rest_height_m + cfg.takeoff_height_m:
+            self._go(FcState.HOLD, t, "take-off complete")
+            return self._velocity_hold(state, 0.0)
+        return self._velocity_hold(state, cfg.takeoff_speed_m_s)
+
+    def _velocity_hold(self, state: VehicleState, climb_m_s: float, yaw: float | None = None,
+                       ve_sp: float = 0.0, vn_sp: float = 0.0) -> np.ndarray:
+        """The FC's velocity controller: horizontal velocity ``ve_sp``, ``vn_sp`` (m/s, east, north; 0:
+        the hover) and climb rate ``climb_m_s``, heading ``yaw`` (NED, rad; None: the held one)."""
         ve, vn, vu = state.vel_m_s
-        yaw = self.hold_heading_rad(state.quat_wxyz)
-        roll, pitch, thrust = hold_command(float(ve), float(vn), float(vu), climb_m_s, yaw, self.hold_params)
+        if yaw is None:
+            yaw = self.hold_heading_rad(state.quat_wxyz)
+        roll, pitch, thrust = hold_command(float(ve), float(vn), float(vu), climb_m_s, yaw, self.hold_params,
+                                           ve_sp, vn_sp)
         return self.inner.update(state.quat_wxyz, state.omega_rad_s, roll, pitch, yaw, thrust)

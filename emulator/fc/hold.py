@@ -52,11 +52,11 @@ def pack_hold(
 
 
 @njit(cache=True, nogil=True)
-def hold_command(ve, vn, vu, climb, yaw, h):  # pragma: no cover
-    """(roll, pitch (NED, rad), thrust (N)) that hold velocity (east ``ve``, north ``vn``, up ``vu``,
-    m/s) at zero horizontally and ``climb`` (m/s, up) vertically, heading ``yaw`` (NED, rad); ``h``
-    from `pack_hold`."""
-    ax, ay = -h[0] * vn, -h[0] * ve  # NED north, east (m/s^2)
+def hold_command(ve, vn, vu, climb, yaw, h, ve_sp, vn_sp):  # pragma: no cover
+    """(roll, pitch (NED, rad), thrust (N)) that bring the velocity (east ``ve``, north ``vn``, up
+    ``vu``, m/s) to ``ve_sp``, ``vn_sp`` horizontally (0, 0: hover) and ``climb`` (m/s, up)
+    vertically, heading ``yaw`` (NED, rad); ``h`` from `pack_hold`."""
+    ax, ay = h[0] * (vn_sp - vn), h[0] * (ve_sp - ve)  # NED north, east (m/s^2)
     norm = math.hypot(ax, ay)
     if norm > h[2]:
         ax, ay = ax * h[2] / norm, ay * h[2] / norm

@@ -15,6 +15,7 @@ class FcState(Enum):
     LAND = "land"  # commanded landing, disarms on touchdown
     FAILSAFE_HOVER = "failsafe_hover"  # setpoints lost: hover in place for a while ...
     FAILSAFE_LAND = "failsafe_land"  # ... then land and disarm
+    TAKEOFF = "takeoff"  # the FC's own take-off: motors spin up, climb to the take-off height, then HOLD
 
     @property
     def armed(self) -> bool:

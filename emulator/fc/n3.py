@@ -2,8 +2,10 @@
 
 Angles follow the aerospace convention of the N3's ground frame (north-east-down Euler angles): roll
 positive = right side down, pitch positive = nose up, yaw = heading from north, clockwise. The vertical
-channel is the total thrust in percent of ``profile.n3_full_thrust_n``. Only the modes this emulator flies
-are accepted: HORIZONTAL_ANGLE + VERTICAL_THRUST + (YAW_ANGLE or YAW_RATE), GROUND frame.
+channel is the total thrust in percent of ``profile.n3_full_thrust_n``. The modes this emulator flies:
+HORIZONTAL_ANGLE + VERTICAL_THRUST (GROUND frame), and HORIZONTAL_VELOCITY or HORIZONTAL_POSITION (an
+offset, m) with VERTICAL_VELOCITY or VERTICAL_POSITION (a height, m), GROUND or BODY frame (the Onboard
+SDK's velocity and position-offset control); either yaw mode with each.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from numba import njit
 from emulator.profile import VehicleProfile
 
 # the control flag byte is the OPEN protocol's (`hil.link.dji_open` owns it)
-from hil.link.dji_open import (  # noqa: F401 (re-exported: the N3 interface's names)
+from hil.link.dji_open import (
     ATTITUDE_THRUST_YAW_ANGLE,
     ATTITUDE_THRUST_YAW_RATE,
     FRAME_BODY,
@@ -42,7 +44,19 @@ _FLOWN_FLAGS = frozenset(
     flag | stable
     for flag in (ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE)
     for stable in (STABLE_DISABLE, STABLE_ENABLE)
+) | frozenset(
+    horizontal | vertical | yaw | frame | stable
+    for horizontal in (HORIZONTAL_VELOCITY, HORIZONTAL_POSITION)
+    for vertical in (VERTICAL_VELOCITY, VERTICAL_POSITION)
+    for yaw in (YAW_ANGLE, YAW_RATE)
+    for frame in (FRAME_GROUND, FRAME_BODY)
+    for stable in (STABLE_DISABLE, STABLE_ENABLE)
 )
+#: the Onboard SDK's limits of the velocity and position modes (dji_control.hpp): horizontal speed (m/s),
+#: climb rate (m/s), height (m)
+MAX_SPEED_M_S = 30.0
+MAX_CLIMB_M_S = 5.0
+MAX_HEIGHT_M = 120.0
 
 
 class SetpointRejected(ValueError):
@@ -75,18 +89,38 @@ class AttitudeThrustTarget:
     thrust_n: float
 
 
+@dataclass(frozen=True)
+class MotionTarget:
+    """A validated velocity or position-offset setpoint (the N3's ground frame: x north, y east; or its
+    body frame: x forward, y right; z up)."""
+
+    x: float  # m/s, or an offset (m) from where the vehicle is when the setpoint arrives
+    y: float
+    z: float  # climb rate (m/s), or height above the ground (m)
+    horizontal_position: bool
+    vertical_position: bool
+    body_frame: bool
+    yaw_rad: float  # heading; ignored when yaw_rate_rad_s is not None
+    yaw_rate_rad_s: float | None
+
+
 def check_flag(flag: int) -> None:
     """Raise SetpointRejected unless the flag selects a mode this N3 emulator flies."""
     if flag.__class__ is int and flag in _FLOWN_FLAGS:
         return  # (the per-setpoint case)
     if not isinstance(flag, int) or not 0 <= flag <= 0xFF:
         raise SetpointRejected(f"control flag must be a byte, got {flag!r}")
-    if flag & 0xC0 != HORIZONTAL_ANGLE:
-        raise SetpointRejected(f"horizontal {_HORIZONTAL_NAMES[flag & 0xC0]} unsupported, use ANGLE")
-    if flag & 0x30 != VERTICAL_THRUST:
-        raise SetpointRejected(f"vertical {_VERTICAL_NAMES[flag & 0x30]} unsupported, use THRUST")
-    if flag & 0x06 != FRAME_GROUND:
-        raise SetpointRejected("BODY frame unsupported with ANGLE, use GROUND")
+    horizontal, vertical = flag & 0xC0, flag & 0x30
+    if horizontal == HORIZONTAL_ANGULAR_RATE:
+        raise SetpointRejected("horizontal ANGULAR_RATE unsupported")
+    if horizontal == HORIZONTAL_ANGLE and vertical != VERTICAL_THRUST:
+        raise SetpointRejected(f"vertical {_VERTICAL_NAMES[vertical]} unsupported, use THRUST")
+    if horizontal != HORIZONTAL_ANGLE and vertical not in (VERTICAL_VELOCITY, VERTICAL_POSITION):
+        raise SetpointRejected(f"vertical {_VERTICAL_NAMES[vertical]} unsupported with "
+                               f"{_HORIZONTAL_NAMES[horizontal]}, use VELOCITY or POSITION")
+    if horizontal != HORIZONTAL_ANGLE:
+        raise SetpointRejected("frame bits 0x04 reserved")
+    raise SetpointRejected("BODY frame unsupported with ANGLE, use GROUND")
 
 
 @njit(cache=True)
@@ -116,7 +150,7 @@ def wrap_pi(angle_rad: float) -> float:
     return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
 
-def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget:
+def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget | MotionTarget:
     """Validate ``sp`` against the flag semantics and the profile's limits; clamp tilt and yaw rate.
 
     Raises SetpointRejected for an unsupported flag, a non-finite value, a thrust outside 0..100 %, or a
@@ -128,9 +162,10 @@ def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget:
 
 def target_from_values(
     flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float, profile: VehicleProfile
-) -> AttitudeThrustTarget:
-    """`to_target` of the setpoint with these fields (degrees, percent, see `N3Setpoint`), its ``flag``
-    already accepted by `check_flag`: no setpoint object on the per-tick path."""
+) -> AttitudeThrustTarget | MotionTarget:
+    """`to_target` of the setpoint with these fields (degrees, percent, see `N3Setpoint`; m/s and m in
+    the velocity and position modes), its ``flag`` already accepted by `check_flag`: no setpoint object
+    on the per-tick path."""
     # plain floats with a finite sum are finite (inf and NaN propagate); anything else: look closer
     if not (
         roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
@@ -139,6 +174,8 @@ def target_from_values(
         isinstance(v, int | float) and math.isfinite(v) for v in (roll_deg, pitch_deg, thrust_percent, yaw)
     ):
         raise SetpointRejected(f"non-finite setpoint {(roll_deg, pitch_deg, thrust_percent, yaw)}")
+    if flag & 0xC0 != HORIZONTAL_ANGLE:
+        return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
     if not 0.0 <= thrust_percent <= 100.0:
         raise SetpointRejected(f"thrust {thrust_percent:.1f} % outside 0..100 %")
     if abs(roll_deg) > 90.0 or abs(pitch_deg) > 90.0:
@@ -146,8 +183,31 @@ def target_from_values(
     max_tilt = math.radians(profile.max_tilt_deg)
     roll, pitch = limit_tilt(math.radians(roll_deg), math.radians(pitch_deg), max_tilt)
     thrust_n = profile.thrust_percent_to_force_n(thrust_percent)
+    heading, rate = _yaw(flag, yaw, profile)
+    return AttitudeThrustTarget(roll, pitch, heading, rate, thrust_n)
+
+
+def _yaw(flag: int, yaw: float, profile: VehicleProfile) -> tuple[float, float | None]:
+    """(heading (rad), yaw rate (rad/s) or None) of a setpoint's yaw field (deg or deg/s)."""
     if flag & YAW_RATE:
         limit = math.radians(profile.max_yaw_rate_deg_s)
-        rate = max(-limit, min(limit, math.radians(yaw)))
-        return AttitudeThrustTarget(roll, pitch, 0.0, rate, thrust_n)
-    return AttitudeThrustTarget(roll, pitch, wrap_pi(math.radians(yaw)), None, thrust_n)
+        return 0.0, max(-limit, min(limit, math.radians(yaw)))
+    return wrap_pi(math.radians(yaw)), None
+
+
+def _motion_target(flag: int, x: float, y: float, z: float, yaw: float, profile: VehicleProfile
+                   ) -> MotionTarget:
+    """The velocity or position-offset target of a finite setpoint: speeds clipped to the SDK's limits,
+    a height to 0..`MAX_HEIGHT_M`."""
+    position = flag & 0xC0 == HORIZONTAL_POSITION
+    if not position:
+        speed = math.hypot(x, y)
+        if speed > MAX_SPEED_M_S:
+            x, y = x * MAX_SPEED_M_S / speed, y * MAX_SPEED_M_S / speed
+    if flag & 0x30 == VERTICAL_POSITION:
+        z = max(0.0, min(MAX_HEIGHT_M, z))
+    else:
+        z = max(-MAX_CLIMB_M_S, min(MAX_CLIMB_M_S, z))
+    heading, rate = _yaw(flag, yaw, profile)
+    return MotionTarget(x, y, z, position, flag & 0x30 == VERTICAL_POSITION, bool(flag & FRAME_BODY),
+                        heading, rate)

@@ -13,6 +13,7 @@ from emulator.profile import GRAVITY_M_S2
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
     PX4_AUTO_LOITER,
+    PX4_AUTO_TAKEOFF,
     PX4_MAIN_AUTO,
     PX4_MAIN_OFFBOARD,
     MAVLinkMessage,
@@ -47,6 +48,7 @@ CUSTOM_MODE = {
     FcState.HOLD: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
     FcState.OFFBOARD: px4_custom_mode(PX4_MAIN_OFFBOARD),
     FcState.LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
+    FcState.TAKEOFF: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_TAKEOFF),
     FcState.FAILSAFE_HOVER: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
     FcState.FAILSAFE_LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
 }

@@ -111,7 +111,7 @@ class EmulatedVehicle:
         st, fc = self.state, self.fc
         inner = fc.inner
         control(st.quat_wxyz, st.omega_rad_s, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, np.zeros(4))
-        hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params)
+        hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params, 0.0, 0.0)
         body_landed(0.0, 0.0, 0.0, 0.0)
         limit_tilt(0.0, 0.0, 1.0)
         if isinstance(self.backend, NativeBackend):

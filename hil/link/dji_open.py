@@ -41,19 +41,28 @@ SESSION_ACK_ONCE = 1
 RELIABLE_SESSIONS = range(2, 32)
 ENC_NONE, ENC_AES = 0, 1
 
-# --- command sets and ids (Onboard SDK 3.x) ------------------------------------------------------
+# --- command sets and ids (Onboard SDK 3.x, as an N3 answers them) --------------------------------
 SET_ACTIVATION = 0x00
-CMD_VERSION = 0x00  # payload: one arbitrary byte; ACK: u16 code, u32 version CRC, 32-byte version name
-CMD_ACTIVATE = 0x01  # payload: u32 app id, u32 reserved, u32 SDK version, 32-byte bundle id; ACK u16
+CMD_VERSION = 0x00  # payload: one arbitrary byte; ACK: `version_value`
+CMD_ACTIVATE = 0x01  # payload: u32 app id, u32 reserved, u32 FC version, 32-byte bundle id; ACK u16
 CMD_BROADCAST_FREQ = 0x10  # payload: 16 bytes, one rate code per broadcast item; ACK u16
 SET_CONTROL = 0x01
 CMD_CONTROL_AUTHORITY = 0x00  # payload: 1 obtain, 0 release; ACK u16
 CMD_TASK = 0x01  # payload: one task code; ACK u16
-CMD_SETPOINT = 0x03  # payload: control flag + 4 float32 (roll, pitch, thrust/z, yaw); no ACK
-CMD_ARM = 0x05  # payload: 1 arm, 0 disarm; ACK u16
+CMD_SETPOINT = 0x03  # payload: control flag + 4 float32 (17 bytes), or the advanced form (26); no ACK
+CMD_ARM = 0x05  # payload: 1 arm, 0 disarm; ACK u16 (the M100's; an N3 client starts motors by task)
 SET_BROADCAST = 0x02
 CMD_FLIGHT_DATA = 0x00  # the pushed flight data (`BROADCAST_ITEMS`)
 CMD_CONTROL_LOST = 0x01  # pushed when the onboard device loses control authority; payload 0x04
+CMD_SUBSCRIPTION_DATA = 0x05  # a subscribed package: u8 package id, then its topics' values
+SET_SUBSCRIBE = 0x0B  # telemetry by subscription (N3 FC firmware 3.2.36 on); ACKs: one `SUB_*` byte
+CMD_SUB_VERSION = 0x00  # payload: u32 topic database version (`SUB_DB_VERSION`)
+CMD_SUB_ADD = 0x01  # payload: `SUB_PACKAGE_HEAD` (package id, u16 Hz, config, topic count), u32 UIDs
+CMD_SUB_RESET = 0x02  # payload: one byte; removes every package
+CMD_SUB_REMOVE = 0x03  # payload: u8 package id
+CMD_SUB_FREQ = 0x04  # (not answered: 0xFF02)
+CMD_SUB_PAUSE = 0x05  # (not answered: 0xFF02)
+CMD_SUB_CONFIG = 0x06  # (not answered: 0xFF02)
 #: the harness's lockstep ticks (`hil.link.lockstep`): a command set DJI does not use, so an Onboard SDK
 #: program never sees one (its protocol layer drops frames of sets it does not know)
 SET_HIL = 0xFE
@@ -78,6 +87,10 @@ STABLE_ENABLE = 0x01
 #: the flags of the paper's flights: roll/pitch angle, thrust %, yaw angle (or rate), ground frame
 ATTITUDE_THRUST_YAW_ANGLE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_ANGLE | FRAME_GROUND
 ATTITUDE_THRUST_YAW_RATE = HORIZONTAL_ANGLE | VERTICAL_THRUST | YAW_RATE | FRAME_GROUND
+#: OSDK's positionAndYawCtrl: position offset (m, ground frame), height (m), yaw angle, stable
+POSITION_YAW_ANGLE = HORIZONTAL_POSITION | VERTICAL_POSITION | YAW_ANGLE | FRAME_GROUND | STABLE_ENABLE
+#: OSDK's velocityAndYawRateCtrl (and, in the advanced form with zeros, its emergency brake)
+VELOCITY_YAW_RATE = HORIZONTAL_VELOCITY | VERTICAL_VELOCITY | YAW_RATE | FRAME_GROUND
 
 # ACK codes (u16)
 ACK_SUCCESS = 0x0000
@@ -100,48 +113,159 @@ ARM_SUCCESS = 0x0000
 ARM_NEEDS_CONTROL = 0x0001
 ARM_ALREADY = 0x0002
 ARM_CANNOT = 0x0003
-# flight tasks (0x01 0x01), the N3/A3's codes, and their ACKs
+# flight tasks (0x01 0x01), the N3/A3's codes, and their ACKs (OSDK 3.9 counts only 0x0000 a success)
 TASK_TAKEOFF = 1
 TASK_LAND = 2
 TASK_GO_HOME = 6
 TASK_START_MOTORS = 7
 TASK_STOP_MOTORS = 8
-TASK_FAILED = 0x0001
-TASK_STARTED = 0x0002
+TASK_SUCCESS = 0x0000
+TASK_MOTOR_ON = 0x0001  # the motors already run
+TASK_MOTOR_OFF = 0x0002  # the motors do not run
+TASK_IN_AIR = 0x0003
+TASK_NOT_IN_AIR = 0x0004
+TASK_ALREADY_RUNNING = 0x0008
+TASK_INVALID_COMMAND = 0x000A
 # common codes (any command)
 ACK_KEY_ERROR = 0xFF00  # an encrypted frame the FC cannot read
 ACK_NO_AUTHORISATION = 0xFF01  # not activated
 ACK_NO_RIGHTS = 0xFF02  # a command set or id this FC does not answer
 ACK_NO_RESPONSE = 0xFFFF
+# subscription (0x0B) ACKs: one byte
+SUB_SUCCESS = 0x00
+SUB_ILLEGAL_DATA_LENGTH = 0x01
+SUB_VERSION_MISMATCH = 0x02
+SUB_PACKAGE_OUT_OF_RANGE = 0x03
+SUB_PACKAGE_EXISTS = 0x04
+SUB_PACKAGE_MISSING = 0x05
+SUB_ILLEGAL_FREQUENCY = 0x06
+SUB_PACKAGE_TOO_LARGE = 0x07
+SUB_PACKAGE_EMPTY = 0x20
+SUB_BAD_TOPIC_COUNT = 0x21
+SUB_ILLEGAL_UID = 0x22
+SUB_MULTIPLE_SUBSCRIBE = 0x24
+SUB_SOURCE_OFFLINE = 0x25
+SUB_DB_VERSION = 0x00000100  # the topic database version OSDK 3.9 checks
+SUB_MAX_PACKAGES = 5
+SUB_MAX_PACKAGE_BYTES = 242  # a package's topic data (DJI's subscription rules)
+SUB_FREQUENCIES_HZ = (1, 5, 10, 20, 50, 100, 200, 400)
+SUB_PACKAGE_HEAD = struct.Struct("<BHBB")  # package id, frequency (Hz), config (bit 0: timestamp), topics
+SUB_TIMESTAMP_BYTES = 8  # with config bit 0: u32 ms, u32 ns within the ms, before the topics
 
-#: broadcast rate codes (0x00 0x10) -> Hz; 5 keeps the item's rate
-BROADCAST_RATES_HZ: dict[int, float] = {0: 0.0, 1: 1.0, 2: 10.0, 3: 50.0, 4: 100.0}
+#: subscription topics by UID: (name, struct layout, largest frequency (Hz)), as OSDK 3.9's topic table
+TOPICS: dict[int, tuple[str, str, int]] = {
+    0xA493281F: ("quaternion", "<4f", 200),  # w, x, y, z: body FRD -> ground NED
+    0x8696C85B: ("acceleration_ground", "<3f", 200),  # north, east, up (m/s^2)
+    0xBB17D5FE: ("acceleration_body", "<3f", 200),  # body FRD (m/s^2)
+    0xC3503A6E: ("acceleration_raw", "<3f", 400),
+    0x18FB271D: ("velocity", "<3fB", 200),  # north, east, up (m/s), health (bit 0)
+    0x3599C4BE: ("angular_rate_fusioned", "<3f", 200),  # body FRD (rad/s)
+    0x700389EE: ("angular_rate_raw", "<3f", 400),
+    0x11E9C81A: ("altitude_fusioned", "<f", 200),  # m above sea level
+    0x27396A39: ("altitude_barometer", "<f", 200),
+    0x252C164B: ("height_homepoint", "<f", 1),  # the home point's altitude (m)
+    0x87CF419D: ("height_fusion", "<f", 100),  # m above the ground
+    0x4B19A8C7: ("gps_fused", "<ddfH", 50),  # longitude, latitude (rad), altitude (m), satellites
+    0x598F79BC: ("gps_date", "<I", 5),
+    0xD48912C9: ("gps_time", "<I", 5),
+    0x0C949E94: ("gps_position", "<3i", 5),
+    0x7AC7EB80: ("gps_velocity", "<3f", 5),
+    0x81FED54E: ("gps_details", "<6f2I2H", 5),
+    0x1DF9A6B6: ("rtk_position", "<ddf", 5),
+    0x763D13C3: ("rtk_velocity", "<3f", 5),
+    0xF45D73FD: ("rtk_yaw", "<h", 5),
+    0xDA4A57B5: ("rtk_position_info", "<B", 5),
+    0xCB72B9E3: ("rtk_yaw_info", "<B", 5),
+    0xDF3D72B7: ("compass", "<3h", 100),
+    0x739F7FE4: ("rc", "<6h", 50),  # roll, pitch, yaw, throttle, mode, gear
+    0x01F71678: ("gimbal_angles", "<3f", 50),
+    0x8B6CD45C: ("gimbal_status", "<I", 50),  # bit 0: mounted
+    0x20CFB02A: ("status_flight", "<B", 50),  # `FLIGHT_*`
+    0x1A67D6A1: ("status_displaymode", "<B", 50),  # `MODE_*`
+    0x772D6E22: ("status_landinggear", "<B", 50),
+    0x3A41E909: ("status_motor_start_error", "<H", 50),
+    0x69779DD9: ("battery_info", "<IiiB", 50),  # capacity (mAh), voltage (mV), current (mA), percent
+    0x667BA86A: ("control_device", "<BB", 50),  # control mode, device (bits 0-2) | SDK on (bit 3)
+    0xA6A0395F: ("gps_signal_level", "<B", 50),
+    0xE30B17B0: ("gps_control_level", "<B", 50),
+    0xB5C2211F: ("home_point_set_status", "<B", 50),
+    0xBFE4B520: ("home_point_info", "<dd", 50),  # latitude, longitude (rad)
+}
+TOPIC_UID = {name: uid for uid, (name, _, _) in TOPICS.items()}
+TOPIC_STRUCTS = {uid: struct.Struct(layout) for uid, (_, layout, _) in TOPICS.items()}
+#: topics an N3 without an RTK receiver refuses with `SUB_SOURCE_OFFLINE`
+RTK_TOPICS = frozenset(uid for uid, (name, _, _) in TOPICS.items() if name.startswith("rtk_"))
+
+#: broadcast rate codes (0x00 0x10) -> Hz; 5 keeps the item's rate (6, 7: OSDK's 200 and 400 Hz)
+BROADCAST_RATES_HZ: dict[int, float] = {0: 0.0, 1: 1.0, 2: 10.0, 3: 50.0, 4: 100.0, 6: 200.0, 7: 400.0}
 BROADCAST_KEEP = 5
-#: the broadcast items (0x02 0x00) in flag-bit order: (name, bytes, struct layout after the flag word)
+#: the N3's broadcast items (0x02 0x00) in flag-bit order: (name, struct layout after the flag word)
 BROADCAST_ITEMS: tuple[tuple[str, str], ...] = (
-    ("time", "<IIB"),  # 400 Hz ticks, ns, sync flag
+    ("time", "<IIIHB"),  # ms, ns within the ms; sync: 2.5 ms ticks, tag, flag
     ("quaternion", "<4f"),  # q0..q3 (w, x, y, z): body FRD -> ground NED
     ("acceleration", "<3f"),  # ground frame north, east, up (m/s^2)
     ("velocity", "<3fB"),  # ground frame north, east, up (m/s), health (bit 0: valid)
     ("angular_rate", "<3f"),  # body FRD (rad/s)
-    ("position", "<ddffB"),  # latitude, longitude (rad), altitude, height (m), GPS health 0-5
+    ("position", "<ddffB6fB"),  # lat, lon (rad), altitude, height (m), GPS health 0-5; obstacles (m), flags
+    ("gps", "<2I3i3f6f2I2H"),  # date, time, lon, lat (1e-7 deg), HFSL (mm), NED (cm/s), details
+    ("rtk", "<2Iddf3fhBB"),  # date, time, lon, lat (deg), HFSL, NED velocity, yaw, health flags
     ("magnetometer", "<3h"),
     ("rc", "<6h"),  # roll, pitch, yaw, throttle, mode, gear (-10000..10000; mode P -8000, A 0, F 8000)
     ("gimbal", "<3fB"),
-    ("status", "<B"),  # flight status: 1 standby, 2 take-off, 3 in air, 4 landing, 5 finished landing
-    ("battery", "<B"),  # percent
+    ("status", "<4B"),  # flight status (`FLIGHT_*`), display mode (`MODE_*`), landing gear, error
+    ("battery", "<IiiB"),  # capacity (mAh), voltage (mV), current (mA), percent
     ("control_device", "<BB"),  # API control mode, device (bits 0-2: 0 RC, 1 app, 2 onboard) | flags
 )
 BROADCAST_STRUCTS = tuple(struct.Struct(layout) for _, layout in BROADCAST_ITEMS)
 BROADCAST_BIT = {name: i for i, (name, _) in enumerate(BROADCAST_ITEMS)}
 RC_MODE_P, RC_MODE_A, RC_MODE_F = -8000, 0, 8000
-FLIGHT_STANDBY, FLIGHT_TAKEOFF, FLIGHT_IN_AIR, FLIGHT_LANDING, FLIGHT_LANDED = 1, 2, 3, 4, 5
+#: flight status (broadcast and subscription), the N3's: motors stopped, on the ground, in the air
+FLIGHT_STOPPED, FLIGHT_ON_GROUND, FLIGHT_IN_AIR = 0, 1, 2
+#: display modes (the flight phase of an N3): those the emulated N3 reports
+MODE_ATTITUDE = 1
+MODE_P_GPS = 6
+MODE_AUTO_TAKEOFF = 11
+MODE_AUTO_LANDING = 12
+MODE_NAVI_GO_HOME = 15
+MODE_NAVI_SDK_CTRL = 17
+MODE_ENGINE_START = 41
 DEVICE_RC, DEVICE_APP, DEVICE_ONBOARD = 0, 1, 2
 DEVICE_MASK = 0x07
-#: the version the emulator reports (0x00 0x00): a 32-byte name
-FC_VERSION_NAME = b"SDK-v1.0 N3-EMU-03.01.10.00"
+DEVICE_SDK_ON = 0x08
+#: the identity the emulated N3 reports (0x00 0x00): hardware, FC firmware, serial number
+FC_HARDWARE = "N3"
+FC_FIRMWARE = (3, 3, 8, 47)
+FC_SERIAL = b"EMU0N3000000001"
+
+
+def fc_version_word(firmware: tuple[int, int, int, int] = FC_FIRMWARE) -> int:
+    """The firmware version as OSDK packs it in a u32 (one byte each, major first)."""
+    a, b, c, d = firmware
+    return a << 24 | b << 16 | c << 8 | d
+
+
+def version_value(code: int, serial: bytes = FC_SERIAL, hardware: str = FC_HARDWARE,
+                  firmware: tuple[int, int, int, int] = FC_FIRMWARE) -> bytes:
+    """The version query's ACK value as an N3 with FC firmware 3.2 or later sends it: u16 code, the
+    serial number ending in NUL (at most 16 characters), then the 32-byte name
+    "SDK-v1.0 BETA <hardware>-aa.bb.cc.dd" padded with NUL."""
+    if len(serial) > 16 or b"\0" in serial:
+        raise ValueError("the serial number is at most 16 bytes, none of them NUL")
+    name = f"SDK-v1.0 BETA {hardware}-" + ".".join(f"{v:02d}" for v in firmware)
+    return _U16.pack(code) + serial + b"\0" + name.encode().ljust(32, b"\0")
+
+
+def read_version(value: bytes) -> tuple[int, bytes, str] | None:
+    """(code, serial, name) of a version ACK value as `version_value` lays it out; None if it is not."""
+    end = value.find(b"\0", 2)
+    if len(value) < 3 or end < 0 or end > 18:
+        return None
+    name = value[end + 1 : end + 33].split(b"\0", 1)[0].decode("ascii", "replace")
+    return _U16.unpack_from(value)[0], value[2:end], name
+
 
 _SETPOINT = struct.Struct("<B4f")
+_ADVANCED_SETPOINT = struct.Struct("<BB6f")  # flag, advanced flag (1), x, y, z, yaw, x and y feed-forward
 _U16 = struct.Struct("<H")
 _HEAD = struct.Struct("<BHBB3xH")  # SOF, LEN | VER << 10, SESSION | ACK << 5, PADDING | ENC << 5, SEQ
 _CRC16 = struct.Struct("<H")
@@ -218,8 +342,14 @@ def setpoint_payload(flag: int, x: float, y: float, z: float, yaw: float) -> byt
 
 
 def read_setpoint(payload: bytes) -> tuple[int, float, float, float, float] | None:
-    """(flag, x, y, z, yaw) of a setpoint payload; None when it is not 17 bytes."""
-    return _SETPOINT.unpack(payload) if len(payload) == _SETPOINT.size else None
+    """(flag, x, y, z, yaw) of a setpoint payload: the 17-byte form, or OSDK's 26-byte advanced form
+    (its feed-forward terms are not flown); None when it is neither."""
+    if len(payload) == _SETPOINT.size:
+        return _SETPOINT.unpack(payload)
+    if len(payload) == _ADVANCED_SETPOINT.size:
+        flag, _adv, x, y, z, yaw, _xf, _yf = _ADVANCED_SETPOINT.unpack(payload)
+        return flag, x, y, z, yaw
+    return None
 
 
 def frame_size(buf: bytes | bytearray, i: int) -> int:
@@ -512,6 +642,14 @@ COMMAND_NAMES: dict[tuple[int, int], str] = {
     (SET_CONTROL, CMD_ARM): "arm/disarm",
     (SET_BROADCAST, CMD_FLIGHT_DATA): "flight data",
     (SET_BROADCAST, CMD_CONTROL_LOST): "control lost",
+    (SET_BROADCAST, CMD_SUBSCRIPTION_DATA): "subscription data",
+    (SET_SUBSCRIBE, CMD_SUB_VERSION): "subscription version match",
+    (SET_SUBSCRIBE, CMD_SUB_ADD): "subscription add package",
+    (SET_SUBSCRIBE, CMD_SUB_RESET): "subscription reset",
+    (SET_SUBSCRIBE, CMD_SUB_REMOVE): "subscription remove package",
+    (SET_SUBSCRIBE, CMD_SUB_FREQ): "subscription package frequency",
+    (SET_SUBSCRIBE, CMD_SUB_PAUSE): "subscription pause/resume",
+    (SET_SUBSCRIBE, CMD_SUB_CONFIG): "subscription configuration",
     (SET_HIL, CMD_HIL_TICK): "hil tick",
     (SET_HIL, CMD_HIL_ANSWER): "hil tick answer",
 }
@@ -537,4 +675,9 @@ def describe(frame: bytes) -> str:
         flags = p[0] | p[1] << 8
         items = [n for i, (n, _) in enumerate(BROADCAST_ITEMS) if flags >> i & 1]
         return head + f"{what}: {', '.join(items)}"
+    if (f.cmd_set, f.cmd_id) == (SET_SUBSCRIBE, CMD_SUB_ADD) and len(p) >= SUB_PACKAGE_HEAD.size:
+        pkg, hz, config, n = SUB_PACKAGE_HEAD.unpack_from(p)
+        uids = struct.unpack_from(f"<{min(n, (len(p) - 5) // 4)}I", p, SUB_PACKAGE_HEAD.size)
+        names = [TOPICS[u][0] if u in TOPICS else f"0x{u:08X}" for u in uids]
+        return head + f"{what}: package {pkg} at {hz} Hz (config {config}): {', '.join(names)}"
     return head + f"{what}: {p.hex(' ')}" if p else head + what

@@ -1,11 +1,13 @@
 """The onboard computer's DJI OPEN-protocol client of the FC (Onboard SDK 3.x, as on the paper's TX2 and
-N3): activation, the flight-data rates it needs, control authority, arming, the attitude-thrust setpoint,
-and the harness's lockstep ticks (`hil.link.lockstep`'s, on command set 0xFE).
+N3): activation, the N3's telemetry by subscription (the broadcast turned off), control authority,
+arming, the attitude-thrust setpoint, and the harness's lockstep ticks (`hil.link.lockstep`'s, on command
+set 0xFE).
 
 It is a `CommandLink` to the onboard program: the same requests (`request_offboard` obtains control
 authority, `request_hold` releases it, `request_arm` arms), their answers in ``acks`` under the same
 request keys (the MAVLink command ids the program waits on), and the FC's state in ``status`` (from the
-flight data: armed is the flight status past standby, offboard is the onboard device holding control).
+subscribed topics: armed is the flight status past "stopped", offboard is the onboard device holding
+control).
 The lockstep's reading (actions up to the next tick, outputs held until the tick is answered) is
 `CommandLink`'s. Commands go on reliable sessions (resent with the same SESSION and SEQ until their ACK);
 setpoints and the tick answers on session 0. World ENU / body FLU inside; NED Euler angles in degrees
@@ -25,22 +27,31 @@ from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple
 from hil.link.transport import Transport
 from policies.onboard.command_link import CommandAck, CommandLink
 
-#: the Onboard SDK app's activation: app id, reserved, SDK version 3.1.10, the bundle id (32 bytes)
+#: the Onboard SDK app's activation: app id, reserved, the FC's version (as OSDK sends it), the bundle id
 APP_ID = 1069806
-SDK_VERSION = 0x03010A00
 APP_BUNDLE = b"12345678901234567890123456789012"
-#: the flight data the program reads: flight status and control device at 10 Hz (the FC pushes them at
-#: once on a change of state or authority besides), battery at 1 Hz
-BROADCAST_RATES = bytes([0, 0, 0, 0, 0, 0, 0, 0, 0, 2, 1, 2, 0, 0, 0, 0])
+#: the broadcast off: the program reads its telemetry by subscription
+BROADCAST_RATES = bytes(16)
+#: the subscription the program reads: package 0, flight status, display mode, control device and
+#: battery at 50 Hz
+PACKAGE_ID = 0
+PACKAGE_HZ = 50
+PACKAGE_TOPICS = ("status_flight", "status_displaymode", "control_device", "battery_info")
 ACTIVATION_RETRY_S = 0.5  # a refused or unanswered activation is asked again this often (s)
 _OBTAIN, _RELEASE = b"\x01", b"\x00"
-_STATUS_BIT = dj.BROADCAST_BIT["status"]
-_DEVICE_BIT = dj.BROADCAST_BIT["control_device"]
-_SIZES = tuple(s.size for s in dj.BROADCAST_STRUCTS)
+_PACKAGE_UIDS = tuple(dj.TOPIC_UID[name] for name in PACKAGE_TOPICS)
+_PACKAGE = dj.SUB_PACKAGE_HEAD.pack(PACKAGE_ID, PACKAGE_HZ, 0, len(_PACKAGE_UIDS)) + struct.pack(
+    f"<{len(_PACKAGE_UIDS)}I", *_PACKAGE_UIDS)
+_PACKAGE_BYTES = 1 + sum(dj.TOPIC_STRUCTS[u].size for u in _PACKAGE_UIDS)
 _CONTROL = (dj.SET_CONTROL, dj.CMD_CONTROL_AUTHORITY)
 _ARM = (dj.SET_CONTROL, dj.CMD_ARM)
 _ACTIVATE = (dj.SET_ACTIVATION, dj.CMD_ACTIVATE)
 _RATES = (dj.SET_ACTIVATION, dj.CMD_BROADCAST_FREQ)
+_SUB_VERSION = (dj.SET_SUBSCRIBE, dj.CMD_SUB_VERSION)
+_SUB_ADD = (dj.SET_SUBSCRIBE, dj.CMD_SUB_ADD)
+#: the setup after activation, in order: each step's command and payload
+_SETUP = ((_RATES, BROADCAST_RATES), (_SUB_VERSION, struct.pack("<I", dj.SUB_DB_VERSION)),
+          (_SUB_ADD, _PACKAGE))
 
 
 @dataclass(frozen=True)
@@ -50,15 +61,18 @@ class DjiStatus:
     flight_status: int
     device: int
     time_s: float
+    display_mode: int = dj.MODE_P_GPS
 
     @property
     def armed(self) -> bool:
-        return self.flight_status != dj.FLIGHT_STANDBY
+        return self.flight_status != dj.FLIGHT_STOPPED
 
     @property
     def offboard(self) -> bool:
-        """The onboard device holds control authority (the FC flies its setpoints)."""
-        return self.device & dj.DEVICE_MASK == dj.DEVICE_ONBOARD
+        """The FC flies (or, motors off, will fly) the onboard device's setpoints: the device holds control
+        authority and the FC is in SDK control, not in its own hover after the setpoints stopped."""
+        sdk = self.display_mode == dj.MODE_NAVI_SDK_CTRL or self.flight_status == dj.FLIGHT_STOPPED
+        return self.device & dj.DEVICE_MASK == dj.DEVICE_ONBOARD and sdk
 
     @property
     def holding(self) -> bool:
@@ -76,10 +90,11 @@ class DjiCommandLink(CommandLink):
         super().__init__(transport, clock, target_system, codec=codec)
         self.activated = False
         self.activation_code: int | None = None  # the FC's last answer to the activation
-        self._rates_set = False
+        self._setup_done = 0  # steps of `_SETUP` answered with success
         self._next_activation_s = -math.inf
-        self._flight_status = dj.FLIGHT_STANDBY
+        self._flight_status = dj.FLIGHT_STOPPED
         self._device = dj.DEVICE_RC
+        self._display_mode = dj.MODE_P_GPS
         self._last_data_s: float | None = None
         self.control_lost = 0  # times the FC pushed "control lost"
 
@@ -101,8 +116,8 @@ class DjiCommandLink(CommandLink):
             tick_s, mocap_total = dji_read_tick(f.payload)
             self._on_tick(None, mocap_total)
             self._on_tick(tick_s, None)
-        elif key == (dj.SET_BROADCAST, dj.CMD_FLIGHT_DATA):
-            self._on_flight_data(f.payload, now)
+        elif key == (dj.SET_BROADCAST, dj.CMD_SUBSCRIPTION_DATA):
+            self._on_package(f.payload, now)
         elif key == (dj.SET_BROADCAST, dj.CMD_CONTROL_LOST):
             self.control_lost += 1
             self._device = dj.DEVICE_RC
@@ -114,19 +129,25 @@ class DjiCommandLink(CommandLink):
         if not acks:
             return
         for key, (value, t) in list(acks.items()):
-            code = dj.read_ack_code(value)
+            # (the subscription set answers one byte, the others a u16)
+            code = value[0] if key[0] == dj.SET_SUBSCRIBE and value else dj.read_ack_code(value)
             del acks[key]
+            step = self._setup_done
             if key == _ACTIVATE:
                 self.activation_code = code
                 self.activated = code == dj.ACTIVATE_SUCCESS
                 if not self.activated:
                     self.status_texts.append(f"activation refused: code {code}")
-                elif not self._rates_set:
-                    self._command(_RATES, BROADCAST_RATES)  # the flight data the program reads
-            elif key == _RATES:
-                self._rates_set = code == dj.ACK_SUCCESS
-                if not self._rates_set:
-                    self.status_texts.append(f"flight data rates refused: code {code}")
+                elif step < len(_SETUP):
+                    self._command(*_SETUP[step])
+            elif step < len(_SETUP) and key == _SETUP[step][0]:
+                if code != dj.ACK_SUCCESS:
+                    self.status_texts.append(f"telemetry setup refused: 0x{key[0]:02X} 0x{key[1]:02X} "
+                                             f"code {code}")
+                    continue  # asked again by `request_heartbeat`
+                self._setup_done = step = step + 1
+                if step < len(_SETUP):
+                    self._command(*_SETUP[step])
             elif key == _CONTROL:
                 ok = code in (dj.CONTROL_OBTAINED, dj.CONTROL_RELEASED)
                 if code == dj.CONTROL_NEEDS_F_MODE:
@@ -142,23 +163,15 @@ class DjiCommandLink(CommandLink):
         result = mav.MAV_RESULT_ACCEPTED if ok else mav.MAV_RESULT_DENIED
         self.acks[request] = CommandAck(request, result, t_s)
 
-    def _on_flight_data(self, payload: bytes, now_s: float) -> None:
-        if len(payload) < 2:
+    def _on_package(self, payload: bytes, now_s: float) -> None:
+        """The subscribed package: flight status, display mode, control device (mode, device), battery."""
+        if len(payload) != _PACKAGE_BYTES or payload[0] != PACKAGE_ID:
             return
-        (flags,) = struct.unpack_from("<H", payload)
-        off = 2
-        for bit, size in enumerate(_SIZES):
-            if not flags >> bit & 1:
-                continue
-            if off + size > len(payload):
-                return
-            if bit == _STATUS_BIT:
-                self._flight_status = payload[off]
-            elif bit == _DEVICE_BIT:
-                self._device = payload[off + 1]
-            off += size
+        self._flight_status, self._display_mode = payload[1], payload[2]
+        self._device = payload[4]
         self._last_data_s = now_s
-        self.status = DjiStatus(self._flight_status, self._device, now_s)  # type: ignore[assignment]
+        self.status = DjiStatus(self._flight_status, self._device, now_s,  # type: ignore[assignment]
+                                self._display_mode)
 
     def heartbeat_age_s(self, now_s: float) -> float:
         """Seconds since the FC's last flight data (inf if none yet): the OPEN protocol's sign of life."""
@@ -172,15 +185,18 @@ class DjiCommandLink(CommandLink):
         """The OPEN protocol has no heartbeat of the onboard device: nothing to send."""
 
     def request_heartbeat(self) -> None:
-        """Until the flight data comes: activate (again after a refusal, every `ACTIVATION_RETRY_S`),
-        then ask for the flight data's rates."""
+        """Until the telemetry comes: activate (again after a refusal, every `ACTIVATION_RETRY_S`),
+        then turn the broadcast off, check the subscription's version and add the package."""
         now = self.clock.now_s()
         if not self.activated:
             if now >= self._next_activation_s:
                 self._next_activation_s = now + ACTIVATION_RETRY_S
-                self._command(_ACTIVATE, struct.pack("<III", APP_ID, 0, SDK_VERSION) + APP_BUNDLE)
-        elif not self._rates_set and not self.codec.is_waiting(*_RATES):
-            self._command(_RATES, BROADCAST_RATES)
+                version = dj.fc_version_word()
+                self._command(_ACTIVATE, struct.pack("<III", APP_ID, 2, version) + APP_BUNDLE)
+        elif self._setup_done < len(_SETUP):
+            key, payload = _SETUP[self._setup_done]
+            if not self.codec.is_waiting(*key):
+                self._command(key, payload)
 
     def request_offboard(self) -> None:
         """Obtain control authority (0x01 0x00, 1)."""
