@@ -62,6 +62,27 @@ def test_broken_files_exit_2_naming_file_line_and_field(tmp_path, text, line, wh
     assert what in p.stderr
 
 
+@pytest.mark.parametrize(
+    ("text", "line", "field"),
+    [
+        ("description: x\nduration_s: 1" + "0" * 309 + "\n", 2, "duration_s"),  # no float holds it
+        ("description: x\nseed: 1" + "0" * 5000 + "\n", 2, "<yaml>"),  # past Python's 4300 digits
+        ("description: x\ngap: " + "[" * 490 + "\n", 2, "<yaml>"),  # deep and unclosed
+        ("description: x\ngap: " + "[" * 1200 + "]" * 1200 + "\n", 2, "<yaml>"),  # past libyaml's 1000
+        ("description: x\ngap:\n" + "".join(" " * i + "-\n" for i in range(1, 300)), 52, "<yaml>"),  # block
+        ("description: x\n# " + "x" * 10_000_000 + "\n", 1, "<file>"),  # 10 MB
+    ],
+    ids=["huge_integer", "huge_integer_text", "deep_flow_unclosed", "deep_flow", "deep_block", "10_MB"],
+)
+def test_files_that_crashed_the_loader_exit_2_naming_file_line_and_field(tmp_path, text, line, field):
+    """Values and structures past what Python's float, int and recursion hold: a usage error, no traceback."""
+    f = tmp_path / "hostile.scenario.yaml"
+    f.write_text(text)
+    p = run(["run", str(f), "--in-process"], tmp_path)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert f"{f}:{line}: {field}: " in p.stderr and "Traceback" not in p.stderr, p.stderr[-2000:]
+
+
 def test_bad_options_exit_2(tmp_path):
     f = tmp_path / "ok.scenario.yaml"
     f.write_text(PASSING)

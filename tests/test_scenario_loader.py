@@ -451,3 +451,96 @@ def test_either_yaml_parser_reads_files_and_reports_errors_the_same(monkeypatch:
         assert str(info.value).startswith("broken.scenario.yaml:3: <yaml>: not valid YAML: expected ','")
         read[name] = [[s.to_dict() for s in load_scenarios(f)] for f in files] + [str(info.value)]
     assert all(r == read["pure"] for r in read.values())
+
+
+# --- hostile values and structures ---------------------------------------------------------------
+@pytest.mark.parametrize("parser", ["pure", "libyaml"])
+def test_nesting_past_the_limit_is_an_error_at_its_line_with_either_parser(
+    parser: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Deep flow and block nesting, closed or not, and an alias that holds itself: the line where the
+    nesting passes the stated limit, never Python's recursion limit."""
+    import hil.scenario.loader as loader
+
+    if parser == "libyaml":
+        if not hasattr(yaml, "CSafeLoader"):
+            pytest.fail("PyYAML without libyaml: the libyaml case cannot be checked here")
+        monkeypatch.setattr(loader, "_LOADER", yaml.CSafeLoader)
+    else:
+        monkeypatch.setattr(loader, "_LOADER", loader._PureLoader)
+    deep = loader.MAX_DEPTH - 1  # the levels below the document's own mapping
+    texts = {
+        "description: d\ngap: " + "[" * 490 + "\n": 2,
+        "description: d\ngap: " + "{a: " * 3000 + "}" * 3000 + "\n": 2,
+        "description: d\ngap:\n" + "".join(" " * i + "-\n" for i in range(1, 600)): loader.MAX_DEPTH + 2,
+        "description: d\ngap:\n" + "".join(" " * i + f"k{i}:\n" for i in range(1, 400)): loader.MAX_DEPTH + 1,
+        "description: d\ngap: &a [*a]\n": 2,
+    }
+    for text, line in texts.items():
+        with pytest.raises(ScenarioError) as info:
+            loads_scenarios(text, source="deep.scenario.yaml")
+        assert str(info.value) == (f"deep.scenario.yaml:{line}: <yaml>: nested deeper than "
+                                   f"{loader.MAX_DEPTH} levels (the most a scenario file may nest)")
+    # the limit itself is allowed: the error is the schema's, not the depth's
+    with pytest.raises(ScenarioError, match="gap: expected a mapping"):
+        loads_scenarios("description: d\ngap: " + "[" * deep + "]" * deep + "\n")
+
+
+def test_values_no_python_type_holds_are_errors_naming_the_field(tmp_path: Path) -> None:
+    cases = {
+        "description: d\nduration_s: 1" + "0" * 309 + "\n": (2, "duration_s", "about 310 digits"),
+        "description: d\ngap: {roll_deg: -1" + "0" * 400 + "}\n": (2, "gap.roll_deg", "about 401 digits"),
+        "description: d\nseed: 1" + "0" * 30 + "\n": (2, "seed", "about 31 digits"),
+        "description: d\nseed: 1" + "0" * 5000 + "\n": (2, "<yaml>", "cannot read value '1000"),
+        "description: d\nparams: {COM_OF_LOSS_T: 1" + "0" * 400 + "}\n": (
+            2, "params.COM_OF_LOSS_T", "about 401 digits"),
+        "description: d\nduration_s: !!int abc\n": (2, "<yaml>", "cannot read value 'abc'"),
+        "description: d\nrealtime: !!bool maybe\n": (2, "<yaml>", "cannot read value 'maybe'"),
+        "description: d\nskip: !!timestamp nope\n": (2, "<yaml>", "cannot read value 'nope'"),
+        "description: d\nduration_s: !!float x\n": (2, "<yaml>", "cannot read value 'x'"),
+    }  # fmt: skip
+    for text, (line, field, words) in cases.items():
+        err = error_of(write(tmp_path, text))
+        assert (err.line, err.field) == (line, field), str(err)
+        assert words in err.message and len(str(err)) < 400, str(err)
+
+
+def test_a_file_past_the_size_limit_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    from hil.scenario.loader import MAX_FILE_BYTES
+
+    big = tmp_path / "big.scenario.yaml"
+    with big.open("w") as f:
+        f.write("description: d\n")
+        f.truncate(10_000_000)  # 10 MB, sparse
+    assert str(error_of(big)) == (f"{big}:1: <file>: 10000000 bytes, more than a scenario file may hold "
+                                  f"({MAX_FILE_BYTES} bytes)")
+    with pytest.raises(ScenarioError, match=r"^<string>:1: <file>: "):
+        loads_scenarios("description: d\n# " + "x" * MAX_FILE_BYTES)
+
+
+def test_the_format_document_states_the_limits() -> None:
+    from hil.scenario.loader import MAX_DEPTH, MAX_FILE_BYTES
+
+    doc = " ".join((ROOT / "docs" / "scenario-format.md").read_text().split())
+    assert f"at most {MAX_FILE_BYTES // 1024} KiB ({MAX_FILE_BYTES:,} bytes" in doc
+    assert f"nested at most {MAX_DEPTH} levels deep" in doc
+
+
+@pytest.mark.parametrize(("written", "field"), [
+    ("1e3", "duration_s"), ("1.0e3", "duration_s"), ("'2.5'", "duration_s"), ('"7"', "seed"),
+    ("1e1", "gap.roll_deg"), ("25e-2", "approach.duration_s"),
+])
+def test_a_number_read_as_text_gets_a_hint_in_a_form_that_loads(written: str, field: str) -> None:
+    """YAML 1.1 reads 1e3 and 1.0e3 as text (an exponent needs a dot and a sign): the hint's form loads."""
+    head, _, key = field.rpartition(".")
+    doc = (lambda v: f"description: d\n{head}: {{{key}: {v}}}\n") if head else (
+        lambda v: f"description: d\n{key}: {v}\n")
+    with pytest.raises(ScenarioError) as info:
+        loads_scenarios(doc(written))
+    hint = re.search(r"the number is written (\S+)\)$", info.value.message)
+    assert hint is not None and info.value.field == field, info.value.message
+    [s] = loads_scenarios(doc(hint.group(1)))
+    value = s.to_dict()
+    for part in field.split("."):
+        value = value[part]
+    assert value == float(written.strip("'\""))

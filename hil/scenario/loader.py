@@ -41,9 +41,41 @@ from hil.scenario.schema import (
     WindGustParams,
 )
 
+#: the largest scenario file read (bytes): the shipped ones hold about 1 kB; one of this size loads in
+#: about 2 s at worst (a list of 60,000 values)
+MAX_FILE_BYTES = 256 * 1024
+#: the deepest nesting of values read (the document's mapping is level 1; the schema needs 6): libyaml
+#: stops at 1000 levels and PyYAML's pure-Python composer recurses about 3 frames a level
+MAX_DEPTH = 50
+
+
+class _TooDeep(yaml.YAMLError):
+    """A file nested deeper than MAX_DEPTH, at ``problem_mark``."""
+
+    def __init__(self, mark: yaml.Mark) -> None:
+        super().__init__()
+        self.problem_mark = mark
+        self.problem = f"nested deeper than {MAX_DEPTH} levels (the most a scenario file may nest)"
+
+
+class _PureLoader(yaml.SafeLoader):
+    """PyYAML's pure-Python loader, stopping at MAX_DEPTH levels (never at Python's recursion limit)."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Node | None, index: Any) -> Node | None:
+        if self._depth >= MAX_DEPTH:
+            raise _TooDeep(self.peek_event().start_mark)
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
 #: libyaml's parser where PyYAML was built with it (the files under scenarios/ load about 2x faster with it,
 #: `hil bench` scenario_load_ms), else the pure-Python one: the same nodes, with their lines
-_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_LOADER = getattr(yaml, "CSafeLoader", _PureLoader)
 
 SUFFIX = ".scenario.yaml"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
@@ -66,6 +98,9 @@ def load_scenarios(path: str | Path) -> list[Scenario]:
     """All scenarios of one file (one per YAML document), validated; raises ScenarioError."""
     p = Path(path)
     try:
+        size = p.stat().st_size
+        if size > MAX_FILE_BYTES:  # before reading it
+            raise _too_large(str(p), size)
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(str(p), 1, "<file>", f"cannot read: {exc}") from exc
@@ -74,8 +109,11 @@ def load_scenarios(path: str | Path) -> list[Scenario]:
 
 def loads_scenarios(text: str, source: str = "<string>") -> list[Scenario]:
     """Scenarios from YAML text; ``source`` names it in errors and gives the id's stem."""
+    size = len(text.encode("utf-8", "surrogatepass"))
+    if size > MAX_FILE_BYTES:
+        raise _too_large(source, size)
     try:
-        documents = list(yaml.compose_all(text, Loader=_LOADER))
+        documents = _compose(text, _LOADER)
     except yaml.YAMLError as exc:
         raise _not_yaml(text, source, exc) from exc
     documents = [d for d in documents if not _is_empty(d)]
@@ -99,18 +137,48 @@ def loads_scenarios(text: str, source: str = "<string>") -> list[Scenario]:
     return scenarios
 
 
+def _too_large(source: str, size: int) -> ScenarioError:
+    return ScenarioError(source, 1, "<file>", f"{size} bytes, more than a scenario file may hold "
+                         f"({MAX_FILE_BYTES} bytes)")
+
+
+def _compose(text: str, loader: type) -> list[Node | None]:
+    """The documents' nodes of ``text``, none nested deeper than MAX_DEPTH (else _TooDeep)."""
+    documents = list(yaml.compose_all(text, Loader=loader))
+    for root in documents:
+        _check_depth(root)
+    return documents
+
+
+def _check_depth(root: Node | None) -> None:
+    """_TooDeep at the first node below MAX_DEPTH levels (an alias's node may sit in several places, or
+    inside itself: each is walked again only when met deeper than before)."""
+    deepest: dict[int, int] = {}
+    stack: list[tuple[Node, int]] = [(root, 1)] if isinstance(root, SequenceNode | MappingNode) else []
+    while stack:
+        node, depth = stack.pop()
+        if deepest.get(id(node), 0) >= depth:
+            continue
+        deepest[id(node)] = depth
+        children = node.value if isinstance(node, SequenceNode) else [c for pair in node.value for c in pair]
+        if children and depth >= MAX_DEPTH:
+            raise _TooDeep(children[0].start_mark)
+        stack.extend((c, depth + 1) for c in children if not isinstance(c, ScalarNode))
+
+
 def _not_yaml(text: str, source: str, exc: yaml.YAMLError) -> ScenarioError:
     """The ScenarioError of ``text`` that is not valid YAML, at the line of the problem, in the words of
     PyYAML's pure-Python parser whichever parser found it (libyaml's differ)."""
-    if _LOADER is not yaml.SafeLoader:
+    if not isinstance(exc, _TooDeep) and _LOADER is not _PureLoader:
         try:
-            list(yaml.compose_all(text, Loader=yaml.SafeLoader))
+            _compose(text, _PureLoader)
         except yaml.YAMLError as pure:
             exc = pure
     mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
     line = mark.line + 1 if mark is not None else 1
     problem = getattr(exc, "problem", None) or str(exc)
-    return ScenarioError(source, line, "<yaml>", f"not valid YAML: {problem}")
+    what = problem if isinstance(exc, _TooDeep) else f"not valid YAML: {problem}"
+    return ScenarioError(source, line, "<yaml>", what)
 
 
 def find_scenario_files(root: str | Path) -> list[Path]:
@@ -154,6 +222,8 @@ def _is_empty(node: Node | None) -> bool:
 
 
 def _fmt(x: float) -> str:
+    if isinstance(x, int):
+        return str(x)
     return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else repr(float(x))
 
 
@@ -164,13 +234,45 @@ def _describe(value: Any, node: Node) -> str:
         return f"a list of {len(node.value)}"
     if value is None:
         return "nothing (null)"
-    if isinstance(value, str):
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**15:
+        return f"a whole number of about {math.ceil(value.bit_length() * math.log10(2))} digits"
+    shown = _shorten(repr(value))
+    number = _as_yaml_number(value) if isinstance(value, str) else None
+    if number is None:
+        return shown
+    if isinstance(node, ScalarNode) and node.style in ("'", '"'):
+        return f"{shown} (text, in quotes; the number is written {number})"
+    return f"{shown} (text to YAML; the number is written {number})"
+
+
+def _shorten(text: str, most: int = 60) -> str:
+    return text if len(text) <= most else f"{text[: most - 20]}...{text[-12:]} ({len(text)} characters)"
+
+
+def _as_yaml_number(text: str) -> str | None:
+    """How the number Python reads in ``text`` (``1e3``, ``"2.5"``) is written so that YAML reads a number
+    (``1000.0``; an exponent needs a dot and a sign, ``1.0e+20``), or None when ``text`` holds no finite
+    number of at most 100 characters. The form given is one this loader reads back as that number."""
+    if len(text) > 100:
+        return None
+    for kind in (int, float):
         try:
-            float(value)
+            number = kind(text)
         except ValueError:
-            return repr(value)
-        return f"{value!r} (text; YAML reads a number only unquoted, with a dot before any exponent: 1.0e3)"
-    return repr(value)
+            continue
+        if isinstance(number, float) and not math.isfinite(number):
+            return None
+        written = yaml.safe_dump(number, default_flow_style=True).splitlines()[0]
+        return written if yaml.load(written, Loader=_LOADER) == number else None
+    return None
+
+
+def _finite(x: float) -> bool:
+    """Whether ``x`` is a finite float or an integer a float holds (10**309 is not)."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 def _range_text(meta: dict[str, Any], what: str) -> str:
@@ -214,8 +316,12 @@ class _Builder:
             return None
         try:
             return self._constructor.construct_object(node, deep=True)
-        except yaml.YAMLError as exc:
-            raise self.error(node, "<yaml>", f"cannot read value: {exc}") from exc
+        # PyYAML's constructors raise plain Python errors on a value its tag cannot hold (`!!int abc`,
+        # `!!bool maybe`, `!!timestamp x`, an integer of more than 4300 digits)
+        except Exception as exc:
+            what = getattr(exc, "problem", None) or str(exc)
+            raise self.error(node, "<yaml>", f"cannot read value {_shorten(repr(node.value))}: "
+                             f"{_shorten(what, 200)}") from None
 
     # mappings
     def mapping(self, node: Node, path: str, allowed: Iterable[str]) -> dict[str, Node]:
@@ -313,7 +419,7 @@ class _Builder:
                 )
             return value
         if tp is float:
-            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and _finite(value)
             if not ok or not _in_range(float(value), meta):
                 raise self.error(
                     node, path, f"expected {_range_text(meta, 'a number')}, got {_describe(value, node)}"
@@ -663,6 +769,8 @@ class _Builder:
         """``value`` for the FC parameter ``name``, checked against its table (name, type, range)."""
         from emulator.fc.params import ParamError, param_def
 
+        if isinstance(value, int) and not _finite(value):  # the table compares it as a float
+            raise self.error(node, path, f"expected a number, got {_describe(value, node)}")
         try:
             return float(param_def(name).check(value))
         except ParamError as exc:
