@@ -5,9 +5,14 @@ ranked by check and phase with their reports, and the go/no-go follows the thres
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
 import json
+import os
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -16,6 +21,7 @@ from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 from hil.scenario.dispersions import base_document, dispersed, run_seeds, sample
 from hil.sweep import plan_sweep, run_sweep, summarise, wilson_interval
 from hil.sweep.report import write_sweep
+from hil.sweep.sweep import init_local_ray
 
 BASE = "description: t\ngap: {roll_deg: 30}\nduration_s: 9\n"
 SWEPT = BASE + """dispersions:
@@ -121,7 +127,7 @@ def test_wilson_interval():
 @pytest.fixture(scope="module")
 def local_ray():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    init_local_ray(2)
     yield ray
     ray.shutdown()
 
@@ -166,19 +172,75 @@ def test_a_sweep_on_ray_is_repeatable_resumable_and_ranks_its_failures(tmp_path,
     assert json.loads((tmp_path / "a" / "sweep.json").read_text())["passed"] == result.passed
 
 
-def test_hil_dryrun_exits_by_go_or_no_go(tmp_path):
+def _descendants(root: int) -> dict[int, str]:
+    """The process ``root`` and its descendants, by pid, with their names (from /proc)."""
+    parent, names = {}, {}
+    for d in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            stat = (d / "stat").read_text()
+            parent[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+            names[int(d.name)] = stat[stat.index("(") + 1:stat.rindex(")")]
+    tree, grew = {root}, True
+    while grew:
+        more = {pid for pid, pp in parent.items() if pp in tree} - tree
+        tree |= more
+        grew = bool(more)
+    return {pid: names[pid] for pid in tree if pid in names}
+
+
+def _address(hex_ip: str) -> str:
+    raw = bytes.fromhex(hex_ip)  # /proc/net/*: 32-bit words in the host's (little-endian) order
+    return str(ipaddress.ip_address(b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))))
+
+
+def _listening(root: int) -> dict[str, set[str]]:
+    """The addresses ``root`` and its descendants listen on (TCP) or are bound to (UDP, unconnected), by
+    process name: the sockets of /proc/net/{tcp,tcp6,udp,udp6} whose inode one of them holds."""
+    procs = _descendants(root)
+    owner = {}
+    for pid in procs:
+        with contextlib.suppress(OSError):
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                with contextlib.suppress(OSError):
+                    link = os.readlink(fd)
+                    if link.startswith("socket:["):
+                        owner[int(link[8:-1])] = procs[pid]
+    out: dict[str, set[str]] = {}
+    for table, listen in (("tcp", "0A"), ("tcp6", "0A"), ("udp", "07"), ("udp6", "07")):
+        for row in Path(f"/proc/net/{table}").read_text().splitlines()[1:]:
+            f = row.split()
+            if f[3] == listen and int(f[9]) in owner and int(f[2].split(":")[0], 16) == 0:
+                out.setdefault(owner[int(f[9])], set()).add(_address(f[1].split(":")[0]))
+    return out
+
+
+def _loopback(ip: str) -> bool:
+    a = ipaddress.ip_address(ip)
+    return (a.ipv4_mapped or a).is_loopback if isinstance(a, ipaddress.IPv6Address) else a.is_loopback
+
+
+def test_hil_dryrun_exits_by_go_or_no_go_and_its_ray_listens_on_loopback_only(tmp_path):
     path = tmp_path / "t.scenario.yaml"
     path.write_text(SWEPT.replace("runs: 8", "runs: 4").replace("min_success: 0.5", "min_success: 0.99"))
-    p = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(path), "--out", str(tmp_path / "o"),
-                        "-j", "2"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert p.returncode == 1, p.stdout + p.stderr  # 4 runs can never show 0.99 with 90 % confidence
-    assert "NO-GO" in p.stdout and "4/4 runs" in p.stdout
+    p = subprocess.Popen([sys.executable, "-m", "hil.cli", "dryrun", str(path), "--out", str(tmp_path / "o"),
+                          "-j", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    seen: dict[str, set[str]] = {}
+    deadline = time.monotonic() + 300
+    while p.poll() is None and time.monotonic() < deadline:  # every socket Ray's processes listen on
+        for name, ips in _listening(p.pid).items():
+            seen.setdefault(name, set()).update(ips)
+        time.sleep(0.1)
+    stdout, stderr = p.communicate(timeout=max(deadline - time.monotonic(), 1))
+    assert {"gcs_server", "raylet"} <= set(seen), seen  # watched while Ray ran
+    assert all(_loopback(ip) for ips in seen.values() for ip in ips), seen
+    assert p.returncode == 1, stdout + stderr  # 4 runs can never show 0.99 with 90 % confidence
+    assert "NO-GO" in stdout and "4/4 runs" in stdout
     assert (tmp_path / "o" / "sweep.html").is_file()
     bad = tmp_path / "bad.scenario.yaml"
     bad.write_text(BASE)
-    p = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(bad)], capture_output=True, text=True,
+    q = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(bad)], capture_output=True, text=True,
                        timeout=60, cwd=tmp_path)
-    assert p.returncode == 2 and "dispersions" in p.stderr
+    assert q.returncode == 2 and "dispersions" in q.stderr
 
 
 def test_a_worker_killed_mid_sweep_loses_no_result(tmp_path, local_ray):

@@ -9,6 +9,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,18 +86,54 @@ def finished(plan: SweepPlan) -> dict[int, RunRecord]:
 Progress = Callable[[RunRecord, int, int], None]
 
 
+#: Ray's switch for a node that keeps to this machine: it takes 127.0.0.1 as its own address, and its
+#: services (GCS, raylet, object manager, workers, agents) listen there, not on every interface. Ray
+#: reads it when it is imported (here, in a process that has not imported it yet; in each of its own
+#: processes, which inherit it) and at the moment a node is started (`_keep_to_loopback`).
+LOOPBACK_ONLY_ENV = ("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+LOOPBACK = "127.0.0.1"
+
+
+def _keep_to_loopback() -> None:
+    """Make the Ray started next a node of this machine only (see `LOOPBACK_ONLY_ENV`)."""
+    name, value = LOOPBACK_ONLY_ENV
+    os.environ[name] = value
+    # Ray is imported here, not at the top: an optional, heavy dependency (the sweep extra)
+    from ray._private import ray_constants
+
+    # a Ray imported before the variable was set read it then; the node's address is looked up at start
+    ray_constants.ENABLE_RAY_CLUSTER = False
+
+
+def init_local_ray(num_cpus: int) -> None:
+    """Start Ray on this machine with ``num_cpus`` CPUs, every service on 127.0.0.1 and no dashboard."""
+    _keep_to_loopback()
+    import ray  # an optional, heavy dependency (the sweep extra)
+
+    ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address=LOOPBACK,
+             logging_level=logging.WARNING, log_to_driver=False)
+    address = ray.get_runtime_context().gcs_address.rsplit(":", 1)[0]
+    if address != LOOPBACK:  # a later Ray that ignores the switch: never serve on every interface
+        ray.shutdown()
+        raise RuntimeError(f"local Ray took {address} as its address, not {LOOPBACK}: it would be "
+                           "reachable from other machines; start one with `ray start --head` and pass "
+                           "its address instead")
+
+
 @contextlib.contextmanager
 def ray_session(address: str | None, jobs: int) -> Iterator[None]:
     """Ray for the duration of the block: the cluster at ``address``, else ``jobs`` CPUs on this
-    machine; a Ray already running (started by the caller) is used as it is and left running."""
-    import ray
+    machine (`init_local_ray`: reachable from this machine only); a Ray already running (started by
+    the caller) is used as it is and left running."""
+    import ray  # an optional, heavy dependency (the sweep extra)
 
     if ray.is_initialized():
         yield
         return
-    kwargs: dict[str, Any] = (
-        {"address": address} if address else {"num_cpus": jobs, "include_dashboard": False})
-    ray.init(logging_level=logging.WARNING, log_to_driver=False, **kwargs)
+    if address:
+        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
+    else:
+        init_local_ray(jobs)
     try:
         yield
     finally:
