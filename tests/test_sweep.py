@@ -20,8 +20,9 @@ from hil.runner import RunOptions, run_scenario
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 from hil.scenario.dispersions import base_document, dispersed, run_seeds, sample
 from hil.sweep import plan_sweep, run_sweep, summarise, wilson_interval
-from hil.sweep.report import write_sweep
-from hil.sweep.sweep import init_local_ray
+from hil.sweep.inputs import PROJECT, VERSION, changed, project_version, tree_digest
+from hil.sweep.report import rate_colour, write_sweep
+from hil.sweep.sweep import init_local_ray, stale
 
 BASE = "description: t\ngap: {roll_deg: 30}\nduration_s: 9\n"
 SWEPT = BASE + """dispersions:
@@ -282,3 +283,97 @@ def test_hil_suite_flies_on_ray_given_an_address(tmp_path, local_ray, capsys):
     assert code == 1 and "PASSED a" in out and "FAILED b" in out and "1/2 passed" in out
     index = json.loads((tmp_path / "o" / "index.json").read_text())
     assert {r["id"]: r["passed"] for r in index["results"]} == {"a": True, "b": False}
+
+
+def _own_vehicle(folder):
+    """The built-in vehicle as a profile file of the user's, with its onboard configuration beside it."""
+    from importlib import resources
+
+    profile = folder / "quad.yaml"
+    profile.write_text((resources.files("emulator") / "profiles" / "n3_tx2.yaml").read_text())
+    (folder / "quad.onboard.yaml").write_text(
+        (resources.files("policies") / "vehicles" / "n3_tx2.yaml").read_text())
+    return profile
+
+
+def test_a_resumed_sweep_flies_again_what_a_changed_vehicle_file_decides(tmp_path, local_ray):
+    profile = _own_vehicle(tmp_path)
+    path = tmp_path / "t.scenario.yaml"
+    path.write_text(SWEPT.replace("runs: 8", "runs: 2") + "vehicle: quad.yaml\n")
+    [s] = load_scenarios(path)
+    first = run_sweep(plan_sweep(s, tmp_path / "a"))
+    assert stale(plan_sweep(s, tmp_path / "a")) is None
+    # the airframe is heavier now: the same scenario text, another vehicle
+    profile.write_text(profile.read_text().replace("mass_kg: 0.9", "mass_kg: 1.2"))
+    [s] = load_scenarios(path)
+    plan = plan_sweep(s, tmp_path / "a")
+    assert stale(plan) == f"the vehicle profile {profile} changed"
+    resumed = run_sweep(plan)
+    fresh = run_sweep(plan_sweep(s, tmp_path / "b"))
+    assert _fingerprint(resumed) == _fingerprint(fresh) != _fingerprint(first)
+    assert stale(plan_sweep(s, tmp_path / "a")) is None  # and it resumes those from now on
+
+
+def test_a_sweep_is_stale_when_the_onboard_configuration_the_project_or_an_old_plan_file_differ(tmp_path):
+    _own_vehicle(tmp_path)
+    path = tmp_path / "t.scenario.yaml"
+    path.write_text(SWEPT + "vehicle: quad.yaml\n")
+    [s] = load_scenarios(path)
+    plan = plan_sweep(s, tmp_path)
+    (tmp_path / "results.jsonl").write_text('{"index": 0}\n')
+    (tmp_path / "plan.json").write_text(json.dumps({"fingerprint": plan.fingerprint, "inputs": plan.inputs}))
+    assert stale(plan) is None
+    onboard = tmp_path / "quad.onboard.yaml"
+    onboard.write_text(onboard.read_text().replace("max_tilt_deg: 75.0", "max_tilt_deg: 70.0"))
+    assert stale(plan_sweep(s, tmp_path)) == f"the onboard configuration {onboard} changed"
+    other = dict(plan.inputs, **{PROJECT: "0" * 16, VERSION: "0.0.9"})
+    assert changed(other, plan.inputs) == f"{PROJECT}, {VERSION} (0.0.9 -> {project_version()}) changed"
+    (tmp_path / "plan.json").write_text(json.dumps({"fingerprint": "abc"}))  # a plan file of an old version
+    assert "did not record what decided them" in str(stale(plan))
+    (tmp_path / "plan.json").write_text("{cut sh")
+    assert "unreadable" in str(stale(plan))
+
+
+def test_the_project_digest_follows_every_file_of_the_packages(tmp_path):
+    (tmp_path / "p" / "weights").mkdir(parents=True)
+    (tmp_path / "p" / "m.py").write_text("x = 1\n")
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\1")
+    before = tree_digest({"p": tmp_path / "p"})
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\2")
+    assert tree_digest({"p": tmp_path / "p"}) != before
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\1")
+    assert tree_digest({"p": tmp_path / "p"}) == before
+    (tmp_path / "p" / "__pycache__").mkdir()
+    (tmp_path / "p" / "__pycache__" / "m.cpython-311.pyc").write_bytes(b"compiled")
+    assert tree_digest({"p": tmp_path / "p"}) == before  # a compiled cache is not a change
+
+
+def test_the_sweep_page_names_every_varied_field_colours_by_the_go_line_and_says_why_runs_aborted(tmp_path):
+    from hil.sweep.fly import RunRecord
+    from hil.sweep.report import render
+
+    [s] = loads_scenarios(BASE + """dispersions:
+  go: {min_success: 0.8}
+  bins: 2
+  vary:
+    initial.pos_m: {normal: [0, 0.03], offset: true}
+    pilot: {choice: [traditional, e2e]}
+""")
+    abort = {"check": "onboard_abort", "phase": "approach", "time_s": 2.6, "expected": "no abort",
+             "observed": "aborted: planning_failed (the opening is too small)"}
+    # x below 0.5: 9 of 10 pass (above the 0.8 line); x above: 7 of 10 (just under it)
+    records = [RunRecord(i, i, {"initial.pos_m": [0.25 if i < 10 else 0.75, 1.0, 2.0 + i / 100],
+                                "pilot": "e2e" if i % 2 else "traditional"},
+                         passed=not (i == 0 or i >= 17), failed=() if not (i == 0 or i >= 17) else (abort,))
+               for i in range(20)]
+    result = summarise(s.id, s.dispersions, records)  # type: ignore[arg-type]
+    page = render(result, s.description, 1.0)
+    for name in ("initial.pos_m[0]", "initial.pos_m[1]", "initial.pos_m[2]", "pilot", "e2e", "traditional"):
+        assert name in page, name
+    assert "planning_failed (the opening is too small)" in page
+    bins = result.by_field["initial.pos_m[0]"]
+    assert [(b["passed"], b["runs"]) for b in bins] == [(9, 10), (7, 10)]
+    above, below = rate_colour(0.9, 0.8), rate_colour(0.7, 0.8)
+    assert above != below and f"background:{above}" in page and f"background:{below}" in page
+    assert rate_colour(0.0, 0.8) != below  # red far under the line, amber just under it
+    assert "go threshold (80 %)" in page

@@ -1,23 +1,24 @@
 """Planning a sweep (each run's seed and draws) and flying it as Ray tasks: on this machine by default,
 on a cluster given its address (the same code). A worker that dies has its task run again (Ray's
 ``max_retries``); each result is appended to ``results.jsonl`` as it comes, so a second call with the
-same plan flies only the runs not yet there."""
+same plan flies only the runs not yet there, while everything that decides them is unchanged
+(`hil.sweep.inputs`); a folder that holds results of anything else is flown afresh, saying why."""
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from hil.scenario.dispersions import base_document, run_seeds, sample
 from hil.scenario.schema import Dispersions, Scenario
 from hil.sweep.fly import RunRecord, fly
+from hil.sweep.inputs import changed, fingerprint, run_inputs
 
 RESULTS_NAME = "results.jsonl"
 PLAN_NAME = "plan.json"
@@ -27,15 +28,20 @@ TASK_RETRIES = 3
 
 @dataclass(frozen=True)
 class SweepPlan:
-    """Every run of a sweep: its seed and draws, and a fingerprint of what decides them (the scenario
-    and its dispersions): results of another plan are never resumed."""
+    """Every run of a sweep: its seed and draws, what decides their outcome by content (`run_inputs`:
+    the scenario, its dispersions, the files it names, the project's files) and their fingerprint:
+    results of another plan are never resumed."""
 
     scenario: Scenario
     dispersions: Dispersions
     seeds: tuple[int, ...]
     values: tuple[dict[str, Any], ...]
     out: Path
-    fingerprint: str
+    inputs: dict[str, str]
+
+    @property
+    def fingerprint(self) -> str:
+        return fingerprint(self.inputs)
 
     @property
     def runs(self) -> int:
@@ -49,8 +55,6 @@ def plan_sweep(scenario: Scenario, out: str | Path, runs: int | None = None, see
     if d is None:
         raise ValueError(f"{scenario.source}: {scenario.id} has no dispersions block to sweep")
     if seed is not None:
-        from dataclasses import replace
-
         d = replace(d, seed=seed)
     n = d.runs if runs is None else runs
     if n < 1:
@@ -58,19 +62,30 @@ def plan_sweep(scenario: Scenario, out: str | Path, runs: int | None = None, see
     doc = base_document(scenario)
     seeds = tuple(run_seeds(d, n))
     values = tuple(sample(d, doc, s) for s in seeds)
-    key = json.dumps({"scenario": doc, "dispersions": d.to_dict()}, sort_keys=True, default=str)
-    return SweepPlan(scenario, d, seeds, values, Path(out), hashlib.sha256(key.encode()).hexdigest()[:16])
+    return SweepPlan(scenario, d, seeds, values, Path(out), run_inputs(scenario, d))
+
+
+def stale(plan: SweepPlan) -> str | None:
+    """Why the results in ``plan``'s folder are not ``plan``'s (they are flown again), or None: there
+    are none, or they are its own."""
+    plan_file, results = plan.out / PLAN_NAME, plan.out / RESULTS_NAME
+    if not results.is_file() or not results.read_text().strip():
+        return None
+    try:
+        then = json.loads(plan_file.read_text())
+    except (OSError, ValueError):
+        return f"its {PLAN_NAME} is missing or unreadable"
+    if not isinstance(then, dict):
+        return f"its {PLAN_NAME} is not a plan"
+    if then.get("fingerprint") == plan.fingerprint:
+        return None
+    return changed(then.get("inputs"), plan.inputs)
 
 
 def finished(plan: SweepPlan) -> dict[int, RunRecord]:
     """The runs of ``plan`` already in its folder (from an earlier call with the same plan)."""
-    plan_file, results = plan.out / PLAN_NAME, plan.out / RESULTS_NAME
-    if not plan_file.is_file() or not results.is_file():
-        return {}
-    try:
-        if json.loads(plan_file.read_text())["fingerprint"] != plan.fingerprint:
-            return {}
-    except (ValueError, KeyError):
+    results = plan.out / RESULTS_NAME
+    if not results.is_file() or stale(plan) is not None:
         return {}
     out: dict[int, RunRecord] = {}
     for line in results.read_text().splitlines():
@@ -171,7 +186,7 @@ def run_sweep(plan: SweepPlan, *, address: str | None = None, jobs: int = 2, in_
         (plan.out / RESULTS_NAME).write_text("")
     (plan.out / PLAN_NAME).write_text(json.dumps(
         {"fingerprint": plan.fingerprint, "scenario": plan.scenario.id, "source": plan.scenario.source,
-         "runs": plan.runs, "seed": plan.dispersions.seed}, indent=2) + "\n")
+         "runs": plan.runs, "seed": plan.dispersions.seed, "inputs": plan.inputs}, indent=2) + "\n")
     todo = [i for i in range(plan.runs) if i not in done]
     records = dict(done)
     if progress is not None:
