@@ -5,9 +5,14 @@ ranked by check and phase with their reports, and the go/no-go follows the thres
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
 import json
+import os
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -15,7 +20,9 @@ from hil.runner import RunOptions, run_scenario
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 from hil.scenario.dispersions import base_document, dispersed, run_seeds, sample
 from hil.sweep import plan_sweep, run_sweep, summarise, wilson_interval
-from hil.sweep.report import write_sweep
+from hil.sweep.inputs import PROJECT, VERSION, changed, project_version, tree_digest
+from hil.sweep.report import rate_colour, write_sweep
+from hil.sweep.sweep import init_local_ray, stale
 
 BASE = "description: t\ngap: {roll_deg: 30}\nduration_s: 9\n"
 SWEPT = BASE + """dispersions:
@@ -121,7 +128,7 @@ def test_wilson_interval():
 @pytest.fixture(scope="module")
 def local_ray():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    init_local_ray(2)
     yield ray
     ray.shutdown()
 
@@ -166,19 +173,75 @@ def test_a_sweep_on_ray_is_repeatable_resumable_and_ranks_its_failures(tmp_path,
     assert json.loads((tmp_path / "a" / "sweep.json").read_text())["passed"] == result.passed
 
 
-def test_hil_dryrun_exits_by_go_or_no_go(tmp_path):
+def _descendants(root: int) -> dict[int, str]:
+    """The process ``root`` and its descendants, by pid, with their names (from /proc)."""
+    parent, names = {}, {}
+    for d in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            stat = (d / "stat").read_text()
+            parent[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+            names[int(d.name)] = stat[stat.index("(") + 1:stat.rindex(")")]
+    tree, grew = {root}, True
+    while grew:
+        more = {pid for pid, pp in parent.items() if pp in tree} - tree
+        tree |= more
+        grew = bool(more)
+    return {pid: names[pid] for pid in tree if pid in names}
+
+
+def _address(hex_ip: str) -> str:
+    raw = bytes.fromhex(hex_ip)  # /proc/net/*: 32-bit words in the host's (little-endian) order
+    return str(ipaddress.ip_address(b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))))
+
+
+def _listening(root: int) -> dict[str, set[str]]:
+    """The addresses ``root`` and its descendants listen on (TCP) or are bound to (UDP, unconnected), by
+    process name: the sockets of /proc/net/{tcp,tcp6,udp,udp6} whose inode one of them holds."""
+    procs = _descendants(root)
+    owner = {}
+    for pid in procs:
+        with contextlib.suppress(OSError):
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                with contextlib.suppress(OSError):
+                    link = os.readlink(fd)
+                    if link.startswith("socket:["):
+                        owner[int(link[8:-1])] = procs[pid]
+    out: dict[str, set[str]] = {}
+    for table, listen in (("tcp", "0A"), ("tcp6", "0A"), ("udp", "07"), ("udp6", "07")):
+        for row in Path(f"/proc/net/{table}").read_text().splitlines()[1:]:
+            f = row.split()
+            if f[3] == listen and int(f[9]) in owner and int(f[2].split(":")[0], 16) == 0:
+                out.setdefault(owner[int(f[9])], set()).add(_address(f[1].split(":")[0]))
+    return out
+
+
+def _loopback(ip: str) -> bool:
+    a = ipaddress.ip_address(ip)
+    return (a.ipv4_mapped or a).is_loopback if isinstance(a, ipaddress.IPv6Address) else a.is_loopback
+
+
+def test_hil_dryrun_exits_by_go_or_no_go_and_its_ray_listens_on_loopback_only(tmp_path):
     path = tmp_path / "t.scenario.yaml"
     path.write_text(SWEPT.replace("runs: 8", "runs: 4").replace("min_success: 0.5", "min_success: 0.99"))
-    p = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(path), "--out", str(tmp_path / "o"),
-                        "-j", "2"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert p.returncode == 1, p.stdout + p.stderr  # 4 runs can never show 0.99 with 90 % confidence
-    assert "NO-GO" in p.stdout and "4/4 runs" in p.stdout
+    p = subprocess.Popen([sys.executable, "-m", "hil.cli", "dryrun", str(path), "--out", str(tmp_path / "o"),
+                          "-j", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    seen: dict[str, set[str]] = {}
+    deadline = time.monotonic() + 300
+    while p.poll() is None and time.monotonic() < deadline:  # every socket Ray's processes listen on
+        for name, ips in _listening(p.pid).items():
+            seen.setdefault(name, set()).update(ips)
+        time.sleep(0.1)
+    stdout, stderr = p.communicate(timeout=max(deadline - time.monotonic(), 1))
+    assert {"gcs_server", "raylet"} <= set(seen), seen  # watched while Ray ran
+    assert all(_loopback(ip) for ips in seen.values() for ip in ips), seen
+    assert p.returncode == 1, stdout + stderr  # 4 runs can never show 0.99 with 90 % confidence
+    assert "NO-GO" in stdout and "4/4 runs" in stdout
     assert (tmp_path / "o" / "sweep.html").is_file()
     bad = tmp_path / "bad.scenario.yaml"
     bad.write_text(BASE)
-    p = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(bad)], capture_output=True, text=True,
+    q = subprocess.run([sys.executable, "-m", "hil.cli", "dryrun", str(bad)], capture_output=True, text=True,
                        timeout=60, cwd=tmp_path)
-    assert p.returncode == 2 and "dispersions" in p.stderr
+    assert q.returncode == 2 and "dispersions" in q.stderr
 
 
 def test_a_worker_killed_mid_sweep_loses_no_result(tmp_path, local_ray):
@@ -220,3 +283,97 @@ def test_hil_suite_flies_on_ray_given_an_address(tmp_path, local_ray, capsys):
     assert code == 1 and "PASSED a" in out and "FAILED b" in out and "1/2 passed" in out
     index = json.loads((tmp_path / "o" / "index.json").read_text())
     assert {r["id"]: r["passed"] for r in index["results"]} == {"a": True, "b": False}
+
+
+def _own_vehicle(folder):
+    """The built-in vehicle as a profile file of the user's, with its onboard configuration beside it."""
+    from importlib import resources
+
+    profile = folder / "quad.yaml"
+    profile.write_text((resources.files("emulator") / "profiles" / "n3_tx2.yaml").read_text())
+    (folder / "quad.onboard.yaml").write_text(
+        (resources.files("policies") / "vehicles" / "n3_tx2.yaml").read_text())
+    return profile
+
+
+def test_a_resumed_sweep_flies_again_what_a_changed_vehicle_file_decides(tmp_path, local_ray):
+    profile = _own_vehicle(tmp_path)
+    path = tmp_path / "t.scenario.yaml"
+    path.write_text(SWEPT.replace("runs: 8", "runs: 2") + "vehicle: quad.yaml\n")
+    [s] = load_scenarios(path)
+    first = run_sweep(plan_sweep(s, tmp_path / "a"))
+    assert stale(plan_sweep(s, tmp_path / "a")) is None
+    # the airframe is heavier now: the same scenario text, another vehicle
+    profile.write_text(profile.read_text().replace("mass_kg: 0.9", "mass_kg: 1.2"))
+    [s] = load_scenarios(path)
+    plan = plan_sweep(s, tmp_path / "a")
+    assert stale(plan) == f"the vehicle profile {profile} changed"
+    resumed = run_sweep(plan)
+    fresh = run_sweep(plan_sweep(s, tmp_path / "b"))
+    assert _fingerprint(resumed) == _fingerprint(fresh) != _fingerprint(first)
+    assert stale(plan_sweep(s, tmp_path / "a")) is None  # and it resumes those from now on
+
+
+def test_a_sweep_is_stale_when_the_onboard_configuration_the_project_or_an_old_plan_file_differ(tmp_path):
+    _own_vehicle(tmp_path)
+    path = tmp_path / "t.scenario.yaml"
+    path.write_text(SWEPT + "vehicle: quad.yaml\n")
+    [s] = load_scenarios(path)
+    plan = plan_sweep(s, tmp_path)
+    (tmp_path / "results.jsonl").write_text('{"index": 0}\n')
+    (tmp_path / "plan.json").write_text(json.dumps({"fingerprint": plan.fingerprint, "inputs": plan.inputs}))
+    assert stale(plan) is None
+    onboard = tmp_path / "quad.onboard.yaml"
+    onboard.write_text(onboard.read_text().replace("max_tilt_deg: 75.0", "max_tilt_deg: 70.0"))
+    assert stale(plan_sweep(s, tmp_path)) == f"the onboard configuration {onboard} changed"
+    other = dict(plan.inputs, **{PROJECT: "0" * 16, VERSION: "0.0.9"})
+    assert changed(other, plan.inputs) == f"{PROJECT}, {VERSION} (0.0.9 -> {project_version()}) changed"
+    (tmp_path / "plan.json").write_text(json.dumps({"fingerprint": "abc"}))  # a plan file of an old version
+    assert "did not record what decided them" in str(stale(plan))
+    (tmp_path / "plan.json").write_text("{cut sh")
+    assert "unreadable" in str(stale(plan))
+
+
+def test_the_project_digest_follows_every_file_of_the_packages(tmp_path):
+    (tmp_path / "p" / "weights").mkdir(parents=True)
+    (tmp_path / "p" / "m.py").write_text("x = 1\n")
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\1")
+    before = tree_digest({"p": tmp_path / "p"})
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\2")
+    assert tree_digest({"p": tmp_path / "p"}) != before
+    (tmp_path / "p" / "weights" / "w.onnx").write_bytes(b"\0\1")
+    assert tree_digest({"p": tmp_path / "p"}) == before
+    (tmp_path / "p" / "__pycache__").mkdir()
+    (tmp_path / "p" / "__pycache__" / "m.cpython-311.pyc").write_bytes(b"compiled")
+    assert tree_digest({"p": tmp_path / "p"}) == before  # a compiled cache is not a change
+
+
+def test_the_sweep_page_names_every_varied_field_colours_by_the_go_line_and_says_why_runs_aborted(tmp_path):
+    from hil.sweep.fly import RunRecord
+    from hil.sweep.report import render
+
+    [s] = loads_scenarios(BASE + """dispersions:
+  go: {min_success: 0.8}
+  bins: 2
+  vary:
+    initial.pos_m: {normal: [0, 0.03], offset: true}
+    pilot: {choice: [traditional, e2e]}
+""")
+    abort = {"check": "onboard_abort", "phase": "approach", "time_s": 2.6, "expected": "no abort",
+             "observed": "aborted: planning_failed (the opening is too small)"}
+    # x below 0.5: 9 of 10 pass (above the 0.8 line); x above: 7 of 10 (just under it)
+    records = [RunRecord(i, i, {"initial.pos_m": [0.25 if i < 10 else 0.75, 1.0, 2.0 + i / 100],
+                                "pilot": "e2e" if i % 2 else "traditional"},
+                         passed=not (i == 0 or i >= 17), failed=() if not (i == 0 or i >= 17) else (abort,))
+               for i in range(20)]
+    result = summarise(s.id, s.dispersions, records)  # type: ignore[arg-type]
+    page = render(result, s.description, 1.0)
+    for name in ("initial.pos_m[0]", "initial.pos_m[1]", "initial.pos_m[2]", "pilot", "e2e", "traditional"):
+        assert name in page, name
+    assert "planning_failed (the opening is too small)" in page
+    bins = result.by_field["initial.pos_m[0]"]
+    assert [(b["passed"], b["runs"]) for b in bins] == [(9, 10), (7, 10)]
+    above, below = rate_colour(0.9, 0.8), rate_colour(0.7, 0.8)
+    assert above != below and f"background:{above}" in page and f"background:{below}" in page
+    assert rate_colour(0.0, 0.8) != below  # red far under the line, amber just under it
+    assert "go threshold (80 %)" in page

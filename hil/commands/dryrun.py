@@ -31,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     from hil.sweep import plan_sweep, run_sweep, summarise
     from hil.sweep.report import verdict_line, write_sweep
+    from hil.sweep.sweep import stale
 
     path = Path(args.scenario)
     scenarios = read_scenario_file(path, "hil dryrun")
@@ -60,6 +61,10 @@ def main(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     where = f"Ray cluster {args.ray_address}" if args.ray_address else f"local Ray, {args.jobs} CPUs"
     print(f"dry run {s.id}: {plan.runs} runs on {where} -> {out}", flush=True)
+    why = stale(plan)
+    if why is not None:
+        print(f"  the results already in {out} are not this plan's ({why}): all runs are flown afresh",
+              flush=True)
     tty = sys.stdout.isatty()
     wall0 = time.perf_counter()
     passed = [0]

@@ -62,6 +62,7 @@ class Observations:
     realtime: dict[str, Any] | None = None  # a real-time run's loop health (`hil.runner.realtime`)
     faults: tuple[Fault, ...] = ()  # as flown: those timed after a mission event carry their times
     phases: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # phase -> sim intervals
+    onboard_abort_reason: str | None = None  # why the onboard program aborted (its reason and detail)
 
 
 def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
@@ -299,6 +300,7 @@ def check_abort(expected: bool, obs: Observations) -> Check:
         "onboard_abort",
         aborted == expected,
         "onboard program aborts" if expected else "no abort",
-        "aborted" if aborted else "none",
+        (f"aborted: {obs.onboard_abort_reason}" if obs.onboard_abort_reason else "aborted") if aborted
+        else "none",
         obs.onboard_abort_s,
     )

@@ -51,9 +51,10 @@ def render(r: SweepResult, description: str, wall_s: float) -> str:
         f"scenario, not counted), {wall_s:.1f} s wall.</p>",
         "<p>Go when the lower end of the success probability's Wilson interval is at least the "
         "threshold (the scenario's <code>dispersions.go</code>).</p>",
+        "<h2>What was varied</h2>", _varied(r.varied),
         "<h2>What fails</h2>", _failures(r),
-        "<h2>Envelope</h2>", _envelope(r.envelope),
-        "<h2>Pass rate along each dispersed field</h2>", _by_field(r.by_field),
+        "<h2>Envelope</h2>", _envelope(r.envelope, r.min_success),
+        "<h2>Pass rate along each dispersed field</h2>", _by_field(r.by_field, r.min_success),
         "<h2>Smallest clearance in the wall</h2>", _histogram(r.clearances_m),
     ]
     if r.invalid:
@@ -81,7 +82,20 @@ def _failures(r: SweepResult) -> str:
     return "".join(rows)
 
 
-def _envelope(env: dict[str, Any] | None) -> str:
+def _varied(varied: list[dict[str, Any]]) -> str:
+    if not varied:
+        return "<p>No field dispersed.</p>"
+    rows = ["<table><tr><th>field</th><th>drawn from</th><th>draws (smallest..largest)</th></tr>"]
+    for v in varied:
+        drawn = [f"{escape(name)}: {lo:.4g}..{hi:.4g}" for name, (lo, hi) in v["drawn"].items()]
+        drawn += [escape(x) for x in v["values"]]
+        rows.append(f"<tr><td>{escape(v['path'])}</td><td>{escape(v['how'])}</td>"
+                    f"<td>{'<br>'.join(drawn) or '-'}</td></tr>")
+    rows.append("</table>")
+    return "".join(rows)
+
+
+def _envelope(env: dict[str, Any] | None, go: float) -> str:
     if env is None:
         return "<p>No two scalar fields dispersed: no map.</p>"
     runs, passed = np.array(env["runs"]), np.array(env["passed"])
@@ -95,7 +109,7 @@ def _envelope(env: dict[str, Any] | None) -> str:
         for ix in range(nb):
             n, k = int(runs[iy, ix]), int(passed[iy, ix])
             x, y = left + ix * cell, top + (nb - 1 - iy) * cell
-            fill = "#eeeeee" if n == 0 else _rate_colour(k / n)
+            fill = "#eeeeee" if n == 0 else rate_colour(k / n, go)
             label = "" if n == 0 else f"{k}/{n}"
             out.append(f'<rect x="{x}" y="{y}" width="{cell}" height="{cell}" fill="{fill}" stroke="#fff"/>'
                        f'<text x="{x + cell / 2}" y="{y + cell / 2 + 4}" text-anchor="middle">{label}</text>')
@@ -107,30 +121,37 @@ def _envelope(env: dict[str, Any] | None) -> str:
     out.append(f'<text x="{left + nb * cell / 2}" y="{h - 8}" text-anchor="middle">{escape(env["x"])}</text>')
     out.append(f'<text x="12" y="{top + nb * cell / 2}" transform="rotate(-90 12 {top + nb * cell / 2})" '
                f'text-anchor="middle">{escape(env["y"])}</text></svg>')
-    return ("<p>Each cell: runs passed / runs with draws in it; red where runs fail, green where all "
-            "pass.</p>" + "".join(out))
+    return ("<p>Each cell: runs passed / runs with draws in it. " + _COLOURS.format(go=go * 100) + "</p>"
+            + "".join(out))
 
 
-def _rate_colour(rate: float) -> str:
-    """Red (0 % passed) through amber to green (100 %)."""
-    r, g = (1.0, rate * 2) if rate < 0.5 else (2 - rate * 2, 1.0)
-    return f"#{round(60 + 180 * r):02x}{round(60 + 150 * g):02x}{80:02x}"
+_COLOURS = ("Green: a pass rate at or above the go threshold ({go:g} %); below it amber, turning red "
+            "as the rate falls to 0.")
 
 
-def _by_field(by_field: dict[str, list[dict[str, Any]]]) -> str:
+def rate_colour(rate: float, go: float) -> str:
+    """A pass rate's colour against the go threshold ``go``: green at or above it; below it from amber
+    (just under) to red (0 % passed)."""
+    if rate >= go:
+        return "#8fd19e"
+    t = rate / go if go > 0 else 0.0
+    return f"#{240:02x}{round(90 + 110 * t):02x}{round(80 + 10 * t):02x}"
+
+
+def _by_field(by_field: dict[str, list[dict[str, Any]]], go: float) -> str:
     if not by_field:
-        return "<p>No scalar field dispersed.</p>"
+        return "<p>No numeric field dispersed.</p>"
     rows = ["<table><tr><th>field</th><th>pass rate by bin of the drawn values (runs)</th></tr>"]
     for path, bins in by_field.items():
         cells = "".join(
             f'<span style="display:inline-block;min-width:110px;padding:2px 4px;margin:1px;background:'
-            f'{"#eee" if not b["runs"] else _rate_colour(b["passed"] / b["runs"])}">'
+            f'{"#eee" if not b["runs"] else rate_colour(b["passed"] / b["runs"], go)}">'
             f'{b["lo"]:.3g}..{b["hi"]:.3g}: '
             + ("-" if not b["runs"] else f'{b["passed"]}/{b["runs"]}') + "</span>"
             for b in bins
         )
         rows.append(f"<tr><td>{escape(path)}</td><td>{cells}</td></tr>")
-    rows.append("</table>")
+    rows.append("</table><p>" + _COLOURS.format(go=go * 100) + "</p>")
     return "".join(rows)
 
 

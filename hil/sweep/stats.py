@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.scenario.schema import Dispersions
+from hil.scenario.schema import Dispersions, Distribution
 from hil.sweep.fly import RunRecord
 
 #: reports linked per failure row of the page
@@ -49,6 +49,8 @@ class SweepResult:
     envelope: dict[str, Any] | None
     clearances_m: list[float]
     invalid: list[dict[str, Any]] = field(default_factory=list)
+    #: every dispersed field: its path, how it is drawn, and the range of the draws by component
+    varied: list[dict[str, Any]] = field(default_factory=list)
     records: list[RunRecord] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -58,7 +60,7 @@ class SweepResult:
             "interval": list(self.interval), "confidence": self.confidence,
             "min_success": self.min_success, "go": self.go, "failures": self.failures,
             "by_field": self.by_field, "envelope": self.envelope, "clearances_m": self.clearances_m,
-            "invalid": self.invalid, "records": [r.to_dict() for r in self.records],
+            "invalid": self.invalid, "varied": self.varied, "records": [r.to_dict() for r in self.records],
         }
 
 
@@ -77,7 +79,7 @@ def summarise(scenario_id: str, dispersions: Dispersions, records: list[RunRecor
         envelope=_envelope(dispersions, counted),
         clearances_m=[r.min_clearance_m for r in counted if r.min_clearance_m is not None],
         invalid=[{"index": r.index, "why": r.invalid} for r in records if not r.counted],
-        records=records,
+        varied=_varied(dispersions, records), records=records,
     )
 
 
@@ -117,13 +119,50 @@ def _edges(xs: np.ndarray, bins: int) -> np.ndarray:
     return np.linspace(lo, hi, bins + 1)
 
 
+def _components(path: str, value: Any) -> list[tuple[str, float | None]]:
+    """A drawn value as named numbers: a number as itself, a vector (``initial.pos_m``) by component
+    (``initial.pos_m[0]``, ...); a value that is no number (a choice of names) as None."""
+    if isinstance(value, list | tuple):
+        return [(f"{path}[{i}]", _scalar(v)) for i, v in enumerate(value)]
+    return [(path, _scalar(value))]
+
+
+def _numbers(path: str, records: list[RunRecord]) -> dict[str, list[tuple[float, bool]]]:
+    """Each numeric component of a dispersed field -> (its draw, the run passed), in the records' order."""
+    out: dict[str, list[tuple[float, bool]]] = {}
+    for r in records:
+        for name, x in _components(path, r.values.get(path)):
+            if x is not None:
+                out.setdefault(name, []).append((x, r.passed))
+    return out
+
+
+def _how(d: Distribution) -> str:
+    """How a field is drawn, as the scenario file says it (``normal [1, 0.02]``, ``offset``, ``clip``)."""
+    text = f"{d.kind} {list(getattr(d, d.kind))}"
+    return text + (" added to the scenario's value" if d.offset else "") + (
+        f", clipped to {list(d.clip)}" if d.clip is not None else "")
+
+
+def _varied(dispersions: Dispersions, records: list[RunRecord]) -> list[dict[str, Any]]:
+    """Every dispersed field (numbers, vectors and choices alike): how it is drawn, and per component
+    the smallest and largest draw (the values drawn, for a choice of names)."""
+    out = []
+    for path, dist in dispersions.vary:
+        drawn = {name: [min(x for x, _ in xs), max(x for x, _ in xs)]
+                 for name, xs in _numbers(path, records).items()}
+        names = sorted({str(r.values.get(path)) for r in records if path in r.values and
+                        all(x is None for _, x in _components(path, r.values[path]))})
+        out.append({"path": path, "how": _how(dist), "drawn": drawn, "values": names})
+    return out
+
+
 def _by_field(dispersions: Dispersions, records: list[RunRecord]) -> dict[str, list[dict[str, Any]]]:
-    """For each dispersed scalar field: the pass rate in ``bins`` bins of its drawn values."""
+    """For each number a sweep disperses (each component of a vector): the pass rate in ``bins`` bins
+    of its drawn values."""
     out: dict[str, list[dict[str, Any]]] = {}
-    for path, _ in dispersions.vary:
-        pairs = [(x, r.passed) for r in records if (x := _scalar(r.values.get(path))) is not None]
-        if not pairs:
-            continue
+    columns = {name: pairs for path, _ in dispersions.vary for name, pairs in _numbers(path, records).items()}
+    for path, pairs in columns.items():
         xs = np.array([p[0] for p in pairs])
         ok = np.array([p[1] for p in pairs])
         edges = _edges(xs, dispersions.bins)

@@ -1,22 +1,24 @@
 """Planning a sweep (each run's seed and draws) and flying it as Ray tasks: on this machine by default,
 on a cluster given its address (the same code). A worker that dies has its task run again (Ray's
 ``max_retries``); each result is appended to ``results.jsonl`` as it comes, so a second call with the
-same plan flies only the runs not yet there."""
+same plan flies only the runs not yet there, while everything that decides them is unchanged
+(`hil.sweep.inputs`); a folder that holds results of anything else is flown afresh, saying why."""
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
+import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from hil.scenario.dispersions import base_document, run_seeds, sample
 from hil.scenario.schema import Dispersions, Scenario
 from hil.sweep.fly import RunRecord, fly
+from hil.sweep.inputs import changed, fingerprint, run_inputs
 
 RESULTS_NAME = "results.jsonl"
 PLAN_NAME = "plan.json"
@@ -26,15 +28,20 @@ TASK_RETRIES = 3
 
 @dataclass(frozen=True)
 class SweepPlan:
-    """Every run of a sweep: its seed and draws, and a fingerprint of what decides them (the scenario
-    and its dispersions): results of another plan are never resumed."""
+    """Every run of a sweep: its seed and draws, what decides their outcome by content (`run_inputs`:
+    the scenario, its dispersions, the files it names, the project's files) and their fingerprint:
+    results of another plan are never resumed."""
 
     scenario: Scenario
     dispersions: Dispersions
     seeds: tuple[int, ...]
     values: tuple[dict[str, Any], ...]
     out: Path
-    fingerprint: str
+    inputs: dict[str, str]
+
+    @property
+    def fingerprint(self) -> str:
+        return fingerprint(self.inputs)
 
     @property
     def runs(self) -> int:
@@ -48,8 +55,6 @@ def plan_sweep(scenario: Scenario, out: str | Path, runs: int | None = None, see
     if d is None:
         raise ValueError(f"{scenario.source}: {scenario.id} has no dispersions block to sweep")
     if seed is not None:
-        from dataclasses import replace
-
         d = replace(d, seed=seed)
     n = d.runs if runs is None else runs
     if n < 1:
@@ -57,19 +62,30 @@ def plan_sweep(scenario: Scenario, out: str | Path, runs: int | None = None, see
     doc = base_document(scenario)
     seeds = tuple(run_seeds(d, n))
     values = tuple(sample(d, doc, s) for s in seeds)
-    key = json.dumps({"scenario": doc, "dispersions": d.to_dict()}, sort_keys=True, default=str)
-    return SweepPlan(scenario, d, seeds, values, Path(out), hashlib.sha256(key.encode()).hexdigest()[:16])
+    return SweepPlan(scenario, d, seeds, values, Path(out), run_inputs(scenario, d))
+
+
+def stale(plan: SweepPlan) -> str | None:
+    """Why the results in ``plan``'s folder are not ``plan``'s (they are flown again), or None: there
+    are none, or they are its own."""
+    plan_file, results = plan.out / PLAN_NAME, plan.out / RESULTS_NAME
+    if not results.is_file() or not results.read_text().strip():
+        return None
+    try:
+        then = json.loads(plan_file.read_text())
+    except (OSError, ValueError):
+        return f"its {PLAN_NAME} is missing or unreadable"
+    if not isinstance(then, dict):
+        return f"its {PLAN_NAME} is not a plan"
+    if then.get("fingerprint") == plan.fingerprint:
+        return None
+    return changed(then.get("inputs"), plan.inputs)
 
 
 def finished(plan: SweepPlan) -> dict[int, RunRecord]:
     """The runs of ``plan`` already in its folder (from an earlier call with the same plan)."""
-    plan_file, results = plan.out / PLAN_NAME, plan.out / RESULTS_NAME
-    if not plan_file.is_file() or not results.is_file():
-        return {}
-    try:
-        if json.loads(plan_file.read_text())["fingerprint"] != plan.fingerprint:
-            return {}
-    except (ValueError, KeyError):
+    results = plan.out / RESULTS_NAME
+    if not results.is_file() or stale(plan) is not None:
         return {}
     out: dict[int, RunRecord] = {}
     for line in results.read_text().splitlines():
@@ -85,18 +101,54 @@ def finished(plan: SweepPlan) -> dict[int, RunRecord]:
 Progress = Callable[[RunRecord, int, int], None]
 
 
+#: Ray's switch for a node that keeps to this machine: it takes 127.0.0.1 as its own address, and its
+#: services (GCS, raylet, object manager, workers, agents) listen there, not on every interface. Ray
+#: reads it when it is imported (here, in a process that has not imported it yet; in each of its own
+#: processes, which inherit it) and at the moment a node is started (`_keep_to_loopback`).
+LOOPBACK_ONLY_ENV = ("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+LOOPBACK = "127.0.0.1"
+
+
+def _keep_to_loopback() -> None:
+    """Make the Ray started next a node of this machine only (see `LOOPBACK_ONLY_ENV`)."""
+    name, value = LOOPBACK_ONLY_ENV
+    os.environ[name] = value
+    # Ray is imported here, not at the top: an optional, heavy dependency (the sweep extra)
+    from ray._private import ray_constants
+
+    # a Ray imported before the variable was set read it then; the node's address is looked up at start
+    ray_constants.ENABLE_RAY_CLUSTER = False
+
+
+def init_local_ray(num_cpus: int) -> None:
+    """Start Ray on this machine with ``num_cpus`` CPUs, every service on 127.0.0.1 and no dashboard."""
+    _keep_to_loopback()
+    import ray  # an optional, heavy dependency (the sweep extra)
+
+    ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address=LOOPBACK,
+             logging_level=logging.WARNING, log_to_driver=False)
+    address = ray.get_runtime_context().gcs_address.rsplit(":", 1)[0]
+    if address != LOOPBACK:  # a later Ray that ignores the switch: never serve on every interface
+        ray.shutdown()
+        raise RuntimeError(f"local Ray took {address} as its address, not {LOOPBACK}: it would be "
+                           "reachable from other machines; start one with `ray start --head` and pass "
+                           "its address instead")
+
+
 @contextlib.contextmanager
 def ray_session(address: str | None, jobs: int) -> Iterator[None]:
     """Ray for the duration of the block: the cluster at ``address``, else ``jobs`` CPUs on this
-    machine; a Ray already running (started by the caller) is used as it is and left running."""
-    import ray
+    machine (`init_local_ray`: reachable from this machine only); a Ray already running (started by
+    the caller) is used as it is and left running."""
+    import ray  # an optional, heavy dependency (the sweep extra)
 
     if ray.is_initialized():
         yield
         return
-    kwargs: dict[str, Any] = (
-        {"address": address} if address else {"num_cpus": jobs, "include_dashboard": False})
-    ray.init(logging_level=logging.WARNING, log_to_driver=False, **kwargs)
+    if address:
+        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
+    else:
+        init_local_ray(jobs)
     try:
         yield
     finally:
@@ -134,7 +186,7 @@ def run_sweep(plan: SweepPlan, *, address: str | None = None, jobs: int = 2, in_
         (plan.out / RESULTS_NAME).write_text("")
     (plan.out / PLAN_NAME).write_text(json.dumps(
         {"fingerprint": plan.fingerprint, "scenario": plan.scenario.id, "source": plan.scenario.source,
-         "runs": plan.runs, "seed": plan.dispersions.seed}, indent=2) + "\n")
+         "runs": plan.runs, "seed": plan.dispersions.seed, "inputs": plan.inputs}, indent=2) + "\n")
     todo = [i for i in range(plan.runs) if i not in done]
     records = dict(done)
     if progress is not None:
