@@ -1,12 +1,15 @@
-"""`hil compare SCENARIO... [--pilots P,Q,...]`: the same scenarios flown by several pilots through the
-links (by default two processes over ptys, lockstep, as `hil run`), compared as the paper's figure: one
-HTML page (trajectories overlaid through the gap, per pilot) and ``compare.json`` with, per scenario and
-pooled over them, each pilot's success rate, minimum clearance, mean angular rate and mean thrust.
+"""`hil compare SCENARIO... [--pilots P,Q,...] [--seeds N]`: the same scenarios flown by several pilots
+through the links (by default two processes over ptys, lockstep, as `hil run`), compared as the paper's
+figure and as a paired experiment: one HTML page (trajectories overlaid through the gap, per pilot;
+tables) and ``compare.json`` with, per run, pooled per pilot and paired over the units (scenario, seed),
+each pilot's success, minimum clearance, and angular rate and thrust over time (`FIGURES`).
 
-Means are taken over the crossing (the mission's approach and traverse, from the onboard program's
-``segment`` events: where the pilots differ; the takeoff and hover before and the recovery after are the
-same expert's in every pilot) and over the whole flight (the run summary's figures). Success: crossed
-through the opening with no collision. Exit 0 when every run completed, 2 for bad input.
+Figures are the run summary's per-segment ones (`hil.runner.flight_quality`, weighted by time): the
+approach (what a learned pilot flies), the traverse and recovery (the expert's in the e2e pilots), both
+first two ("crossing"), and the whole flight. Paired differences carry a 95 % interval
+(`hil.report.paired`); the paper's findings (`FINDINGS`) are each reproduced, not reproduced or not
+resolved by it. Success: crossed through the opening with no collision. Exit 0 when every run completed,
+2 for bad input.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from hil.commands import output_folder
+from hil.report.paired import INTERVAL_METHOD, paired_difference
 from hil.report.svg import View
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import make_gap
@@ -49,7 +53,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                                            "reports/compare)")
     p.add_argument("--in-process", action="store_true", default=None,
                    help="both sides in this process over memory links (default: two processes over ptys)")
-    p.add_argument("--seed", type=int, default=None, help="seed instead of each scenario's")
+    p.add_argument("--seed", type=int, default=None, help="seed instead of each scenario's (with --seeds: "
+                                                          "the first seed, default 0)")
+    p.add_argument("--seeds", type=int, default=1, metavar="N",
+                   help="fly every scenario with N seeds (--seed, --seed + 1, ...) and compare the pilots "
+                        "paired over scenarios x seeds, with 95 %% intervals (default 1)")
     p.set_defaults(func=main)
 
 
@@ -77,24 +85,34 @@ def held_out_scenarios(n: int, seed: int) -> list[Scenario]:
     return loads_scenarios("---\n".join(docs), source=f"held_out_{seed}")
 
 
-def crossing_window(summary: dict[str, Any]) -> tuple[float, float] | None:
-    """Sim times (s) of the mission's approach start and recovery start (the traverse's end), from the
-    onboard program's events; None when the mission did not get so far."""
-    start = end = None
-    for ev in summary.get("events", []):
-        if ev.get("source") != "onboard" or not isinstance(ev.get("time_s"), int | float):
-            continue
-        if ev["text"] == "segment: approach" and start is None:
-            start = float(ev["time_s"])
-        elif ev["text"] == "segment: recovery" and start is not None and end is None:
-            end = float(ev["time_s"])
-    return (start, end) if start is not None and end is not None else None
+#: per-run figures compared, each over time (`hil.runner.over_time`): the approach is what a learned
+#: pilot flies itself, the crossing adds the expert's traverse, the flight is the whole run
+FIGURES = (
+    ("approach_mean_angular_rate_rad_s", "mean angular rate, approach (rad/s)"),
+    ("approach_mean_thrust_n", "mean thrust, approach (N)"),
+    ("approach_max_angular_rate_rad_s", "max angular rate, approach (rad/s)"),
+    ("crossing_mean_angular_rate_rad_s", "mean angular rate, approach + traverse (rad/s)"),
+    ("crossing_mean_thrust_n", "mean thrust, approach + traverse (N)"),
+    ("traverse_mean_angular_rate_rad_s", "mean angular rate, traverse (rad/s)"),
+    ("recovery_mean_angular_rate_rad_s", "mean angular rate, recovery (rad/s)"),
+    ("flight_mean_angular_rate_rad_s", "mean angular rate, flight (rad/s)"),
+    ("flight_mean_thrust_n", "mean thrust, airborne (N)"),
+)
+#: the paper's findings (section VI): (what it says, figure, pilot a, pilot b): b's figure below a's
+FINDINGS = (
+    ("RL mitigates the attitude's vibration: e2e_rl turns less than e2e", "approach_mean_angular_rate_rad_s",
+     "e2e", "e2e_rl"),
+    ("RL's thrust is the lowest: e2e_rl below traditional", "approach_mean_thrust_n", "traditional",
+     "e2e_rl"),
+    ("RL's thrust is the lowest: e2e_rl below e2e", "approach_mean_thrust_n", "e2e", "e2e_rl"),
+)
+_SEGMENT_FIGURES = ("mean_angular_rate_rad_s", "mean_thrust_n", "max_angular_rate_rad_s")
 
 
 def flight_figures(summary: dict[str, Any], cols: dict[str, np.ndarray]) -> dict[str, Any]:
-    """One run's figures (see the module doc) and its trajectory over the crossing +-0.5 s."""
-    window = crossing_window(summary)
-    t = cols["t_s"]
+    """One run's figures (`FIGURES`, from the summary's per-segment figures; None for a segment not
+    flown) and its trajectory over the crossing +-0.5 s."""
+    segments = (summary.get("flight_quality") or {}).get("segments") or {}
     fig: dict[str, Any] = {
         "success": bool(summary["crossed_gap"] and summary["collision"] is None),
         "crossed_gap": bool(summary["crossed_gap"]),
@@ -102,55 +120,98 @@ def flight_figures(summary: dict[str, Any], cols: dict[str, np.ndarray]) -> dict
         "min_clearance_m": summary["min_clearance_m"],
         "flight_mean_angular_rate_rad_s": summary["mean_angular_rate_rad_s"],
         "flight_mean_thrust_n": summary["mean_thrust_n"],
-        "crossing_window_s": window,
-        "mean_angular_rate_rad_s": None,
-        "mean_thrust_n": None,
+        "segments_s": {k: [v["start_s"], v["end_s"]] for k, v in segments.items()},
         "trajectory_m": [],
     }
-    if window is not None:
-        sel = (t >= window[0]) & (t < window[1])
-        fig["mean_angular_rate_rad_s"] = float(np.mean(cols["body_rate_rad_s"][sel]))
-        fig["mean_thrust_n"] = float(np.mean(cols["thrust_n"][sel]))
-        near = (t >= window[0] - 0.5) & (t <= window[1] + 0.5)
+    for seg in ("approach", "traverse", "recovery", "crossing"):
+        for k in _SEGMENT_FIGURES:
+            fig[f"{seg}_{k}"] = segments[seg][k] if seg in segments else None
+    if "crossing" in segments:
+        t = cols["t_s"]
+        near = (t >= segments["crossing"]["start_s"] - 0.5) & (t <= segments["crossing"]["end_s"] + 0.5)
         pos = np.stack([cols["pos_m_x"], cols["pos_m_y"], cols["pos_m_z"]], 1)[near]
         fig["trajectory_m"] = np.round(pos[:: max(1, len(pos) // 200)], 4).tolist()
     return fig
 
 
 def pooled(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """A pilot's figures over scenarios: success rate, the least clearance, the mean of the per-run means
-    (over the runs that have them)."""
+    """A pilot's figures over runs: success rate, the least clearance, the mean of each figure over the
+    runs that have it."""
     def mean(key: str) -> float | None:
-        vals = [r[key] for r in runs if r[key] is not None]
+        vals = [r[key] for r in runs if r.get(key) is not None]
         return float(np.mean(vals)) if vals else None
 
     clear = [r["min_clearance_m"] for r in runs if r["min_clearance_m"] is not None]
     rate = float(np.mean([r["success"] for r in runs])) if runs else None
-    return {"runs": len(runs), "success_rate": rate,
-            "min_clearance_m": min(clear) if clear else None,
-            "mean_angular_rate_rad_s": mean("mean_angular_rate_rad_s"),
-            "mean_thrust_n": mean("mean_thrust_n"),
-            "flight_mean_angular_rate_rad_s": mean("flight_mean_angular_rate_rad_s"),
-            "flight_mean_thrust_n": mean("flight_mean_thrust_n")}
+    return {"runs": len(runs), "success_rate": rate, "min_clearance_m": min(clear) if clear else None,
+            **{k: mean(k) for k, _ in FIGURES}}
+
+
+def paired_comparisons(units: list[dict[str, dict[str, Any]]], pilots: list[str]) -> dict[str, Any]:
+    """Every pair of ``pilots`` (the later against the earlier) over ``units`` (per unit: pilot -> its
+    run's figures), per figure of `FIGURES` and success (1/0): `hil.report.paired`."""
+    out: dict[str, Any] = {}
+    for i, a in enumerate(pilots):
+        for b in pilots[i + 1:]:
+            per: dict[str, Any] = {}
+            for key in ("success", *(k for k, _ in FIGURES)):
+                va = [None if u[a].get(key) is None else float(u[a][key]) for u in units]
+                vb = [None if u[b].get(key) is None else float(u[b][key]) for u in units]
+                per[key] = paired_difference(a, b, va, vb).to_dict()
+            out[f"{b} - {a}"] = per
+    return out
+
+
+def findings(paired: dict[str, Any]) -> list[dict[str, Any]]:
+    """The paper's findings (`FINDINGS`) among the pairs flown: reproduced (b below a, the interval
+    excluding zero), not reproduced (b above a, the interval excluding zero) or not resolved."""
+    out = []
+    for text, key, a, b in FINDINGS:
+        d = paired.get(f"{b} - {a}", {}).get(key)
+        if d is None:
+            continue
+        status = {f"{b} lower": "reproduced", f"{b} higher": "not reproduced"}.get(d["verdict"],
+                                                                                  "not resolved")
+        out.append({"finding": text, "figure": key, "status": status, **{k: d[k] for k in (
+            "a", "b", "units", "mean_a", "mean_b", "mean_difference", "ci_low", "ci_high", "b_lower_in")}})
+    return out
 
 
 def compare(scenarios: list[Scenario], pilots: list[str], out: Path, options: RunOptions,
-            progress: Any = print) -> dict[str, Any]:
-    """Fly each scenario with each pilot (runs under ``out/<scenario>/<pilot>``); write and return the
-    comparison (``out/compare.json``, ``out/compare.html``)."""
-    result: dict[str, Any] = {"pilots": pilots, "scenarios": {}, "pooled": {}}
+            progress: Any = print, seeds: list[int] | None = None,
+            groups: dict[str, str] | None = None) -> dict[str, Any]:
+    """Fly each scenario with each pilot, once per seed of ``seeds`` (None: once, with the options' or
+    the scenario's seed; runs under ``out/<scenario>[/seed<k>]/<pilot>``); write and return the
+    comparison (``out/compare.json``, ``out/compare.html``): per run, pooled per pilot, and paired over
+    the units (scenario, seed), over all and per group (``groups``: scenario id -> group name)."""
+    result: dict[str, Any] = {"pilots": pilots, "seeds": seeds, "interval": INTERVAL_METHOD,
+                              "scenarios": {}, "pooled": {}}
+    units: list[tuple[str, dict[str, dict[str, Any]]]] = []
     for s in scenarios:
-        per: dict[str, Any] = {}
-        for pilot in pilots:
-            run = run_scenario(s, out / s.id / pilot, replace(options, pilot=pilot))
-            data = np.load(run.out_dir / "timeseries.npz")
-            per[pilot] = flight_figures(run.summary, {k: data[k] for k in data.files})
-            progress(f"{s.id} {pilot}: {'crossed' if per[pilot]['success'] else 'FAILED'}, mean rate "
-                     f"{_fmt(per[pilot]['mean_angular_rate_rad_s'])} rad/s, mean thrust "
-                     f"{_fmt(per[pilot]['mean_thrust_n'])} N")
-        result["scenarios"][s.id] = {"description": s.description, "gap": _gap_outline(s), "pilots": per}
+        runs: dict[str, dict[str, Any]] = {}
+        for seed in [None] if seeds is None else seeds:
+            per: dict[str, Any] = {}
+            where = out / s.id if seed is None else out / s.id / f"seed{seed}"
+            for pilot in pilots:
+                opts = replace(options, pilot=pilot) if seed is None else replace(
+                    options, pilot=pilot, seed=seed, html_report="failed")
+                run = run_scenario(s, where / pilot, opts)
+                data = np.load(run.out_dir / "timeseries.npz")
+                per[pilot] = flight_figures(run.summary, {k: data[k] for k in data.files})
+                progress(f"{s.id}{'' if seed is None else f' seed {seed}'} {pilot}: "
+                         f"{'crossed' if per[pilot]['success'] else 'FAILED'}, approach: mean rate "
+                         f"{_fmt(per[pilot]['approach_mean_angular_rate_rad_s'])} rad/s, mean thrust "
+                         f"{_fmt(per[pilot]['approach_mean_thrust_n'])} N")
+            runs[str(run.summary["mode"]["seed"])] = per
+            units.append(((groups or {}).get(s.id, "scenarios"), per))
+        result["scenarios"][s.id] = {"description": s.description, "gap": _gap_outline(s),
+                                     "pilots": next(iter(runs.values())), "seeds": runs}
     for pilot in pilots:
-        result["pooled"][pilot] = pooled([sc["pilots"][pilot] for sc in result["scenarios"].values()])
+        result["pooled"][pilot] = pooled([u[pilot] for _, u in units])
+    result["paired"] = {"all": paired_comparisons([u for _, u in units], pilots)}
+    for g in sorted({g for g, _ in units}) if len({g for g, _ in units}) > 1 else []:
+        result["paired"][g] = paired_comparisons([u for gg, u in units if gg == g], pilots)
+    result["findings"] = findings(result["paired"]["all"])
     out.mkdir(parents=True, exist_ok=True)
     (out / "compare.json").write_text(json.dumps(result, indent=1) + "\n")
     (out / "compare.html").write_text(render_html(result))
@@ -205,11 +266,8 @@ def _overlay_svg(gap: list[list[float]], runs: dict[str, dict[str, Any]], view: 
 
 
 def _table(rows: dict[str, dict[str, Any]], colours: dict[str, str]) -> str:
-    cols = (("success_rate", "success"), ("success", "success"), ("min_clearance_m", "min clearance (m)"),
-            ("mean_angular_rate_rad_s", "mean angular rate, crossing (rad/s)"),
-            ("mean_thrust_n", "mean thrust, crossing (N)"),
-            ("flight_mean_angular_rate_rad_s", "mean angular rate, flight (rad/s)"),
-            ("flight_mean_thrust_n", "mean thrust, flight (N)"))
+    cols = (("runs", "runs"), ("success_rate", "success"), ("success", "success"),
+            ("min_clearance_m", "min clearance (m)"), *FIGURES)
     keys = [(k, name) for k, name in cols if any(k in r for r in rows.values())]
     head = "".join(f"<th>{html.escape(name)}</th>" for _, name in keys)
     body = "".join(f'<tr><td style="color:{colours[p]}"><b>{html.escape(p)}</b></td>'
@@ -218,18 +276,56 @@ def _table(rows: dict[str, dict[str, Any]], colours: dict[str, str]) -> str:
     return f"<table><tr><th>pilot</th>{head}</tr>{body}</table>"
 
 
+def _interval(d: dict[str, Any]) -> str:
+    if d["ci_low"] is None:
+        return "-"
+    return f"[{d['ci_low']:+.4g}, {d['ci_high']:+.4g}]"
+
+
+def _paired_table(paired: dict[str, Any]) -> str:
+    labels = dict((("success", "success (1/0)"), *FIGURES))
+    rows = []
+    for pair, per in paired.items():
+        for key, d in per.items():
+            rows.append(f"<tr><td>{html.escape(pair)}</td><td>{html.escape(labels[key])}</td><td>{d['units']}</td>"
+                        f"<td>{_fmt(d['mean_a'], 5)}</td><td>{_fmt(d['mean_b'], 5)}</td>"
+                        f"<td>{_fmt(d['mean_difference'], 4)}</td><td>{_interval(d)}</td>"
+                        f"<td>{d['b_lower_in']}/{d['units']}</td><td>{html.escape(d['verdict'])}</td></tr>")
+    return ("<table><tr><th>b - a</th><th>figure</th><th>units</th><th>mean a</th><th>mean b</th>"
+            "<th>mean difference</th><th>95 % interval</th><th>b lower in</th><th>verdict</th></tr>"
+            + "".join(rows) + "</table>")
+
+
+def _findings_table(found: list[dict[str, Any]]) -> str:
+    rows = "".join(f"<tr><td>{html.escape(f['finding'])}</td><td>{html.escape(f['status'])}</td>"
+                   f"<td>{_fmt(f['mean_difference'], 4)}</td><td>{_interval(f)}</td>"
+                   f"<td>{f['units']}</td></tr>"
+                   for f in found)
+    return ("<table><tr><th>the paper's finding</th><th>here</th><th>mean difference</th>"
+            f"<th>95 % interval</th><th>units</th></tr>{rows}</table>")
+
+
 def render_html(result: dict[str, Any]) -> str:
     """The comparison as one self-contained page (no scripts, no network)."""
     colours = dict(zip(result["pilots"], COLOURS, strict=False))
     top, side = View(math.radians(-90), math.radians(89.9)), View(math.radians(180), 0.0)
+    seeds = result.get("seeds")
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>hil compare</title><style>"
              "body{font-family:sans-serif;margin:20px}table{border-collapse:collapse;margin:8px 0}"
              "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>",
              "<h1>Pilots compared through the links</h1>",
-             "<p>Means over the crossing: the mission's approach and traverse; over the flight: the whole "
-             "run. "
-             "Success: through the opening, no collision.</p>",
-             "<h2>Pooled over the scenarios</h2>", _table(result["pooled"], colours)]
+             "<p>Figures over time (each sample weighted by the time it holds): the approach (what a learned "
+             "pilot flies), approach + traverse, the traverse and recovery (the expert's), the whole flight. "
+             "Success: through the opening, no collision. "
+             + (f"Each scenario flown with seeds {html.escape(str(seeds))}. " if seeds else "")
+             + "Paired differences over the units (scenario, seed); interval: "
+             + f"{html.escape(INTERVAL_METHOD)}."
+             "</p>"]
+    if result.get("findings"):
+        parts += ["<h2>The paper's findings</h2>", _findings_table(result["findings"])]
+    parts += ["<h2>Pooled over the runs</h2>", _table(result["pooled"], colours)]
+    for group, paired in (result.get("paired") or {}).items():
+        parts += [f"<h2>Paired differences ({html.escape(group)})</h2>", _paired_table(paired)]
     for sid, sc in result["scenarios"].items():
         parts += [f"<h2>{html.escape(sid)}</h2><p>{html.escape(sc['description'] or '')}</p>",
                   _overlay_svg(sc["gap"], sc["pilots"], top, "top view (x right, y up)"), " ",
@@ -267,10 +363,16 @@ def main(args: argparse.Namespace) -> int:
     if not scenarios:
         print("hil compare: no scenario to fly", file=sys.stderr)
         return 2
+    if args.seeds < 1:
+        print(f"hil compare: --seeds must be 1 or more, got {args.seeds}", file=sys.stderr)
+        return 2
     if output_folder(args.out, "hil compare") is None:
         return 2
+    seeds = None if args.seeds == 1 else [(args.seed or 0) + k for k in range(args.seeds)]
+    groups = {s.id: "held_out" if s.source.startswith("held_out_") else "scenarios" for s in scenarios}
     try:
-        compare(scenarios, pilots, Path(args.out), RunOptions(in_process=args.in_process, seed=args.seed))
+        compare(scenarios, pilots, Path(args.out), RunOptions(in_process=args.in_process, seed=args.seed),
+                seeds=seeds, groups=groups)
     except (RunSetupError, ValueError) as exc:
         print(f"hil compare: {exc}", file=sys.stderr)
         return 2

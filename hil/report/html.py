@@ -112,6 +112,7 @@ def render_report_html(
         _scenes(cols, scenario, crossing),
         "<h2>Attitude, thrust and clearance</h2>",
         _charts(cols, scenario, crossing),
+        _segments(summary),
         "<h2>Link statistics</h2>",
         _links(summary),
         _realtime(summary),
@@ -169,6 +170,22 @@ def _verdict(summary: dict[str, Any], scenario: Scenario) -> str:
         f"{escape(scenario.description)}<br>{escape(tally)}</div></section>"
         f'<p class="meta">{meta_html}</p>'
     )
+
+
+def _segments(summary: dict[str, Any]) -> str:
+    """Angular rate and thrust per mission segment, over time (the summary's figures)."""
+    segs = (summary.get("flight_quality") or {}).get("segments") or {}
+    if not isinstance(segs, dict) or not segs:
+        return ""
+    keys = (("duration_s", "duration (s)"), ("mean_angular_rate_rad_s", "mean rate (rad/s)"),
+            ("max_angular_rate_rad_s", "max rate (rad/s)"), ("mean_thrust_n", "mean thrust (N)"))
+    rows = "".join(f"<tr><td>{escape(str(name))}</td>"
+                   + "".join(f"<td>{escape(_fmt(f.get(k)))}</td>" for k, _ in keys) + "</tr>"
+                   for name, f in segs.items() if isinstance(f, dict))
+    head = "".join(f"<th>{escape(label)}</th>" for _, label in keys)
+    return ("<h2>Per segment, over time</h2><table><tr><th>segment</th>" + head + "</tr>" + rows
+            + '</table><p class="note">Each sample weighted by the time it holds (the recorder samples '
+            "ten times as often near the gap).</p>")
 
 
 def _flown_by(flies: Any) -> str | None:

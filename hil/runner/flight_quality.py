@@ -17,17 +17,22 @@ time at thrust saturation and settling after each manoeuvre, each with its worst
 - Settling: after each manoeuvre (the takeoff, the crossing's recovery into the hover), the time until
   the position stays within ``SETTLE_BAND_M`` of where the manoeuvre ends, over the hold that follows
   (up to the plan, and up to the mission's end).
+- Per segment of the mission, from the program's ``segment`` events (approach: what a learned pilot
+  flies; traverse and recovery: the expert's or the pilot's, as it says; ``crossing``: approach and
+  traverse): its window, and the angular rate and thrust over time there (`hil.runner.over_time`: mean,
+  maximum and integral, each sample weighted by the time it holds, not counted once).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
+from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
 from hil.runner.recorder import FC_STATE_CODES
 from policies.gap_planning import MissionPlan, MissionRequest, Segment
 
@@ -59,6 +64,28 @@ NONE = Figure(None)
 
 
 @dataclass(frozen=True)
+class SegmentFigures:
+    """Angular rate and thrust over one segment's window [start_s, end_s) of sim time, weighted by time
+    (`hil.runner.over_time`); None where the window holds no sample."""
+
+    start_s: float
+    end_s: float
+    mean_angular_rate_rad_s: float | None
+    max_angular_rate_rad_s: float | None
+    angular_rate_integral_rad: float | None  # the body rate's norm integrated over the window
+    mean_thrust_n: float | None
+    max_thrust_n: float | None
+    thrust_impulse_n_s: float | None
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_s - self.start_s
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "duration_s": self.duration_s}
+
+
+@dataclass(frozen=True)
 class FlightQuality:
     """The figures of one run (see the module docstring); units in the names."""
 
@@ -68,9 +95,13 @@ class FlightQuality:
     thrust_saturation_s: Figure  # total time; time_s: the start of the longest stretch
     settling_time_s: dict[str, Figure]  # by manoeuvre ("takeoff", "crossing"); time_s: when settled
     settled: dict[str, bool]  # by manoeuvre: within the band at the end of its window
+    #: by mission segment ("approach", "traverse", "recovery", "hover", and "crossing": approach and
+    #: traverse), those the program entered
+    segments: dict[str, SegmentFigures] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "segments": {k: f.to_dict() for k, f in self.segments.items()},
             "heading_error_deg": {k: f.to_dict() for k, f in self.heading_error_deg.items()},
             "attitude_tracking_deg": self.attitude_tracking_deg.to_dict(),
             "position_error_m": {k: f.to_dict() for k, f in self.position_error_m.items()},
@@ -114,7 +145,34 @@ def measure(cols: Mapping[str, np.ndarray], events: Sequence[Mapping[str, Any]],
         thrust_saturation_s=saturation(t, cols["motor_max_pct"]),
         settling_time_s=settling,
         settled=settled,
+        segments={name: segment_figures(cols, w) for name, w in segment_windows(events, float(t[-1])).items()}
+        if len(t) else {},
     )
+
+
+def segment_windows(events: Sequence[Mapping[str, Any]], end_s: float) -> dict[str, tuple[float, float]]:
+    """Sim-time windows (s) of the mission's segments from the program's ``segment`` events: each from
+    its event to the next segment's, to the mission's end (done, abort, a lost link) or to ``end_s``;
+    ``crossing``: from the approach to the end of the traverse, when both were flown."""
+    marks = [(float(ev["t_s"]), str(ev.get("segment"))) for ev in events
+             if ev.get("event") == "segment" and isinstance(ev.get("t_s"), int | float)]
+    out: dict[str, tuple[float, float]] = {}
+    for i, (t0, name) in enumerate(marks):
+        t1 = marks[i + 1][0] if i + 1 < len(marks) else min(end_s, _first_time(events, _MISSION_ENDS, t0))
+        if name not in out:  # a segment entered twice (not in a mission as planned) counts its first time
+            out[name] = (t0, max(t0, t1))
+    if str(Segment.APPROACH) in out and str(Segment.TRAVERSE) in out:
+        out["crossing"] = (out[str(Segment.APPROACH)][0], out[str(Segment.TRAVERSE)][1])
+    return out
+
+
+def segment_figures(cols: Mapping[str, np.ndarray], window: tuple[float, float]) -> SegmentFigures:
+    """Angular rate and thrust over ``window`` (s) of a run's columns, weighted by time."""
+    t, (t0, t1) = cols["t_s"], window
+    rate, thrust = cols["body_rate_rad_s"], cols["thrust_n"]
+    return SegmentFigures(t0, t1, time_mean(t, rate, t0, t1), time_max(t, rate, t0, t1),
+                          time_integral(t, rate, t0, t1), time_mean(t, thrust, t0, t1),
+                          time_max(t, thrust, t0, t1), time_integral(t, thrust, t0, t1))
 
 
 def heading_errors(
@@ -181,7 +239,7 @@ def saturation(t: np.ndarray, motor_max_pct: np.ndarray) -> Figure:
     sat = np.asarray(motor_max_pct) >= SATURATED_PCT
     if len(t) < 2 or not sat.any():
         return Figure(0.0)
-    dt = np.diff(t, append=t[-1])
+    dt = hold_weights_s(t)
     total = float(np.sum(dt[sat]))
     best, best_t, run, run_t = 0.0, None, 0.0, None
     for i in np.flatnonzero(sat).tolist():

@@ -43,6 +43,7 @@ from hil.runner.onboard_side import (
     prestart,
     program_config,
 )
+from hil.runner.over_time import time_mean
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.runner.recorder import FC_STATE_CODES
 from hil.scenario.schema import COMMAND_PROTOCOLS, DEFAULT_VEHICLE, Fault, Scenario
@@ -472,8 +473,9 @@ def _finish(
         "onboard_abort_s": obs.onboard_abort_s,
         "recovery_point_m": obs.hover_point_m,
         "onboard_hover_point_m": reported,
-        "mean_thrust_n": float(np.mean(cols["thrust_n"][airborne])) if np.any(airborne) else 0.0,
-        "mean_angular_rate_rad_s": float(np.mean(cols["body_rate_rad_s"])) if len(cols["t_s"]) else 0.0,
+        # over time (`hil.runner.over_time`), not over samples: the recorder samples 10x as often near the gap
+        "mean_thrust_n": time_mean(cols["t_s"], cols["thrust_n"], mask=airborne) or 0.0,
+        "mean_angular_rate_rad_s": time_mean(cols["t_s"], cols["body_rate_rad_s"]) or 0.0,
         "flight_quality": obs.quality.to_dict(),
         "events": events,
         "scenario": s.to_dict(),
