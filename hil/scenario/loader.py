@@ -21,10 +21,9 @@ from yaml.constructor import SafeConstructor
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from hil.scenario import schema
+from hil.scenario.fault_kinds import FAULT_KINDS, NoParams, ParamSetParams, WindGustParams
 from hil.scenario.schema import (
     DISTRIBUTIONS,
-    FAULT_KINDS,
-    FAULT_PARAMS,
     FLIGHT_PHASES,
     MISSION_EVENTS,
     SCENARIO_LIMITS,
@@ -34,11 +33,8 @@ from hil.scenario.schema import (
     Expectations,
     Fault,
     GoCriterion,
-    NoParams,
-    ParamSetParams,
     RecoveryExpectation,
     Scenario,
-    WindGustParams,
 )
 
 #: libyaml's parser where PyYAML was built with it (the files under scenarios/ load about 2x faster with it,
@@ -577,16 +573,17 @@ class _Builder:
         )
         if "kind" not in items:
             raise self.error(node, f"{path}.kind", f"required field missing; one of {', '.join(FAULT_KINDS)}")
-        kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": FAULT_KINDS})
+        kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": tuple(FAULT_KINDS)})
         time_meta = {"lo": 0.0, "hi": 3600.0}
         # an instant (onboard_killed: at_s or at) or a window (start_s or start, then end_s or duration_s)
-        instant = kind == "onboard_killed"
+        instant = FAULT_KINDS[kind].instant
         abs_key, rel_key = ("at_s", "at") if instant else ("start_s", "start")
         wrong = ("start_s", "start", "end_s", "duration_s") if instant else ("at_s", "at")
         for key in wrong:
             if key in items:
-                what = "onboard_killed is an instant: give at_s or at only" if instant else (
-                    "only onboard_killed takes at_s or at; use start_s or start")
+                instants = " or ".join(k for k, c in FAULT_KINDS.items() if c.instant)
+                what = f"{kind} is an instant: give at_s or at only" if instant else (
+                    f"only {instants} takes at_s or at; use start_s or start")
                 raise self.error(items[key], f"{path}.{key}", what)
         if (abs_key in items) == (rel_key in items):
             raise self.error(
@@ -621,7 +618,7 @@ class _Builder:
         phase = None
         if "phase" in items:
             phase = self.convert(str, items["phase"], f"{path}.phase", {"choices": FLIGHT_PHASES})
-        params_cls = FAULT_PARAMS[kind]
+        params_cls = FAULT_KINDS[kind].params
         params: Any = NoParams()
         if "params" in items:
             sub = items["params"]
@@ -704,7 +701,7 @@ class _Builder:
         """Rules that involve several fields; errors point at the field most likely wrong."""
         if s.links.esc_bus is None:
             for i, f in enumerate(s.faults):
-                if f.kind in ("esc_silent", "can_frame_loss", "can_bus_off"):
+                if FAULT_KINDS[f.kind].needs_esc_bus:
                     raise self.error(self.line_of(f"faults[{i}].kind", doc_line), f"faults[{i}].kind",
                                      f"{f.kind} needs the motors on an ESC bus: give links.esc_bus ({{}} "
                                      f"for its defaults)")
@@ -752,7 +749,7 @@ class _Builder:
         self.check_tilt(s, doc_line)
         for i, fault in enumerate(s.faults):
             if fault.after is None and fault.start_s >= s.duration_s:
-                key = "at_s" if fault.kind == "onboard_killed" else "start_s"
+                key = "at_s" if fault.instant else "start_s"
                 raise self.error(
                     self.line_of(f"faults[{i}].{key}", doc_line),
                     f"faults[{i}].{key}",
