@@ -13,7 +13,8 @@ import pytest
 
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
-from hil.scenario.dispersions import base_document, dispersed, run_seeds, sample
+from hil.scenario.dispersions import base_document, run_seeds, sample
+from hil.scenario.loader import dispersed
 from hil.sweep import plan_sweep, run_sweep, summarise, wilson_interval
 from hil.sweep.report import write_sweep
 

@@ -14,7 +14,7 @@ import yaml
 
 from hil.benches import BenchRow
 from hil.scenario import load_scenarios
-from hil.scenario.dispersions import dispersed
+from hil.scenario.loader import dispersed
 from hil.sweep import plan_sweep, run_sweep
 
 SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "gap_roll60_2p5ms.scenario.yaml"

@@ -21,6 +21,7 @@ from yaml.constructor import SafeConstructor
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from hil.scenario import schema
+from hil.scenario.dispersions import PathError, apply, base_document, value_at
 from hil.scenario.fault_kinds import FAULT_KINDS, NoParams, ParamSetParams, WindGustParams
 from hil.scenario.schema import (
     DISTRIBUTIONS,
@@ -132,6 +133,17 @@ def load_all(paths: Iterable[str | Path]) -> list[Scenario]:
                 ids[s.id] = s
                 out.append(s)
     return out
+
+
+def dispersed(scenario: Scenario, values: dict[str, Any], seed: int, name: str) -> Scenario:
+    """``scenario`` with dispersed ``values`` applied (`hil.scenario.dispersions`) and ``seed``, named
+    ``name``, validated as a file is (ScenarioError, naming the field, for a draw out of its range)."""
+    doc = apply(base_document(scenario), values)
+    doc["seed"], doc["name"] = seed, name
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # (libyaml's, where PyYAML has it: faster)
+    text = yaml.dump(doc, Dumper=dumper, sort_keys=False)
+    [s] = loads_scenarios(text, source=f"{scenario.source} ({name})")
+    return s
 
 
 # --- helpers -------------------------------------------------------------------------------------
@@ -536,8 +548,6 @@ class _Builder:
     def check_dispersions(self, s: Scenario, doc_line: int) -> None:
         """Every path of ``vary`` names a field of this scenario, and the values its distribution reaches
         (a uniform's ends, a normal's mean +- 3 sd, each choice) make a valid scenario."""
-        from hil.scenario.dispersions import PathError, base_document, dispersed, value_at
-
         assert s.dispersions is not None
         doc = base_document(s)
         for key, dist in s.dispersions.vary:
