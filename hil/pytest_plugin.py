@@ -22,6 +22,9 @@ from hil.scenario import ScenarioError, loads_scenarios
 from hil.scenario.loader import SUFFIX
 from hil.scenario.schema import Scenario
 
+# The emulator and the runner (numba kernels, the onboard program) are imported inside the hooks that
+# need them, not here: this plugin is loaded in every pytest session of an environment that installs it.
+
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("crossgap-hil", "scenario files (*.scenario.yaml)")
@@ -79,7 +82,7 @@ def pytest_configure(config: pytest.Config) -> None:
         config.addinivalue_line("markers", f"{name}: {text}")
     vehicle = config.getoption("--hil-vehicle", None)
     if vehicle is not None:  # a vehicle that does not load is a usage error, not a failure per scenario
-        from emulator.profile import load_profile
+        from emulator.profile import load_profile  # (the emulator only when a vehicle is given)
 
         try:
             load_profile(vehicle)
@@ -102,7 +105,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     if cfg.getoption("--hil-in-process") or cfg.getoption("--hil-cold-start"):
         return
     if any(isinstance(item, ScenarioItem) for item in session.items):
-        from hil.runner.onboard_side import prestart
+        from hil.runner.onboard_side import prestart  # (the runner only when scenarios were collected)
 
         prestart()
 
@@ -160,7 +163,7 @@ class ScenarioItem(pytest.Item):
         self.scenario = scenario
 
     def runtest(self) -> None:
-        from hil.runner import RunOptions, run_scenario
+        from hil.runner import RunOptions, run_scenario  # (the runner only when a scenario runs)
 
         cfg = self.config
         out_root = cfg.getoption("--hil-out")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
 from hil.scenario import Scenario, ScenarioError, load_all, load_scenarios, loads_scenarios, schema
-from hil.scenario.schema import CorruptBytesParams, NoParams, WindGustParams
+from hil.scenario.fault_kinds import FAULT_KINDS, CorruptBytesParams, NoParams, ParamSetParams, WindGustParams
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "scenarios" / "examples"
@@ -326,7 +327,7 @@ def test_a_file_with_every_field_round_trips(tmp_path: Path) -> None:
     same = sorted(k for k in defaults if k in given and given[k] == defaults[k])
     assert same == ["expect.collision_expected", "expect.crosses_gap", "expect.onboard_abort_expected",
                     "expect.stays_in_lab", "initial.on_ground", "vehicle"]  # fmt: skip
-    assert {f.kind for f in s.faults} == set(schema.FAULT_KINDS)
+    assert {f.kind for f in s.faults} == set(FAULT_KINDS)
     # to_dict -> YAML -> load gives the same scenario
     text = yaml.safe_dump(s.to_dict(include_meta=False), sort_keys=False)
     [again] = load_scenarios(write(tmp_path, text, "again.scenario.yaml"))
@@ -348,41 +349,35 @@ def test_strings_parse_like_files() -> None:
     assert s.id == "inline" and s.gap.roll_deg == 60
 
 
+def schema_classes() -> set[type]:
+    """Every dataclass a scenario file can hold: those reached from `Scenario`'s fields (through
+    optional, union and tuple types) and each registered fault kind's parameters."""
+    found: set[type] = set()
+    todo: list[object] = [Scenario, *(kind.params for kind in FAULT_KINDS.values())]
+    while todo:
+        t = todo.pop()
+        if dataclasses.is_dataclass(t) and isinstance(t, type):
+            if t not in found:
+                found.add(t)
+                todo += typing.get_type_hints(t).values()
+        else:
+            todo += typing.get_args(t)
+    return found
+
+
+def test_the_schema_walk_reaches_the_nested_blocks() -> None:
+    classes = schema_classes()
+    assert {schema.EventTime, schema.Distribution, schema.HeadingErrorLimits, CorruptBytesParams} <= classes
+    assert len(classes) >= 26
+
+
 def test_the_format_document_names_every_field() -> None:
     doc = (ROOT / "docs" / "scenario-format.md").read_text()
     names: set[str] = set()
-    for cls in (
-        schema.GapSpec,
-        schema.LabSpec,
-        schema.InitialState,
-        schema.ApproachSpec,
-        schema.BurstLoss,
-        schema.MocapLinkSpec,
-        schema.CommandLinkSpec,
-        schema.LinksSpec,
-        schema.CorruptBytesParams,
-        schema.WindGustParams,
-        schema.ParamSetParams,
-        schema.EscSilentParams,
-        schema.CanFrameLossParams,
-        schema.EscBusSpec,
-        schema.EventTime,
-        schema.RecoveryExpectation,
-        schema.LinkExpectations,
-        schema.HeadingErrorLimits,
-        schema.SegmentErrorLimits,
-        schema.QualityExpectations,
-        schema.Expectations,
-        schema.MocapBiasSpec,
-        schema.AirframeSpec,
-        schema.Dispersions,
-        schema.Distribution,
-        schema.GoCriterion,
-        Scenario,
-    ):
-        names.update(f.name for f in dataclasses.fields(cls))  # fmt: skip
+    for cls in schema_classes():
+        names.update(f.name for f in dataclasses.fields(cls))
     names -= set(Scenario.META_FIELDS)
-    names |= {"at_s", "start", "at", "duration_s", "phase", "no_collision", *schema.FAULT_KINDS,
+    names |= {"at_s", "start", "at", "duration_s", "phase", "no_collision", *FAULT_KINDS,
               *schema.MISSION_EVENTS, *schema.FLIGHT_PHASES}
     missing = sorted(n for n in names if not re.search(rf"`{re.escape(n)}`", doc))
     assert missing == []
@@ -404,7 +399,7 @@ def test_fc_parameters_are_checked_against_the_fc_table(tmp_path: Path) -> None:
     [s] = loads_scenarios(MINIMAL + "params: {COM_OF_LOSS_T: 0.5}\nfaults:\n"
                           "  - {kind: param_set, start_s: 1, params: {name: COM_OBL_RC_ACT, value: 4}}\n")
     assert s.params == (("COM_OF_LOSS_T", 0.5),)
-    assert s.faults[0].params == schema.ParamSetParams("COM_OBL_RC_ACT", 4.0)
+    assert s.faults[0].params == ParamSetParams("COM_OBL_RC_ACT", 4.0)
     for extra, where, why in (
         ("params: {COM_OF_LOS_T: 0.5}", "params.COM_OF_LOS_T", "did you mean COM_OF_LOSS_T?"),
         ("params: {COM_OF_LOSS_T: 99}", "params.COM_OF_LOSS_T", "99 outside 0.1..60 s"),

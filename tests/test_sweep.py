@@ -18,7 +18,8 @@ import pytest
 
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
-from hil.scenario.dispersions import base_document, dispersed, run_seeds, sample
+from hil.scenario.dispersions import base_document, run_seeds, sample
+from hil.scenario.loader import dispersed
 from hil.sweep import plan_sweep, run_sweep, summarise, wilson_interval
 from hil.sweep.inputs import PROJECT, VERSION, changed, project_version, tree_digest
 from hil.sweep.report import rate_colour, write_sweep

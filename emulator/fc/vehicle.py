@@ -8,7 +8,12 @@ from typing import Protocol
 import numpy as np
 
 from emulator.fc.flight_controller import FcConfig, FlightController
+from emulator.fc.hold import hold_command
+from emulator.fc.inner_loop import control
+from emulator.fc.landed import body_landed
+from emulator.fc.n3 import limit_tilt
 from emulator.physics import DEFAULT_DT_S, PhysicsBackend, make_backend
+from emulator.physics.native import NativeBackend
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 
@@ -102,12 +107,6 @@ class EmulatedVehicle:
         controller, the native physics step), or load them from numba's cache, now rather than at their
         first use, with the argument types that use will have: on a fresh install a real-time loop would
         otherwise stall for seconds in flight the first time the FC arms. Changes no state."""
-        from emulator.fc.hold import hold_command
-        from emulator.fc.inner_loop import control
-        from emulator.fc.landed import body_landed
-        from emulator.fc.n3 import limit_tilt
-        from emulator.physics.native import NativeBackend
-
         st, fc = self.state, self.fc
         inner = fc.inner
         control(st.quat_wxyz, st.omega_rad_s, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, np.zeros(4))

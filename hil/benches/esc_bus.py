@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from emulator.esc_bus import EscBus, EscBusConfig
 from hil.benches import BenchRow, time_per_call
 from hil.benches.runner import RTF_SCENARIO
 from hil.runner import RunOptions, run_scenario
@@ -20,8 +21,6 @@ RUNS = 3  # runs of each stack; the figure is their median
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
-    from emulator.esc_bus import EscBus, EscBusConfig
-
     esc = EscBus(EscBusConfig(), np.random.default_rng(0), 0.0, lambda *a: None, lambda *a: None)
     throttles = np.array([0.1, 0.2, 0.3, 0.4])
     clock = [0.0]

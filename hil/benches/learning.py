@@ -6,13 +6,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 from hil.benches import BenchRow
+from policies.learning.data import planner_samples_per_s
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
-    from policies.learning.data import planner_samples_per_s
-
     try:
-        from policies.learning.latency import e2e_latencies_us
+        from policies.learning.latency import e2e_latencies_us  # (torch, onnxruntime: the 'learn' extra)
     except ImportError:  # torch/onnxruntime are the optional 'learn' extra
         return
     lat = e2e_latencies_us(500 if quick else 5000)

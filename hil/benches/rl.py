@@ -16,7 +16,8 @@ def collect(quick: bool) -> Iterator[BenchRow]:
     imitation policy's order (physics 10 x 1 ms with the FC's inner loop, world check, reward, the
     29 inputs, restarts), control steps (one vehicle, 10 ms) a second; `rl_env_link_steps_per_s` the
     same with the observation through the link model (`EnvConfig.link`)."""
-    from hil.rl.env import CrossGapVecEnv, EnvConfig  # the 'learn' extra
+    # (torch and gymnasium, the optional 'learn' extra: imported only when this bench runs)
+    from hil.rl.env import CrossGapVecEnv, EnvConfig
     from hil.rl.link_observe import LinkModel
 
     rng = np.random.default_rng(0)

@@ -13,8 +13,9 @@ from pathlib import Path
 import yaml
 
 from hil.benches import BenchRow
+from hil.cli import main
 from hil.scenario import load_scenarios
-from hil.scenario.dispersions import dispersed
+from hil.scenario.loader import dispersed
 from hil.sweep import plan_sweep, run_sweep
 
 SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "gap_roll60_2p5ms.scenario.yaml"
@@ -34,8 +35,6 @@ def collect(quick: bool) -> Iterator[BenchRow]:
         t0 = time.perf_counter()
         run_sweep(plan, jobs=JOBS)
         ray_s = time.perf_counter() - t0
-        from hil.cli import main
-
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):
             main(["suite", str(files), "--in-process", "-j", str(JOBS), "--out", str(Path(tmp) / "suite")])

@@ -7,12 +7,11 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from emulator.world import Gap, LabVolume, World, rotation_zyx
 from hil.benches import BenchRow, time_per_call
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
-    from emulator.world import Gap, LabVolume, World, rotation_zyx
-
     world = World(Gap.from_deg((0.0, 0.0, 1.5), roll_deg=60, height_m=0.16), LabVolume(), (0.45, 0.45, 0.12))
     min_time = 0.1 if quick else 0.5
     pos_in, pos_far = np.array([0.0, 0.0, 1.5]), np.array([-1.5, 0.0, 1.5])

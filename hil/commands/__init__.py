@@ -37,6 +37,7 @@ def output_folder(path: str | Path, command: str) -> Path | None:
 def say_if_compiling(command: str) -> None:
     """On stderr, when the emulator's kernels are not cached yet: the first run compiles them (seconds of
     silence otherwise, before the first line of a run or `hil fc`'s endpoints)."""
+    # (here, not at the top: every `hil` call imports this package; the emulator only for runs)
     from emulator.kernel_cache import cold
 
     folder = cold()

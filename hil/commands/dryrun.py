@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    # (here, not at the top: Ray, seconds to import, only for this command; every `hil` call imports
+    # each command module to build its parser)
     from hil.sweep import plan_sweep, run_sweep, summarise
     from hil.sweep.report import verdict_line, write_sweep
     from hil.sweep.sweep import stale

@@ -262,7 +262,7 @@ def main(args: argparse.Namespace) -> int:
         runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
         _stop_on_signals(runner)
         if args.view:
-            from hil.view import LiveSource, ViewServer
+            from hil.view import LiveSource, ViewServer  # (the view server's imports only with --view)
 
             try:
                 view = ViewServer(port=args.view_port)

@@ -88,7 +88,7 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
     tty = sys.stderr.isatty() and not quiet
     watch = None
     if view is not None:
-        from hil.view.live import run_source
+        from hil.view.live import run_source  # (the view server's imports only with --view)
 
         def watch(emu: EmulatorSide, events: Path) -> Callable[[], None]:
             view.live(run_source(emu, events, f"{scenario.id} (live)"))
@@ -146,7 +146,7 @@ def main(args: argparse.Namespace) -> int:
     failed = False
     view = None
     if args.view:
-        from hil.view import ViewServer
+        from hil.view import ViewServer  # (the view server's imports only with --view)
 
         try:
             view = ViewServer(port=args.view_port)
@@ -166,7 +166,7 @@ def main(args: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
         failed = failed or not result.passed
         if args.mcap:
-            from hil.report.mcap_log import write_mcap
+            from hil.report.mcap_log import write_mcap  # (the mcap writer only with --mcap)
 
             try:
                 print(f"  mcap: {write_mcap(out)}")
@@ -174,7 +174,7 @@ def main(args: argparse.Namespace) -> int:
                 print(f"hil run: --mcap: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
     if view is not None:
-        from hil.view.server import serve_until_stopped
+        from hil.view.server import serve_until_stopped  # (the view server only with --view)
 
         print(f"view: the finished run at {view.url}; Ctrl-C to stop", flush=True)
         serve_until_stopped(view)

@@ -16,6 +16,7 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
+from emulator.profile import load_profile
 from hil.commands import output_folder, say_if_compiling
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
 from hil.runner import RunOptions, RunSetupError, run_scenario
@@ -81,7 +82,7 @@ def _results(work: list[tuple[Scenario, str, RunOptions]], workers: int, ray_add
     the platform forks, so they share what it loaded and its onboard fork server), or from Ray tasks as
     they finish."""
     if ray_address is not None:
-        from hil.sweep.sweep import ray_imap, ray_session
+        from hil.sweep.sweep import ray_imap, ray_session  # (Ray's imports only with a Ray address)
 
         with ray_session(ray_address, workers):
             for k, res in ray_imap(_run, (), [(w,) for w in work]):
@@ -132,8 +133,6 @@ def main(args: argparse.Namespace) -> int:
     say_if_compiling("hil suite")
     options = options_from(args)
     if options.vehicle is not None:  # refused once, not failed in every run
-        from emulator.profile import load_profile
-
         try:
             load_profile(options.vehicle)
         except ValueError as exc:

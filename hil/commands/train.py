@@ -76,14 +76,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main_rl(args: argparse.Namespace) -> int:
     try:
-        from hil.rl.train import train_rl
+        from hil.rl.train import RLConfig, train_rl  # (torch and gymnasium: the optional 'learn' extra)
     except ImportError as exc:  # the 'learn' extra
         print(f"hil train rl: needs the 'learn' extra (torch, gymnasium, stable-baselines3, sb3-contrib): "
               f"{exc}", file=sys.stderr)
         return 2
     try:
-        from hil.rl.train import RLConfig
-
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
                            progress=not args.no_progress, updates=args.updates,
                            cfg=RLConfig(world_check=args.world_check, observe=args.observe))
@@ -99,6 +97,7 @@ def main_rl(args: argparse.Namespace) -> int:
 
 def main(args: argparse.Namespace) -> int:
     try:
+        # (torch: the optional 'learn' extra, imported only for this command)
         from policies.learning import export, train
         from policies.learning.data import ControllerDataConfig, PlannerDataConfig
     except ImportError as exc:  # torch is an optional dependency

@@ -19,12 +19,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    # (here, not at the top: the view server's imports only for this command; every `hil` call
+    # imports each command module to build its parser)
     from hil.view import ViewServer
     from hil.view.replay import ReplayError
     from hil.view.server import serve_until_stopped
 
     if args.mcap:
-        from hil.report.mcap_log import write_mcap
+        from hil.report.mcap_log import write_mcap  # (the mcap writer only with --mcap)
 
         try:
             print(f"mcap: {write_mcap(args.run_dir)}")

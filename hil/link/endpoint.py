@@ -22,7 +22,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 from hil.link.clock import Clock
+from hil.link.memory import MemoryTransport
+from hil.link.pty import PtyTransport
+from hil.link.tcp import TcpTransport
 from hil.link.transport import Transport
+from hil.link.uart import DEFAULT_TX_BUFFER_BYTES, UartTransport
+from hil.link.udp import UdpTransport
 
 Role = Literal["fc", "onboard"]
 ROLES: tuple[str, ...] = ("fc", "onboard")
@@ -93,8 +98,6 @@ _memory_lock = threading.Lock()
 
 
 def _open_memory(ep: EndpointSpec, role: str) -> Transport:
-    from hil.link.memory import MemoryTransport
-
     name = ep.name
     with _memory_lock:
         waiting = _memory_pairs.get(name)
@@ -114,13 +117,11 @@ def _open_pty(ep: EndpointSpec, role: str) -> Transport:
         raise ValueError(
             "only the fc side creates a pty; the onboard side opens its path as 'serial:/dev/pts/N:BAUD'"
         )
-    from hil.link.pty import PtyTransport
-
     return PtyTransport.create(ep.baud or DEFAULT_BAUD)
 
 
 def _open_serial(ep: EndpointSpec, role: str) -> Transport:
-    from hil.link.serial_port import SerialTransport
+    from hil.link.serial_port import SerialTransport  # (here: pyserial, optional, only for its users)
 
     # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
     # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
@@ -129,15 +130,12 @@ def _open_serial(ep: EndpointSpec, role: str) -> Transport:
 
 
 def _open_socket(ep: EndpointSpec, role: str) -> Transport:
-    if ep.kind.startswith("udp"):
-        from hil.link.udp import UdpTransport as cls
-    else:
-        from hil.link.tcp import TcpTransport as cls  # type: ignore[assignment]
+    cls = UdpTransport if ep.kind.startswith("udp") else TcpTransport
     return cls(ep.host, ep.port, server=ep.kind in ("udp", "tcp"))
 
 
-#: link kind -> opener, each importing its transport's module only when used (an optional driver
-#: fails only for its users)
+#: link kind -> opener (the serial one imports pyserial only when used: an optional driver fails only
+#: for its users)
 OPENERS: dict[str, Callable[[EndpointSpec, str], Transport]] = {
     "pty": _open_pty,
     "serial": _open_serial,
@@ -168,7 +166,5 @@ def open_link(
     ep = spec if isinstance(spec, EndpointSpec) else parse_endpoint(spec)
     link = OPENERS[ep.kind](ep, role)
     if uart_baud is not None:
-        from hil.link.uart import DEFAULT_TX_BUFFER_BYTES, UartTransport
-
         link = UartTransport(link, uart_baud, clock, tx_buffer_bytes or DEFAULT_TX_BUFFER_BYTES)
     return link

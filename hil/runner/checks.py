@@ -4,6 +4,8 @@ each (name, passed, expected, observed, sim time)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -11,7 +13,14 @@ import numpy as np
 
 from hil.runner.flight_quality import SETTLE_BAND_M, Figure, FlightQuality
 from hil.runner.mission import window_hits
-from hil.scenario.schema import Fault, QualityExpectations, Scenario
+from hil.scenario.schema import (
+    QUALITY_CHECKS,
+    Expectations,
+    Fault,
+    LinkExpectations,
+    QualityExpectations,
+    Scenario,
+)
 
 RECOVERY_MAX_SPEED_M_S = 0.5  # "hovering": slower than this
 
@@ -65,40 +74,69 @@ class Observations:
     onboard_abort_reason: str | None = None  # why the onboard program aborted (its reason and detail)
 
 
+#: one registered check's verdicts from the scenario's expectations and the run's observations (none
+#: when the expectations do not ask for it)
+CheckFn = Callable[[Expectations, Observations], list[Check]]
+
+
+@dataclass(frozen=True)
+class CheckKind:
+    """A registered check: ``name`` (the `Check` names it gives: ``gives``, default its name alone),
+    ``expect`` (the `Expectations` field that sets it; None: set by nothing in ``expect``, asked for by
+    the run itself), ``doc`` (what it checks, the format document's check table) and ``run``."""
+
+    name: str
+    expect: str | None
+    doc: str
+    run: CheckFn
+    gives: tuple[str, ...] = ()
+
+    @property
+    def check_names(self) -> tuple[str, ...]:
+        return self.gives or (self.name,)
+
+    def table_row(self) -> str:
+        """The check's row in docs/scenario-format.md's check table."""
+        names = ", ".join(f"`{n}`" for n in self.check_names)
+        return f"| {names} | {'none' if self.expect is None else f'`{self.expect}`'} | {self.doc} |"
+
+
+#: check name -> kind, in the order a run's checks are listed
+CHECK_KINDS: dict[str, CheckKind] = {}
+
+
+def register_check(
+    name: str, *, expect: str | None, doc: str, gives: tuple[str, ...] = ()
+) -> Callable[[CheckFn], CheckFn]:
+    """Register the decorated function as the check ``name`` (see `CheckKind`); ValueError for a name
+    taken."""
+
+    def add(run: CheckFn) -> CheckFn:
+        if name in CHECK_KINDS:
+            raise ValueError(f"check {name!r} is registered already")
+        CHECK_KINDS[name] = CheckKind(name, expect, doc, run, gives)
+        return run
+
+    return add
+
+
+@contextmanager
+def check_registered(
+    name: str, run: CheckFn, *, expect: str | None = None, doc: str = ""
+) -> Iterator[CheckKind]:
+    """The check ``name`` registered for the block, unregistered after (one added by a test or a plugin)."""
+    register_check(name, expect=expect, doc=doc)(run)
+    try:
+        yield CHECK_KINDS[name]
+    finally:
+        CHECK_KINDS.pop(name, None)
+
+
 def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
-    """Every check the scenario asks for, in a fixed order."""
-    e = scenario.expect
-    checks = [check_crossing(e.crosses_gap, obs), check_collision(e.collision_expected, obs)]
-    if e.min_clearance_m is not None:
-        checks.append(check_clearance(e.min_clearance_m, obs))
-    if e.max_attitude_error_deg is not None:
-        checks.append(check_attitude(e.max_attitude_error_deg, obs))
-    if e.recovery is not None and e.crosses_gap:
-        checks.append(check_recovery(e.recovery.radius_m, e.recovery.time_s, obs))
-    if any(f.target_phase is not None for f in obs.faults):
-        checks.append(check_fault_phases(obs))
-    checks.append(check_finite_state(obs))
-    if obs.lockstep:
-        checks.append(check_lockstep(obs))
-    elif obs.realtime is not None:
-        checks.append(check_realtime(e.realtime_max_late_ms, obs.realtime))
-    if e.stays_in_lab:
-        checks.append(check_stays_in_lab(obs))
-    checks.append(check_failsafe(e.failsafe_expected, obs))
-    if e.onboard_abort_expected is not None:
-        checks.append(check_abort(e.onboard_abort_expected, obs))
-    lk = e.link
-    for name, limit, key, unit in (
-        ("mocap_delivered_fraction", lk.mocap_delivered_fraction_min, "mocap_delivered_fraction", ""),
-        ("command_delivered_fraction", lk.command_delivered_fraction_min, "command_delivered_fraction", ""),
-        ("mocap_rate_hz", lk.mocap_rate_hz_min, "mocap_rate_hz", " Hz"),
-        ("command_rate_hz", lk.command_rate_hz_min, "command_rate_hz", " Hz"),
-    ):
-        if limit is not None:
-            value = obs.link.get(key)
-            ok = value is not None and value >= limit
-            checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
-    checks += check_quality(e.quality, obs.quality)
+    """Every check the scenario asks for, in the registry's order."""
+    checks: list[Check] = []
+    for kind in CHECK_KINDS.values():
+        checks += kind.run(scenario.expect, obs)
     return checks
 
 
@@ -112,7 +150,7 @@ def check_fault_phases(obs: Observations) -> Check:
         if phase is None:
             continue
         intervals = obs.phases.get(phase, [])
-        instant = f.kind == "onboard_killed"
+        instant = f.instant
         if window_hits(f.start_s, f.end_s, intervals, instant):
             continue
         flown = ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in intervals) or "never flown"
@@ -164,6 +202,27 @@ def check_stays_in_lab(obs: Observations) -> Check:
         return Check("stays_in_lab", False, "inside the lab volume", "position not finite",
                      obs.nonfinite_state_s)
     return Check("stays_in_lab", outside <= 0.0, "inside the lab volume", f"{outside:.3f} m outside at most")
+
+
+#: link check -> (the `LinkExpectations` limit it reads, its unit)
+LINK_LIMITS = {
+    "mocap_delivered_fraction": ("mocap_delivered_fraction_min", ""),
+    "command_delivered_fraction": ("command_delivered_fraction_min", ""),
+    "mocap_rate_hz": ("mocap_rate_hz_min", " Hz"),
+    "command_rate_hz": ("command_rate_hz_min", " Hz"),
+}
+
+
+def check_link(limits: LinkExpectations, obs: Observations) -> list[Check]:
+    """The link statistics over the run against the bounds given (a bound of None is not checked)."""
+    checks = []
+    for name, (field_name, unit) in LINK_LIMITS.items():
+        limit = getattr(limits, field_name)
+        if limit is not None:
+            value = obs.link.get(name)
+            ok = value is not None and value >= limit
+            checks.append(Check(name, ok, f">= {limit:g}{unit}", None if value is None else round(value, 4)))
+    return checks
 
 
 def check_quality(limits: QualityExpectations, q: FlightQuality) -> list[Check]:
@@ -304,3 +363,83 @@ def check_abort(expected: bool, obs: Observations) -> Check:
         else "none",
         obs.onboard_abort_s,
     )
+
+
+# The registered checks, in the order a run lists them.
+
+
+@register_check("crosses_gap", expect="crosses_gap", doc="the centre passes through the opening (or not)")
+def _crosses_gap(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_crossing(e.crosses_gap, obs)]
+
+
+@register_check("collision", expect="collision_expected", doc="a collision happens (or none does)")
+def _collision(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_collision(e.collision_expected, obs)]
+
+
+@register_check("min_clearance_m", expect="min_clearance_m", doc="the smallest clearance while in the wall")
+def _clearance(e: Expectations, obs: Observations) -> list[Check]:
+    return [] if e.min_clearance_m is None else [check_clearance(e.min_clearance_m, obs)]
+
+
+@register_check("attitude_error_deg", expect="max_attitude_error_deg",
+                doc="the attitude error to the gap's orientation at the crossing")
+def _attitude(e: Expectations, obs: Observations) -> list[Check]:
+    return [] if e.max_attitude_error_deg is None else [check_attitude(e.max_attitude_error_deg, obs)]
+
+
+@register_check("recovery", expect="recovery", doc="a hover near the recovery point after the crossing")
+def _recovery(e: Expectations, obs: Observations) -> list[Check]:
+    if e.recovery is None or not e.crosses_gap:
+        return []
+    return [check_recovery(e.recovery.radius_m, e.recovery.time_s, obs)]
+
+
+@register_check("fault_phases", expect=None,
+                doc="each fault that names a `phase` acted during it (runs with such a fault)")
+def _fault_phases(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_fault_phases(obs)] if any(f.target_phase is not None for f in obs.faults) else []
+
+
+@register_check("finite_state", expect=None, doc="the simulated state stayed finite (every run)")
+def _finite_state(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_finite_state(obs)]
+
+
+@register_check("lockstep", expect=None, doc="every tick's mocap bytes were read in full (lockstep runs)")
+def _lockstep(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_lockstep(obs)] if obs.lockstep else []
+
+
+@register_check("realtime", expect="realtime_max_late_ms",
+                doc="the emulator loop kept to the wall clock (real-time runs)")
+def _realtime(e: Expectations, obs: Observations) -> list[Check]:
+    if obs.lockstep or obs.realtime is None:
+        return []
+    return [check_realtime(e.realtime_max_late_ms, obs.realtime)]
+
+
+@register_check("stays_in_lab", expect="stays_in_lab", doc="the vehicle never leaves the lab volume")
+def _stays_in_lab(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_stays_in_lab(obs)] if e.stays_in_lab else []
+
+
+@register_check("failsafe", expect="failsafe_expected", doc="the FC entered a failsafe (of a kind), or none")
+def _failsafe(e: Expectations, obs: Observations) -> list[Check]:
+    return [check_failsafe(e.failsafe_expected, obs)]
+
+
+@register_check("onboard_abort", expect="onboard_abort_expected", doc="the onboard program aborted (or not)")
+def _abort(e: Expectations, obs: Observations) -> list[Check]:
+    return [] if e.onboard_abort_expected is None else [check_abort(e.onboard_abort_expected, obs)]
+
+
+@register_check("link", expect="link", gives=tuple(LINK_LIMITS), doc="the link statistics' bounds given")
+def _link(e: Expectations, obs: Observations) -> list[Check]:
+    return check_link(e.link, obs)
+
+
+@register_check("quality", expect="quality", gives=QUALITY_CHECKS, doc="the flight-quality limits (all runs)")
+def _quality(e: Expectations, obs: Observations) -> list[Check]:
+    return check_quality(e.quality, obs.quality)

@@ -35,11 +35,11 @@ from hil.link.lockstep import framing
 from hil.link.mavlink import mav
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
-from hil.runner.faults import FaultSchedule, corrupt
+from hil.runner.faults import FaultSchedule
 from hil.runner.mission import event_name
 from hil.runner.recorder import Recorder
 from hil.runner.wires import CommandWire, channel_model
-from hil.scenario.schema import AirframeSpec, CanFrameLossParams, EscSilentParams, ParamSetParams, Scenario
+from hil.scenario.schema import AirframeSpec, Scenario
 
 FC_SYSTEM_ID = 1
 #: the FC's telemetry in a run (s between messages): what the onboard program acts on (HEARTBEAT) and
@@ -114,7 +114,8 @@ DIVERGED_LIMIT = 1e30
 
 
 class _FaultyLink(Transport):
-    """The emulator's sending end of the mocap link with mocap_dropped and corrupt_bytes applied.
+    """The emulator's sending end of the mocap link with the link faults on it applied (mocap_dropped,
+    corrupt_bytes: `FaultSchedule.on_frame`).
 
     Frames are held and written to the real link by `flush()` (once per `advance_to`: one write per
     tick instead of one per frame); bytes the real link refuses then are counted in ``bytes_refused``.
@@ -132,14 +133,12 @@ class _FaultyLink(Transport):
     def _send_internal(self, data: bytes) -> int:
         faults = self.faults
         if faults.has_mocap_faults:
-            t = self.clock.now_s()
-            if faults.any_active("mocap_dropped", t):
+            out, n = faults.on_frame("mocap", data, self.clock.now_s(), self.rng)
+            self.bytes_corrupted += n
+            if out is None:
                 self.bytes_dropped_fault += len(data)
                 return len(data)
-            frac = faults.corrupt_fraction("mocap", t)
-            if frac > 0:
-                data, n = corrupt(data, frac, self.rng)
-                self.bytes_corrupted += n
+            data = out
         self._held.append(data)
         return len(data)
 
@@ -209,7 +208,6 @@ class EmulatorSide:
         assert self.world is not None and self.mocap is not None
         # the scenario's FC parameters, set as a ground station would (each change in the .tlog)
         self.server.params.set_many(dict(scenario.params))
-        self._params_before: dict[int, float | int] = {}  # param_set fault index -> value it replaced
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
         self.recorder = Recorder(self.world, profile, duration_s)
@@ -318,46 +316,104 @@ class EmulatorSide:
                 self._next_boundary_s = min(self._next_boundary_s, faults.next_boundary_s(now - 1e-9))
 
     def _switch_faults(self, t: float) -> None:
-        faults = self.faults
-        force = faults.wind_force_n(t)
-        self.vehicle.backend.set_external_force(force)
-        self.vehicle.backend.set_external_torque(faults.wind_torque_nm(t))
-        frozen = faults.any_active("mocap_frozen", t)
+        self.faults.switch(t, self)
+        self._next_boundary_s = self.faults.next_boundary_s(t)
+
+    # what the faults of `hil.scenario.fault_kinds` act on (its `FaultTarget`)
+
+    def set_wind(self, force_n: np.ndarray, moment_nm: np.ndarray) -> None:
+        """An external force (N, world ENU) and moment (N m, body FLU) on the airframe from now on."""
+        self.vehicle.backend.set_external_force(force_n)
+        self.vehicle.backend.set_external_torque(moment_nm)
+
+    def freeze_mocap(self, frozen: bool) -> None:
+        """Keep the mocap reporting the pose of now (True) or the vehicle's again (False)."""
         if frozen and self._frozen_truth is None:
             self._frozen_truth = self.vehicle.pose_values()
         elif not frozen:
             self._frozen_truth = None
-        if faults.has_param_faults:
-            self._switch_params(t)
-        if self.esc is not None:
-            esc = self.esc.esc
-            silent = {f.params.esc for f in faults.active("esc_silent", t)
-                      if isinstance(f.params, EscSilentParams)}
-            for i in range(len(esc.config.esc_node_ids)):
-                esc.set_silent(i, i in silent)
-            loss = [f.params.fraction for f in faults.active("can_frame_loss", t)
-                    if isinstance(f.params, CanFrameLossParams)]
-            esc.bus.extra_loss = max(loss, default=0.0)
-            off = faults.active("can_bus_off", t)
-            esc.bus.bus_off_until_s = max((f.end_s or math.inf for f in off), default=-math.inf)
-        self._next_boundary_s = faults.next_boundary_s(t)
 
-    def _switch_params(self, t: float) -> None:
-        """param_set faults: set the parameter when one starts, put the value back when it ends."""
-        params = self.server.params
-        for i, f in enumerate(self.faults.faults):
-            p = f.params
-            if f.kind != "param_set" or not isinstance(p, ParamSetParams):
-                continue
-            on = f.active(t)
-            try:
-                if on and i not in self._params_before:
-                    self._params_before[i] = params.get(p.name)
-                    params.set(p.name, p.value)
-                elif not on and i in self._params_before:
-                    params.set(p.name, self._params_before.pop(i))
-            except ParamError as exc:  # a combination the FC refuses: said on the link, the run goes on
-                self.server.statustext(mav.MAV_SEVERITY_WARNING, f"param_set: {exc.reason}", t)
+    def fc_param(self, name: str) -> float | int:
+        """The FC parameter ``name``'s value."""
+        return self.server.params.get(name)
+
+    def set_fc_param(self, name: str, value: float | int, time_s: float, why: str) -> None:
+        """Set an FC parameter as a ground station would (the change in the .tlog); one the FC refuses
+        is said on the link as a warning (``why: reason``) and the run goes on."""
+        try:
+            self.server.params.set(name, value)
+        except ParamError as exc:
+            self.server.statustext(mav.MAV_SEVERITY_WARNING, f"{why}: {exc.reason}", time_s)
+
+    # what the emulator side reports at the end of a run
+
+    @property
+    def attitude_lag_s(self) -> float:
+        """The FC's nominal attitude response (s): the first-order lag its derived loop makes, 1 / its
+        roll gain."""
+        return 1.0 / self.vehicle.fc.gains.inner.attitude_p_per_s[0]
+
+    def failsafes(self) -> tuple[tuple[str, float], ...]:
+        """The failsafe states the FC entered, with when (state, sim s)."""
+        return tuple((e.to_state.value, e.time_s) for e in self.vehicle.fc.events if e.to_state.failsafe)
+
+    def fc_report_events(self) -> list[dict[str, Any]]:
+        """The FC's state changes as report events."""
+        events = self.vehicle.fc.events
+        return [{"time_s": e.time_s, "source": "fc",
+                 "text": f"{e.from_state.value} -> {e.to_state.value}: {e.reason}"} for e in events]
+
+    def world_report_events(self) -> list[dict[str, Any]]:
+        """The collision (if any) as a report event."""
+        c = self.recorder.collision
+        return [] if c is None else [{"time_s": c.time_s, "source": "world",
+                                      "text": f"collision: {c.obstacle}"}]
+
+    def summary_figures(self) -> dict[str, Any]:
+        """The emulator side's own entries of summary.json: its links' statistics, the ESC bus's, the
+        FC's final state."""
+        return {
+            "links": self.link_stats(),
+            "esc_bus": None if self.esc is None else self.esc.summary(self.time_s),
+            "fc_final_state": self.vehicle.fc.state.value,
+        }
+
+    def link_stats(self) -> dict[str, Any]:
+        """The command and mocap links' statistics over the run: a ``summary`` of delivered fractions
+        and rates (what the link checks read) and each link's counters."""
+        wire, server, mocap = self.wire, self.server, self.mocap
+        st = mocap.stats
+        sim = max(self.time_s, 1e-9)
+        sent = wire.setpoints_sent
+        applied = server.stats.setpoints_applied
+        radio = st.radio
+        summary = {
+            "command_delivered_fraction": applied / sent if sent else None,
+            "command_rate_hz": applied / sim,
+            "mocap_delivered_fraction": radio.delivered / radio.sent if radio.sent else None,
+            "mocap_rate_hz": st.frames_written / sim,
+        }
+        return {
+            "summary": summary,
+            "command": {
+                "setpoints_sent": sent,
+                "setpoints_applied": applied,
+                **{f"to_fc_{k}": v for k, v in wire.to_fc.as_dict().items()},
+                **{f"to_onboard_{k}": v for k, v in wire.to_onboard.as_dict().items()},
+                **{f"fc_codec_{k}": v for k, v in self.codec.stats.as_dict().items()},
+            },
+            "mocap": {
+                "frames_exposed": st.mocap.frames,
+                "radio_sent": radio.sent,
+                "radio_delivered": radio.delivered,
+                "radio_lost": radio.lost,
+                "radio_late": radio.late,
+                "frames_written": st.frames_written,
+                "bytes_written": st.bytes_written,
+                "bytes_dropped_fault": self.mocap_link.bytes_dropped_fault,
+                "bytes_corrupted": self.mocap_link.bytes_corrupted,
+            },
+        }
 
     def close(self) -> None:
         self.vehicle.close()

@@ -1,9 +1,6 @@
-"""Fault injection for a run: the scenario's fault schedule queried by sim time, byte corruption, and
-the wind gust's force and moment.
-
-Faults act where they act on the bench: in the links (bytes dropped or flipped, mocap frozen or
-dropped), in the onboard process (killed, stalled) and on the airframe (a gust as an external force,
-with a yaw moment if given).
+"""The fault schedule of a run: the scenario's faults queried by sim time, timed from mission events
+as they come, and applied where each kind acts (`hil.scenario.fault_kinds`): to a link's frames, to the
+onboard program's process, or to the emulator side's models when a fault switches.
 """
 
 from __future__ import annotations
@@ -14,11 +11,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from hil.scenario.schema import CorruptBytesParams, EventTime, Fault, WindGustParams
-
-AIR_DENSITY_KG_M3 = 1.225
-#: drag area Cd * A of the airframe seen by a wind (m^2): a 0.45 m quad with props, about 0.05
-WIND_DRAG_AREA_M2 = 0.05
+from hil.scenario.fault_kinds import FAULT_KINDS, LINK_NAMES, FaultKind, FaultTarget, FrameOut
+from hil.scenario.schema import EventTime, Fault
 
 
 class FaultSchedule:
@@ -33,19 +27,17 @@ class FaultSchedule:
         for i, f in enumerate(self.faults):
             if f.after is not None:
                 self.waiting.setdefault(f.after.after, []).append(i)
-        self.kill_s = self.killed_at_s()
+        #: one instance of every registered kind for this run (a kind may keep the run's state)
+        self.kinds: dict[str, FaultKind] = {name: cls() for name, cls in FAULT_KINDS.items()}
+        self._emulator_kinds = [k for k in self.kinds.values() if k.acts_on == "emulator"]
+        #: link -> the kinds with a fault on it, in the registry's order (a dropped frame goes no further)
+        self._link_kinds = {link: [k for k in self.kinds.values() if k.acts_on == "link" and any(
+            f.kind == k.name and k.link_of(f.params) == link for f in self.faults)] for link in LINK_NAMES}
         #: whether any fault acts on the mocap link / the command link (the per-frame paths skip the
         #: schedule when none does)
-        self.has_mocap_faults = any(self._on_link(f, "mocap", "mocap_dropped") for f in self.faults)
-        self.has_command_faults = any(self._on_link(f, "command", "command_link_down") for f in self.faults)
-        self.has_param_faults = any(f.kind == "param_set" for f in self.faults)
-
-    @staticmethod
-    def _on_link(f: Fault, link: str, drop_kind: str) -> bool:
-        if f.kind == drop_kind:
-            return True
-        p = f.params
-        return f.kind == "corrupt_bytes" and isinstance(p, CorruptBytesParams) and p.link == link
+        self.has_mocap_faults = bool(self._link_kinds["mocap"])
+        self.has_command_faults = bool(self._link_kinds["command"])
+        self.kill_s = self.killed_at_s()
 
     def count_from(self, name: str) -> None:
         """Make every fault given in sim seconds count from the event ``name`` instead (real time: from
@@ -73,12 +65,9 @@ class FaultSchedule:
         self.kill_s = self.killed_at_s()
         return True
 
-    def active(self, kind: str, time_s: float) -> list[Fault]:
-        """Faults of ``kind`` acting at ``time_s``."""
-        return [f for f in self.faults if f.kind == kind and f.active(time_s)]
-
-    def any_active(self, kind: str, time_s: float) -> bool:
-        return any(f.kind == kind and f.active(time_s) for f in self.faults)
+    def of_kind(self, kind: FaultKind) -> list[Fault]:
+        """The faults of ``kind``, in the schedule's order."""
+        return [f for f in self.faults if f.kind == kind.name]
 
     def boundaries_s(self) -> list[float]:
         """Every start and end time, sorted (where the loop must stop to switch a fault)."""
@@ -92,34 +81,35 @@ class FaultSchedule:
                 return t
         return math.inf
 
-    def corrupt_fraction(self, link: str, time_s: float) -> float:
-        """Fraction of bytes flipped on ``link`` ("command" or "mocap") at ``time_s`` (0 when none)."""
-        frac = 0.0
-        for f in self.active("corrupt_bytes", time_s):
-            p = f.params
-            if isinstance(p, CorruptBytesParams) and p.link == link:
-                frac = max(frac, p.fraction)
-        return frac
+    def on_frame(self, link: str, data: bytes, time_s: float, rng: np.random.Generator) -> FrameOut:
+        """A frame crossing ``link`` (one of `LINK_NAMES`) at ``time_s`` with the faults acting on it
+        then: (the frame, None when dropped; how many of its bytes the faults changed)."""
+        changed = 0
+        for kind in self._link_kinds[link]:
+            active = [f for f in self.faults
+                      if f.kind == kind.name and f.active(time_s) and kind.link_of(f.params) == link]
+            if active:
+                out, n = kind.on_frame(active, data, rng)
+                changed += n
+                if out is None:
+                    return None, changed
+                data = out
+        return data, changed
+
+    def switch(self, time_s: float, target: FaultTarget) -> None:
+        """Set the emulator side as its faults say at ``time_s`` (a fault started or ended)."""
+        for kind in self._emulator_kinds:
+            kind.switch(self.of_kind(kind), time_s, target)
 
     def killed_at_s(self) -> float | None:
-        """When the onboard program is killed (the earliest ``onboard_killed``), or None."""
-        times = [f.start_s for f in self.faults if f.kind == "onboard_killed" and math.isfinite(f.start_s)]
+        """When the onboard program is killed (the earliest fault that kills it), or None."""
+        times = [f.start_s for f in self.faults
+                 if self.kinds[f.kind].onboard_effect == "kill" and math.isfinite(f.start_s)]
         return min(times) if times else None
 
-    def wind_force_n(self, time_s: float) -> np.ndarray:
-        """The total gust force on the airframe at ``time_s`` (N, world ENU)."""
-        total = np.zeros(3)
-        for f in self.active("wind_gust", time_s):
-            total += gust_force_n(f.params)
-        return total
-
-    def wind_torque_nm(self, time_s: float) -> np.ndarray:
-        """The total gust moment on the airframe at ``time_s`` (N m, body FLU: about its z axis)."""
-        total = np.zeros(3)
-        for f in self.active("wind_gust", time_s):
-            if isinstance(f.params, WindGustParams):
-                total[2] += f.params.yaw_moment_nm
-        return total
+    def stalled(self, time_s: float) -> bool:
+        """Whether a fault holds the onboard program stalled at ``time_s``."""
+        return any(self.kinds[f.kind].onboard_effect == "stall" and f.active(time_s) for f in self.faults)
 
     def events(self) -> list[dict[str, object]]:
         """The schedule as report events (start and end of each fault)."""
@@ -131,38 +121,6 @@ class FaultSchedule:
                 out.append({"time_s": None, "source": "fault", "text": text})
                 continue
             out.append({"time_s": f.start_s, "source": "fault", "text": f"{f.kind} starts"})
-            if f.end_s is not None and f.kind != "onboard_killed":
+            if f.end_s is not None and not f.instant:
                 out.append({"time_s": f.end_s, "source": "fault", "text": f"{f.kind} ends"})
         return out
-
-
-def gust_force_n(params: object) -> np.ndarray:
-    """The force (N, world ENU) of a wind_gust's parameters: ``force_n`` along ``direction``, or the
-    quadratic drag 0.5 rho CdA v^2 of a wind of ``speed_m_s`` (vehicle speed neglected)."""
-    if not isinstance(params, WindGustParams):
-        raise ValueError(f"wind_gust needs WindGustParams, got {type(params).__name__}")
-    d = np.asarray(params.direction, dtype=float)
-    norm = float(np.linalg.norm(d))
-    if not math.isfinite(norm) or norm <= 0:
-        raise ValueError(f"wind_gust direction must be a non-zero vector, got {params.direction}")
-    if params.force_n is not None:
-        magnitude = params.force_n
-    elif params.speed_m_s is not None:
-        magnitude = 0.5 * AIR_DENSITY_KG_M3 * WIND_DRAG_AREA_M2 * params.speed_m_s**2
-    else:
-        raise ValueError("wind_gust needs force_n or speed_m_s")
-    return d / norm * magnitude
-
-
-def corrupt(data: bytes, fraction: float, rng: np.random.Generator) -> tuple[bytes, int]:
-    """``data`` with about ``fraction`` of its bytes each flipped in one random bit; (bytes, flipped)."""
-    if fraction <= 0 or not data:
-        return data, 0
-    hit = rng.random(len(data)) < fraction
-    n = int(hit.sum())
-    if n == 0:
-        return data, 0
-    arr = np.frombuffer(data, dtype=np.uint8).copy()
-    bits = rng.integers(0, 8, n)
-    arr[hit] ^= (1 << bits).astype(np.uint8)
-    return arr.tobytes(), n

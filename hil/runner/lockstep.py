@@ -112,7 +112,7 @@ def apply_process_faults(rep: LoopReport, onboard: OnboardSide, faults: FaultSch
     if onboard.alive and kill_s is not None and t >= kill_s:
         onboard.kill()
         rep.events.append({"time_s": t, "source": "runner", "text": "onboard program killed"})
-    stalled = faults.any_active("onboard_stalled", t)
+    stalled = faults.stalled(t)
     if stalled and onboard.alive and not onboard.paused:
         onboard.pause()
         rep.events.append({"time_s": t, "source": "runner", "text": "onboard program stalled"})
@@ -126,7 +126,7 @@ def process_fault_due(onboard: OnboardSide, faults: FaultSchedule, t: float) -> 
     kill_s = faults.kill_s
     if onboard.alive and kill_s is not None and t >= kill_s:
         return True
-    return faults.any_active("onboard_stalled", t) != onboard.paused
+    return faults.stalled(t) != onboard.paused
 
 
 def run_lockstep(

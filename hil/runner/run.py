@@ -35,6 +35,7 @@ from hil.runner.lockstep import (
     run_lockstep,
 )
 from hil.runner.mission import phase_intervals, window_hits
+from hil.runner.onboard_report import OnboardReport
 from hil.runner.onboard_side import (
     InProcessOnboard,
     ProcessOnboard,
@@ -51,7 +52,6 @@ from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
 ONBOARD_LOG_NAME = "onboard_events.jsonl"
-ONBOARD_SUMMARY_EVENT = "summary"  # the onboard program's closing event: its counters
 MEMORY_CAPACITY_BYTES = 1 << 20
 SEGMENT_PHASES = {"approach": 1, "traverse": 2, "recovery": 3, "hover": 0}
 
@@ -313,15 +313,19 @@ def _run(
             unwatch()
         loop.startup_wall_s += spawn_s  # (the program's start-up counts from its spawn)
         exit_code = onboard.close()  # first: the program's closing summary is among its events then
-        onboard_events = onboard.events()
-        wall_s = time.perf_counter() - wall0
-        # each side's CPU time (s): this process's up to here (both sides when they share it), the
-        # onboard program's whole life where its fork server reaped it (None in this process or cold)
-        cpu = {"harness": time.process_time() - cpu0,
-               "onboard": None if isinstance(onboard, InProcessOnboard) else onboard.cpu_s}
-        started = None if isinstance(onboard, InProcessOnboard) else ("warm" if onboard.warm else "cold")
-        return _finish(s, out, emu, loop, onboard_events, exit_code, wall_s, in_process, realtime, started,
-                       options.html_report, cpu)
+        report = OnboardReport.from_events(onboard.events(), exit_code)
+        facts = RunFacts(
+            wall_s=time.perf_counter() - wall0,
+            in_process=in_process,
+            realtime=realtime,
+            # each side's CPU time (s): this process's up to here (both sides when they share it), the
+            # onboard program's whole life where its fork server reaped it (None in this process or cold)
+            cpu_s={"harness": time.process_time() - cpu0,
+                   "onboard": onboard.cpu_s if isinstance(onboard, ProcessOnboard) else None},
+            onboard_start=_start_mode(onboard),
+        )
+        tlog.close()  # (complete before summary.json, the run's last file, says the run is done)
+        return _finish(s, out, emu, loop, report, facts, options.html_report)
     finally:
         if onboard is not None:
             onboard.close()
@@ -332,36 +336,44 @@ def _run(
             link.close()
 
 
-def _finish(
-    s: Scenario,
-    out: Path,
-    emu: EmulatorSide,
-    loop: LoopReport,
-    onboard_events: list[dict[str, Any]],
-    exit_code: int | None,
-    wall_s: float,
-    in_process: bool,
-    realtime: bool,
-    onboard_start: str | None,
-    html_report: bool | str,
-    cpu_s: dict[str, float | None],
-) -> RunResult:
+@dataclass(frozen=True)
+class RunFacts:
+    """How a run was flown, for its summary."""
+
+    wall_s: float  # the whole run's wall time (s)
+    in_process: bool
+    realtime: bool
+    onboard_start: str | None  # "warm" (forked), "cold" (a new interpreter), None (in-process)
+    #: CPU time (s, user + system) of the harness's process over the run, its reports excluded (both
+    #: sides when they share it), and of the onboard program's process (None when unknown)
+    cpu_s: dict[str, float | None]
+
+
+def _finish(s: Scenario, out: Path, emu: EmulatorSide, loop: LoopReport, onboard: OnboardReport,
+            facts: RunFacts, html_report: bool | str) -> RunResult:
+    """Check the run and write its files: timeseries.npz, report.html, then summary.json last (written
+    atomically: a summary.json means the run's files are complete)."""
+    obs = observe(s, emu, loop, onboard, lockstep=not facts.realtime)
+    checks = tuple(evaluate(s, obs))
+    passed = all(c.passed for c in checks)
+    summary = _summary(s, emu, loop, onboard, obs, checks, facts)
+    write_timeseries(out, obs.columns)
+    if html_report is True or (html_report == "failed" and not passed):
+        write_report_html(out, summary, obs.columns, s)
+    write_summary(out, summary)
+    return RunResult(passed, checks, out, summary)
+
+
+def observe(s: Scenario, emu: EmulatorSide, loop: LoopReport, onboard: OnboardReport, *,
+            lockstep: bool) -> Observations:
+    """What the checks read, from what each side reports of the run."""
     rec = emu.recorder
     cols = rec.columns()
-    cols["phase"] = _phase_column(cols, onboard_events)
+    cols["phase"] = _phase_column(cols, list(onboard.events))
     tracker = rec.tracker
     first = tracker.crossings[0] if tracker.crossings else None
-    fc_events = emu.vehicle.fc.events
-    failsafes = tuple((e.to_state.value, e.time_s) for e in fc_events if e.to_state.failsafe)
-    aborts = [ev for ev in onboard_events if ev.get("event") == "abort"]
-    plan = next((ev for ev in onboard_events if ev.get("event") == "plan"), None)
-    reported = plan.get("hover_m") if plan else None
-    hover = recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m), np.asarray(s.initial.pos_m))
-    links = _link_stats(emu)
     sim_time = emu.time_s
-    lost = [ev for ev in onboard_events if ev.get("event") == "lockstep_lost"]
-    short_reads = max((int(ev.get("short_reads", 1)) for ev in lost), default=0)
-    obs = Observations(
+    return Observations(
         sim_time_s=sim_time,
         crossed_gap=tracker.crossed_through_opening,
         crossing_time_s=None if first is None else first.time_s,
@@ -371,52 +383,36 @@ def _finish(
         min_clearance_time_s=tracker.min_clearance_time_s,
         attitude_error_deg=rec.attitude_error_at_crossing_deg,
         max_outside_lab_m=rec.max_outside_lab_m,
-        failsafe_states=failsafes,
-        onboard_abort_s=float(aborts[0]["t_s"]) if aborts else None,
-        hover_point_m=hover,
+        failsafe_states=emu.failsafes(),
+        onboard_abort_s=onboard.abort_s,
+        hover_point_m=recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m),
+                                       np.asarray(s.initial.pos_m)),
         columns=cols,
-        link={k: links["summary"][k] for k in links["summary"]},
-        # (the FC's attitude response, as the vehicle's derived loop makes it: 1 / its roll gain)
-        quality=measure(cols, onboard_events, 1.0 / emu.vehicle.fc.gains.inner.attitude_p_per_s[0]),
+        link=dict(emu.link_stats()["summary"]),
+        quality=measure(cols, list(onboard.events), emu.attitude_lag_s),
         nonfinite_state_s=emu.diverged_s,  # (the recorder has been flushed by `columns`)
-        lockstep=not realtime,
+        lockstep=lockstep,
         realtime=loop.realtime,
-        lockstep_lost_s=float(lost[0]["t_s"]) if lost else None,
-        lockstep_short_reads=short_reads,
+        lockstep_lost_s=onboard.lockstep_lost_s,
+        lockstep_short_reads=onboard.short_reads,
         faults=emu.faults.faults,
-        phases=phase_intervals(onboard_events, sim_time),
+        phases=phase_intervals(list(onboard.events), sim_time),
     )
-    checks = tuple(evaluate(s, obs))
-    passed = all(c.passed for c in checks)
-    airborne = cols["fc_state"] > FC_STATE_CODES["disarmed"]
-    events = [
-        {
-            "time_s": e.time_s,
-            "source": "fc",
-            "text": f"{e.from_state.value} -> {e.to_state.value}: {e.reason}",
-        }
-        for e in fc_events
-    ]
-    events += [
-        {"time_s": ev.get("t_s"), "source": "onboard", "text": _event_text(ev)}
-        for ev in onboard_events
-        if ev.get("event") != ONBOARD_SUMMARY_EVENT
-    ]
-    summaries = [ev for ev in onboard_events if ev.get("event") == ONBOARD_SUMMARY_EVENT]
-    onboard_summary = summaries[-1] if summaries else None
-    events += emu.faults.events() + loop.events
-    if rec.collision is not None:
-        events.append(
-            {
-                "time_s": rec.collision.time_s,
-                "source": "world",
-                "text": f"collision: {rec.collision.obstacle}",
-            }
-        )
+
+
+def _summary(s: Scenario, emu: EmulatorSide, loop: LoopReport, onboard: OnboardReport, obs: Observations,
+             checks: tuple[Check, ...], facts: RunFacts) -> dict[str, Any]:
+    """summary.json's contents."""
+    cols = obs.columns
+    first = emu.recorder.tracker.crossings[0] if emu.recorder.tracker.crossings else None
+    events = emu.fc_report_events() + onboard.report_events() + emu.faults.events() + loop.events
+    events += emu.world_report_events()
     events.sort(key=lambda ev: ev["time_s"] if isinstance(ev["time_s"], int | float) else math.inf)
-    loop_sim = sim_time if loop.loop_sim_s is None else loop.loop_sim_s
-    summary: dict[str, Any] = {
-        "passed": passed,
+    loop_sim = obs.sim_time_s if loop.loop_sim_s is None else loop.loop_sim_s
+    airborne = cols["fc_state"] > FC_STATE_CODES["disarmed"]
+    emu_figures = emu.summary_figures()
+    return {
+        "passed": all(c.passed for c in checks),
         "scenario_id": s.id,
         "end_reason": loop.ended_early or "duration reached",
         "checks": [c.to_dict() for c in checks],
@@ -432,47 +428,42 @@ def _finish(
             "point_m": list(first.point_m),
             "through_opening": first.through_opening,
         },
-        "sim_time_s": sim_time,
-        "wall_time_s": wall_s,
+        "sim_time_s": obs.sim_time_s,
+        "wall_time_s": facts.wall_s,
         "loop_wall_time_s": loop.wall_loop_s,
         "loop_sim_time_s": loop_sim,
         "onboard_startup_s": loop.startup_wall_s,
-        # CPU time (s, user + system) of the harness's process over the run, its reports excluded
-        # (both sides when they share it), and of the onboard program's process (None when unknown)
-        "cpu_s": cpu_s,
+        "cpu_s": facts.cpu_s,
         "real_time_factor": loop_sim / loop.wall_loop_s if loop.wall_loop_s > 0 else None,
         "mode": {
-            "in_process": in_process,
-            "realtime": realtime,
-            "onboard_start": onboard_start,  # "warm" (forked), "cold" (a new interpreter), None (in-process)
+            "in_process": facts.in_process,
+            "realtime": facts.realtime,
+            "onboard_start": facts.onboard_start,
             "pilot": s.pilot,
-            # what computed each segment's commands, as the onboard program reported it
-            "pilot_flies": next((ev.get("flies") for ev in onboard_events if ev.get("event") == "start"),
-                                None),
+            "pilot_flies": onboard.flies,  # what computed each segment's commands, as the program said
             "seed": s.seed,
             "physics": s.physics,
         },
         "ticks": loop.ticks,
         "ticks_answered": loop.answered,
         "lockstep": None
-        if realtime
-        else {"held": not lost, "short_mocap_reads": short_reads, "lost_at_s": obs.lockstep_lost_s},
+        if facts.realtime
+        else {"held": obs.lockstep_lost_s is None, "short_mocap_reads": obs.lockstep_short_reads,
+              "lost_at_s": obs.lockstep_lost_s},
         "nonfinite_state_s": obs.nonfinite_state_s,
         "realtime": loop.realtime,
-        "links": links,
-        "esc_bus": None if emu.esc is None else emu.esc.summary(sim_time),
-        "failsafe_events": [{"state": st, "time_s": t} for st, t in failsafes],
-        "faults": [_fault_as_flown(f, obs.phases) for f in emu.faults.faults],
-        "fc_final_state": emu.vehicle.fc.state.value,
-        "onboard_exit_code": exit_code,
+        "links": emu_figures["links"],
+        "esc_bus": emu_figures["esc_bus"],
+        "failsafe_events": [{"state": st, "time_s": t} for st, t in obs.failsafe_states],
+        "faults": [_fault_as_flown(f, obs.phases) for f in obs.faults],
+        "fc_final_state": emu_figures["fc_final_state"],
+        "onboard_exit_code": onboard.exit_code,
         # the program's own counters (mocap poses refused by kind, messages not from the FC, commands
         # refused, ...), from its closing "summary" event; None when it wrote none (killed)
-        "onboard": None
-        if onboard_summary is None
-        else {k: v for k, v in onboard_summary.items() if k not in ("event", "t_s")},
+        "onboard": onboard.counters,
         "onboard_abort_s": obs.onboard_abort_s,
         "recovery_point_m": obs.hover_point_m,
-        "onboard_hover_point_m": reported,
+        "onboard_hover_point_m": onboard.hover_point_m,
         # over time (`hil.runner.over_time`), not over samples: the recorder samples 10x as often near the gap
         "mean_thrust_n": time_mean(cols["t_s"], cols["thrust_n"], mask=airborne) or 0.0,
         "mean_angular_rate_rad_s": time_mean(cols["t_s"], cols["body_rate_rad_s"]) or 0.0,
@@ -480,11 +471,6 @@ def _finish(
         "events": events,
         "scenario": s.to_dict(),
     }
-    write_summary(out, summary)
-    write_timeseries(out, cols)
-    if html_report is True or (html_report == "failed" and not passed):
-        write_report_html(out, summary, cols, s)
-    return RunResult(passed, checks, out, summary)
 
 
 def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> dict[str, Any]:
@@ -492,18 +478,16 @@ def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> d
     started = math.isfinite(f.start_s)
     phase = f.target_phase
     hit = None if phase is None else window_hits(f.start_s, f.end_s, phases.get(phase, []),
-                                                   f.kind == "onboard_killed")
+                                                   f.instant)
     return {"kind": f.kind, "start_s": f.start_s if started else None, "end_s": f.end_s if started else None,
             "phase": phase, "hit_phase": hit}
 
 
-def _event_text(ev: dict[str, Any]) -> str:
-    name = str(ev.get("event", "?"))
-    extra = {k: v for k, v in ev.items() if k not in ("event", "t_s")}
-    for key in ("segment", "reason"):
-        if key in extra:
-            return f"{name}: {extra[key]}"
-    return name
+def _start_mode(onboard: InProcessOnboard | ProcessOnboard) -> str | None:
+    """How the onboard program was started: "warm" (forked), "cold" (a new interpreter), None (in-process)."""
+    if isinstance(onboard, ProcessOnboard):
+        return "warm" if onboard.warm else "cold"
+    return None
 
 
 def _phase_column(cols: dict[str, np.ndarray], events: list[dict[str, Any]]) -> np.ndarray:
@@ -522,42 +506,6 @@ def _phase_column(cols: dict[str, np.ndarray], events: list[dict[str, Any]]) -> 
     failsafe = np.isin(cols["fc_state"], (FC_STATE_CODES["failsafe_hover"], FC_STATE_CODES["failsafe_land"]))
     phase[failsafe] = 4
     return phase
-
-
-def _link_stats(emu: EmulatorSide) -> dict[str, Any]:
-    wire, server, mocap = emu.wire, emu.server, emu.mocap
-    st = mocap.stats
-    sim = max(emu.time_s, 1e-9)
-    sent = wire.setpoints_sent
-    applied = server.stats.setpoints_applied
-    radio = st.radio
-    summary = {
-        "command_delivered_fraction": applied / sent if sent else None,
-        "command_rate_hz": applied / sim,
-        "mocap_delivered_fraction": radio.delivered / radio.sent if radio.sent else None,
-        "mocap_rate_hz": st.frames_written / sim,
-    }
-    return {
-        "summary": summary,
-        "command": {
-            "setpoints_sent": sent,
-            "setpoints_applied": applied,
-            **{f"to_fc_{k}": v for k, v in wire.to_fc.as_dict().items()},
-            **{f"to_onboard_{k}": v for k, v in wire.to_onboard.as_dict().items()},
-            **{f"fc_codec_{k}": v for k, v in emu.codec.stats.as_dict().items()},
-        },
-        "mocap": {
-            "frames_exposed": st.mocap.frames,
-            "radio_sent": radio.sent,
-            "radio_delivered": radio.delivered,
-            "radio_lost": radio.lost,
-            "radio_late": radio.late,
-            "frames_written": st.frames_written,
-            "bytes_written": st.bytes_written,
-            "bytes_dropped_fault": emu.mocap_link.bytes_dropped_fault,
-            "bytes_corrupted": emu.mocap_link.bytes_corrupted,
-        },
-    }
 
 
 #: the paper's recovery point: 1 m above the ground, 2.5 m past the gap centre along the crossing

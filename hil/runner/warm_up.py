@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 
+from emulator.kernel_cache import cold
 from hil.runner.run import RunOptions, RunSetupError, run_scenario
 from hil.scenario import loads_scenarios
 from hil.scenario.schema import Scenario
@@ -108,8 +109,6 @@ def compile_beside(families: Iterable[str], options: RunOptions) -> Compiling:
     """Start one child process (forked) for each of ``families`` not in the kernel cache yet, which
     compiles it into the cache with a short flight; none when they are cached (or the cache is the
     user's own ``NUMBA_CACHE_DIR``, or the platform does not fork). The caller joins them."""
-    from emulator.kernel_cache import cold
-
     compiling = Compiling()
     if "fork" not in multiprocessing.get_all_start_methods():
         return compiling

@@ -22,7 +22,7 @@ from hil.link.channel import Channel, ChannelModel, UartWire
 from hil.link.clock import SimClock
 from hil.link.lockstep import Framing, framing
 from hil.link.transport import Transport, wait_readable
-from hil.runner.faults import FaultSchedule, corrupt
+from hil.runner.faults import FaultSchedule
 from hil.scenario.schema import LinkSpec
 
 
@@ -262,16 +262,14 @@ class CommandWire(Transport):
             st.frames_delivered += 1
             st.bytes_delivered += len(frame)
             return frame
-        if self.faults.any_active("command_link_down", time_s):
+        out, flipped = self.faults.on_frame("command", frame, time_s, self._corrupt_rng)
+        st.bytes_corrupted += flipped
+        if out is None:
             st.frames_dropped_fault += 1
             return None
-        frac = self.faults.corrupt_fraction("command", time_s)
-        if frac > 0:
-            frame, flipped = corrupt(frame, frac, self._corrupt_rng)
-            st.bytes_corrupted += flipped
         st.frames_delivered += 1
-        st.bytes_delivered += len(frame)
-        return frame
+        st.bytes_delivered += len(out)
+        return out
 
     def fileno(self) -> int:
         return self.raw.fileno()

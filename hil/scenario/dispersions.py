@@ -1,5 +1,5 @@
 """Dispersed scenarios: a field's path in a scenario document, each run's draws from its seed, and the
-scenario with the draws applied (validated again by the loader, as a file would be).
+scenario document with the draws applied (`hil.scenario.loader.dispersed` validates it again, as a file).
 
 A path names a field as a scenario file nests it: ``gap.roll_deg``, ``links.mocap.latency_ms``,
 ``initial.pos_m[2]``, ``faults[0].params.force_n``. Two paths name no field of the file but a steady
@@ -9,6 +9,7 @@ wind over the whole run: ``wind.speed_m_s`` (m/s, the drag model of a ``wind_gus
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from pathlib import Path
@@ -115,8 +116,6 @@ def sample(dispersions: Dispersions, doc: dict[str, Any], seed: int) -> dict[str
 def apply(doc: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
     """``doc`` (a `Scenario.to_dict` without meta) with ``values`` set; a wind adds a ``wind_gust`` over
     the whole run. ``doc`` itself is left as it was."""
-    import copy
-
     out = copy.deepcopy(doc)
     for path, value in values.items():
         if path not in WIND_PATHS:
@@ -137,18 +136,3 @@ def base_document(scenario: Scenario) -> dict[str, Any]:
     if str(doc["vehicle"]).endswith((".yaml", ".yml")):
         doc["vehicle"] = str(Path(doc["vehicle"]).resolve())
     return doc
-
-
-def dispersed(scenario: Scenario, values: dict[str, Any], seed: int, name: str) -> Scenario:
-    """``scenario`` with ``values`` applied and ``seed``, named ``name``, validated as a file is
-    (ScenarioError, naming the field, for a draw out of its range)."""
-    import yaml
-
-    from hil.scenario.loader import loads_scenarios
-
-    doc = apply(base_document(scenario), values)
-    doc["seed"], doc["name"] = seed, name
-    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # (libyaml's, where PyYAML has it: faster)
-    text = yaml.dump(doc, Dumper=dumper, sort_keys=False)
-    [s] = loads_scenarios(text, source=f"{scenario.source} ({name})")
-    return s

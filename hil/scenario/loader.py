@@ -21,10 +21,10 @@ from yaml.constructor import SafeConstructor
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from hil.scenario import schema
+from hil.scenario.dispersions import PathError, apply, base_document, value_at
+from hil.scenario.fault_kinds import FAULT_KINDS, NoParams, ParamSetParams, WindGustParams
 from hil.scenario.schema import (
     DISTRIBUTIONS,
-    FAULT_KINDS,
-    FAULT_PARAMS,
     FLIGHT_PHASES,
     MISSION_EVENTS,
     SCENARIO_LIMITS,
@@ -34,11 +34,8 @@ from hil.scenario.schema import (
     Expectations,
     Fault,
     GoCriterion,
-    NoParams,
-    ParamSetParams,
     RecoveryExpectation,
     Scenario,
-    WindGustParams,
 )
 
 #: the largest scenario file read (bytes): the shipped ones hold about 1 kB; one of this size loads in
@@ -204,6 +201,17 @@ def load_all(paths: Iterable[str | Path]) -> list[Scenario]:
                 ids[s.id] = s
                 out.append(s)
     return out
+
+
+def dispersed(scenario: Scenario, values: dict[str, Any], seed: int, name: str) -> Scenario:
+    """``scenario`` with dispersed ``values`` applied (`hil.scenario.dispersions`) and ``seed``, named
+    ``name``, validated as a file is (ScenarioError, naming the field, for a draw out of its range)."""
+    doc = apply(base_document(scenario), values)
+    doc["seed"], doc["name"] = seed, name
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # (libyaml's, where PyYAML has it: faster)
+    text = yaml.dump(doc, Dumper=dumper, sort_keys=False)
+    [s] = loads_scenarios(text, source=f"{scenario.source} ({name})")
+    return s
 
 
 # --- helpers -------------------------------------------------------------------------------------
@@ -646,8 +654,6 @@ class _Builder:
     def check_dispersions(self, s: Scenario, doc_line: int) -> None:
         """Every path of ``vary`` names a field of this scenario, and the values its distribution reaches
         (a uniform's ends, a normal's mean +- 3 sd, each choice) make a valid scenario."""
-        from hil.scenario.dispersions import PathError, base_document, dispersed, value_at
-
         assert s.dispersions is not None
         doc = base_document(s)
         for key, dist in s.dispersions.vary:
@@ -683,16 +689,17 @@ class _Builder:
         )
         if "kind" not in items:
             raise self.error(node, f"{path}.kind", f"required field missing; one of {', '.join(FAULT_KINDS)}")
-        kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": FAULT_KINDS})
+        kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": tuple(FAULT_KINDS)})
         time_meta = {"lo": 0.0, "hi": 3600.0}
         # an instant (onboard_killed: at_s or at) or a window (start_s or start, then end_s or duration_s)
-        instant = kind == "onboard_killed"
+        instant = FAULT_KINDS[kind].instant
         abs_key, rel_key = ("at_s", "at") if instant else ("start_s", "start")
         wrong = ("start_s", "start", "end_s", "duration_s") if instant else ("at_s", "at")
         for key in wrong:
             if key in items:
-                what = "onboard_killed is an instant: give at_s or at only" if instant else (
-                    "only onboard_killed takes at_s or at; use start_s or start")
+                instants = " or ".join(k for k, c in FAULT_KINDS.items() if c.instant)
+                what = f"{kind} is an instant: give at_s or at only" if instant else (
+                    f"only {instants} takes at_s or at; use start_s or start")
                 raise self.error(items[key], f"{path}.{key}", what)
         if (abs_key in items) == (rel_key in items):
             raise self.error(
@@ -727,7 +734,7 @@ class _Builder:
         phase = None
         if "phase" in items:
             phase = self.convert(str, items["phase"], f"{path}.phase", {"choices": FLIGHT_PHASES})
-        params_cls = FAULT_PARAMS[kind]
+        params_cls = FAULT_KINDS[kind].params
         params: Any = NoParams()
         if "params" in items:
             sub = items["params"]
@@ -812,7 +819,7 @@ class _Builder:
         """Rules that involve several fields; errors point at the field most likely wrong."""
         if s.links.esc_bus is None:
             for i, f in enumerate(s.faults):
-                if f.kind in ("esc_silent", "can_frame_loss", "can_bus_off"):
+                if FAULT_KINDS[f.kind].needs_esc_bus:
                     raise self.error(self.line_of(f"faults[{i}].kind", doc_line), f"faults[{i}].kind",
                                      f"{f.kind} needs the motors on an ESC bus: give links.esc_bus ({{}} "
                                      f"for its defaults)")
@@ -860,7 +867,7 @@ class _Builder:
         self.check_tilt(s, doc_line)
         for i, fault in enumerate(s.faults):
             if fault.after is None and fault.start_s >= s.duration_s:
-                key = "at_s" if fault.kind == "onboard_killed" else "start_s"
+                key = "at_s" if fault.instant else "start_s"
                 raise self.error(
                     self.line_of(f"faults[{i}].{key}", doc_line),
                     f"faults[{i}].{key}",

@@ -12,27 +12,14 @@ import math
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
+from hil.scenario.fault_kinds import NoParams, fault_kind
+from hil.scenario.spec import Vec3, spec
+
 # `spec` wraps dataclasses.field (adding validation metadata), so calling it in defaults is intended.
 # ruff: noqa: RUF009
 
-Vec3 = tuple[float, float, float]
-
 TRANSPORTS = ("pty", "memory", "udp")
 FAILSAFE_KINDS = ("hover", "land")  # the FC's failsafe action; `true` in a file means any of them
-FAULT_KINDS = (
-    "command_link_down",
-    "mocap_frozen",
-    "mocap_dropped",
-    "corrupt_bytes",
-    "onboard_killed",
-    "onboard_stalled",
-    "wind_gust",
-    "param_set",
-    "esc_silent",
-    "can_frame_loss",
-    "can_bus_off",
-)
-LINK_NAMES = ("command", "mocap")
 #: how late the emulator loop of a real-time run may wake at worst (ms): half the onboard program's
 #: stale-mocap limit (100 ms), five of its control periods without physics or links behind them
 REALTIME_MAX_LATE_MS = 50.0
@@ -54,24 +41,6 @@ MISSION_EVENTS = (
 FLIGHT_PHASES = ("takeoff", "approach", "traverse", "recovery", "hover")
 DEFAULT_VEHICLE = "n3_tx2"
 DEFAULT_PHYSICS = "native"
-
-
-def spec(
-    default: Any = MISSING,
-    *,
-    factory: Any = MISSING,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_open: bool = False,
-    hi_open: bool = False,
-    choices: tuple[str, ...] = (),
-    doc: str = "",
-) -> Any:
-    """A dataclass field carrying its validation limits (``lo``/``hi`` inclusive unless ``*_open``)."""
-    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices, "doc": doc}
-    if factory is not MISSING:
-        return field(default_factory=factory, metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)
@@ -294,72 +263,6 @@ class Dispersions:
 
 
 @dataclass(frozen=True)
-class NoParams:
-    """A fault without parameters."""
-
-
-@dataclass(frozen=True)
-class CorruptBytesParams:
-    """Flip bytes on one link."""
-
-    link: str = spec(MISSING, choices=LINK_NAMES, doc="which link's bytes are corrupted")
-    fraction: float = spec(MISSING, lo=0.0, hi=1.0, lo_open=True, doc="fraction of bytes corrupted")
-
-
-@dataclass(frozen=True)
-class WindGustParams:
-    """A force on the vehicle (give exactly one of force_n and speed_m_s), and the moment about its
-    vertical axis that a gust on an asymmetric airframe brings with it."""
-
-    direction: Vec3 = spec(MISSING, lo=-1000.0, hi=1000.0, doc="world ENU direction (normalised on load)")
-    force_n: float | None = spec(None, lo=0.0, hi=100.0, lo_open=True, doc="gust force")
-    speed_m_s: float | None = spec(None, lo=0.0, hi=30.0, lo_open=True, doc="wind speed (drag model)")
-    yaw_moment_nm: float = spec(
-        0.0, lo=-1.0, hi=1.0, doc="the gust's moment about the body z axis (N m; + turns the nose left)"
-    )
-
-
-@dataclass(frozen=True)
-class ParamSetParams:
-    """Set one FC parameter (by its MAVLink name, `emulator.fc.params`) while the fault acts; the value
-    in force before comes back when it ends."""
-
-    name: str = spec(MISSING, doc="the parameter's name, e.g. COM_OF_LOSS_T")
-    value: float = spec(MISSING, lo=-1e9, hi=1e9, doc="its value, within the parameter's own range")
-
-
-@dataclass(frozen=True)
-class EscSilentParams:
-    """One ESC stops answering and stops its motor (needs ``links.esc_bus``)."""
-
-    esc: int = spec(MISSING, lo=0, hi=3, doc="the ESC's index (the FC's motor 0-3)")
-
-
-@dataclass(frozen=True)
-class CanFrameLossParams:
-    """A fraction of the ESC bus's frames lost (needs ``links.esc_bus``)."""
-
-    fraction: float = spec(MISSING, lo=0.0, hi=1.0, lo_open=True, doc="fraction of frames lost")
-
-
-FaultParams = (NoParams | CorruptBytesParams | WindGustParams | ParamSetParams | EscSilentParams
-               | CanFrameLossParams)
-FAULT_PARAMS: dict[str, type] = {
-    "command_link_down": NoParams,
-    "mocap_frozen": NoParams,
-    "mocap_dropped": NoParams,
-    "corrupt_bytes": CorruptBytesParams,
-    "onboard_killed": NoParams,
-    "onboard_stalled": NoParams,
-    "wind_gust": WindGustParams,
-    "param_set": ParamSetParams,
-    "esc_silent": EscSilentParams,
-    "can_frame_loss": CanFrameLossParams,
-    "can_bus_off": NoParams,
-}
-
-
-@dataclass(frozen=True)
 class EventTime:
     """A time given after a mission event the onboard program reports: that event's sim time + ``s``."""
 
@@ -378,13 +281,18 @@ class Fault:
     default the event's, when the event starts a phase): the runner reports a window that missed it.
     """
 
-    kind: str
+    kind: str  # a registered kind (`hil.scenario.fault_kinds.FAULT_KINDS`)
     start_s: float
     end_s: float | None = None
-    params: FaultParams = field(default_factory=NoParams)
+    params: Any = field(default_factory=NoParams)  # the kind's parameters (its ``params`` class)
     after: EventTime | None = None
     duration_s: float | None = None
     phase: str | None = None
+
+    @property
+    def instant(self) -> bool:
+        """Whether the fault's kind is an instant (``at_s``), not a window."""
+        return fault_kind(self.kind).instant
 
     def active(self, time_s: float) -> bool:
         """Whether the fault acts at sim time ``time_s`` (s)."""
@@ -405,7 +313,7 @@ class Fault:
         if self.after is None:
             return self
         start = max(round(event_s + self.after.s, 9), not_before_s)  # (to the ns: no 3.1399999 s)
-        instant = self.duration_s is None or self.kind == "onboard_killed"
+        instant = self.duration_s is None or self.instant
         end = None if instant else round(start + self.duration_s, 9)
         return replace(self, start_s=start, end_s=end)
 
@@ -413,10 +321,10 @@ class Fault:
         """The fault as written in a scenario file."""
         out: dict[str, Any] = {"kind": self.kind}
         if self.after is not None:
-            out["at" if self.kind == "onboard_killed" else "start"] = _plain(self.after)
+            out["at" if self.instant else "start"] = _plain(self.after)
             if self.duration_s is not None:
                 out["duration_s"] = self.duration_s
-        elif self.kind == "onboard_killed":
+        elif self.instant:
             out["at_s"] = self.start_s
         else:
             out["start_s"] = self.start_s

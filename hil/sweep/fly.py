@@ -13,7 +13,7 @@ import numpy as np
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.run import SEGMENT_PHASES
 from hil.scenario import ScenarioError
-from hil.scenario.dispersions import dispersed
+from hil.scenario.loader import dispersed
 from hil.scenario.schema import Scenario
 
 #: the recorded ``phase`` column's codes (see the runner's phase column), by name

@@ -11,8 +11,10 @@ import numpy as np
 import torch
 
 from policies.learning.deploy import deploy_module
+from policies.learning.evaluate import paper_case, paper_case_errors
 from policies.learning.features import CONTROLLER_IN, E2E_IN, PLANNER_IN
 from policies.learning.networks import ControllerNet, EndToEndPolicy, PlannerNet
+from policies.learning.onnx_runtime import OnnxModel
 
 INPUT_NAME, OUTPUT_NAME = "x", "y"
 N_INPUTS = {"planner": PLANNER_IN, "controller": CONTROLLER_IN, "e2e": E2E_IN}
@@ -107,9 +109,6 @@ def export_metrics(planner_pt: str | Path, controller_pt: str | Path, out_dir: s
     """Write ``out_dir/metrics.json``: the trainings' metrics (from the ``metrics.json`` beside each state
     dict), with the planner's paper-case errors recomputed from the exported ``out_dir/planner.onnx``
     (Euclidean and per-axis worst errors), so the file states what the shipped ONNX does."""
-    from policies.learning.evaluate import paper_case, paper_case_errors
-    from policies.learning.onnx_runtime import OnnxModel
-
     out = Path(out_dir)
     planner_onnx = OnnxModel(out / "planner.onnx")
     planner = _training_metrics(Path(planner_pt), "planner")

@@ -26,9 +26,11 @@ cold ones do, when their links close.
 
 from __future__ import annotations
 
+import argparse
 import atexit
 import contextlib
 import gc
+import importlib
 import json
 import math
 import os
@@ -40,7 +42,12 @@ import socket
 import subprocess
 import sys
 import threading
+import traceback
 from typing import IO, Any
+
+from policies.onboard.cli import add_arguments
+from policies.onboard.pilots import PILOTS
+from policies.vehicle import DEFAULT_VEHICLE, load_vehicle
 
 #: the program the children run (as ``python -m MODULE``)
 MODULE = "policies.onboard"
@@ -64,25 +71,16 @@ _preloaded: set[str] = set()
 
 def _preload(pilot: str | None) -> None:
     """Import the program and, if named, a pilot's module (a learned pilot's brings onnxruntime), once."""
-    import importlib
-
     key = pilot or ""
     if key in _preloaded:
         return
     _preloaded.add(key)
     for name in PRELOAD:
         importlib.import_module(name)
-    if not key:  # what the program imports on its first use of them: its options and vehicle files
-        import argparse
-
-        from policies.onboard.cli import add_arguments
-        from policies.vehicle import DEFAULT_VEHICLE, load_vehicle
-
+    if not key:  # what the program loads on its first use of them: its options and vehicle files
         add_arguments(argparse.ArgumentParser())
         load_vehicle(DEFAULT_VEHICLE)
     if pilot:
-        from policies.onboard.pilots import PILOTS
-
         with contextlib.suppress(Exception):  # an unknown pilot is the program's to refuse, cold or warm
             PILOTS.load(pilot)
     gc.collect()  # (no gc.freeze(): the children collect as a cold program does, so they run as fast)
@@ -234,8 +232,6 @@ def _child(args: list[str], stderr_fd: int) -> int:
         print(code, file=sys.stderr)
         return 1
     except BaseException:  # the child's last word, as the interpreter would print it
-        import traceback
-
         traceback.print_exc()
         return 1
     finally:
