@@ -44,9 +44,10 @@ BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP][@ADDR]", "socketca
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
 MODE_OPERATIONAL = 0
 DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
-#: frames taken from a real bus in one pass (`CanBus.take_external`, about once a millisecond): above what
-#: a 1 Mbit/s wire carries (about 8 a millisecond), and a bound on the time a pass spends on them
-MAX_INTAKE_FRAMES = 64
+#: frames taken from a real bus in one pass (`CanBus.take_external`, about once a millisecond): what the
+#: wire could carry since the last pass (shortest frames back to back), at least the first, at most the
+#: second: a bound on the time a pass spends on them, whatever floods the real bus
+MIN_INTAKE_FRAMES, MAX_INTAKE_FRAMES = 64, 1024
 
 
 @dataclass
@@ -278,7 +279,9 @@ class CanBus:
         self.node_ids: set[int] = set()  # the compiled nodes' ids
         #: what the compiled nodes say through the FC: rows (code, ESC index, value, t), see `EscBus`
         self.on_events: Callable[[np.ndarray], None] = lambda rows: None
-        self._python: dict[int, tuple[Message | None, list[tuple[int, bytes]]]] = {}  # by sequence number
+        #: what Python keeps of a queued transfer, by sequence number: its message (None: frames only), its
+        #: frames, and whether they go out (an answer to a request) or came in from the real bus
+        self._python: dict[int, tuple[Message | None, list[tuple[int, bytes]], bool]] = {}
         self._row = np.zeros(k.Q_SIZE)
         self._rx = TransferManager()
         self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
@@ -286,7 +289,14 @@ class CanBus:
         #: the nodes heard on the real bus, by node id; each new one is handed to ``on_outside_node``
         self.outside_nodes: dict[int, OutsideNode] = {}
         self.on_outside_node: Callable[[OutsideNode, float], None] = lambda node, t: None
-        self.intake_deferred = 0  # passes that left frames waiting on the real bus (`MAX_INTAKE_FRAMES`)
+        self.intake_deferred = 0  # passes that left frames waiting on the real bus (`take_external`)
+        self._intake_s: float | None = None  # the last pass's time
+        self._shortest_frame_s = frame_bits(0) / config.bitrate_bps
+        #: the answer to a service request from the real bus (a dronecan Transfer) at t, None: no answer
+        self.on_request: Callable[[Any, float], Any | None] = lambda transfer, t: None
+        self.transfers_in = 0  # complete transfers from the real bus
+        self.transfer_errors = 0  # transfers from the real bus that did not decode (bad CRC, unknown type)
+        self.frames_in_queued = 0  # frames from the real bus put on the model's wire
 
     # the wire's settings and counters, as the arrays hold them
     @property
@@ -347,7 +357,8 @@ class CanBus:
         self._queue_python(message, frames, lengths, transfer_id, priority, t)
 
     def _queue_python(self, message: Message | None, frames: list[tuple[int, bytes]],
-                      lengths: tuple[int, ...], transfer_id: int, priority: int, t: float) -> None:
+                      lengths: tuple[int, ...], transfer_id: int, priority: int, t: float,
+                      outgoing: bool = True) -> int:
         if len(lengths) > k.MAX_FRAMES:
             raise ValueError(f"a transfer of {len(lengths)} frames: the bus model takes at most "
                              f"{k.MAX_FRAMES}")
@@ -356,30 +367,36 @@ class CanBus:
         seq = k.queue_transfer(self.wire, self.queue, self.draws, k.PYTHON, src, transfer_id, priority,
                                self._row[:0], np.asarray(lengths, dtype=np.int64), len(lengths), t)
         if seq >= 0:
-            self._python[seq] = (message, frames)
+            self._python[seq] = (message, frames, outgoing)
+        return seq
 
     def _frame_lengths(self, message: Message, priority: int) -> tuple[int, ...]:
         """Data bytes of each frame of ``message`` (dronecan's cut, worked out once per type, priority
         and array lengths: the tail byte's transfer id does not change them)."""
         key = (message.dtype, priority,
-               *(len(v) for v in message.fields.values() if isinstance(v, list | tuple)))
+               *(len(v) for v in message.fields.values() if isinstance(v, list | tuple | str)))
         lengths = self._layouts.get(key)
         if lengths is None:
             lengths = self._layouts[key] = tuple(len(data) for _, data in message.encode(0, priority))
         return lengths
 
     def take_external(self, t: float) -> None:
-        """Put what the real bus brought on the wire at ``t`` (s): at most `MAX_INTAKE_FRAMES` a pass, so
-        that a flood from outside cannot stall the caller's loop (the rest wait in the real bus's
-        socket for the next pass; what overflows it is counted there, `Bridge.stats`)."""
+        """Put what the real bus brought on the wire at ``t`` (s): at most what the wire could carry since
+        the last pass (`MIN_INTAKE_FRAMES`..`MAX_INTAKE_FRAMES`), so that a flood from outside cannot
+        stall the caller's loop. The rest wait in the real bus's socket for the next pass (counted in
+        ``intake_deferred``); what overflows the socket is lost there, counted (`Bridge` stats)."""
         if self.bridge is None:
             return
-        frames, more = self.bridge.receive(MAX_INTAKE_FRAMES)
+        since_s = 0.0 if self._intake_s is None else t - self._intake_s
+        self._intake_s = t
+        fits = since_s / self._shortest_frame_s
+        frames, more = self.bridge.receive(int(min(MAX_INTAKE_FRAMES, max(MIN_INTAKE_FRAMES, fits))))
         self.intake_deferred += more
         for can_id, data in frames:
             self._heard(can_id & 0x7F, t)
             self.wire[k.W_EXTERNAL_IN] += 1
-            self._queue_python(None, [(can_id, data)], (len(data),), 0, 0, t)
+            if self._queue_python(None, [(can_id, data)], (len(data),), 0, 0, t, outgoing=False) >= 0:
+                self.frames_in_queued += 1
 
     def _heard(self, src: int, t: float) -> None:
         """A frame from node ``src`` of the real bus (0: anonymous) at ``t`` (s): noted, and the first one
@@ -416,15 +433,17 @@ class CanBus:
         kind, src, done = int(row[k.Q_KIND]), int(row[k.Q_SRC]), float(row[k.Q_DONE_S])
         mask = int(row[k.Q_MASK])
         frames: list[tuple[int, bytes]] | None
+        outgoing = True
         if kind == k.PYTHON:
-            message, frames = self._python.pop(int(row[k.Q_SEQ]))
+            message, frames, outgoing = self._python.pop(int(row[k.Q_SEQ]))
         else:
             dtype = _kind_types()[kind]
             message, frames = Message(dtype, src, _fields_of(kind, row[k.Q_PAYLOAD:])), None
-        if message is None:  # a frame from the real bus
-            got = self._reassemble(*frames[0])
-            if got is not None:
-                self._hand_out(got, done)
+        if message is None:
+            if outgoing:  # an answer to a request: its frames that were not lost
+                self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
+            else:  # a frame from the real bus
+                self._take_in(*frames[0], done)
             return
         if self.bridge is not None:
             if frames is None:
@@ -432,6 +451,32 @@ class CanBus:
             self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
         if row[k.Q_KEPT] == row[k.Q_FRAMES]:
             self._hand_out(message, done)
+
+    def _take_in(self, can_id: int, data: bytes, t: float) -> None:
+        """A frame from the real bus off the model's wire at ``t`` (s): once its transfer is complete, a
+        message handed out, a request to a node of this process answered."""
+        tr = self._reassemble(can_id, data)
+        if tr is None:
+            return
+        self.transfers_in += 1
+        if not tr.service_not_message:
+            self._hand_out(Message.decoded(tr), t)
+        elif tr.request_not_response and tr.dest_node_id in self.node_ids:
+            self._answer(tr, t)
+
+    def _answer(self, request: Any, t: float) -> None:
+        from dronecan.transport import Transfer
+
+        payload = self.on_request(request, t)
+        if payload is None:
+            return
+        tr = Transfer(payload=payload, source_node_id=request.dest_node_id,
+                      dest_node_id=request.source_node_id, transfer_id=request.transfer_id,
+                      transfer_priority=request.transfer_priority, service_not_message=True,
+                      request_not_response=False)
+        frames = [(f.message_id, bytes(f.bytes)) for f in tr.to_frames()]
+        self._queue_python(None, frames, tuple(len(d) for _, d in frames), request.transfer_id,
+                           request.transfer_priority, t)
 
     def flush_events(self) -> None:
         """Hand what the compiled nodes have to say to ``on_events``."""
@@ -447,7 +492,9 @@ class CanBus:
                 self.bridge.send(can_id, data)
             self.wire[k.W_EXTERNAL_OUT] += len(frames)
 
-    def _reassemble(self, can_id: int, data: bytes) -> Message | None:
+    def _reassemble(self, can_id: int, data: bytes) -> Any | None:
+        """The dronecan Transfer a frame from the real bus completes, None while it is incomplete or when it
+        does not decode (counted)."""
         from dronecan.transport import Frame, Transfer
 
         frames = self._rx.receive_frame(Frame(can_id, data))
@@ -457,8 +504,9 @@ class CanBus:
         try:
             tr.from_frames(frames)
         except Exception:  # a transfer of a type this process does not know, or a bad CRC: not ours
+            self.transfer_errors += 1
             return None
-        return Message.decoded(tr)
+        return tr
 
     def _hand_out(self, message: Message, t: float) -> None:
         src = message.source_node_id
@@ -550,12 +598,68 @@ class EscBus:
         f[k.F_NODE], f[k.F_T0], f[k.F_NEXT_NODE_S], f[k.F_NODES_DUE_S] = config.fc_node_id, t0, t0, t0
         f[k.F_COMMAND_PERIOD_S] = 1.0 / config.command_rate_hz
         f[k.F_STATUS_PERIOD_S] = 1.0 / config.status_rate_hz
-        f[k.F_MAX_ROTOR] = 1.0
+        f[k.F_MAX_ROTOR], f[k.F_EFFICIENCY] = 1.0, 1.0  # (no power train until `set_power_train`)
         self._configure_watch()
         b.node_ids = {config.fc_node_id, *(nid for nid in config.esc_node_ids if nid not in config.external)}
         b.on_events = self._on_events
         self.throttle = b.throttle  # what each ESC drives its motor at (0..1)
         self.fc_node = FcEscNode(b, config)
+        #: whether the motors are armed (an ESC refuses to restart then); `attach` asks the FC
+        self.armed: Callable[[], bool] = lambda: False
+        from emulator import esc_bus_services as sv  # (dronecan's types: loaded with a bus, not this module)
+
+        identities = {config.fc_node_id: sv.NodeIdentity(config.fc_node_id, sv.FC_NAME)}
+        identities.update({nid: sv.NodeIdentity(nid, sv.ESC_NAME) for nid in config.esc_node_ids
+                           if nid not in config.external})
+        self.services = sv.NodeServices(identities, self._status_of, self._interface_counts, self._restart)
+        b.on_request = self.services.answer
+        b.on_outside_node = self._on_outside_node
+        self._log_tid = 0
+
+    def _node_row(self, node_id: int) -> tuple[np.ndarray, int, int]:
+        """The compiled row of an emulated node and its uptime-origin and health columns."""
+        if node_id == self.config.fc_node_id:
+            return self.bus.fc, k.F_T0, k.F_HEALTH
+        return self.bus.escs[self.config.esc_node_ids.index(node_id)], k.E_T0, k.E_HEALTH
+
+    def _status_of(self, node_id: int, t: float) -> tuple[int, int]:
+        row, t0, health = self._node_row(node_id)
+        return int(t - row[t0]), int(row[health])
+
+    def _restart(self, node_id: int, t: float) -> bool:
+        if node_id == self.config.fc_node_id or self.armed():
+            return False
+        row, _, _ = self._node_row(node_id)
+        row[k.E_T0], row[k.E_ERRORS], row[k.E_NEXT_NODE_S] = t, 0.0, t  # (its NodeStatus at once, uptime 0)
+        self.bus.fc[k.F_NODES_DUE_S] = -math.inf
+        self.report("info", f"ESC node {node_id} restarted on request", t)
+        return True
+
+    def _interface_counts(self) -> Any:
+        """The process's interface to the bus (`esc_bus_services.InterfaceCounts`)."""
+        from emulator.esc_bus_services import InterfaceCounts  # (loaded with the bus: see __init__)
+
+        b, w = self.bus, self.bus.wire
+        return InterfaceCounts(transfers_tx=int(w[k.W_SEQ]) - b.frames_in_queued, transfers_rx=b.transfers_in,
+                               transfer_errors=b.transfer_errors, frames_tx=int(w[k.W_EXTERNAL_OUT]),
+                               frames_rx=int(w[k.W_EXTERNAL_IN]),
+                               errors=int(w[k.W_ERROR_FRAMES]) + (b.bridge.errors if b.bridge else 0))
+
+    def _on_outside_node(self, node: OutsideNode, t: float) -> None:
+        """A node first heard on the real bus: reported; one using an emulated node's id is a conflict,
+        also told on the bus by the FC's node (uavcan.protocol.debug.LogMessage, level warning)."""
+        if not node.conflict:
+            self.report("info", f"DroneCAN node {node.node_id} heard on the bus", t)
+            return
+        text = f"node id {node.node_id} conflict: another node on the bus uses it"
+        # (STATUSTEXT holds 50 characters)
+        self.report("warning", f"DroneCAN node id {node.node_id} used by two nodes", t)
+        from dronecan import uavcan  # (loaded with the bus: `CanBus`)
+
+        log = uavcan.protocol.debug
+        fields = {"level": log.LogLevel(value=log.LogLevel().WARNING), "source": "esc_bus", "text": text}
+        self.bus.send(Message(log.LogMessage, self.config.fc_node_id, fields), self._log_tid, 28, t)
+        self._log_tid = (self._log_tid + 1) & 31
 
     def _configure_watch(self) -> None:
         f = self.bus.fc
@@ -564,6 +668,15 @@ class EscBus:
 
     max_rotor_speed_rad_s = _Slot("bus.fc", k.F_MAX_ROTOR,
                                   "the motors' top speed (rad/s): an outside ESC's rpm is read against it")
+
+    def set_power_train(self, profile: Any) -> None:
+        """The motors, their top speed and the pack of a `VehicleProfile`: what the emulated ESCs report
+        in esc.Status (`esc_bus_kernels.esc_power`)."""
+        f = self.bus.fc
+        f[k.F_MAX_ROTOR] = profile.max_rotor_speed_rad_s
+        f[k.F_DRAG_COEFF] = profile.drag_torque_coeff_nm_s2
+        f[k.F_PACK_V], f[k.F_PACK_OHM] = profile.battery_voltage_v, profile.battery_resistance_ohm
+        f[k.F_EFFICIENCY] = profile.motor_efficiency
 
     def reconfigure(self, **changes: Any) -> None:
         """Change the FC's ESC watch in flight (``status_timeout_s``, ``failsafe_action``)."""
@@ -633,7 +746,7 @@ class EscBusStepper:
         self.vehicle, self.esc = vehicle, esc
         b = esc.bus
         b.fc[k.F_NEXT_COMMAND_S] = vehicle.time_s
-        esc.max_rotor_speed_rad_s = vehicle.profile.max_rotor_speed_rad_s
+        esc.set_power_train(vehicle.profile)
         #: the FC's quiet motor ticks in the compiled loop (False: every tick through its own update)
         self.quiet_commands = True
         #: the native backend's arrays (`NativeBackend.kernel_arrays`), None on another backend
@@ -737,12 +850,32 @@ class EscBusStepper:
             "bus": bus.stats.as_dict(), "load": round(bus.load(now_s), 4), "commands_sent":
             self.esc.fc_node.commands_sent,
             "throttle": [round(float(u), 4) for u in self.esc.throttle],  # what each motor runs at
+            # nodes heard on the real bus (a conflict: one using an emulated node's id), services answered
+            "outside_nodes": [n.as_dict() for _, n in sorted(bus.outside_nodes.items())],
+            "conflicts": sorted(n.node_id for n in bus.outside_nodes.values() if n.conflict),
+            "services_answered": dict(self.esc.services.answered),
+            "real_bus": self._real_bus(bus),
             "escs": [
                 {"index": i, "node_id": nid, "external": nid in self.esc.config.external,
-                 "failed": h.failed, "rpm": h.rpm, "error_count": h.error_count}
+                 "failed": h.failed, "rpm": h.rpm, "error_count": h.error_count,
+                 "voltage_v": round(h.voltage_v, 3), "current_a": round(h.current_a, 3),
+                 "temperature_k": round(h.temperature_k, 2)}
                 for i, (nid, h) in enumerate(zip(self.esc.config.esc_node_ids, self.esc.fc_node.escs,
                                                  strict=True))],
         }
+
+
+    @staticmethod
+    def _real_bus(bus: CanBus) -> dict[str, Any] | None:
+        """The real bus's intake: transfers in, those that did not decode, passes that left frames
+        waiting, and a multicast socket's own counts (drops in the socket among them)."""
+        if bus.bridge is None:
+            return None
+        out: dict[str, Any] = {"transfers_in": bus.transfers_in, "transfer_errors": bus.transfer_errors,
+                               "intake_deferred": bus.intake_deferred, "send_errors": bus.bridge.errors}
+        if bus.bridge.mcast is not None:
+            out["socket"] = bus.bridge.mcast.stats.as_dict()
+        return out
 
 
 _SEVERITY = {"info": 6, "warning": 4, "critical": 2}  # MAV_SEVERITY
@@ -759,6 +892,7 @@ def attach(vehicle: Any, server: Any, config: EscBusConfig, rng: np.random.Gener
 
     esc = EscBus(config, rng, vehicle.time_s, report,
                  lambda action, t: fc.motor_failsafe(action, t, "ESC failed"), bridge)
+    esc.armed = lambda: fc.state.armed
     stepper = EscBusStepper(vehicle, esc)
     vehicle.motor_path = stepper
     server.params.esc = esc

@@ -40,6 +40,8 @@ ERROR_FRAME_BITS = 20  # an error flag, its delimiter and the intermission
 #: error adds 8 to its transmit error count, 256 is bus-off); the frame counts as lost
 MAX_RESENDS = 32
 HEALTH_OK, HEALTH_CRITICAL = 0, 2  # uavcan.protocol.NodeStatus health
+AMBIENT_K = 298.15  # the air around the motors (25 C)
+ESC_THERMAL_K_PER_W = 1.0  # an ESC and motor's temperature rise above the air per watt they lose
 
 # message kinds
 RAW_COMMAND, ESC_STATUS, NODE_STATUS, PYTHON = 0, 1, 2, 3
@@ -66,8 +68,8 @@ H_SIZE = 7
 (F_NODE, F_T0, F_NEXT_NODE_S, F_HEALTH, F_TID_RAW, F_TID_NODE, F_COMMANDS, F_TIMEOUT_S, F_ACTION,
  F_NODES_DUE_S, F_NEXT_COMMAND_S, F_COMMAND_PERIOD_S, F_STATUS_PERIOD_S, F_MAX_ROTOR, F_POLLS,
  F_FC_STEPS, F_QUIET_STEPS, F_PHYSICS_STEPS, F_EVENTS, F_QUIET_T, F_QUIET_Z, F_QUIET_VZ, F_QUIETED,
- F_REST_Z, F_LANDED_MARGIN, F_PENDING_STEPS) = range(26)
-F_SIZE = 26
+ F_REST_Z, F_LANDED_MARGIN, F_PENDING_STEPS, F_DRAG_COEFF, F_PACK_V, F_PACK_OHM, F_EFFICIENCY) = range(30)
+F_SIZE = 30
 # a held offboard target a stepper may fly with the inner loop alone (`FlightController.held_target`)
 T_ROLL, T_PITCH, T_YAW, T_THRUST, T_QUIET_UNTIL_S, T_ON = range(6)
 T_SIZE = 6
@@ -291,9 +293,36 @@ def esc_due_s(e, throttle):  # pragma: no cover
 
 
 @njit(cache=True)
+def esc_power(fc, rotor_w, i):  # pragma: no cover
+    """What ESC ``i`` reports of its power train with the rotors at ``rotor_w`` (rad/s, all four): (pack
+    voltage V, its current A, its temperature K, its power in % of its motor's full power).
+
+    The model: a rotor's shaft power is its drag torque times its speed, k_m |w|^3 (k_m, the profile's
+    ``drag_torque_coeff_nm_s2``); the ESC draws that over the power train's efficiency (the profile's
+    ``motor_efficiency``). The pack (open-circuit ``battery_voltage_v``, internal
+    ``battery_resistance_ohm``) feeds the four: its voltage V solves V = V_oc - R P_total / V (the sag
+    under the total draw; half V_oc past the pack's maximum power), and each ESC's current is its power
+    over V. Its temperature is the air's plus `ESC_THERMAL_K_PER_W` per watt lost, at once (no thermal
+    lag); its power % is its draw over the draw at full rotor speed (``F_MAX_ROTOR``)."""
+    km, eff = fc[F_DRAG_COEFF], fc[F_EFFICIENCY]
+    total = 0.0
+    for j in range(rotor_w.shape[0]):
+        total += km * abs(rotor_w[j]) ** 3 / eff
+    own = km * abs(rotor_w[i]) ** 3 / eff
+    v_oc, ohm = fc[F_PACK_V], fc[F_PACK_OHM]
+    disc = v_oc * v_oc - 4.0 * ohm * total
+    volts = 0.5 * (v_oc + math.sqrt(disc)) if disc > 0.0 else 0.5 * v_oc
+    full = km * fc[F_MAX_ROTOR] ** 3 / eff
+    pct = 100.0 * own / full if full > 0.0 else 0.0
+    amps = own / volts if volts > 0.0 else 0.0
+    return volts, amps, AMBIENT_K + ESC_THERMAL_K_PER_W * (1.0 - eff) * own, pct
+
+
+@njit(cache=True)
 def esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w):  # pragma: no cover
     """One emulated ESC at ``t`` (s): its command timeout, NodeStatus and esc.Status (rpm from its
-    rotor's speed ``rotor_w``, rad/s). A silent one stops its motor and lets its slots pass."""
+    rotor's speed and its power train from all four, ``rotor_w`` (4,), rad/s: `esc_power`). A silent
+    one stops its motor and lets its slots pass."""
     i = int(e[E_INDEX])
     period_s = fc[F_STATUS_PERIOD_S]
     if e[E_SILENT] != 0:
@@ -310,12 +339,12 @@ def esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w)
     e[E_NEXT_NODE_S], e[E_TID_NODE] = _node_status(wire, queue, draws, layouts, n_frames, src, e[E_T0],
                                                    e[E_HEALTH], e[E_NEXT_NODE_S], int(e[E_TID_NODE]), t)
     if t >= e[E_NEXT_STATUS_S] - 1e-12:
-        u = throttle[i]
         p = np.zeros(PAYLOAD)  # (in the order of `esc_bus.STATUS_FIELDS`)
-        p[0], p[1], p[2], p[3] = e[E_ERRORS], 15.2 - 1.2 * u, 25.0 * u**1.5, 300.0 + 40.0 * u
-        rpm = rotor_w * 60.0 / (2.0 * math.pi)
+        p[0] = e[E_ERRORS]
+        p[1], p[2], p[3], pct = esc_power(fc, rotor_w, i)
+        rpm = rotor_w[i] * 60.0 / (2.0 * math.pi)
         p[4] = int(rpm) if abs(rpm) < 1e9 else 0  # (a diverged rotor: no number to report)
-        p[5], p[6] = np.rint(100 * u), i
+        p[5], p[6] = min(127.0, np.rint(pct)), i  # (uint7)
         tid = int(e[E_TID_STATUS])
         _broadcast(wire, queue, draws, layouts, n_frames, ESC_STATUS, src, tid, 16, p, t)
         e[E_TID_STATUS] = (tid + 1) & 31
@@ -372,7 +401,7 @@ def poll(wire, queue, draws, escs, health, fc, events, layouts, n_frames, thrott
                 continue
             d = esc_due_s(e, throttle)
             if t >= d - 1e-12 or e[E_SILENT] != 0:
-                esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w[int(e[E_INDEX])])
+                esc_poll(wire, queue, draws, layouts, n_frames, fc, e, throttle, t, rotor_w)
                 d = esc_due_s(e, throttle)
             due = d if d < due else due
         if fc[F_NODE] >= 0:

@@ -59,6 +59,10 @@ class VehicleProfile:
     max_tilt_deg: float  # flight controller's roll/pitch limit
     max_body_rate_rad_s: float  # the inner loop's body-rate limit
     max_yaw_rate_deg_s: float = 150.0
+    # the power train as the ESCs report it (esc.Status: `emulator.esc_bus_kernels.esc_power`)
+    battery_voltage_v: float = 15.2  # the pack's open-circuit voltage (a 4S lithium pack part-charged)
+    battery_resistance_ohm: float = 0.05  # the pack's internal resistance, its wiring and connectors
+    motor_efficiency: float = 0.7  # shaft power / electrical power drawn, motor and ESC together
     #: the inertia the FC's inner loop is tuned for, when it is not the airframe's (a mis-measured or
     #: stale tuning); None: the FC knows the airframe's inertia_kgm2
     fc_inertia_kgm2: tuple[float, float, float] | None = None
@@ -126,6 +130,9 @@ _POSITIVE_FIELDS = {
     "max_tilt_deg",
     "max_body_rate_rad_s",
     "max_yaw_rate_deg_s",
+    "battery_voltage_v",
+    "battery_resistance_ohm",
+    "motor_efficiency",
 }
 
 
@@ -166,6 +173,9 @@ def _build(data: dict[str, Any], source: str) -> VehicleProfile:
             values[f.name] = x
     if values["max_tilt_deg"] >= 90:
         raise ProfileError(source, "max_tilt_deg", f"expected < 90, got {values['max_tilt_deg']}")
+    if values.get("motor_efficiency", 0.0) > 1.0:
+        raise ProfileError(source, "motor_efficiency",
+                           f"expected at most 1, got {values['motor_efficiency']}")
     profile = VehicleProfile(**values)
     if profile.hover_throttle >= 1.0:
         raise ProfileError(

@@ -16,6 +16,8 @@ from dronecan.transport import Frame, Transfer, TransferManager
 from test_fc_mavlink import HOVER, Bench, of_type
 
 from emulator.esc_bus import (
+    MAX_INTAKE_FRAMES,
+    MIN_INTAKE_FRAMES,
     RAW_COMMAND_MAX,
     Bridge,
     CanBus,
@@ -397,3 +399,34 @@ def test_a_non_finite_motor_output_goes_on_the_wire_as_a_defined_command():
     stepper.esc.fc_node.send_command([math.nan, math.inf, -math.inf, 0.5], 50.0)
     stepper.esc.bus.advance_to(51.0)
     assert seen == [[0, RAW_COMMAND_MAX, 0, round(0.5 * RAW_COMMAND_MAX)]]
+
+
+def test_a_flood_from_the_real_bus_is_taken_in_bounded_passes_and_every_loss_is_counted():
+    """3,000 frames at once from another process: each pass takes at most what the wire could carry
+    since the last one (at least `MIN_INTAKE_FRAMES`), the rest wait in the socket for later passes, and
+    what the socket could not hold is counted as dropped: every frame taken in or counted lost."""
+    n = os.getpid() % 200 + 25
+    bus = CanBus(EscBusConfig(), np.random.default_rng(0), Bridge(f"mcast:{n}", 1_000_000))
+    flood = McastCanSocket("mcast", str(n))
+    try:
+        for i in range(3000):
+            flood.send(0x10_1234_00 | 99, bytes([i & 0xFF, 0xC0 | (i & 31)]))
+        taken, t = [], 0.0
+        while not taken or taken[-1]:
+            n0 = bus.stats.external_in
+            t += 0.001
+            bus.take_external(t)
+            bus.advance_to(t)
+            taken.append(bus.stats.external_in - n0)
+        sock = bus.bridge.mcast.stats
+        assert bus.stats.external_in + sock.dropped == 3000 and sock.malformed == 0
+        assert max(taken) == MIN_INTAKE_FRAMES and bus.intake_deferred >= 2
+        assert bus.outside_nodes[99].frames == bus.stats.external_in
+        for i in range(3000):  # ... and after a pause of a second, at most `MAX_INTAKE_FRAMES` in a pass
+            flood.send(0x10_1234_00 | 99, bytes([i & 0xFF, 0xC0 | (i & 31)]))
+        n0 = bus.stats.external_in
+        bus.take_external(t + 1.0)
+        assert bus.stats.external_in - n0 == min(MAX_INTAKE_FRAMES, 3000 - (sock.dropped - (3000 - n0)))
+    finally:
+        flood.close()
+        bus.close()

@@ -28,16 +28,18 @@ NODE = Path(__file__).with_name("esc_node_external.py")
 
 
 @contextlib.contextmanager
-def outside_esc_3(bus: str, *fc_args: str) -> Iterator[tuple[MavlinkCodec, dict]]:
-    """A dronecan node in another process standing in for ESC 3 on ``bus``, and `hil fc` with its motors
-    on that bus; yields a client codec on the FC's command link and a dict that holds, once the block
+def outside_esc_3(bus: str, *fc_args: str, node_id: int = 23, index: int = 3,
+                  external: bool = True) -> Iterator[tuple[MavlinkCodec, dict]]:
+    """A dronecan node in another process standing in for ESC ``index`` (3) as node ``node_id`` on
+    ``bus``, and `hil fc` with its motors on that bus (told that the node serves that ESC when
+    ``external``); yields a client codec on the FC's command link and a dict that holds, once the block
     is left and both have stopped, the FC's exit summary ("summary") and what the node saw ("seen")."""
     w_max = PROFILE.max_rotor_speed_rad_s
-    ext = subprocess.Popen([sys.executable, str(NODE), bus, "23", "3", "60", str(w_max)],
+    ext = subprocess.Popen([sys.executable, str(NODE), bus, str(node_id), str(index), "60", str(w_max)],
                            stdout=subprocess.PIPE, text=True)
     assert ext.stdout.readline().strip() == "ready"
-    proc, dev = start_fc("--esc-bus", bus, "--external-esc", "23", "--mocap-link", "none", "--gap", "none",
-                         *fc_args)
+    told = ("--external-esc", str(node_id)) if external else ()
+    proc, dev = start_fc("--esc-bus", bus, *told, "--mocap-link", "none", "--gap", "none", *fc_args)
     link = SerialTransport(dev, 921600)
     out: dict = {}
     try:
@@ -68,6 +70,30 @@ def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor(
     assert esc["escs"][3]["external"] and esc["bus"]["external_in"] > 100
     assert esc["throttle"][:3] == pytest.approx([idle] * 3, abs=2e-4)
     assert esc["throttle"][3] == pytest.approx(idle, abs=2e-3)
+    # every emulated node answered its GetNodeInfo: a name, the harness's version, a unique id of its own
+    info = seen["node_info"]
+    assert info["10"]["name"] == "org.crossgap_hil.n3_fc"
+    assert [info[str(n)]["name"] for n in (20, 21, 22)] == ["org.crossgap_hil.esc"] * 3
+    assert len({info[n]["unique_id"] for n in ("10", "20", "21", "22")}) == 4
+    assert all(v["software_version"] == [0, 1] and v["uptime_s"] <= 4 for v in info.values())
+    assert esc["services_answered"]["GetNodeInfo"] == 4
+    assert [n["node_id"] for n in esc["outside_nodes"]] == [23] and esc["conflicts"] == []
+
+
+def test_an_outside_node_that_takes_an_emulated_nodes_id_is_reported_as_a_conflict():
+    """A node in another process takes node id 20 (ESC 0's) and answers RawCommand as ESC 0 would: the
+    FC hears its esc.Status (a real FC cannot tell them apart) and reports the conflict: STATUSTEXT,
+    the summary, and a LogMessage from the FC's node on the bus, which the node sees."""
+    texts: list[str] = []
+    bus = f"mcast:{40 + os.getpid() % 200}"
+    with outside_esc_3(bus, node_id=20, index=0, external=False) as (codec, out):
+        end = time.monotonic() + 2.5
+        while time.monotonic() < end:
+            texts += [m.text for m in codec.receive(0.05) if m.get_type() == "STATUSTEXT"]
+    esc, seen = out["summary"]["esc_bus"], out["seen"]
+    assert esc["conflicts"] == [20] and esc["outside_nodes"][0]["frames"] > 10
+    assert "DroneCAN node id 20 used by two nodes" in texts
+    assert [10, 2, "node id 20 conflict: another node on the bus uses it"] in seen["log"]  # (2: WARNING)
 
 
 def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3(tmp_path):

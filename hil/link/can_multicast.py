@@ -27,9 +27,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 LOOPBACK_ADDR = "127.0.0.1"
-#: Linux's SO_RXQ_OVFL (<asm-generic/socket.h>; Python 3.11's socket module does not name it): each
-#: datagram received carries how many the socket has dropped for want of room
-SO_RXQ_OVFL = 40
+#: Linux's SO_MEMINFO and the index of the datagrams a socket dropped for want of room in what it
+#: answers (<asm-generic/socket.h>, <linux/sock_diag.h>; Python 3.11's socket module names neither)
+SO_MEMINFO, SK_MEMINFO_DROPS, SK_MEMINFO_VARS = 55, 8, 9
 RECV_BUFFER_BYTES = 1 << 20  # the receiving socket's buffer: about 10,000 frames of either format
 MAX_DATAGRAM = 4096
 
@@ -155,8 +155,6 @@ class McastCanSocket:
             rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)  # (python-can's sockets set both)
             rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
-            if sys.platform.startswith("linux"):
-                rx.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
             rx.bind((self.group, fmt.port))  # (the group's datagrams only, not another group's on the port)
             rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(self.group) + iface)
             rx.setblocking(False)
@@ -170,7 +168,6 @@ class McastCanSocket:
         except OSError:
             self.close()
             raise
-        self._ancillary = socket.CMSG_SPACE(4)
 
     def fileno(self) -> int:
         """The receiving socket's descriptor (to wait on)."""
@@ -191,16 +188,14 @@ class McastCanSocket:
         takes them at its next pass; the socket holds them meanwhile)."""
         out: list[Frame] = []
         st, decode = self.stats, self.format.decode
+        self._count_drops()
         while len(out) < max_frames:
             try:
-                datagram, ancillary, _, source = self._rx.recvmsg(MAX_DATAGRAM, self._ancillary)
+                datagram, source = self._rx.recvfrom(MAX_DATAGRAM)
             except (BlockingIOError, InterruptedError):
                 return out, False
             except OSError:  # (an ICMP error queued on the socket: nothing to read now)
                 return out, False
-            for level, kind, value in ancillary:
-                if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
-                    st.dropped = struct.unpack("=I", value[:4])[0]
             if source == self._own:
                 st.own += 1
                 continue
@@ -211,6 +206,11 @@ class McastCanSocket:
             st.received += 1
             out.append(frame)
         return out, True
+
+    def _count_drops(self) -> None:
+        if sys.platform.startswith("linux"):
+            info = self._rx.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * SK_MEMINFO_VARS)
+            self.stats.dropped = struct.unpack_from(f"{SK_MEMINFO_VARS}I", info)[SK_MEMINFO_DROPS]
 
     def multicast_options(self) -> dict[str, object]:
         """The sending socket's multicast settings as the kernel holds them (interface, TTL, loop) and the
