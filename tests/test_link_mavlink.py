@@ -246,7 +246,7 @@ def test_named_value_int_decodes_to_pymavlinks_message():
 
 def test_signed_codec_judges_every_frame_and_counts_refusals_by_kind():
     clock = SimClock()
-    a, b = MemoryTransport.pair()
+    _, b = MemoryTransport.pair()
     key = bytes(range(32))
     rx = MavlinkCodec(b, clock, 1, 1, signing_key=key)
     good = mav.MAVLink(None, srcSystem=255, srcComponent=190)
