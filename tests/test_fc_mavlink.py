@@ -262,7 +262,8 @@ def test_a_flood_is_taken_over_several_passes_and_nothing_is_lost():
     b, most = Bench(), MAX_MESSAGES_PER_POLL
     n = 2 * most + 100
     for i in range(n):
-        b.send(b.client.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5 + i % 4 / 4, mav.MAV_PARAM_TYPE_REAL32))
+        value = 0.5 + i % 4 / 4
+        b.send(b.client.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", value, mav.MAV_PARAM_TYPE_REAL32))
     b.run(0.001)  # one pass: the bound
     assert b.server.stats.params_set == most
     b.run(0.002)  # two more: the rest
