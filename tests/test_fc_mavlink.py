@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from emulator.fc import EmulatedVehicle, FcConfig, FcState, MavlinkServer
+from emulator.fc.mavlink_server import MAX_MESSAGES_PER_POLL
 from emulator.profile import GRAVITY_M_S2, load_profile
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import (
@@ -255,3 +256,16 @@ def test_tlog_has_both_directions_and_is_byte_for_byte_deterministic(tmp_path):
     parser = mav.MAVLink(None)
     types = {parser.decode(bytearray(f)).get_type() for _, f in frames}
     assert {"SET_ATTITUDE_TARGET", "COMMAND_LONG", "COMMAND_ACK", "HEARTBEAT", "ATTITUDE"} <= types
+
+
+def test_a_flood_is_taken_over_several_passes_and_nothing_is_lost():
+    b, most = Bench(), MAX_MESSAGES_PER_POLL
+    n = 2 * most + 100
+    for i in range(n):
+        value = 0.5 + i % 4 / 4
+        b.send(b.client.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", value, mav.MAV_PARAM_TYPE_REAL32))
+    b.run(0.001)  # one pass: the bound
+    assert b.server.stats.params_set == most
+    b.run(0.002)  # two more: the rest
+    assert b.server.stats.params_set == n
+    assert b.server.stats.intake_deferred == (n - most) + (n - 2 * most)  # each pass's wait counted

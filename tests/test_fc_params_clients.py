@@ -1,6 +1,7 @@
 """`hil fc`'s parameters with real clients in real time: MAVProxy (from PyPI, headless) downloads the
 whole table over UDP and sets COM_OF_LOSS_T, a pymavlink client behind MAVProxy's output sees the bad
-sets refused and the failsafe fire at the new timeout, and `--params FILE` over a pty."""
+sets refused and the failsafe fire at the new timeout, `--params FILE` over a pty, MAVProxy on a signed
+FC, and a PARAM_SET storm over UDP with every loss counted."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from test_fc_mavsdk import HOVER, start_fc, stop_fc, wait_for
+from test_fc_signing import Station, packer
 
 from emulator.fc.params import PARAMS, read_param_file
 from hil.link import SerialTransport, WallClock
@@ -230,3 +232,29 @@ def _tlog_messages(path: Path) -> list:
     """(time, message) of every frame a .tlog holds so far (signed frames decoded without judging)."""
     parser = mav.MAVLink(None)
     return [(t, parser.decode(bytearray(f))) for t, f in read_tlog(path)]
+
+
+def test_a_param_set_storm_over_udp_loses_nothing_uncounted():
+    """2,000 PARAM_SETs at 1,000/s into `hil fc` over UDP: each one is set, or counted where it was lost
+    (the socket's kernel drops, SO_RXQ_OVFL)."""
+    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--mocap-link", "none")
+    gcs = None
+    sent = 0
+    try:
+        gcs = Station(endpoint)
+        m = packer(None)
+        start = time.monotonic()
+        for i in range(2000):
+            gcs.write(bytes(m.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5 + (i % 8) / 8,
+                                               mav.MAV_PARAM_TYPE_REAL32).pack(m)))
+            sent += 1
+            lag = start + sent / 1000.0 - time.monotonic()
+            if lag > 0:
+                time.sleep(lag)
+        gcs.drain(1.0)
+    finally:
+        if gcs is not None:
+            gcs.conn.close()
+        summary = stop_fc(proc)
+    assert summary["server"]["params_set"] + summary["transport"]["datagrams_lost_in"] == sent
+    assert summary["link"]["frames_received"] == summary["server"]["params_set"]

@@ -101,28 +101,3 @@ def test_signed_fc_refuses_unsigned_wrong_replayed_and_stale_frames_and_applies_
     assert server["params_set"] == 2 and server["commands_accepted"] == 2
     assert server["setpoints_applied"] + server["setpoints_rejected"] == 1  # the one signed setpoint
 
-
-def test_a_param_set_storm_over_udp_loses_nothing_uncounted():
-    """2,000 PARAM_SETs at 1,000/s into `hil fc` over UDP: each one is set, or counted where it was lost
-    (the socket's kernel drops, SO_RXQ_OVFL)."""
-    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--mocap-link", "none")
-    gcs = None
-    sent = 0
-    try:
-        gcs = Station(endpoint)
-        m = packer(None)
-        start = time.monotonic()
-        for i in range(2000):
-            gcs.write(bytes(m.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5 + (i % 8) / 8,
-                                               mav.MAV_PARAM_TYPE_REAL32).pack(m)))
-            sent += 1
-            lag = start + sent / 1000.0 - time.monotonic()
-            if lag > 0:
-                time.sleep(lag)
-        gcs.drain(1.0)
-    finally:
-        if gcs is not None:
-            gcs.conn.close()
-        summary = stop_fc(proc)
-    assert summary["server"]["params_set"] + summary["transport"]["datagrams_lost_in"] == sent
-    assert summary["link"]["frames_received"] == summary["server"]["params_set"]

@@ -242,3 +242,43 @@ def test_named_value_int_decodes_to_pymavlinks_message():
         frame = bytes(ref.named_value_int_encode(1234, name, value).pack(ref))
         mine, theirs = decode_frame(frame), ref.decode(bytearray(frame))
         assert mine.to_dict() == theirs.to_dict() and mine.get_msgbuf() == theirs.get_msgbuf()
+
+
+def test_signed_codec_judges_every_frame_and_counts_refusals_by_kind():
+    clock = SimClock()
+    _, b = MemoryTransport.pair()
+    key = bytes(range(32))
+    rx = MavlinkCodec(b, clock, 1, 1, signing_key=key)
+    good = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    good.signing.secret_key, good.signing.sign_outgoing, good.signing.timestamp = key, True, 1000
+    wrong = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    wrong.signing.secret_key, wrong.signing.sign_outgoing, wrong.signing.timestamp = bytes(32), True, 2000
+    plain = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+
+    def frame(m, msg) -> bytes:
+        return bytes(msg.pack(m))
+
+    beat = frame(good, good.heartbeat_encode(6, 8, 0, 0, 4))
+    param_set = frame(good, good.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5, 9))
+    assert [m.get_type() for m in rx.feed(beat + param_set)] == ["HEARTBEAT", "PARAM_SET"]
+    # a HEARTBEAT may come unsigned, but one with a bad signature is refused all the same
+    assert rx.feed(frame(wrong, wrong.heartbeat_encode(6, 8, 0, 0, 4))) == []
+    unsigned_beat = frame(plain, plain.heartbeat_encode(6, 8, 0, 0, 4))
+    assert [m.get_type() for m in rx.feed(unsigned_beat)] == ["HEARTBEAT"]
+    assert rx.feed(frame(plain, plain.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5, 9))) == []
+    assert rx.feed(param_set) == []  # the same frame again
+    # a forged frame with a later timestamp does not move the stream's timestamp
+    wrong.signing.timestamp = 10**9
+    rx.feed(frame(wrong, wrong.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5, 9)))
+    assert [m.get_type() for m in rx.feed(frame(good, good.param_set_encode(1, 1, b"X", 1.0, 9)))] == \
+        ["PARAM_SET"]
+    # a new stream (another link id) more than a minute behind the receiver's clock
+    clock.advance_to(120.0)
+    rx.pack(rx.mav.heartbeat_encode(2, 12, 0, 0, 4))  # (the receiver's own timestamp moves on)
+    old = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    old.signing.secret_key, old.signing.sign_outgoing, old.signing.link_id = key, True, 7
+    old.signing.timestamp = 2000
+    assert rx.feed(frame(old, old.param_set_encode(1, 1, b"X", 1.0, 9))) == []
+    s = rx.stats
+    assert (s.unsigned_refused, s.bad_signature, s.replayed, s.stale_timestamp) == (1, 2, 1, 1)
+    assert s.signing_refused == 5

@@ -37,7 +37,7 @@ from hil.link.mavlink import (
 
 #: messages acted on in one `MavlinkServer.poll` at most: the rest wait for the next pass (and a flood
 #: waits in the transport, where a UDP socket counts what it drops), so a flood cannot stall the loop
-MAX_MESSAGES_PER_POLL = 32
+MAX_MESSAGES_PER_POLL = 512
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air
 ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 #: ids the server can take as undecoded frames: a codec built with these as its ``raw_ids`` hands the
