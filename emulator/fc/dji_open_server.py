@@ -34,9 +34,9 @@ DEFAULT_RATES_HZ: tuple[float, ...] = (50.0, 50.0, 50.0, 50.0, 50.0, 50.0, 0.0, 
                                        1.0, 1.0)
 _TASKS = frozenset({dj.TASK_TAKEOFF, dj.TASK_LAND, dj.TASK_GO_HOME, dj.TASK_START_MOTORS,
                     dj.TASK_STOP_MOTORS})
-#: the FC states whose flight the onboard device's setpoints take over (with authority): the FC's
-#: hover, the setpoint-loss failsafe, and motors off (the FC then arms straight into them)
-_TAKEOVER_STATES = frozenset({FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.FAILSAFE_LAND})
+#: the FC states whose flight the onboard device's setpoints take over (with authority): the FC's hover
+#: and the setpoint-loss hover (a failsafe landing, of any cause, is not interrupted)
+_TAKEOVER_STATES = frozenset({FcState.HOLD, FcState.FAILSAFE_HOVER})
 
 
 @dataclass(frozen=True)

@@ -670,7 +670,9 @@ def describe(frame: bytes) -> str:
     p = f.payload
     if (f.cmd_set, f.cmd_id) == (SET_CONTROL, CMD_SETPOINT) and (sp := read_setpoint(p)) is not None:
         flag, x, y, z, yaw = sp
-        return head + f"{what}: flag 0x{flag:02X} roll {x:.2f} pitch {y:.2f} thrust {z:.2f} yaw {yaw:.2f}"
+        if flag & 0xC0 == HORIZONTAL_ANGLE:
+            return head + f"{what}: flag 0x{flag:02X} roll {x:.2f} pitch {y:.2f} thrust {z:.2f} yaw {yaw:.2f}"
+        return head + f"{what}: flag 0x{flag:02X} x {x:.2f} y {y:.2f} z {z:.2f} yaw {yaw:.2f}"
     if (f.cmd_set, f.cmd_id) == (SET_BROADCAST, CMD_FLIGHT_DATA) and len(p) >= 2:
         flags = p[0] | p[1] << 8
         items = [n for i, (n, _) in enumerate(BROADCAST_ITEMS) if flags >> i & 1]
