@@ -478,10 +478,10 @@ def _finish(
         "events": events,
         "scenario": s.to_dict(),
     }
-    write_summary(out, summary)
     write_timeseries(out, cols)
     if html_report is True or (html_report == "failed" and not passed):
         write_report_html(out, summary, cols, s)
+    write_summary(out, summary)  # last: a folder with a verdict holds its evidence
     return RunResult(passed, checks, out, summary)
 
 
