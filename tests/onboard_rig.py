@@ -136,11 +136,14 @@ def fc_holding(vehicle: EmulatedVehicle) -> bool:
 
 def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[float] | None = None,
                   quat_wxyz: Sequence[float] | None = None, body_ids: Sequence[int] = (1, 2),
-                  stamp_shift_us: int = 0) -> bytes:
+                  stamp_shift_us: int = 0, pos_shift_m: Sequence[float] = (0.0, 0.0, 0.0),
+                  swap_poses: bool = False) -> bytes:
     """``data`` (whole LinkTrack mocap frames, as the emulator writes them) with the bodies of
-    ``body_ids`` given this stamp (us, or their own moved by ``stamp_shift_us``), position (m) or
-    quaternion: values the emulator's encoder refuses to write (NaN, a stamp of 2^62 us), framed with
-    good checksums. Anything that is not whole one-node frames passes as it is."""
+    ``body_ids`` given this stamp (us, or their own moved by ``stamp_shift_us``), position (m, or their
+    own moved by ``pos_shift_m``) or quaternion: values the emulator's encoder refuses to write (NaN, a
+    stamp of 2^62 us), framed with good checksums; ``swap_poses``: the first two bodies' poses swapped
+    first (a tracker that mixed up the rigid bodies). Anything that is not whole one-node frames passes
+    as it is."""
     dec = FrameDecoder()
     frames = dec.feed(data)
     if not frames or dec.buffered or dec.stats.bytes_skipped or any(len(f.nodes) != 1 for f in frames):
@@ -149,8 +152,12 @@ def rewrite_mocap(data: bytes, *, stamp_us: int | None = None, pos_m: Sequence[f
     for f in frames:
         node = f.nodes[0]
         values = list(unpack_mocap_payload(node.data))
+        if swap_poses and values[3] >= 2:
+            a, b = 4 + 3, 4 + BODY_VALUES + 3  # each body's position and quaternion
+            values[a:a + 7], values[b:b + 7] = values[b:b + 7], values[a:a + 7]
         for k in range(4, len(values), BODY_VALUES):
             if values[k] in body_ids:
+                values[k + 3:k + 6] = [v + d for v, d in zip(values[k + 3:k + 6], pos_shift_m, strict=True)]
                 if stamp_us is not None:
                     values[k + 2] = stamp_us
                 values[k + 2] += stamp_shift_us
@@ -175,5 +182,16 @@ def rewrite_mocap_from(t0_s: float, frames: float = math.inf,
             return data
         left[0] -= 1
         return rewrite_mocap(data, **values)
+
+    return tamper
+
+
+def all_of(*tampers: Callable[[float, bytes], bytes]) -> Callable[[float, bytes], bytes]:
+    """A ``mocap_tamper`` applying ``tampers`` one after the other."""
+
+    def tamper(t: float, data: bytes) -> bytes:
+        for f in tampers:
+            data = f(t, data)
+        return data
 
     return tamper

@@ -5,10 +5,11 @@ refusing bad settings, bad commands and messages from anyone but the FC."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
-from onboard_rig import fc_holding, rewrite_mocap_from, run_mission
+from onboard_rig import all_of, fc_holding, rewrite_mocap, rewrite_mocap_from, run_mission
 
 from hil.cli import main as hil_main
 from hil.link import MemoryTransport, SimClock
@@ -166,17 +167,56 @@ def test_vehicle_poses_the_estimator_cannot_take_are_stale_mocap(bad):
     assert (c.bodies_non_finite if "pos_m" in bad else c.bodies_stamp_future) > 10
 
 
+def test_a_mocap_jump_is_refused_and_counted_and_the_mission_flies_on():
+    # a 3 m jump of the vehicle for one frame in the approach, the gap's pose swapped with the vehicle's
+    # for two frames before planning: neither is flown on
+    tamper = all_of(rewrite_mocap_from(5.5, 1, pos_shift_m=(3.0, 0.0, 0.0), body_ids=(1,)),
+                    rewrite_mocap_from(3.0, 2, swap_poses=True, body_ids=()))
+    r = run_mission(0.0, 1.5, mocap_tamper=tamper)
+    assert r.program.exit_code == 0 and "abort" not in r.event_names
+    assert r.tracker.crossed_through_opening and r.tracker.first_collision is None
+    summary = r.program.summary()
+    assert (summary["estimator_implausible"], summary["gap_implausible"]) == (2 + 1, 2)  # (+ the swap)
+    assert summary["estimator_rejected"] == summary["estimator_implausible"]
+
+
+def _drift(t0_s: float, metres_a_frame: float) -> Callable[[float, bytes], bytes]:
+    """Vehicle poses from ``t0_s`` moved ``metres_a_frame`` further along x each frame."""
+    k = [0]
+
+    def tamper(t: float, data: bytes) -> bytes:
+        if t < t0_s:
+            return data
+        k[0] += 1
+        return rewrite_mocap(data, pos_shift_m=(k[0] * metres_a_frame, 0.0, 0.0), body_ids=(1,))
+
+    return tamper
+
+
+@pytest.mark.parametrize(("t0_s", "tamper", "reason"), [
+    (5.0, _drift(5.0, 1.0), "implausible_mocap"),
+    (5.0, rewrite_mocap_from(5.0, pos_shift_m=(3.0, 0.0, 0.0), body_ids=(1,)), "implausible_mocap"),
+    # the gap reported where the vehicle stands: the gap's side of a swap, alone
+    (2.0, rewrite_mocap_from(2.0, pos_shift_m=(-2.0, -1.5, -1.6), body_ids=(2,)), "implausible_gap_pose"),
+    (2.0, rewrite_mocap_from(2.0, swap_poses=True, body_ids=()), "implausible_mocap"),  # both bodies' sides
+], ids=["drift_1m_a_frame", "jump_3m_held", "gap_moved", "gap_and_vehicle_swapped"])
+def test_a_run_of_implausible_poses_aborts_to_a_safe_hover_naming_why(t0_s, tamper, reason):
+    r = run_mission(0.0, 1.5, mocap_tamper=tamper)
+    abort = r.event("abort")
+    assert abort["reason"] == reason and abort["refused"] >= 10 and abort["jump_m"] >= 1.0, abort
+    assert t0_s < abort["t_s"] < t0_s + 0.1 + 0.04  # as stale mocap: after 100 ms (+ the link's latency)
+    summary = r.program.summary()
+    assert summary["estimator_implausible" if reason == "implausible_mocap" else "gap_implausible"] >= 10
+    assert r.program.exit_code == 3 and r.event_names[-1] in ("hold", "aborted")
+    assert fc_holding(r.vehicle) and r.vehicle.state.pos_m[2] > 0.2  # the FC holds it in the air
+
+
 def test_single_bad_mocap_frames_are_refused_and_the_mission_flies_on():
     # one frame stamped 2^62 us and one with NaN poses during the approach, one NaN gap pose before planning
-    tamper = [rewrite_mocap_from(5.0, 1, stamp_us=2**62), rewrite_mocap_from(5.5, 1, pos_m=(math.nan,) * 3),
-              rewrite_mocap_from(3.0, 1, pos_m=(math.nan,) * 3, body_ids=(2,))]
-
-    def all_of(t: float, data: bytes) -> bytes:
-        for f in tamper:
-            data = f(t, data)
-        return data
-
-    r = run_mission(0.0, 1.5, mocap_tamper=all_of)
+    tamper = all_of(rewrite_mocap_from(5.0, 1, stamp_us=2**62),
+                    rewrite_mocap_from(5.5, 1, pos_m=(math.nan,) * 3),
+                    rewrite_mocap_from(3.0, 1, pos_m=(math.nan,) * 3, body_ids=(2,)))
+    r = run_mission(0.0, 1.5, mocap_tamper=tamper)
     assert r.program.exit_code == 0 and "abort" not in r.event_names
     assert r.tracker.crossed_through_opening and r.tracker.first_collision is None
     c = r.program.mocap.counters

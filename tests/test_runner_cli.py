@@ -4,11 +4,14 @@ a collision it was not told to expect), 2 for bad files, each with a message nam
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from processes import kill_session, processes_of_session
 
 HIL = [sys.executable, "-m", "hil.cli"]
 
@@ -164,3 +167,38 @@ def test_suite_starts_the_longest_runs_first_and_lists_them_in_the_suites_order(
     assert printed == ["b", "c", "a"]  # one worker: in the order they started, the longest first
     index = json.loads((tmp_path / "out" / "index.json").read_text())
     assert [r["id"] for r in index["results"]] == ["a", "b", "c"]
+
+
+def test_a_suite_interrupted_half_way_indexes_what_finished_and_leaves_no_verdict_without_its_report(
+        tmp_path):
+    """Ctrl-C (SIGINT to the suite's process group) once a run has finished: exit 130, index.html lists
+    the finished runs and marks the others interrupted; a run folder holds summary.json only beside its
+    report.html; no process of the suite is left."""
+    (tmp_path / "s").mkdir()
+    for name in "abcdef":
+        (tmp_path / "s" / f"{name}.scenario.yaml").write_text(PASSING.replace("2.5", "6"))
+    out = tmp_path / "out"
+    p = subprocess.Popen([*HIL, "suite", str(tmp_path / "s"), "--out", str(out), "-j", "1"], cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert p.stdout is not None
+        first = p.stdout.readline()  # the first run's verdict
+        assert first.startswith("PASSED"), first + p.stderr.read() if p.stderr else first
+        os.killpg(p.pid, signal.SIGINT)
+        rest, err = p.communicate(timeout=120)
+    finally:
+        leftover = processes_of_session(p.pid)
+        kill_session(p.pid)
+    assert p.returncode == 130, first + rest + err
+    assert "interrupted: " in err and "Traceback" not in err, err
+    index = json.loads((out / "index.json").read_text())
+    finished = [r["id"] for r in index["results"] if not r.get("interrupted")]
+    stopped = [r["id"] for r in index["results"] if r.get("interrupted")]
+    assert first.split()[1] in finished and stopped and len(finished) + len(stopped) == 6, index
+    html = (out / "index.html").read_text()
+    assert html.count("INTERRUPTED") == len(stopped) and html.count("PASSED") == len(finished)
+    for run_dir in out.iterdir():
+        if run_dir.is_dir():
+            assert (run_dir / "report.html").exists() or not (run_dir / "summary.json").exists(), run_dir
+            assert (run_dir / "summary.json").exists() == (run_dir.name in finished), run_dir
+    assert leftover == [], leftover

@@ -1,5 +1,6 @@
 """`hil suite DIR`: fly every scenario under DIR (in parallel workers), write each report and an
-index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input."""
+index.html linking them all; exit 0 all passed, 1 some failed, 2 bad input, 130 interrupted (SIGINT: the
+index lists the runs that finished and marks the others interrupted)."""
 
 from __future__ import annotations
 
@@ -19,12 +20,15 @@ from typing import Any
 from emulator.profile import load_profile
 from hil.commands import output_folder, say_if_compiling
 from hil.commands.run import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_PASSED, add_run_options, options_from
+from hil.report.summary import SUMMARY_NAME, read_summary
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.onboard_side import prestart
 from hil.runner.run import not_applicable
 from hil.runner.warm_up import Compiling, compile_beside, families_of, warm_up
 from hil.scenario import ScenarioError, find_scenario_files, load_scenarios
 from hil.scenario.schema import Scenario
+
+EXIT_INTERRUPTED = 130  # as the shell's for SIGINT
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,16 +52,36 @@ def _run(args: tuple[Scenario, str, RunOptions]) -> dict[str, Any]:
         r = run_scenario(s, out, options)
     except (RunSetupError, ValueError) as exc:
         return {"id": s.id, "passed": False, "error": str(exc), "source": s.source}
+    return _result(s, r.summary)
+
+
+def _result(s: Scenario, summary: dict[str, Any]) -> dict[str, Any]:
+    """The index's entry of a finished run of ``s``, from its summary."""
     return {
         "id": s.id,
-        "passed": r.passed,
+        "passed": summary["passed"],
         "source": s.source,
         "description": s.description,
         "report": str(Path(s.id) / "report.html"),
-        "sim_time_s": r.summary["sim_time_s"],
-        "wall_time_s": r.summary["wall_time_s"],
-        "failed": [f"{c.name}: expected {c.expected}, observed {c.observed}" for c in r.failed_checks],
+        "sim_time_s": summary["sim_time_s"],
+        "wall_time_s": summary["wall_time_s"],
+        "failed": [f"{c['name']}: expected {c['expected']}, observed {c['observed']}"
+                   for c in summary["checks"] if not c["passed"]],
     }
+
+
+def _after_interrupt(s: Scenario, out: Path, since: float) -> dict[str, Any]:
+    """The entry of a run the suite did not see finish before it was interrupted: finished after all
+    when its folder holds a summary written since ``since`` (time.time(); the summary is a run's last
+    file), else marked interrupted."""
+    path = out / s.id / SUMMARY_NAME
+    try:
+        if path.stat().st_mtime >= since:
+            return _result(s, read_summary(path))
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return {"id": s.id, "passed": False, "interrupted": True, "source": s.source,
+            "description": s.description}
 
 
 _worker: int | None = None  # this worker's number (in a worker process)
@@ -102,7 +126,11 @@ def _results(work: list[tuple[Scenario, str, RunOptions]], workers: int, ray_add
         with ProcessPoolExecutor(
             max_workers=workers, mp_context=fork, initializer=_start_worker, initargs=(numbers, warm)
         ) as pool:
-            yield from pool.map(_run, work)
+            try:
+                yield from pool.map(_run, work)
+            except BaseException:  # (interrupted, or closed early) no run is started after this one
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
     finally:
         _compiling.join()
         _compiling = Compiling()
@@ -152,20 +180,30 @@ def main(args: argparse.Namespace) -> int:
     # lists them in the suite's order all the same
     work = [(s, str(out / s.id), options) for s in sorted(todo, key=lambda s: -s.duration_s)]
     warm = not (options.cold_start or options.in_process)  # each worker's fork server starts at once
-    for res in _results(work, workers, args.ray_address, warm):
-        word = "PASSED" if res["passed"] else "FAILED"
-        print(
-            f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),
-            flush=True,
-        )
-        for line in res.get("failed", []) + ([res["error"]] if "error" in res else []):
-            print(f"  {line}")
-        results.append(res)
+    started = time.time()
+    try:
+        for res in _results(work, workers, args.ray_address, warm):
+            word = "PASSED" if res["passed"] else "FAILED"
+            print(
+                f"{word} {res['id']}" + (f" ({res['wall_time_s']:.1f} s)" if "wall_time_s" in res else ""),
+                flush=True,
+            )
+            for line in res.get("failed", []) + ([res["error"]] if "error" in res else []):
+                print(f"  {line}")
+            results.append(res)
+    except KeyboardInterrupt:  # (Ctrl-C) an index of what finished, the rest marked interrupted
+        seen = {r["id"] for r in results}
+        results += [_after_interrupt(s, out, started) for s in todo if s.id not in seen]
     wall = time.perf_counter() - wall0
     order = {s.id: k for k, s in enumerate(todo)}
     results.sort(key=lambda r: order.get(r["id"], len(order)))
     index = write_index(out, results, skipped, wall)
     n_pass = sum(r["passed"] for r in results)
+    n_stopped = sum(bool(r.get("interrupted")) for r in results)
+    if n_stopped:
+        print(f"interrupted: {len(results) - n_stopped}/{len(results)} runs finished, {n_pass} passed; "
+              f"index: {index}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(f"{n_pass}/{len(results)} passed, {len(skipped)} skipped, {wall:.1f} s wall; index: {index}")
     return EXIT_PASSED if n_pass == len(results) else EXIT_FAILED
 
@@ -181,6 +219,8 @@ def write_index(
     rows = []
     for r in results:
         cls, word = ("pass", "PASSED") if r["passed"] else ("fail", "FAILED")
+        if r.get("interrupted"):
+            cls, word = "stopped", "INTERRUPTED"
         link = f'<a href="{escape(r["report"])}">{escape(r["id"])}</a>' if "report" in r else escape(r["id"])
         why = "<br>".join(escape(x) for x in r.get("failed", []) + ([r["error"]] if "error" in r else []))
         rows.append(
@@ -193,14 +233,16 @@ def write_index(
             "<td></td></tr>"
         )
     n_pass = sum(r["passed"] for r in results)
+    n_stopped = sum(bool(r.get("interrupted")) for r in results)
+    stopped = f" ({n_stopped} interrupted)" if n_stopped else ""
     html = (
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>Scenario suite</title><style>'
         "body{font:14px system-ui,sans-serif;margin:20px;color:#1d232b}"
         "table{border-collapse:collapse;width:100%}"
         "td,th{border:1px solid #dde1e6;padding:5px 8px;text-align:left;vertical-align:top}"
         "tr.pass .v{color:#1e8a4c;font-weight:700}tr.fail .v{color:#c0392b;font-weight:700}"
-        "tr.fail td{background:#fdeceb}</style></head><body>"
-        f"<h1>Scenario suite: {n_pass}/{len(results)} passed</h1>"
+        "tr.fail td{background:#fdeceb}tr.stopped .v{color:#8a6d1e;font-weight:700}</style></head><body>"
+        f"<h1>Scenario suite: {n_pass}/{len(results)} passed{stopped}</h1>"
         f"<p>{len(skipped)} skipped; {wall_s:.1f} s wall.</p>"
         "<table><tr><th>Scenario</th><th>Verdict</th><th>Description</th><th>Failed checks</th></tr>"
         + "".join(rows)

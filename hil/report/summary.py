@@ -50,7 +50,9 @@ def to_jsonable(value: Any) -> Any:
 
 
 def write_summary(out_dir: str | Path, summary: dict[str, Any]) -> Path:
-    """Write ``summary`` as ``out_dir/summary.json`` (created if needed); returns the path."""
+    """Write ``summary`` as ``out_dir/summary.json`` (created if needed); returns the path. Written
+    whole or not at all (a temporary file renamed over it): a run writes it after its other files, so
+    that a reader never finds a verdict without the report and data behind it."""
     if not isinstance(summary, dict):
         raise TypeError(f"summary must be a dict, got {type(summary).__name__}")
     out = Path(out_dir)

@@ -148,9 +148,10 @@ def write_demo(out_dir: str | Path, seed: int = 0) -> Path:
     """Write summary.json, timeseries.npz and report.html of the made-up run; returns the report path."""
     scenario = loads_scenarios(DEMO_SCENARIO, source="demo.scenario.yaml")[0]
     summary, columns = synthetic_run(scenario, np.random.default_rng(seed))
-    write_summary(out_dir, summary)
     write_timeseries(out_dir, columns)
-    return write_report_html(out_dir, summary, columns, scenario)
+    report = write_report_html(out_dir, summary, columns, scenario)
+    write_summary(out_dir, summary)  # last, as a run writes it
+    return report
 
 
 def main(argv: list[str] | None = None) -> int:

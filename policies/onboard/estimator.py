@@ -36,9 +36,17 @@ class EstimatorConfig:
     # + air and UART time ~1 ms + reading ~1 ms (measured mean 28.3 ms, std 4.4 ms)
     latency_s: float = 0.028
     delay_window_s: float = 1.0  # time constant of the running mean of (arrival - stamp)
+    #: a pose further than this many times ``pos_noise_m`` (per axis) from where the filter predicts it, on
+    #: top of what the vehicle's acceleration limit and ``max_speed_change_m_s`` move it in the interval, is
+    #: no pose of the vehicle
+    jump_sigmas: float = 10.0
+    #: the speed (m/s) a crash can take or give the vehicle at once, faster than its rotors can: a fall
+    #: stopped by the floor (the filter has predicted the fall) or the start of a filter restarted at rest
+    max_speed_change_m_s: float = 6.0
 
     def __post_init__(self) -> None:
-        for name in ("pos_noise_m", "jerk_psd", "reset_after_s", "delay_window_s"):
+        for name in ("pos_noise_m", "jerk_psd", "reset_after_s", "delay_window_s", "jump_sigmas",
+                     "max_speed_change_m_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"EstimatorConfig.{name} must be a positive number, got {v!r}")
@@ -63,10 +71,18 @@ class PoseEstimator:
 
     The per-axis filters share one covariance (the same model and measurements on every axis), kept as
     the six scalars of the symmetric 3x3 matrix; the products with F and Q are written out (plain floats:
-    this runs once per pose and once per control step)."""
+    this runs once per pose and once per control step).
 
-    def __init__(self, config: EstimatorConfig | None = None) -> None:
+    Given the vehicle's acceleration limit ``max_accel_m_s2`` (thrust / mass + g), a pose the vehicle
+    cannot have reached from the filter's state is refused (`plausible_jump_m`; counted in ``rejected``
+    and ``implausible``): a glitch of the tracker (a swapped rigid body, a reflection) is not flown on.
+    Without it (inf) every finite pose in order is taken."""
+
+    def __init__(self, config: EstimatorConfig | None = None, max_accel_m_s2: float = math.inf) -> None:
         self.config = config or EstimatorConfig()
+        if not max_accel_m_s2 > 0:
+            raise ValueError(f"max_accel_m_s2 must be a positive number, got {max_accel_m_s2!r}")
+        self.max_accel_m_s2 = max_accel_m_s2
         self._ready = False
         self._x = (0.0,) * 9  # p, v, a of x, then of y, then of z (m, m/s, m/s^2)
         self._P = (0.0,) * 6  # shared covariance: p00, p01, p02, p11, p12, p22
@@ -77,7 +93,10 @@ class PoseEstimator:
         self._quat = (1.0, 0.0, 0.0, 0.0)
         self._euler: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
         self.updates = 0
-        self.rejected = 0  # poses out of order, repeated or not finite
+        self.rejected = 0  # poses out of order, repeated, not finite or implausible
+        self.implausible = 0  # poses further from the prediction than the vehicle can move
+        self.implausible_run = 0  # of those, how many in a row since the latest pose taken
+        self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
 
     @property
     def ready(self) -> bool:
@@ -105,6 +124,17 @@ class PoseEstimator:
         dt = stamp_s - self._stamp_s
         delay = received_s - stamp_s
         restart = not self._ready or not 0.0 < dt <= cfg.reset_after_s
+        if not restart and self.max_accel_m_s2 < math.inf:
+            ex, ey, ez, _, _, _ = predicted(self._x, dt)
+            jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
+            if jump > plausible_jump_m(dt, self.max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas,
+                                       cfg.pos_noise_m):
+                self.rejected += 1
+                self.implausible += 1
+                self.implausible_run += 1
+                self.latest_jump_m = jump
+                return False
+        self.implausible_run = 0
         self._x, self._P, self._mean_delay_s = filter_update(
             self._x, self._P, self._mean_delay_s, restart, dt, delay, px, py, pz, cfg.pos_noise_m,
             cfg.jerk_psd, cfg.delay_window_s)
@@ -142,6 +172,38 @@ class PoseEstimator:
             euler = self._euler = euler_from_quat(self._quat)
         return _new_estimate(np.array((px, py, pz)), np.array((vx, vy, vz)), np.array((ax, ay, az)),
                              np.array(euler), np.array(self._quat))
+
+
+class StaticPoseCheck:
+    """The poses of a body that does not move (the gap): the first is the reference, and a later one
+    further than ``jump_m`` (m) from it or turned more than ``turn_rad`` (rad) from it is refused
+    (a swapped rigid body, a reflection). `pose` is the latest one taken."""
+
+    def __init__(self, jump_m: float, turn_rad: float) -> None:
+        self.jump_m, self.turn_rad = jump_m, turn_rad
+        self._ref: tuple[np.ndarray, np.ndarray] | None = None
+        self.pose: tuple[np.ndarray, np.ndarray] | None = None  # position (m), quaternion (w, x, y, z)
+        self.received_s = -math.inf  # arrival of the latest pose taken (s)
+        self.implausible = 0
+        self.implausible_run = 0  # refused in a row since the latest pose taken
+        self.latest_jump_m = 0.0  # the latest refused pose's distance from the reference (m)
+
+    def update(self, pos_m: tuple[float, float, float], quat_wxyz: tuple[float, float, float, float],
+               received_s: float) -> bool:
+        """Take one pose (arriving at ``received_s``, s); False if refused."""
+        pos, quat = np.array(pos_m), np.array(quat_wxyz)
+        if self._ref is None:
+            self._ref = (pos, quat)
+        ref_pos, ref_quat = self._ref
+        jump = float(np.linalg.norm(pos - ref_pos))
+        turn = 2.0 * math.acos(min(1.0, abs(float(quat @ ref_quat))))  # angle between the attitudes
+        if jump > self.jump_m or turn > self.turn_rad:
+            self.implausible += 1
+            self.implausible_run += 1
+            self.latest_jump_m = jump
+            return False
+        self.pose, self.received_s, self.implausible_run = (pos, quat), received_s, 0
+        return True
 
 
 def _items(v: object) -> object:
@@ -197,6 +259,14 @@ def filter_update(x: tuple, P: tuple, mean_delay_s: float, restart: bool, dt: fl
     return ((xp + k0 * ex, xv + dt * xa + k1 * ex, xa + k2 * ex,
              yp + k0 * ey, yv + dt * ya + k1 * ey, ya + k2 * ey,
              zp + k0 * ez, zv + dt * za + k1 * ez, za + k2 * ez), P, mean_delay_s)
+
+
+def plausible_jump_m(dt_s: float, accel_m_s2: float, speed_change_m_s: float, sigmas: float,
+                     noise_m: float) -> float:
+    """The furthest a pose ``dt_s`` (s) after the last may lie from the filter's prediction (m): what an
+    acceleration of ``accel_m_s2`` (m/s^2) and a sudden speed change of ``speed_change_m_s`` (m/s) move a
+    body in that time, plus ``sigmas`` times the tracker's noise ``noise_m`` (m, per axis) in three axes."""
+    return 0.5 * accel_m_s2 * dt_s * dt_s + speed_change_m_s * dt_s + sigmas * noise_m * math.sqrt(3.0)
 
 
 def prediction_horizon_s(age_s: float, latency_s: float, delay_s: float, mean_delay_s: float,

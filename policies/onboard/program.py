@@ -10,7 +10,9 @@ clock from the FC's TIMESYNC ticks and answers each tick once its outputs are se
 
 Safe hover on stale mocap (no vehicle pose taken by the state estimator for ``stale_mocap_s``: poses the
 mocap reader or the estimator refuse, non-finite, from the future, out of order, do not count as fresh;
-see `policies.mocap_reader`), on a gap pose that cannot be used, or on a command that is not finite
+see `policies.mocap_reader`; when the latest were poses the vehicle cannot have flown to, a glitch of the
+tracker, the reason is "implausible_mocap"), on a gap pose that cannot be used or that has moved for
+``stale_mocap_s`` ("implausible_gap_pose": the gap stands still), or on a command that is not finite
 (refused, never sent): one level-attitude setpoint
 at hover thrust (m g) is sent at once and repeated every control period, and DO_SET_MODE AUTO.LOITER
 (PX4 Hold) is sent until the FC's heartbeat shows it; from then the FC holds the vehicle on its own and
@@ -58,7 +60,13 @@ from policies.gap_planning import (
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import CommandLink
 from policies.onboard.dji_command_link import DjiCommandLink
-from policies.onboard.estimator import EstimatorConfig, PoseEstimator, StateEstimate
+from policies.onboard.estimator import (
+    EstimatorConfig,
+    PoseEstimator,
+    StateEstimate,
+    StaticPoseCheck,
+    plausible_jump_m,
+)
 from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
@@ -68,6 +76,9 @@ COMMAND_LINKS: dict[str, type[CommandLink]] = {"mavlink": CommandLink, "dji_open
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
 HEARTBEAT_REQUEST_S = 0.1  # how often the FC's heartbeat is asked for until one comes (s)
 VEHICLE_BODY_ID = BODY_IDS["vehicle"]  # the mocap body whose poses feed the estimator
+GAP_BODY_ID = BODY_IDS["gap"]
+#: a gap pose turned more than this from the gap's first is refused (a mocap's attitude noise is ~0.1 deg)
+GAP_TURN_LIMIT_RAD = math.radians(2.0)
 EXIT_DONE, EXIT_ERROR, EXIT_ABORTED = 0, 1, 3
 
 
@@ -266,7 +277,9 @@ class OnboardProgram:
         self.clock = ProgramClock()
         self.link = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
-        self.estimator = PoseEstimator(cfg.estimator)
+        self.estimator = PoseEstimator(cfg.estimator, cfg.full_thrust_n / cfg.mass_kg + GRAVITY_M_S2)
+        noise_jump_m = plausible_jump_m(0.0, 0.0, 0.0, cfg.estimator.jump_sigmas, cfg.estimator.pos_noise_m)
+        self.gap_check = StaticPoseCheck(noise_jump_m, GAP_TURN_LIMIT_RAD)
         self.pilot = pilot or make_pilot(
             cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n, max_tilt_deg=cfg.max_tilt_deg)
         )
@@ -387,7 +400,17 @@ class OnboardProgram:
             return
         if ph in (Phase.AUTHORITY, Phase.ARMING, Phase.TAKEOFF, Phase.MISSION, Phase.HANDBACK) \
                 and not self._mocap_fresh(now_s):
-            self._abort(now_s, "stale_mocap", age_s=round(self.estimator.age_s(now_s), 4))
+            est = self.estimator
+            if est.implausible_run:  # the poses came, but none the vehicle could have flown to
+                self._abort(now_s, "implausible_mocap", age_s=round(est.age_s(now_s), 4),
+                            refused=est.implausible_run, jump_m=round(est.latest_jump_m, 3))
+            else:
+                self._abort(now_s, "stale_mocap", age_s=round(est.age_s(now_s), 4))
+            return
+        gap = self.gap_check
+        if ph is not Phase.ABORTING and gap.implausible_run and now_s - gap.received_s > cfg.stale_mocap_s:
+            self._abort(now_s, "implausible_gap_pose", refused=gap.implausible_run,
+                        jump_m=round(gap.latest_jump_m, 3))
             return
         handler = _PHASE_HANDLERS.get(ph)
         if handler is not None:  # the final phases have none
@@ -395,13 +418,13 @@ class OnboardProgram:
 
     def _wait(self, now_s: float) -> None:
         cfg = self.config
-        gap_ok = not self.mocap.is_stale("gap")
+        gap_ok = not self.mocap.is_stale("gap") and self.gap_check.pose is not None
         fc_ok = self.link.status is not None
         if self._mocap_fresh(now_s) and gap_ok and fc_ok:
             est = self.estimator.estimate(now_s)
-            gap = self.mocap.latest("gap")
+            gap = self.gap_check.pose
             assert gap is not None
-            self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap.pos_m,
+            self.events.emit("mocap_ok", now_s, vehicle_pos_m=est.pos_m, gap_centre_m=gap[0],
                              fc_armed=self.link.status.armed)  # type: ignore[union-attr]
             self._abort_yaw = float(est.euler_rad[2])
             # before taking off: a plan from where the climb ends must exist (it is planned again there);
@@ -479,11 +502,11 @@ class OnboardProgram:
     def _gap_pose(self, now_s: float) -> GapPose | None:
         """The gap from its latest mocap pose; None, after an abort naming why, when there is none or it
         cannot be used."""
-        g = self.mocap.latest("gap")
+        g = self.gap_check.pose  # the latest pose of the gap that lies where it was first seen
         try:
             if g is None:
                 raise ValueError("no gap pose received")
-            return GapPose.from_quaternion(g.pos_m, g.quat_wxyz, width_m=self.config.gap_width_m,
+            return GapPose.from_quaternion(g[0], g[1], width_m=self.config.gap_width_m,
                                            height_m=self.config.gap_height_m)
         except ValueError as exc:
             self._abort(now_s, "bad_gap_pose", detail=str(exc))
@@ -656,7 +679,9 @@ class OnboardProgram:
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
-        if body_id == VEHICLE_BODY_ID and not self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s):
+        if body_id == GAP_BODY_ID:
+            self.gap_check.update(pos_m, quat_wxyz, received_s)
+        elif body_id == VEHICLE_BODY_ID and not self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s):
             jumps = self.mocap.clock_jumps
             if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
                 self._clock_jumps = jumps
@@ -773,7 +798,9 @@ class OnboardProgram:
                 "skipped_steps": self.skipped_steps, "commands_refused": self.commands_refused,
                 self.link.protocol: self.link.codec.stats.as_dict(), "foreign": dict(self.link.foreign),
                 "mocap": asdict(self.mocap.counters), "estimator_updates": self.estimator.updates,
-                "estimator_rejected": self.estimator.rejected}
+                "estimator_rejected": self.estimator.rejected,
+                "estimator_implausible": self.estimator.implausible,
+                "gap_implausible": self.gap_check.implausible}
 
 
 def _fds(*transports: Transport) -> list[int]:
