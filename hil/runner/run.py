@@ -22,6 +22,10 @@ from hil.link.pty import PtyTransport
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.report import write_report_html, write_summary, write_timeseries
+from hil.report.html import REPORT_NAME
+from hil.report.mcap_log import MCAP_NAME
+from hil.report.summary import SUMMARY_NAME
+from hil.report.timeseries import TIMESERIES_NAME
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide, flown_profile
 from hil.runner.flight_quality import measure
@@ -43,6 +47,7 @@ from hil.runner.onboard_side import (
     prestart,
     program_config,
 )
+from hil.runner.preflight import preflight_check, refusal, refused_summary, write_refused
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.runner.recorder import FC_STATE_CODES
 from hil.scenario.schema import COMMAND_PROTOCOLS, DEFAULT_VEHICLE, Fault, Scenario
@@ -50,6 +55,7 @@ from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
 ONBOARD_LOG_NAME = "onboard_events.jsonl"
+ONBOARD_STDERR_NAME = "onboard_stderr.txt"
 ONBOARD_SUMMARY_EVENT = "summary"  # the onboard program's closing event: its counters
 MEMORY_CAPACITY_BYTES = 1 << 20
 SEGMENT_PHASES = {"approach": 1, "traverse": 2, "recovery": 3, "hover": 0}
@@ -231,6 +237,13 @@ def _run(
     except ValueError as exc:
         raise RunSetupError(str(exc)) from exc
     out = Path(out_dir)
+    clear_run_folder(out)
+    why = refusal(s, profile)
+    if why is not None or s.expect.refused:  # an opening too small for the body is never flown
+        check = preflight_check(s, why)
+        summary = refused_summary(s, check, why)
+        write_refused(out, summary)
+        return RunResult(check.passed, (check,), out, summary)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(s.seed)
     clock = SimClock()
@@ -284,7 +297,7 @@ def _run(
             # earlier would get them or not depending on how fast it starts)
             spawn0 = time.perf_counter()
             started_monotonic_s = time.monotonic()
-            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
+            onboard = ProcessOnboard(argv, log_path, out / ONBOARD_STDERR_NAME, warm=warm)
             spawn_s = time.perf_counter() - spawn0
 
         def tell(t: float) -> None:
@@ -372,6 +385,7 @@ def _finish(
         max_outside_lab_m=rec.max_outside_lab_m,
         failsafe_states=failsafes,
         onboard_abort_s=float(aborts[0]["t_s"]) if aborts else None,
+        onboard_abort_reason=abort_reason(aborts[0]) if aborts else None,
         hover_point_m=hover,
         columns=cols,
         link={k: links["summary"][k] for k in links["summary"]},
@@ -485,6 +499,18 @@ def _finish(
     return RunResult(passed, checks, out, summary)
 
 
+#: what a run writes into its folder, besides the .tlog it opens fresh itself
+RUN_FILES = (ONBOARD_LOG_NAME, SUMMARY_NAME, TIMESERIES_NAME, REPORT_NAME, MCAP_NAME, ONBOARD_STDERR_NAME)
+
+
+def clear_run_folder(out: Path) -> None:
+    """``out`` rid of an earlier run's files before this run starts: a live view or a replay never
+    shows another run's plan, events or flight from a reused folder."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+
+
 def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> dict[str, Any]:
     """A fault's times as flown (None: it never started) and whether it hit the phase it names."""
     started = math.isfinite(f.start_s)
@@ -495,8 +521,17 @@ def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> d
             "phase": phase, "hit_phase": hit}
 
 
+def abort_reason(ev: dict[str, Any]) -> str:
+    """An onboard "abort" event's reason, with the detail the program gave (the planner's, for a plan
+    that failed): ``planning_failed (no feasible ...)``."""
+    detail = ev.get("detail")
+    return str(ev.get("reason", "no reason given")) + (f" ({detail})" if detail else "")
+
+
 def _event_text(ev: dict[str, Any]) -> str:
     name = str(ev.get("event", "?"))
+    if name == "abort":
+        return f"abort: {abort_reason(ev)}"
     extra = {k: v for k, v in ev.items() if k not in ("event", "t_s")}
     for key in ("segment", "reason"):
         if key in extra:
