@@ -326,7 +326,7 @@ def test_a_file_with_every_field_round_trips(tmp_path: Path) -> None:
     given = _leaves(s.to_dict(include_meta=False))
     same = sorted(k for k in defaults if k in given and given[k] == defaults[k])
     assert same == ["expect.collision_expected", "expect.crosses_gap", "expect.onboard_abort_expected",
-                    "expect.stays_in_lab", "initial.on_ground", "vehicle"]  # fmt: skip
+                    "expect.refused", "expect.stays_in_lab", "initial.on_ground", "vehicle"]  # fmt: skip
     assert {f.kind for f in s.faults} == set(FAULT_KINDS)
     # to_dict -> YAML -> load gives the same scenario
     text = yaml.safe_dump(s.to_dict(include_meta=False), sort_keys=False)

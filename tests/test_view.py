@@ -314,3 +314,104 @@ def test_a_runs_stream_ends_when_it_ends_even_if_the_next_starts_at_once():
             view.finish(None)
     finally:
         view.close()
+
+
+# an earlier run in the same folder: another gap, and an abort the live run has none of
+EARLIER = """
+description: an earlier run, its gap elsewhere; its onboard program aborts when the mocap goes
+gap: {roll_deg: -30, centre_m: [0.3, 0.8, 1.6]}
+faults:
+  - {kind: mocap_dropped, start_s: 4.0, end_s: 8.0}
+duration_s: 6
+expect: {crosses_gap: false, recovery: false, onboard_abort_expected: true}
+"""
+# the command link goes down in the approach: the run fails its crossing and recovery checks
+FAILING = SCENARIO.replace("expect: {crosses_gap: false, recovery: false, failsafe_expected: hover}",
+                           "expect: {failsafe_expected: hover}")
+
+
+def test_a_page_opened_late_or_reloaded_shows_this_runs_whole_log_and_why_it_failed(tmp_path):
+    from hil.view.live import plan_points
+
+    earlier, failing, out = tmp_path / "earlier.scenario.yaml", tmp_path / "f.scenario.yaml", tmp_path / "run"
+    earlier.write_text(EARLIER)
+    failing.write_text(FAILING)
+    p = subprocess.run([*HIL, "run", str(earlier), "--in-process", "--out", str(out)], capture_output=True,
+                       text=True, timeout=300)
+    old_events = [json.loads(x) for x in (out / "onboard_events.jsonl").read_text().splitlines()]
+    old_plan = plan_points(old_events)
+    assert old_plan and any(e["event"] == "abort" for e in old_events), p.stdout + p.stderr
+    b = Browser(tmp_path / "profile")
+    proc = subprocess.Popen([*HIL, "run", str(failing), "--realtime", "--in-process", "--view", "--out",
+                             str(out)], stdout=subprocess.PIPE, stderr=(tmp_path / "stderr.txt").open("w"),
+                            text=True, preexec_fn=_default_ctrl_c)
+    try:
+        url = _url(proc)
+        # the page is opened 5 s into the run: it shows the run from its start all the same
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with urllib.request.urlopen(url + "frame.json", timeout=10) as r:
+                frame = json.load(r)
+            if frame and frame["t"] > 5.0:
+                break
+            time.sleep(0.2)
+        b.open(url)
+        assert b.wait_for("hilView.mode === 'live' && hilView.frames.length && "
+                          "hilView.frames[hilView.index].t > 5.0", 30)
+        first = b.eval("hilView.frames[0]")
+        assert first["t"] < 0.2 and first["k"] == 0
+        log = b.eval("document.getElementById('log').textContent")
+        assert "onboard start" in log and "onboard segment: approach" in log, log
+        assert "abort" not in log  # the earlier run's abort is not this run's
+        assert b.wait_for("hilView.scene.plan_m && hilView.scene.plan_m.length", 20)
+        live_plan = b.eval("hilView.scene.plan_m")
+        assert live_plan != old_plan
+        # reloaded: the whole log again, from the start
+        b.open(url)
+        assert b.wait_for("hilView.mode === 'live' && hilView.frames.length > 100 && "
+                          "hilView.frames[0].t < 0.2", 30)
+        # the run ends: the page says which checks failed, and when
+        text = b.wait_for("hilView.mode === 'replay' && document.getElementById('checks').textContent", 60)
+        assert "FAILED crosses_gap" in text and "FAILED recovery" in text, text
+        assert b.eval("hilView.scene.plan_m") == live_plan
+    finally:
+        b.close()
+        _stop(proc)
+    events = [json.loads(x) for x in (out / "onboard_events.jsonl").read_text().splitlines()]
+    assert plan_points(events) == live_plan and not any(e["event"] == "abort" for e in events)
+    # `hil view` says it too
+    view = subprocess.Popen([*HIL, "view", str(out)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True, preexec_fn=_default_ctrl_c)
+    try:
+        assert view.stdout is not None and view.stdout.readline().startswith("view: http://127.0.0.1:")
+        lines = [view.stdout.readline() for _ in range(3)]
+        assert lines[0].strip() == "FAILED", lines
+        assert any(x.startswith("  failed crosses_gap:") for x in lines), lines
+    finally:
+        _stop(view)
+
+
+def test_a_replay_stops_the_vehicle_where_it_hit_names_the_phases_and_the_failed_checks(tmp_path):
+    from hil.runner import RunOptions, run_scenario
+    from hil.scenario import loads_scenarios
+    from hil.view.replay import load_replay
+
+    # the onboard side aims 0.25 m above the true centre: the body hits the wall's top edge
+    [s] = loads_scenarios("description: t\ngap: {roll_deg: 30}\nduration_s: 9\n"
+                          "mocap_bias: {gap_pos_m: [0, 0, 0.25]}\n")
+    r = run_scenario(s, tmp_path / "hit", RunOptions(in_process=True, html_report=False))
+    hit_s = r.summary["collision_time_s"]
+    data = load_replay(tmp_path / "hit")
+    assert data["verdict"] == "FAILED" and data["failed_checks"][0]["name"] == "collision"
+    assert data["failed_checks"][0]["time_s"] == pytest.approx(hit_s)
+    after = [f for f in data["frames"] if f["t"] >= hit_s + 0.02]
+    assert len(after) > 10 and all(f["pos"] == after[0]["pos"] and f["rpy"] == after[0]["rpy"] for f in after)
+    phases = [f["phase"] for f in data["frames"]]
+    assert phases[0] == "takeoff" and "approach" in phases and "traverse" in phases
+    assert phases.index("approach") < phases.index("traverse")
+    # a run refused before take-off replays as such
+    [small] = loads_scenarios("description: t\ngap: {width_m: 0.2, height_m: 0.1}\n")
+    run_scenario(small, tmp_path / "small", RunOptions(in_process=True))
+    refused = load_replay(tmp_path / "small")
+    assert refused["verdict"] == "REFUSED" and refused["frames"] == []
+    assert "0.20 x 0.10 m opening is too small" in refused["refused"]

@@ -1,5 +1,5 @@
 """`hil run SCENARIO`: fly one scenario file and write its report; exit 0 all checks passed, 1 a check
-failed, 2 bad input."""
+failed, 2 bad input (a gap too small for the vehicle among it, refused before take-off)."""
 
 from __future__ import annotations
 
@@ -107,7 +107,11 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
         print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
     s = result.summary
     rtf = s.get("real_time_factor")
-    word = "PASSED" if result.passed else "FAILED"
+    word = "PASSED" if result.passed else "REFUSED" if s.get("refused") else "FAILED"
+    if s.get("refused"):  # never flown: the opening is too small for the body
+        print(f"{word} {scenario.id}: refused before take-off: {s['refused']}")
+        print(f"  report: {result.report_path}")
+        return result
     print(
         f"{word} {scenario.id}: sim {s['sim_time_s']:.2f} s in {s['wall_time_s']:.2f} s wall"
         + (f" ({rtf:.1f}x real time)" if rtf else "")
@@ -115,6 +119,9 @@ def run_one(scenario: Scenario, out_dir: Path, options: RunOptions, quiet: bool 
     for c in result.failed_checks:
         when = "" if c.time_s is None else f" at t={c.time_s:.3f} s"
         print(f"  failed {c.name}: expected {c.expected}, observed {c.observed}{when}")
+    for ev in s["events"]:  # why the onboard program gave up the mission (the planner's detail too)
+        if ev["source"] == "onboard" and ev["text"].startswith("abort: "):
+            print(f"  onboard {ev['text']} at t={ev['time_s']:.3f} s")
     print(f"  report: {result.report_path}")
     return result
 
@@ -164,6 +171,8 @@ def main(args: argparse.Namespace) -> int:
         except (RunSetupError, ValueError) as exc:
             print(f"hil run: {s.source}:{s.line}: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+        if result.summary.get("refused") and not result.passed:
+            return EXIT_BAD_INPUT  # a gap the vehicle cannot pass: the scenario asks the impossible
         failed = failed or not result.passed
         if args.mcap:
             from hil.report.mcap_log import write_mcap  # (the mcap writer only with --mcap)

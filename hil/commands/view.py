@@ -40,11 +40,16 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil view: cannot serve on 127.0.0.1:{args.port}: {exc}", file=sys.stderr)
         return 2
     try:
-        view.replay(args.run_dir)
+        data = view.replay(args.run_dir)
     except ReplayError as exc:
         view.close()
         print(f"hil view: {exc}", file=sys.stderr)
         return 2
     print(f"view: {view.url} (replay of {args.run_dir}); Ctrl-C to stop", flush=True)
+    refused = f": refused before take-off: {data['refused']}" if data["refused"] else ""
+    print(f"  {data['verdict']}{refused}")
+    for c in data["failed_checks"]:  # why it failed, and when
+        when = "" if c["time_s"] is None else f" at t={c['time_s']:.3f} s"
+        print(f"  failed {c['name']}: expected {c['expected']}, observed {c['observed']}{when}", flush=True)
     serve_until_stopped(view)
     return 0

@@ -16,6 +16,7 @@ class OnboardReport:
     events: tuple[dict[str, Any], ...]  # its mission events, as logged
     exit_code: int | None
     abort_s: float | None  # its first abort of the crossing
+    abort_reason: str | None  # that abort's reason, with the program's detail
     hover_point_m: Any  # the hover point its plan names (as logged), None without a plan
     lockstep_lost_s: float | None  # the first tick it read short of the mocap announced
     short_reads: int  # how many tick reads came up short
@@ -34,6 +35,7 @@ class OnboardReport:
             events=tuple(events),
             exit_code=exit_code,
             abort_s=float(abort["t_s"]) if abort else None,
+            abort_reason=abort_reason(abort) if abort else None,
             hover_point_m=plan.get("hover_m") if plan else None,
             lockstep_lost_s=float(lost[0]["t_s"]) if lost else None,
             short_reads=max((int(ev.get("short_reads", 1)) for ev in lost), default=0),
@@ -48,8 +50,17 @@ class OnboardReport:
                 for ev in self.events if ev.get("event") != SUMMARY_EVENT]
 
 
+def abort_reason(ev: dict[str, Any]) -> str:
+    """An onboard "abort" event's reason, with the detail the program gave (the planner's, for a plan
+    that failed): ``planning_failed (no feasible ...)``."""
+    detail = ev.get("detail")
+    return str(ev.get("reason", "no reason given")) + (f" ({detail})" if detail else "")
+
+
 def _event_text(ev: dict[str, Any]) -> str:
     name = str(ev.get("event", "?"))
+    if name == "abort":
+        return f"abort: {abort_reason(ev)}"
     extra = {k: v for k, v in ev.items() if k not in ("event", "t_s")}
     for key in ("segment", "reason"):
         if key in extra:

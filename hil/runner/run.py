@@ -22,6 +22,10 @@ from hil.link.pty import PtyTransport
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.report import write_report_html, write_summary, write_timeseries
+from hil.report.html import REPORT_NAME
+from hil.report.mcap_log import MCAP_NAME
+from hil.report.summary import SUMMARY_NAME
+from hil.report.timeseries import TIMESERIES_NAME
 from hil.runner.checks import Check, Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide, flown_profile
 from hil.runner.flight_quality import measure
@@ -45,6 +49,7 @@ from hil.runner.onboard_side import (
     program_config,
 )
 from hil.runner.over_time import time_mean
+from hil.runner.preflight import preflight_check, refusal, refused_summary, write_refused
 from hil.runner.realtime import CONTACT_WAIT_S, run_realtime
 from hil.runner.recorder import FC_STATE_CODES
 from hil.scenario.schema import COMMAND_PROTOCOLS, DEFAULT_VEHICLE, Fault, Scenario
@@ -52,6 +57,7 @@ from policies.onboard import pilot_names
 
 TLOG_NAME = "run.tlog"
 ONBOARD_LOG_NAME = "onboard_events.jsonl"
+ONBOARD_STDERR_NAME = "onboard_stderr.txt"
 MEMORY_CAPACITY_BYTES = 1 << 20
 SEGMENT_PHASES = {"approach": 1, "traverse": 2, "recovery": 3, "hover": 0}
 
@@ -232,6 +238,13 @@ def _run(
     except ValueError as exc:
         raise RunSetupError(str(exc)) from exc
     out = Path(out_dir)
+    clear_run_folder(out)
+    why = refusal(s, profile)
+    if why is not None or s.expect.refused:  # an opening too small for the body is never flown
+        check = preflight_check(s, why)
+        summary = refused_summary(s, check, why)
+        write_refused(out, summary)
+        return RunResult(check.passed, (check,), out, summary)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(s.seed)
     clock = SimClock()
@@ -285,7 +298,7 @@ def _run(
             # earlier would get them or not depending on how fast it starts)
             spawn0 = time.perf_counter()
             started_monotonic_s = time.monotonic()
-            onboard = ProcessOnboard(argv, log_path, out / "onboard_stderr.txt", warm=warm)
+            onboard = ProcessOnboard(argv, log_path, out / ONBOARD_STDERR_NAME, warm=warm)
             spawn_s = time.perf_counter() - spawn0
 
         def tell(t: float) -> None:
@@ -385,6 +398,7 @@ def observe(s: Scenario, emu: EmulatorSide, loop: LoopReport, onboard: OnboardRe
         max_outside_lab_m=rec.max_outside_lab_m,
         failsafe_states=emu.failsafes(),
         onboard_abort_s=onboard.abort_s,
+        onboard_abort_reason=onboard.abort_reason,
         hover_point_m=recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m),
                                        np.asarray(s.initial.pos_m)),
         columns=cols,
@@ -471,6 +485,18 @@ def _summary(s: Scenario, emu: EmulatorSide, loop: LoopReport, onboard: OnboardR
         "events": events,
         "scenario": s.to_dict(),
     }
+
+
+#: what a run writes into its folder, besides the .tlog it opens fresh itself
+RUN_FILES = (ONBOARD_LOG_NAME, SUMMARY_NAME, TIMESERIES_NAME, REPORT_NAME, MCAP_NAME, ONBOARD_STDERR_NAME)
+
+
+def clear_run_folder(out: Path) -> None:
+    """``out`` rid of an earlier run's files before this run starts: a live view or a replay never
+    shows another run's plan, events or flight from a reused folder."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
 
 
 def _fault_as_flown(f: Fault, phases: dict[str, list[tuple[float, float]]]) -> dict[str, Any]:

@@ -435,6 +435,9 @@ class Expectations:
         doc="real-time runs: the emulator loop's worst lateness against the wall clock (ms)",
     )
     quality: QualityExpectations = spec(factory=QualityExpectations, doc="flight-quality limits")
+    refused: bool = spec(
+        False, doc="the pre-flight check refuses the gap, too small for the body (never flown)"
+    )
 
 
 @dataclass(frozen=True)

@@ -95,6 +95,8 @@ def _phase_at(out: Path, time_s: float | None) -> str:
     """The flight phase at sim time ``time_s`` as the run recorded it ("whole run" without a time)."""
     if time_s is None:
         return "whole run"
+    if not (out / "timeseries.npz").is_file():  # refused before take-off: nothing was flown
+        return "before take-off"
     with np.load(out / "timeseries.npz") as z:
         t, phase = z["t_s"], z["phase"]
     if len(t) == 0:

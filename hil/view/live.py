@@ -28,9 +28,11 @@ PLAN_STEP_S = 0.05
 
 
 def scene(world: World | None, body_box_m: tuple[float, float, float], title: str,
-          links: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The still part of the view: the lab box, the wall and its opening, the body box (m, world ENU)."""
-    out: dict[str, Any] = {"title": title, "body_box_m": list(body_box_m), "links": links or {}}
+          links: dict[str, Any] | None = None, max_thrust_n: float | None = None) -> dict[str, Any]:
+    """The still part of the view: the lab box, the wall and its opening, the body box (m, world ENU),
+    the vehicle's full thrust (N: the thrust chart's scale)."""
+    out: dict[str, Any] = {"title": title, "body_box_m": list(body_box_m), "links": links or {},
+                           "max_thrust_n": max_thrust_n}
     if world is not None:
         g = world.gap
         out["lab"] = {"min_m": list(world.lab.min_m), "max_m": list(world.lab.max_m)}
@@ -47,6 +49,19 @@ def plan_points(events: list[dict[str, Any]]) -> list[list[float]] | None:
         return None
     n = int((plan.t_hover_start_s + 1.0) / PLAN_STEP_S) + 1
     return [[round(v, 4) for v in plan.reference_tuples(k * PLAN_STEP_S)[0]] for k in range(n)]
+
+
+#: the flight phase before the mission's first segment
+TAKEOFF_PHASE = "takeoff"
+
+
+def phase_after(event: dict[str, Any], phase: str) -> str:
+    """The flight phase after the onboard ``event``, ``phase`` before it: a segment's name from its start
+    on, "abort" from an abort on."""
+    name = event.get("event")
+    if name == "segment":
+        return str(event.get("segment", phase)).lower()
+    return "abort" if name == "abort" else phase
 
 
 def banner(fc_state: str, fc_failsafe: bool, fc_reason: str, abort: str | None, collision: str | None,
@@ -76,12 +91,14 @@ class LiveSource:
         self.lock = lock or contextlib.nullcontext()
         self.events_path, self.faults = events_path, faults
         self.profile = vehicle.profile
-        self._scene = scene(world, self.profile.body_box_m, title, links)
+        self._scene = scene(world, self.profile.body_box_m, title, links, self.profile.max_total_thrust_n)
         self._events: list[dict[str, Any]] = []
         self._read_at = 0
         self._history: deque[tuple[float, int, int, int, int]] = deque()
         self._abort: str | None = None
         self._collision: str | None = None
+        self._hit_pose: tuple[list[float | None], list[float | None]] | None = None  # where it hit
+        self._phase = TAKEOFF_PHASE
         self._fc_events_seen = 0
 
     def scene(self) -> dict[str, Any]:
@@ -96,6 +113,9 @@ class LiveSource:
         if self.events_path is None or not self.events_path.is_file():
             return []
         with self.events_path.open("rb") as f:
+            if f.seek(0, 2) < self._read_at:  # written afresh since (a program started again): from 0
+                self._read_at, self._events, self._abort = 0, [], None
+                self._scene.pop("plan_m", None)
             f.seek(self._read_at)
             data = f.read()
         end = data.rfind(b"\n") + 1  # whole lines only
@@ -110,6 +130,7 @@ class LiveSource:
             name = ev.get("event")
             if name == "abort" and self._abort is None:
                 self._abort = str(ev.get("reason", "?"))
+            self._phase = phase_after(ev, self._phase)
             if name not in ("summary",):
                 extra = ev.get("segment") or ev.get("reason") or ""
                 texts.append(f"onboard {name}" + (f": {extra}" if extra else ""))
@@ -152,10 +173,16 @@ class LiveSource:
         def num(value: float) -> float | None:
             return round(value, 4) if math.isfinite(value) else None
 
+        pos = [num(row[k]) for k in ("pos_m_x", "pos_m_y", "pos_m_z")]
+        rpy = [num(row[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg")]
+        if self._collision is not None:  # the vehicle stays where it hit (the physics has no contact)
+            self._hit_pose = self._hit_pose or (pos, rpy)
+            pos, rpy = self._hit_pose
         return {
             "t": round(t, 4),
-            "pos": [num(row[k]) for k in ("pos_m_x", "pos_m_y", "pos_m_z")],
-            "rpy": [num(row[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg")],
+            "phase": self._phase,
+            "pos": pos,
+            "rpy": rpy,
             "cmd": [num(row[k]) for k in ("roll_cmd_deg", "pitch_cmd_deg", "yaw_cmd_deg", "thrust_cmd_pct")],
             "thrust_n": num(row["thrust_n"]),
             "speed": num(math.sqrt(sum(row[f"vel_m_s_{a}"] ** 2 for a in "xyz"))),

@@ -18,7 +18,7 @@ from hil.runner.recorder import FC_STATE_CODES
 from hil.runner.run import ONBOARD_LOG_NAME
 from hil.scenario import ScenarioError, loads_scenarios
 from hil.scenario.schema import Scenario
-from hil.view.live import banner, plan_points, scene
+from hil.view.live import TAKEOFF_PHASE, banner, phase_after, plan_points, scene
 
 #: the replay's frames: one per this much sim time (s)
 FRAME_STEP_S = 0.02
@@ -45,10 +45,11 @@ def load_replay(run_dir: str | Path) -> dict[str, Any]:
     d = Path(run_dir)
     try:
         summary = json.loads((d / "summary.json").read_text(encoding="utf-8"))
-        cols = read_timeseries(d)
-    except (OSError, ValueError, KeyError) as exc:
+        cols = None if summary.get("refused") else read_timeseries(d)
+    except (OSError, ValueError, KeyError, AttributeError) as exc:
         raise ReplayError(f"{d} holds no finished run (summary.json and timeseries.npz): {exc}") from exc
     s = _scenario(summary)
+    failed = failed_checks(summary)
     events = []
     log = d / ONBOARD_LOG_NAME
     if log.is_file():
@@ -59,14 +60,24 @@ def load_replay(run_dir: str | Path) -> dict[str, Any]:
                 continue
     profile = flown_profile(load_profile(s.vehicle), s.airframe)
     world = World.for_profile(make_gap(s), LabVolume(s.lab.min_m, s.lab.max_m), profile)
-    verdict = "PASSED" if summary.get("passed") else "FAILED"
+    verdict = "PASSED" if summary.get("passed") else "REFUSED" if summary.get("refused") else "FAILED"
     sc = scene(world, profile.body_box_m, f"{summary.get('scenario_id')} ({verdict}, replay)",
                {"command": {"latency_ms": s.links.command.latency_ms, "loss": s.links.command.loss},
-                "mocap": {"latency_ms": s.links.mocap.latency_ms, "loss": s.links.mocap.loss}})
+                "mocap": {"latency_ms": s.links.mocap.latency_ms, "loss": s.links.mocap.loss}},
+               profile.max_total_thrust_n)
     plan = plan_points(events)
     if plan is not None:
         sc["plan_m"] = plan
-    return {"scene": sc, "frames": frames(cols, summary, events)}
+    return {"scene": sc, "frames": [] if cols is None else frames(cols, summary, events), "verdict": verdict,
+            "failed_checks": failed, "refused": summary.get("refused")}
+
+
+def failed_checks(summary: dict[str, Any]) -> list[dict[str, Any]]:
+    """The run's failed checks, each with its name, sim time (s; None: the whole run), expected and
+    observed, in the order of the summary."""
+    return [{"name": c.get("name"), "time_s": c.get("time_s"), "expected": str(c.get("expected")),
+             "observed": str(c.get("observed"))}
+            for c in summary.get("checks", []) if isinstance(c, dict) and not c.get("passed")]
 
 
 def frames(cols: dict[str, np.ndarray], summary: dict[str, Any], events: list[dict[str, Any]],
@@ -88,6 +99,9 @@ def frames(cols: dict[str, np.ndarray], summary: dict[str, Any], events: list[di
     fc_reason = ""
     out = []
     k = 0
+    onboard = sorted((ev for ev in events if isinstance(ev.get("t_s"), int | float)), key=lambda e: e["t_s"])
+    phase, j = TAKEOFF_PHASE, 0
+    hit = None if hit_s is None else min(int(np.searchsorted(t, hit_s)), len(t) - 1)
 
     def num(a: np.ndarray, i: int, digits: int = 4) -> float | None:
         v = float(a[i])
@@ -101,11 +115,15 @@ def frames(cols: dict[str, np.ndarray], summary: dict[str, Any], events: list[di
             if texts[k][1].startswith("fc "):
                 fc_reason = texts[k][1].split(": ", 1)[-1]
             k += 1
+        while j < len(onboard) and onboard[j]["t_s"] <= ti:
+            phase, j = phase_after(onboard[j], phase), j + 1
         state = _FC_STATES.get(int(cols["fc_state"][i]), "?")
+        at = i if hit is None or i < hit else hit  # the vehicle stays where it hit
         out.append({
             "t": round(ti, 4),
-            "pos": [num(cols[f"pos_m_{a}"], i) for a in "xyz"],
-            "rpy": [num(cols[f"{a}_deg"], i) for a in ("roll", "pitch", "yaw")],
+            "phase": phase,
+            "pos": [num(cols[f"pos_m_{a}"], at) for a in "xyz"],
+            "rpy": [num(cols[f"{a}_deg"], at) for a in ("roll", "pitch", "yaw")],
             "cmd": [num(cols[c], i) for c in _COMMAND],
             "thrust_n": num(cols["thrust_n"], i),
             "speed": round(float(np.linalg.norm([cols[f"vel_m_s_{a}"][i] for a in "xyz"])), 4),

@@ -1,10 +1,11 @@
 """The view's web server on loopback (stdlib only): the page, the scene, a stream of frames as
 server-sent events while a run flies, and a finished run's frames for the page's time slider.
 
-One thread samples the source `rate_hz` times a second (the emulator's loop does nothing for the view);
-each browser connected to ``/stream`` gets every sampled frame. `finish(run_dir)` ends the stream (the
-page then fetches ``/replay.json`` and replays the run with a slider); `replay(run_dir)` serves a finished
-run from the start.
+One thread samples the source `rate_hz` times a second (the emulator's loop does nothing for the view)
+into the run's log of frames; each browser connected to ``/stream`` gets that log from the run's first
+frame on (a page opened late, or reloaded, shows the whole run), then every frame as it is sampled.
+`finish(run_dir)` ends the stream (the page then fetches ``/replay.json`` and replays the run with a
+slider); `replay(run_dir)` serves a finished run from the start.
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ from typing import Any, Protocol
 
 #: frames a second sent while a run flies
 DEFAULT_RATE_HZ = 25.0
+#: frames a run's log keeps (two hours at the default rate; a scenario lasts an hour at most): beyond,
+#: the oldest tenth goes (a standalone FC's view runs for as long as it is left)
+MAX_LOG_FRAMES = 180_000
 
 
 class Source(Protocol):
@@ -39,8 +43,8 @@ class ViewServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 0, rate_hz: float = DEFAULT_RATE_HZ) -> None:
         self.rate_hz = rate_hz
         self._cond = threading.Condition()
-        self._frame: dict[str, Any] | None = None
-        self._seq = 0
+        self._frames: list[dict[str, Any]] = []  # the live run's frames from its first, in order
+        self._first_k = 0  # the log's place of self._frames[0] (more than 0 once the oldest went)
         self._run = 0  # runs shown live so far: a page replaying one moves on to the next live run
         self._source: Source | None = None
         self._replay: dict[str, Any] | None = None
@@ -66,7 +70,7 @@ class ViewServer:
         """Stream ``source``'s frames from now on."""
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = source, False, None, None
-            self._frame, self._holding = None, False
+            self._frames, self._first_k, self._holding = [], 0, False
             self._run += 1
             self._cond.notify_all()  # (a page's stream of the run before ends now)
         self._sampler = threading.Thread(target=self._sample, args=(source,), name="hil-view-sampler",
@@ -90,14 +94,15 @@ class ViewServer:
             self._replay = None
             self._cond.notify_all()
 
-    def replay(self, run_dir: str | Path) -> None:
-        """Serve the finished run in ``run_dir`` (ReplayError when it is none)."""
+    def replay(self, run_dir: str | Path) -> dict[str, Any]:
+        """Serve the finished run in ``run_dir`` (ReplayError when it is none); returns what is served."""
         from hil.view.replay import load_replay
 
         data = load_replay(run_dir)
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = None, True, data, Path(run_dir)
             self._cond.notify_all()
+        return data
 
     def close(self) -> None:
         with self._cond:
@@ -119,7 +124,14 @@ class ViewServer:
             except Exception as exc:  # a frame that cannot be read is shown, never fatal to the run
                 frame = {"error": f"{type(exc).__name__}: {exc}"}
             with self._cond:
-                self._frame, self._seq = frame, self._seq + 1
+                if self._source is not source:  # (the next run started meanwhile)
+                    return
+                frame["k"] = self._first_k + len(self._frames)  # its place in the run's log
+                self._frames.append(frame)
+                if len(self._frames) > MAX_LOG_FRAMES:
+                    cut = MAX_LOG_FRAMES // 10
+                    del self._frames[:cut]
+                    self._first_k += cut
                 self.frames_sampled += 1
                 self._cond.notify_all()
             next_t += period
@@ -150,24 +162,27 @@ class ViewServer:
         return data
 
     def _stream(self, write: Any) -> None:
-        """The frames of the run live when the page asked, ended by ``done`` when that run is over, also
-        when the next one has already started (a stream never goes on with another run's frames)."""
-        seq = -1
+        """The frames of the run live when the page asked, from its first (what came before the page
+        connected too), ended by ``done`` when that run is over, also when the next one has already
+        started (a stream never goes on with another run's frames)."""
+        next_k = 0
         with self._cond:
-            run = self._run
+            run, frames = self._run, self._frames
         while True:
             with self._cond:
-                self._cond.wait_for(lambda last=seq: self._seq != last or self._done or self._run != run,
-                                    timeout=1.0)
+                self._cond.wait_for(lambda k=next_k: self._first_k + len(frames) > k or self._done
+                                    or self._run != run, timeout=1.0)
                 over = self._done or self._run != run
-                frame, seq = (None, self._seq) if over else (self._frame, self._seq)
-            if frame is None:
-                if over:
-                    write(b"event: done\ndata: {}\n\n")
-                    return
+                batch = frames[max(0, next_k - self._first_k):] if self._run == run else []
+            if batch:
+                next_k = batch[-1]["k"] + 1
+                write(b"".join(b"data: " + json.dumps(f, separators=(",", ":")).encode() + b"\n\n"
+                               for f in batch))
+            elif over:
+                write(b"event: done\ndata: {}\n\n")
+                return
+            else:
                 write(b": keep-alive\n\n")
-                continue
-            write(b"data: " + json.dumps(frame, separators=(",", ":")).encode() + b"\n\n")
 
     def _handler(self) -> type[BaseHTTPRequestHandler]:
         view = self
@@ -194,7 +209,7 @@ class ViewServer:
                     self._send(json.dumps(view._replay_data() or {"frames": []}).encode(), "application/json")
                 elif path == "/frame.json":
                     with view._cond:
-                        frame = view._frame
+                        frame = view._frames[-1] if view._frames else None
                     self._send(json.dumps(frame).encode(), "application/json")
                 elif path == "/stream":
                     self.send_response(HTTPStatus.OK)

@@ -1,0 +1,59 @@
+"""The harness's pre-flight check: a gap whose opening the flown vehicle's body box cannot pass (at the
+attitude it reaches there, `policies.gap_planning.passage`: the one computation the onboard planner
+refuses by too) is refused before take-off, with the reason, and never flown into the wall."""
+
+from __future__ import annotations
+
+import math
+from html import escape
+from pathlib import Path
+from typing import Any
+
+from emulator.profile import VehicleProfile
+from hil.report import write_summary
+from hil.runner.checks import Check
+from hil.runner.onboard_side import DEFAULT_APPROACH_SPEED_M_S
+from hil.scenario.schema import Scenario
+from policies.gap_planning import BodyClearance, passage
+
+REFUSED_END = "refused before take-off"
+
+
+def refusal(s: Scenario, profile: VehicleProfile) -> str | None:
+    """Why ``profile`` (the flown vehicle: its box, its tilt limit) cannot pass ``s``'s true opening at
+    the scenario's crossing speed, or None."""
+    speed = s.approach.speed_m_s or DEFAULT_APPROACH_SPEED_M_S
+    return passage(s.gap.width_m, s.gap.height_m, math.radians(s.gap.tilt_deg), speed,
+                   BodyClearance(profile.body_box_m), math.radians(profile.max_tilt_deg)).refusal
+
+
+def preflight_check(s: Scenario, reason: str | None) -> Check:
+    """The verdict of the pre-flight check: a refusal passes where the scenario expects one."""
+    observed = "accepted" if reason is None else f"refused: {reason}"
+    if s.expect.refused:
+        return Check("preflight", reason is not None, REFUSED_END, observed, 0.0)
+    return Check("preflight", reason is None, "a gap the vehicle can pass", observed, 0.0)
+
+
+def refused_summary(s: Scenario, check: Check, reason: str | None) -> dict[str, Any]:
+    """A run that never took off: its verdict, the pre-flight check, why, and the scenario."""
+    return {
+        "passed": check.passed, "scenario_id": s.id, "refused": reason, "end_reason": REFUSED_END,
+        "checks": [check.to_dict()], "crossed_gap": False, "collision": None, "min_clearance_m": None,
+        "attitude_error_deg": None, "sim_time_s": 0.0, "wall_time_s": 0.0, "real_time_factor": None,
+        "events": [{"time_s": 0.0, "source": "harness", "text": f"preflight: {check.observed}"}],
+        "scenario": s.to_dict(),
+    }
+
+
+def write_refused(out: Path, summary: dict[str, Any]) -> None:
+    """summary.json and a one-screen report.html of a run that never took off."""
+    write_summary(out, summary)
+    check = summary["checks"][0]
+    word = "PASSED" if summary["passed"] else "REFUSED"
+    (out / "report.html").write_text(
+        f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{word}: '
+        f"{escape(summary['scenario_id'])}</title></head><body><h1>{word}: {escape(summary['scenario_id'])}"
+        f"</h1><p>{REFUSED_END}: nothing was flown.</p><p>preflight: expected "
+        f"{escape(str(check['expected']))}, observed {escape(str(check['observed']))}</p></body></html>\n",
+        encoding="utf-8")
