@@ -235,8 +235,8 @@ def _tlog_messages(path: Path) -> list:
 
 
 def test_a_param_set_storm_over_udp_loses_nothing_uncounted():
-    """2,000 PARAM_SETs at 1,000/s into `hil fc` over UDP: each one is set, or counted where it was lost
-    (the socket's kernel drops, SO_RXQ_OVFL)."""
+    """2,000 PARAM_SETs at 1,000/s into `hil fc` over UDP, then 2,000 at once: each one is set, or counted
+    where it was lost (the socket's kernel drops)."""
     proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--mocap-link", "none")
     gcs = None
     sent = 0
@@ -251,6 +251,10 @@ def test_a_param_set_storm_over_udp_loses_nothing_uncounted():
             lag = start + sent / 1000.0 - time.monotonic()
             if lag > 0:
                 time.sleep(lag)
+        burst = m.param_set_encode(1, 1, b"COM_OF_LOSS_T", 0.5, mav.MAV_PARAM_TYPE_REAL32)
+        for _ in range(2000):  # then as fast as they go: more than the socket holds
+            gcs.write(bytes(burst.pack(m)))
+            sent += 1
         gcs.drain(1.0)
     finally:
         if gcs is not None:

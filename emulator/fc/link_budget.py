@@ -19,8 +19,10 @@ from hil.link.mavlink import SIGNATURE_BYTES, mav
 STREAM_QUEUE_S = 0.05  # a stream frame waits behind at most this much of the line's queue (s)
 LINE_SHARE_DEFAULT = 0.5  # MAV_0_RATE 0: the streams get this share of the line (PX4: baud / 20)
 FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header (10) and CRC (2)
-#: streams kept at their rate whatever the budget (a ground station counts a link lost without them)
+#: streams kept at their rate whatever the budget, up to once every `MIN_RATE_INTERVAL_S` (a ground
+#: station counts a link lost without them); faster, they are scaled with the others
 FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
+MIN_RATE_INTERVAL_S = 1.0  # no stream is scaled below 1 Hz (one asked slower keeps its rate)
 CAPS_KEPT = 20  # the summary lists at most this many capped requests
 
 
@@ -72,15 +74,25 @@ class LinkBudget:
 
     def grant(self, requested_s: dict[int, float]) -> dict[int, float]:
         """The intervals (s) the streams get: ``requested_s`` (msg id -> interval) scaled alike until
-        they fit the budget (`FIXED_STREAMS` kept)."""
+        they fit the budget, none slower than once every `MIN_RATE_INTERVAL_S` (or than asked, if
+        slower): `FIXED_STREAMS` at that rate or slower are kept as asked."""
         budget = self.stream_bytes_s
         if budget is None:
             return dict(requested_s)
-        fixed = sum(self.frame_bytes(i) / s for i, s in requested_s.items() if i in FIXED_STREAMS)
-        demand = sum(self.frame_bytes(i) / s for i, s in requested_s.items() if i not in FIXED_STREAMS)
-        room = max(budget - fixed, 0.01 * budget)
-        scale = 1.0 if demand <= room else room / demand
-        return {i: s if i in FIXED_STREAMS or scale == 1.0 else s / scale for i, s in requested_s.items()}
+        granted = dict(requested_s)
+        free = [i for i, s in requested_s.items() if not (i in FIXED_STREAMS and s >= MIN_RATE_INTERVAL_S)]
+        while free:  # (each round pins at least one stream at its slowest, or ends)
+            used = sum(self.frame_bytes(i) / s for i, s in granted.items() if i not in free)
+            demand = sum(self.frame_bytes(i) / requested_s[i] for i in free)
+            scale = min(1.0, max(budget - used, 0.01 * budget) / demand)
+            slowest = {i: max(requested_s[i], MIN_RATE_INTERVAL_S) for i in free}
+            pinned = [i for i in free if requested_s[i] / scale > slowest[i]]
+            for i in free:
+                granted[i] = slowest[i] if i in pinned else requested_s[i] / scale
+            if not pinned:
+                break
+            free = [i for i in free if i not in pinned]
+        return granted
 
     def capped(self, msg_id: int, requested_hz: float, granted_hz: float) -> str:
         """Record a request granted less than asked; the STATUSTEXT that says so (<= 50 characters)."""

@@ -274,6 +274,9 @@ def main(args: argparse.Namespace) -> int:
             endpoints["view"] = view.url
         print(json.dumps(endpoints), flush=True)
         runner.run()
+        count_drops = getattr(link, "count_drops", None)  # (UDP: the kernel's drops until now)
+        if count_drops is not None:
+            count_drops()
         summary = {
             "sim_time_s": round(vehicle.time_s, 3),
             "state": vehicle.fc.state.value,

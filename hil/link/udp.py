@@ -12,13 +12,17 @@ it sends. Each `send` goes out as one datagram (split above 65000 bytes); a data
 `recv`'s ``max_bytes`` is handed out over several calls, nothing is cut off. A `recv` drains every
 datagram waiting, up to ``max_bytes`` (the bound on one pass's intake; the rest waits in the socket).
 Datagrams the kernel drops because the socket's buffer was full are counted in
-`stats.datagrams_lost_in` (Linux's SO_RXQ_OVFL; elsewhere they go uncounted).
+`stats.datagrams_lost_in` (Linux: SO_RXQ_OVFL tells the count with each datagram read, which misses
+drops after the last one; `count_drops()` reads the count now from /proc/net/udp; elsewhere they go
+uncounted).
 """
 
 from __future__ import annotations
 
+import os
 import socket
 import sys
+from pathlib import Path
 
 from hil.link.transport import LinkError, Transport
 
@@ -135,6 +139,21 @@ class UdpTransport(Transport):
     def _wait_readable(self, timeout_s: float | None) -> None:
         if not self._pending:
             super()._wait_readable(timeout_s)
+
+    def count_drops(self) -> int:
+        """`stats.datagrams_lost_in` brought up to the kernel's count now (Linux; unchanged elsewhere)."""
+        if self._closed:
+            return self.stats.datagrams_lost_in
+        inode = str(os.fstat(self._sock.fileno()).st_ino)
+        try:
+            lines = Path("/proc/net/udp").read_text().splitlines()[1:]
+        except OSError:
+            return self.stats.datagrams_lost_in
+        for line in lines:  # sl local rem st queues tr retrnsmt uid timeout inode ref pointer drops
+            f = line.split()
+            if len(f) >= 13 and f[9] == inode:
+                self.stats.datagrams_lost_in = max(self.stats.datagrams_lost_in, int(f[12]))
+        return self.stats.datagrams_lost_in
 
     def _close_internal(self) -> None:
         self._sock.close()
