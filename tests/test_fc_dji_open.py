@@ -223,6 +223,36 @@ def test_tasks_land_and_stop_motors():
     assert rig.ask(0x01, 0x01, b"\x63") == 0x000A  # no such task
 
 
+def test_the_n3_tasks_take_off_to_a_hover_go_home_and_land_in_simulated_time():
+    rig = Rig()
+    rig.activate()
+    fc, v = rig.vehicle.fc, rig.vehicle
+    assert rig.ask(0x01, 0x01, b"\x01") == 0xFF02  # a task needs control authority
+    rig.ask(0x01, 0x00, b"\x01")
+    assert rig.ask(0x01, 0x01, b"\x06") == 0x0004  # go home on the ground: not in the air
+    assert rig.ask(0x01, 0x01, b"\x01") == 0x0000  # take off
+    assert rig.ask(0x01, 0x01, b"\x01") == 0x0008  # already taking off
+    rig.run(0.5)
+    assert fc.landed and fc.state is FcState.TAKEOFF and v.state.pos_m[2] < fc.rest_height_m + 0.01  # spin-up
+    rig.run(4.0)
+    assert fc.state is FcState.HOLD and not fc.landed
+    z = v.state.pos_m[2]
+    assert fc.rest_height_m + 1.15 < z < fc.rest_height_m + 1.5  # 1.2 m above the resting height
+    rig.run(2.0)
+    assert abs(v.state.pos_m[2] - z) < 0.1 and abs(v.state.vel_m_s).max() < 0.1  # hovering
+    assert rig.ask(0x01, 0x01, b"\x01") == 0x0003  # take off in the air
+    assert rig.ask(0x01, 0x01, b"\x08") == 0x0003  # stop the motors in the air
+    # away with a velocity setpoint (north 1 m/s, ground frame, yaw rate 0), then home
+    rig.run(3.0, setpoint=(0x48, 1.0, 0.0, 0.0, 0.0))
+    assert fc.state is FcState.OFFBOARD and v.state.pos_m[1] > 2.0  # (ENU y: north)
+    assert rig.ask(0x01, 0x01, b"\x06") == 0x0000
+    rig.run(0.5, setpoint=(0x48, 1.0, 0.0, 0.0, 0.0))
+    assert fc.state is FcState.GO_HOME  # the onboard setpoints do not interrupt it
+    assert rig.ask(0x01, 0x00, b"\x00") == 0x0001  # nor does a release
+    rig.run(15.0)
+    assert fc.state is FcState.DISARMED and np.hypot(*v.state.pos_m[:2]) < 0.4  # landed at home
+
+
 def test_encrypted_unknown_and_resent_commands_get_their_documented_answers():
     rig = Rig()
     rig.activate()

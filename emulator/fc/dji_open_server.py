@@ -102,6 +102,8 @@ class DjiOpenServer:
         self.telemetry = TelemetryEncoder(vehicle, None, self.config.home)  # type: ignore[arg-type]
         self.activated = False
         self.sdk_control = False  # the onboard device holds control authority
+        #: the home point (world ENU east, north, m): where the motors last started (None: not yet)
+        self.home_en_m: tuple[float, float] | None = None
         self._rates_hz = list(self.config.broadcast_rates_hz)
         self._next_due = [0.0] * len(self._rates_hz)
         self._next_push_s = 0.0
@@ -310,8 +312,9 @@ class DjiOpenServer:
             return dj.TASK_NOT_IN_AIR, refused
         if task == dj.TASK_LAND:
             return dj.TASK_ALREADY_RUNNING, fc.request_land(now_s)
-        # go home: no home to fly to indoors, the FC holds instead
-        return dj.TASK_NOT_IN_AIR, fc.request_hold(now_s, "go home: holding (no home indoors)")
+        if self.home_en_m is None:
+            return dj.TASK_NO_HOME_POINT, refused
+        return dj.TASK_NOT_IN_AIR, fc.request_go_home(now_s, self.home_en_m)
 
     # --- subscription (0x0B): one-byte codes ------------------------------------------------------
     def _sub_code(self, code: int) -> bytes:
@@ -365,7 +368,11 @@ class DjiOpenServer:
         events = self.fc.events
         # (setpoints lost: the FC hovers, then lands, and the onboard device keeps its authority, as an
         # N3 does: OSDK's own samples pause their stream between moves and go on flying after)
-        self._statustexts.extend(ev.reason for ev in events[self._events_seen :])
+        for ev in events[self._events_seen :]:
+            self._statustexts.append(ev.reason)
+            if ev.from_state is FcState.DISARMED:  # the motors start: the home point is where it is
+                x = self.vehicle.state_vector()
+                self.home_en_m = (float(x[0]), float(x[1]))
         self._events_seen = len(events)
 
     # --- broadcast and subscription pushes -------------------------------------------------------

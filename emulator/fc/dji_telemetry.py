@@ -60,6 +60,8 @@ def display_mode(server: DjiOpenServer) -> int:
         return dj.MODE_AUTO_LANDING
     if st is FcState.OFFBOARD:
         return dj.MODE_NAVI_SDK_CTRL
+    if st is FcState.GO_HOME:
+        return dj.MODE_NAVI_GO_HOME
     return dj.MODE_P_GPS
 
 
@@ -231,14 +233,17 @@ TOPIC_VALUES: dict[str, Values] = {
     "control_device": lambda server, x: control_device(server),
     "gps_signal_level": lambda server, x: (GPS_HEALTH,),
     "gps_control_level": lambda server, x: (GPS_HEALTH,),
-    "home_point_set_status": lambda server, x: (1,),
+    "home_point_set_status": lambda server, x: (int(server.home_en_m is not None),),
     "home_point_info": lambda server, x: _home_rad(server),
 }
 
 
 def _home_rad(server: DjiOpenServer) -> tuple:
-    h = server.config.home
-    return math.radians(h.lat_deg), math.radians(h.lon_deg)
+    """Latitude, longitude (rad) of the home point (where the motors last started; before that, the
+    flat Earth's origin)."""
+    e, n = server.home_en_m or (0.0, 0.0)
+    lat, lon = server.telemetry.lat_lon_deg((e, n, 0.0))
+    return math.radians(lat), math.radians(lon)
 
 
 def flight_data(server: DjiOpenServer, now_s: float, flags: int) -> bytes:

@@ -31,13 +31,14 @@ from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 
 PX4_OFFBOARD_LOSS_TIMEOUT_S = 1.0  # PX4's COM_OF_LOSS_T default
+TAKEOFF_FINAL_CLIMB_M_S = 0.2  # the take-off's slowest climb, as it reaches its height
 #: what the FC does when the setpoints stop: hover (``failsafe_hover_s``, then land) or land at once
 FAILSAFE_ACTIONS = ("hover", "land")
 #: the states flown by the FC's own hover/land controller while in the air (heading held on entry)
 HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcState.FAILSAFE_LAND))
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
 #: the states whose heading the FC holds itself (latched on entry, see `hold_heading_rad`)
-HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF}
+HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
 
 
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
@@ -73,6 +74,8 @@ class FcConfig:
     #: largest speed it asks (m/s); the climb rate also stops at the SDK's 5 m/s
     position_gain_per_s: float = 1.0
     position_speed_m_s: float = 2.0
+    #: go home: within this of the home point (m, horizontally) it lands
+    home_radius_m: float = 0.3
 
     def __post_init__(self) -> None:
         if self.failsafe_action not in FAILSAFE_ACTIONS:
@@ -104,6 +107,8 @@ class FlightController:
         #: a position-offset target's goal (world ENU east, north, m), fixed at the first step after
         #: the setpoint arrived (None: to be fixed)
         self._goal_en_m: tuple[float, float] | None = None
+        #: where GO_HOME flies (world ENU east, north, m), given by `request_go_home`
+        self.home_en_m: tuple[float, float] | None = None
         self.last_setpoint_s = -math.inf
         self.setpoints_accepted = 0
         self._arrivals: deque[float] = deque(maxlen=2)
@@ -244,6 +249,16 @@ class FlightController:
         self._go(FcState.TAKEOFF, time_s, "take-off")
         return ACCEPTED
 
+    def request_go_home(self, time_s: float, home_en_m: tuple[float, float]) -> CommandResult:
+        """Fly back over ``home_en_m`` (world ENU east, north, m) at the height now, then land (an N3's go
+        home, without its climb to a return altitude: a lab has no room for one)."""
+        if self.landed or not self.state.armed:
+            return CommandResult(False, "go home refused: not in the air")
+        self.home_en_m = home_en_m
+        if self.state not in LANDING_STATES:
+            self._go(FcState.GO_HOME, time_s, "go home")
+        return ACCEPTED
+
     def request_land(self, time_s: float) -> CommandResult:
         if not self.state.armed:
             return CommandResult(False, "land refused: not armed")
@@ -305,6 +320,8 @@ class FlightController:
             cmd = self._fly_target(state, dt)
         elif st is FcState.TAKEOFF:
             cmd = self._take_off(state, t)
+        elif st is FcState.GO_HOME:
+            cmd = self._go_home(state, t)
         elif self.landed and (st is FcState.HOLD or st in LANDING_STATES):
             cmd = self._idle
         else:  # HOLD in the air, FAILSAFE_HOVER, landing in the air
@@ -427,16 +444,33 @@ class FlightController:
             climb = max(-cfg.position_speed_m_s, min(cfg.position_speed_m_s, climb))
         return self._velocity_hold(state, climb, yaw, ve_sp, vn_sp)
 
+    def _go_home(self, state: VehicleState, t: float) -> np.ndarray:
+        """Fly back over the home point at the height now; land once within ``home_radius_m``."""
+        cfg = self.config
+        assert self.home_en_m is not None  # (`request_go_home` asks for one)
+        de, dn = self.home_en_m[0] - float(state.pos_m[0]), self.home_en_m[1] - float(state.pos_m[1])
+        if math.hypot(de, dn) < cfg.home_radius_m:
+            self._go(FcState.LAND, t, "home: landing")
+            return self._velocity_hold(state, -cfg.land_speed_m_s)
+        ve, vn = cfg.position_gain_per_s * de, cfg.position_gain_per_s * dn
+        speed = math.hypot(ve, vn)
+        if speed > cfg.position_speed_m_s:
+            ve, vn = ve * cfg.position_speed_m_s / speed, vn * cfg.position_speed_m_s / speed
+        return self._velocity_hold(state, 0.0, None, ve, vn)
+
     def _take_off(self, state: VehicleState, t: float) -> np.ndarray:
         """The FC's own take-off: the motors idle through the spin-up, then it climbs to the take-off
         height, where it hands over to HOLD."""
         cfg = self.config
         if t - self.machine.since_s < cfg.takeoff_spinup_s:
             return self._idle
-        if state.pos_m[2] >= self.rest_height_m + cfg.takeoff_height_m:
+        to_go = self.rest_height_m + cfg.takeoff_height_m - float(state.pos_m[2])
+        if to_go <= 0.0:
             self._go(FcState.HOLD, t, "take-off complete")
             return self._velocity_hold(state, 0.0)
-        return self._velocity_hold(state, cfg.takeoff_speed_m_s)
+        # slowing down over the last metres (the position gain, not under 0.2 m/s), to stop at the height
+        climb = max(TAKEOFF_FINAL_CLIMB_M_S, min(cfg.takeoff_speed_m_s, cfg.position_gain_per_s * to_go))
+        return self._velocity_hold(state, climb)
 
     def _velocity_hold(self, state: VehicleState, climb_m_s: float, yaw: float | None = None,
                        ve_sp: float = 0.0, vn_sp: float = 0.0) -> np.ndarray:

@@ -16,6 +16,7 @@ class FcState(Enum):
     FAILSAFE_HOVER = "failsafe_hover"  # setpoints lost: hover in place for a while ...
     FAILSAFE_LAND = "failsafe_land"  # ... then land and disarm
     TAKEOFF = "takeoff"  # the FC's own take-off: motors spin up, climb to the take-off height, then HOLD
+    GO_HOME = "go_home"  # the FC flies back over its home point (where it armed) at its height, then LAND
 
     @property
     def armed(self) -> bool:

@@ -13,6 +13,7 @@ from emulator.profile import GRAVITY_M_S2
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
     PX4_AUTO_LOITER,
+    PX4_AUTO_RTL,
     PX4_AUTO_TAKEOFF,
     PX4_MAIN_AUTO,
     PX4_MAIN_OFFBOARD,
@@ -49,6 +50,7 @@ CUSTOM_MODE = {
     FcState.OFFBOARD: px4_custom_mode(PX4_MAIN_OFFBOARD),
     FcState.LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
     FcState.TAKEOFF: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_TAKEOFF),
+    FcState.GO_HOME: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_RTL),
     FcState.FAILSAFE_HOVER: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LOITER),
     FcState.FAILSAFE_LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_AUTO_LAND),
 }

@@ -124,6 +124,7 @@ TASK_MOTOR_ON = 0x0001  # the motors already run
 TASK_MOTOR_OFF = 0x0002  # the motors do not run
 TASK_IN_AIR = 0x0003
 TASK_NOT_IN_AIR = 0x0004
+TASK_NO_HOME_POINT = 0x0005
 TASK_ALREADY_RUNNING = 0x0008
 TASK_INVALID_COMMAND = 0x000A
 # common codes (any command)
