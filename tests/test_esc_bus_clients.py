@@ -69,6 +69,7 @@ def test_a_dronecan_node_in_another_process_replaces_esc_3_and_drives_its_motor(
     assert esc["throttle"][3] == pytest.approx(idle, abs=2e-3)
 
 
+@pytest.mark.realtime
 def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3(tmp_path):
     """Take off on setpoints, then let the FC's failsafe hover hold the vehicle: with motor 3 following
     the rpm the outside node reports, the height holds. On python-can's multicast bus: dronecan's own
