@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test suite lint clean
+.PHONY: setup test test-fast suite lint clean
 
 setup: $(STAMP)
 
@@ -31,6 +31,10 @@ lint: setup
 
 test: lint
 	$(VENV)/bin/pytest -n 2 -q tests scenarios
+
+# everything but the slow, the learning code's and the wall-clock tests (pytest markers, pyproject.toml)
+test-fast: lint
+	$(VENV)/bin/pytest -n 2 -q tests scenarios -m "not slow and not learning and not realtime"
 
 suite: setup
 	$(VENV)/bin/hil suite scenarios/ --out reports/

@@ -2,7 +2,7 @@
 file of tests, one item per document; a bad file is a collection error naming the file, line and field.
 
     pytest scenarios/ -n 2                  # the whole suite, two workers
-    pytest scenarios/ --pilot imitation     # the same suite flown by another pilot
+    pytest scenarios/ --pilot e2e           # the same suite flown by another pilot
     pytest scenarios/ --hil-out reports/    # where each run's report goes (default: pytest's tmp dir)
     pytest scenarios/ --hil-vehicle f450    # the same suite flown by another vehicle profile
 
@@ -80,6 +80,12 @@ SCENARIO_MARKERS = {
 def pytest_configure(config: pytest.Config) -> None:
     for name, text in SCENARIO_MARKERS.items():
         config.addinivalue_line("markers", f"{name}: {text}")
+    pilot = config.getoption("--pilot", None)
+    if pilot is not None:  # as a vehicle: an unknown pilot is a usage error, not a failure per scenario
+        from policies.onboard.pilots import pilot_names
+
+        if pilot not in pilot_names():
+            raise pytest.UsageError(f"--pilot {pilot}: unknown pilot; one of {', '.join(pilot_names())}")
     vehicle = config.getoption("--hil-vehicle", None)
     if vehicle is not None:  # a vehicle that does not load is a usage error, not a failure per scenario
         from emulator.profile import load_profile  # (the emulator only when a vehicle is given)

@@ -96,6 +96,7 @@ def test_an_outside_node_that_takes_an_emulated_nodes_id_is_reported_as_a_confli
     assert [10, 2, "node id 20 conflict: another node on the bus uses it"] in seen["log"]  # (2: WARNING)
 
 
+@pytest.mark.realtime
 def test_the_vehicle_hovers_with_an_outside_node_driving_esc_3(tmp_path):
     """Take off on setpoints, then let the FC's failsafe hover hold the vehicle: with motor 3 following
     the rpm the outside node reports, the height holds. On dronecan's multicast bus, both sides on the

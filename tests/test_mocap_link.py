@@ -158,6 +158,7 @@ def test_stale_flag_and_age_follow_the_reader_clock(pty_pair):
         reader.latest("drone")
 
 
+@pytest.mark.realtime
 def test_wall_clock_run_over_a_pty_delivers_the_rate():
     """Real time: server and reader in one process on a WallClock for 1 s (tolerance: 10 %)."""
     clock = WallClock()

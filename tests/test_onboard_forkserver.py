@@ -127,11 +127,9 @@ def test_a_forked_program_is_stopped_continued_and_killed_through_its_pidfd(serv
                              f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet"], err)
         assert proc.poll() is None
         proc.send_signal(signal.SIGSTOP)
-        time.sleep(0.05)
-        assert _state(proc.pid) == "T"  # stopped
+        assert _state_within(proc.pid, ("T",))  # stopped
         proc.send_signal(signal.SIGCONT)
-        time.sleep(0.05)
-        assert _state(proc.pid) in ("S", "R")
+        assert _state_within(proc.pid, ("S", "R"))
         proc.kill()
         assert proc.wait(5) == -signal.SIGKILL
         proc.kill()  # a process already reaped: nothing happens (its pid may be someone else's now)
@@ -186,5 +184,74 @@ def test_a_server_that_has_gone_is_an_error_and_the_run_starts_cold(tmp_path, mo
     assert r.summary["ticks_answered"] == r.summary["ticks"]
 
 
+def _state_within(pid: int, states: tuple[str, ...], timeout_s: float = 10.0) -> bool:
+    """Whether process ``pid`` is in one of ``states`` within ``timeout_s`` (a signal's effect shows once
+    the host schedules it: at once on a quiet one, later on a busy one)."""
+    end = time.monotonic() + timeout_s
+    while _state(pid) not in states and time.monotonic() < end:
+        time.sleep(0.01)
+    return _state(pid) in states
+
+
 def _state(pid: int) -> str:
     return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
+FAILING_TEST = """
+import signal, subprocess, sys
+from hil.link.pty import PtyTransport
+from hil.runner.onboard_side import program_env
+from policies.onboard import forkserver
+
+def test_that_fails_and_leaves_stopped_processes(tmp_path):
+    server = forkserver.ForkServer(program_env())
+    cmd, moc = PtyTransport.create(), PtyTransport.create()
+    err = open(tmp_path / "err", "wb")
+    proc = server.spawn([f"--command-link=serial:{cmd.endpoint}:921600",
+                         f"--mocap-link=serial:{moc.endpoint}:921600", "--quiet"], err)
+    proc.send_signal(signal.SIGSTOP)
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    sleeper.send_signal(signal.SIGSTOP)
+    print("PIDS", proc.pid, sleeper.pid)
+    assert False, "a test that fails before its clean-up"
+"""
+
+
+@pytest.mark.parametrize("plugin", [True, False], ids=["with_the_tests_plugin", "fork_server_alone"])
+def test_a_failing_tests_processes_are_ended_stopped_ones_included(tmp_path, plugin):
+    """A test that fails with a forked program and a subprocess both stopped (SIGSTOP): once its pytest
+    has ended, the fork server has ended its child (continued, then killed), and the tests' plugin
+    (tests/processes.py) everything else; nothing of that pytest session is left."""
+    from processes import kill_session, processes_of_session
+
+    (tmp_path / "test_leaves.py").write_text(FAILING_TEST)
+    tests = Path(__file__).resolve().parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])}
+    args = [sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", "-n", "0",
+            *(["-p", "processes"] if plugin else []), str(tmp_path / "test_leaves.py")]
+    log = tmp_path / "pytest.out"  # (a file: a stopped process left holding a pipe would keep it open)
+    with log.open("w") as f:
+        p = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=f, stderr=subprocess.STDOUT,
+                             start_new_session=True)
+    try:
+        p.wait(timeout=120)
+        out = log.read_text()
+        assert p.returncode == 1 and "a test that fails before its clean-up" in out, out
+        forked, sleeper = (int(x) for x in out.split("PIDS ", 1)[1].split()[:2])
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and (_alive(forked) or (plugin and processes_of_session(p.pid))):
+            time.sleep(0.1)
+        assert not _alive(forked), _state(forked)
+        if plugin:
+            assert processes_of_session(p.pid) == [] and "ending 3 processes the tests left" in out, out
+        else:
+            assert _alive(sleeper)  # (a plain subprocess: only the plugin ends it)
+    finally:
+        kill_session(p.pid)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return _state(pid) != "Z"
+    except OSError:
+        return False

@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from emulator.fc import EmulatedVehicle, FcState, MavlinkServer, RealtimeRunner, resting_state
 from emulator.mocap_link import MocapLinkServer
@@ -37,6 +38,7 @@ class _MocapPoller:
                 self.tracker.update(s.time_s, s.pos_m, s.quat_wxyz)
 
 
+@pytest.mark.realtime
 def test_onboard_process_flies_the_mission_over_ptys(tmp_path):
     profile = load_profile("n3_tx2")
     gap = Gap(centre_m=(0.0, 0.5, 2.1), roll_rad=math.radians(0.0), width_m=1.1, height_m=0.55)

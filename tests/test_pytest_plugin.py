@@ -69,10 +69,13 @@ def test_a_bad_file_is_a_collection_error_naming_file_line_field(tmp_path):
     assert "bad.scenario.yaml:3" in p.stdout and "gap.roll_deg" in p.stdout
 
 
-def test_pilot_option_reaches_the_runner(tmp_path):
+def test_an_unknown_pilot_is_a_usage_error_naming_the_pilots(tmp_path):
+    """As a vehicle that does not load: once, at start-up, not a traceback in every scenario."""
     (tmp_path / "one.scenario.yaml").write_text(FAILSAFE.format(name="one", fs="hover"))
-    p = pytest_run([str(tmp_path), "--hil-in-process", "--pilot", "no_such_pilot"], tmp_path)
-    assert p.returncode == 1 and "unknown pilot 'no_such_pilot'" in p.stdout
+    p = pytest_run([str(tmp_path), "--hil-in-process", "--pilot", "imitation"], tmp_path)
+    assert p.returncode == 4, p.stdout + p.stderr  # pytest's usage error
+    assert "--pilot imitation: unknown pilot; one of " in p.stderr and "traditional" in p.stderr, p.stderr
+    assert "Traceback" not in p.stdout + p.stderr
 
 
 def test_protocol_option_flies_the_scenario_over_djis_open_protocol(tmp_path):

@@ -10,6 +10,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
 
@@ -21,6 +23,7 @@ expect: {crosses_gap: false, recovery: false}
 """
 
 
+@pytest.mark.realtime
 def test_realtime_run_follows_the_wall_clock_and_the_onboard_takes_control(tmp_path):
     s = loads_scenarios(SHORT)[0]
     r = run_scenario(s, tmp_path, RunOptions(realtime=True, in_process=False))
@@ -91,6 +94,7 @@ def test_a_cpu_hog_beside_a_realtime_run_fails_its_realtime_check(tmp_path):
     assert "ms late" in check.observed and check.time_s is not None
 
 
+@pytest.mark.realtime
 def test_real_time_counts_from_the_programs_spawn_however_slow_the_harness_is_to_start_its_loop(tmp_path):
     # the program is spawned, then the harness sets up its live view (here: half a second, as a loaded
     # host may take) before its loop starts: the program's first frames wait on the link meanwhile; its

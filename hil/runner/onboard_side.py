@@ -181,8 +181,9 @@ class ProcessOnboard:
 
     def kill(self) -> None:
         if self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                self.proc.send_signal(signal.SIGKILL)
+            for sig in (signal.SIGCONT, signal.SIGKILL):  # (a stopped process is continued first)
+                with contextlib.suppress(ProcessLookupError):
+                    self.proc.send_signal(sig)
             self.proc.wait()
         self.alive = False
 

@@ -18,8 +18,9 @@ The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descripto
     run channel (one per child): the server's ``{"pid": N}`` with the child's pidfd, then
         ``{"exit": code, "cpu_s": s}`` (negative code: the signal that ended it; its CPU time, user
         + system) once it has been reaped; the channel closes after it.
-The server ends when its control socket closes (its harness exited); children it leaves behind end as
-cold ones do, when their links close.
+A child whose run channel the harness closes (the harness dropped it, or exited) is ended: continued,
+then killed through its pidfd, since a stopped child cannot notice its links closing. The server ends
+when its control socket closes (its harnesses exited), ending the children still running the same way.
 
     python -m policies.onboard.forkserver FD     # FD: the control socket, inherited
 """
@@ -109,20 +110,53 @@ class _Server:
         self.spare = self._fork_spare()
         while True:
             for key, _ in self.sel.select():
-                if key.data is not None:
-                    self._reap(key.fd)
+                if isinstance(key.data, int):  # a child's pidfd: it has exited
+                    if key.fd in self.children:
+                        self._reap(key.fd)
+                    continue
+                if key.data is not None:  # a run's channel: readable only when its harness closed it
+                    self._on_channel(key.data[1])
                     continue
                 try:
                     data, fds, _, _ = socket.recv_fds(self.control, MAX_MESSAGE_BYTES, 2)
                 except OSError:
                     data, fds = b"", []
                 if not data:
+                    self._end_children()
                     return 0
                 self._start(data, fds)
+
+    def _on_channel(self, pidfd: int) -> None:
+        """A run's channel turned readable: the harness closed it (the child is ended) or, against the
+        protocol, wrote to it (read and dropped)."""
+        if pidfd not in self.children:  # (reaped in the same round)
+            return
+        _, chan = self.children[pidfd]
+        try:
+            data = chan.recv(CHANNEL_MESSAGE_BYTES, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self.sel.unregister(chan)
+            _end(pidfd)  # its pidfd reports the exit: reaped then
+
+    def _end_children(self) -> None:
+        """End every child still running (continued, then killed) and reap it."""
+        for pidfd, (pid, chan) in list(self.children.items()):
+            _end(pidfd)
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, 0)
+            chan.close()
+            os.close(pidfd)
+        self.children.clear()
 
     def _reap(self, pidfd: int) -> None:
         pid, chan = self.children.pop(pidfd)
         self.sel.unregister(pidfd)
+        with contextlib.suppress(KeyError, ValueError):
+            self.sel.unregister(chan)
         _, status, usage = os.wait4(pid, 0)
         # its exit code, and the CPU time it used in all (user + system, s): a run's own cost, which
         # wall time on a shared machine does not tell
@@ -160,8 +194,9 @@ class _Server:
         self.sel.register(pidfd, selectors.EVENT_READ, pid)
         try:
             socket.send_fds(chan, [json.dumps({"pid": pid}).encode()], [pidfd])
+            self.sel.register(chan, selectors.EVENT_READ, ("channel", pidfd))
         except OSError:  # the harness has gone: the child goes too
-            os.kill(pid, signal.SIGKILL)
+            _end(pidfd)
         if preload:
             _preload(str(preload))  # (a pilot's first run imports it itself; the next spares have it)
 
@@ -211,6 +246,13 @@ class _Server:
                 os._exit(code)
         theirs.close()
         return pid, ours
+
+
+def _end(pidfd: int) -> None:
+    """Continue, then kill, the process of ``pidfd`` (a stopped process would never see its links close)."""
+    for sig in (signal.SIGCONT, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError):
+            signal.pidfd_send_signal(pidfd, sig)
 
 
 def _child(args: list[str], stderr_fd: int) -> int:
@@ -289,7 +331,9 @@ class ForkedProcess:
         self.send_signal(signal.SIGTERM)
 
     def kill(self) -> None:
-        self.send_signal(signal.SIGKILL)
+        """Continue it (were it stopped), then kill it."""
+        if self.poll() is None and self._pidfd is not None:
+            _end(self._pidfd)
 
     def _on_message(self, data: bytes) -> None:
         msg: dict[str, Any] = {}
@@ -302,8 +346,7 @@ class ForkedProcess:
             self.cpu_s = float(cpu) if ok else None
         elif not data:  # the server has gone without a word: end the program, as a harness would
             if self._pidfd is not None:
-                with contextlib.suppress(ProcessLookupError):
-                    signal.pidfd_send_signal(self._pidfd, signal.SIGKILL)
+                _end(self._pidfd)
             self.returncode = -signal.SIGKILL
         else:
             return
@@ -378,7 +421,7 @@ class ForkServer:
         return True
 
     def close(self) -> None:
-        """End the server (its children run on to their end); only the process that started it can."""
+        """End the server and the children it still runs; only the process that started it can."""
         if self.owner_pid != os.getpid():
             return
         self._sock.close()
@@ -403,6 +446,14 @@ def shared(env: dict[str, str] | None = None) -> ForkServer | None:
         _shared = ForkServer(env)
         atexit.register(_shared.close)
     return _shared
+
+
+def close_shared() -> None:
+    """End this process's server (and what it still runs), if it started one."""
+    global _shared
+    if _shared is not None:
+        _shared.close()
+        _shared = None
 
 
 if __name__ == "__main__":
