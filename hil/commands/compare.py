@@ -143,6 +143,8 @@ def compare(scenarios: list[Scenario], pilots: list[str], out: Path, options: Ru
         per: dict[str, Any] = {}
         for pilot in pilots:
             run = run_scenario(s, out / s.id / pilot, replace(options, pilot=pilot))
+            if run.summary.get("refused"):  # nothing flown: no figures to compare
+                raise RunSetupError(f"{s.id}: refused before take-off: {run.summary['refused']}")
             data = np.load(run.out_dir / "timeseries.npz")
             per[pilot] = flight_figures(run.summary, {k: data[k] for k in data.files})
             progress(f"{s.id} {pilot}: {'crossed' if per[pilot]['success'] else 'FAILED'}, mean rate "
