@@ -196,6 +196,8 @@ def compare(scenarios: list[Scenario], pilots: list[str], out: Path, options: Ru
                 opts = replace(options, pilot=pilot) if seed is None else replace(
                     options, pilot=pilot, seed=seed, html_report="failed")
                 run = run_scenario(s, where / pilot, opts)
+                if run.summary.get("refused"):  # nothing flown: no figures to compare
+                    raise RunSetupError(f"{s.id}: refused before take-off: {run.summary['refused']}")
                 data = np.load(run.out_dir / "timeseries.npz")
                 per[pilot] = flight_figures(run.summary, {k: data[k] for k in data.files})
                 progress(f"{s.id}{'' if seed is None else f' seed {seed}'} {pilot}: "

@@ -43,7 +43,10 @@ class ViewServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 0, rate_hz: float = DEFAULT_RATE_HZ) -> None:
         self.rate_hz = rate_hz
         self._cond = threading.Condition()
-        self._frames: list[dict[str, Any]] = []  # the live run's frames from its first, in order
+        #: the live run's frames from its first, in order, each as the stream sends it (encoded once, by
+        #: the sampler: a page that connects late costs a join, not an encoding of the whole run)
+        self._frames: list[bytes] = []
+        self._latest: dict[str, Any] | None = None
         self._first_k = 0  # the log's place of self._frames[0] (more than 0 once the oldest went)
         self._run = 0  # runs shown live so far: a page replaying one moves on to the next live run
         self._source: Source | None = None
@@ -70,7 +73,7 @@ class ViewServer:
         """Stream ``source``'s frames from now on."""
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = source, False, None, None
-            self._frames, self._first_k, self._holding = [], 0, False
+            self._frames, self._first_k, self._latest, self._holding = [], 0, None, False
             self._run += 1
             self._cond.notify_all()  # (a page's stream of the run before ends now)
         self._sampler = threading.Thread(target=self._sample, args=(source,), name="hil-view-sampler",
@@ -127,7 +130,8 @@ class ViewServer:
                 if self._source is not source:  # (the next run started meanwhile)
                     return
                 frame["k"] = self._first_k + len(self._frames)  # its place in the run's log
-                self._frames.append(frame)
+                self._frames.append(b"data: " + json.dumps(frame, separators=(",", ":")).encode() + b"\n\n")
+                self._latest = frame
                 if len(self._frames) > MAX_LOG_FRAMES:
                     cut = MAX_LOG_FRAMES // 10
                     del self._frames[:cut]
@@ -173,11 +177,11 @@ class ViewServer:
                 self._cond.wait_for(lambda k=next_k: self._first_k + len(frames) > k or self._done
                                     or self._run != run, timeout=1.0)
                 over = self._done or self._run != run
-                batch = frames[max(0, next_k - self._first_k):] if self._run == run else []
+                start = max(0, next_k - self._first_k)
+                batch = frames[start:] if self._run == run else []
+                next_k = self._first_k + start + len(batch)
             if batch:
-                next_k = batch[-1]["k"] + 1
-                write(b"".join(b"data: " + json.dumps(f, separators=(",", ":")).encode() + b"\n\n"
-                               for f in batch))
+                write(b"".join(batch))
             elif over:
                 write(b"event: done\ndata: {}\n\n")
                 return
@@ -209,7 +213,7 @@ class ViewServer:
                     self._send(json.dumps(view._replay_data() or {"frames": []}).encode(), "application/json")
                 elif path == "/frame.json":
                     with view._cond:
-                        frame = view._frames[-1] if view._frames else None
+                        frame = view._latest
                     self._send(json.dumps(frame).encode(), "application/json")
                 elif path == "/stream":
                     self.send_response(HTTPStatus.OK)
