@@ -112,8 +112,9 @@ def test_a_rate_the_line_cannot_carry_is_capped_and_said(tmp_path: Path):
             codec.send(codec.mav.command_long_encode(1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                                      mav.MAVLINK_MSG_ID_HIGHRES_IMU, 5000, 0, 0, 0, 0, 0))
             got: list = []
-            wait_for(lambda: got.extend(codec.receive(0.1)) or any(
-                m.get_type() == "STATUSTEXT" and "capped" in m.text for m in got), 5.0, "the cap said")
+            wait_for(lambda: got.extend(codec.receive(0.1)) or (
+                any(m.get_type() == "STATUSTEXT" and "capped" in m.text for m in got)
+                and any(m.get_type() == "COMMAND_ACK" for m in got)), 5.0, "the cap said, and the ACK")
         finally:
             link.close()
             summary = stop_fc(proc)
