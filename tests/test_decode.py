@@ -10,6 +10,7 @@ from pathlib import Path
 from test_fc_mavlink import fly_recorded
 
 from hil.cli import main
+from hil.commands.decode import decode as decode_frame
 from hil.link import dji_open
 from hil.link.tlog import TlogWriter, read_tlog, scan_tlog
 
@@ -83,3 +84,11 @@ def test_a_damaged_dji_open_capture_prints_every_undamaged_frame(tmp_path: Path,
     assert frame_lines(lines) == text[:4] + text[5:-1]
     _, only, _ = decode(capsys, path, "--types", "setpoint")
     assert len(only) == 6 and all("setpoint" in line for line in only)
+
+
+def test_a_subscription_push_is_the_fc_s_and_a_subscription_request_the_peer_s():
+    """The N3 pushes subscribed packages (0x02 0x05); the onboard side asks for them (set 0x0B)."""
+    push = dji_open.encode_command(dji_open.SET_BROADCAST, dji_open.CMD_SUBSCRIPTION_DATA, b"\x00" * 9, 0, 1)
+    ask = dji_open.encode_command(dji_open.SET_SUBSCRIBE, dji_open.CMD_SUB_VERSION, b"", 2, 7)
+    assert (decode_frame(push).sender, decode_frame(ask).sender) == ("fc", "peer")
+    assert decode_frame(ask).type == "SUBSCRIPTION_VERSION_MATCH"

@@ -20,7 +20,7 @@ from hil.link.tlog import scan_tlog
 #: DJI OPEN frames the FC sends (besides every ACK): pushed flight data, and the lockstep's tick
 FC_SENT_DJI: frozenset[tuple[int, int]] = frozenset(
     {(dji_open.SET_BROADCAST, dji_open.CMD_FLIGHT_DATA), (dji_open.SET_BROADCAST, dji_open.CMD_CONTROL_LOST),
-     (dji_open.SET_HIL, dji_open.CMD_HIL_TICK)}
+     (dji_open.SET_BROADCAST, dji_open.CMD_SUBSCRIPTION_DATA), (dji_open.SET_HIL, dji_open.CMD_HIL_TICK)}
 )
 
 
