@@ -404,11 +404,6 @@ class DjiOpenServer:
             self.codec.transport.send(self.codec.pack_command(dj.SET_BROADCAST, dj.CMD_FLIGHT_DATA, payload))
             self.stats.broadcasts_sent += 1
 
-    def flight_status(self) -> int:
-        """The N3's flight status now (`dji_telemetry.flight_status`)."""
-        return dji_telemetry.flight_status(self)
-
-
 def _input_due(transport: object) -> bool:
     """False only when a transport that models arrival times says nothing can be read now."""
     nxt = getattr(transport, "next_arrival_s", None)
