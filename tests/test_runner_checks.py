@@ -78,3 +78,31 @@ def test_a_calm_run_keeps_a_finite_state_and_lockstep():
     assert "2 tick read(s) short" in lost["lockstep"].observed
     realtime = {c.name for c in evaluate(s, _observations(emu, lockstep=False))}
     assert "lockstep" not in realtime  # a real-time run has no lockstep to lose
+
+
+def _health(late_ms: float, gap_ms: float, gap_end_s: float) -> dict:
+    loop = {"late_worst_ms": late_ms, "late_worst_at_s": 2.0, "late_median_ms": 0.1, "late_p99_ms": 1.0,
+            "caught_up_steps": 0}
+    return {"contact_s": 0.3, "loop": loop,
+            "setpoints_at_fc": {"max_gap_ms": gap_ms, "max_gap_end_s": gap_end_s}}
+
+
+def test_the_realtime_check_fails_a_run_whose_onboard_side_starved_with_the_moment():
+    from hil.runner.checks import check_realtime
+    from hil.scenario.schema import Fault, NoParams
+
+    # the emulator's loop kept time (12 ms late at worst) but no setpoint reached the FC for 296 ms
+    starved = check_realtime(50.0, _health(12.0, 296.0, 5.2))
+    assert not starved.passed and starved.time_s == 5.2
+    assert "setpoint gap at the FC 296 ms" in starved.observed
+    assert check_realtime(50.0, _health(12.0, 60.0, 5.2)).passed  # a control period or two: kept
+    # a silence a fault or the program's abort explains is no starved onboard side
+    down = Fault("command_link_down", 5.0, 5.1, NoParams())
+    assert check_realtime(50.0, _health(12.0, 296.0, 5.2), (down,)).passed
+    assert not check_realtime(50.0, _health(12.0, 296.0, 7.5), (down,)).passed  # long after it
+    gust = Fault("wind_gust", 0.0, None, NoParams())
+    assert not check_realtime(50.0, _health(12.0, 296.0, 5.2), (gust,)).passed  # a gust silences nothing
+    assert check_realtime(50.0, _health(12.0, 296.0, 5.2), abort_s=4.0).passed
+    assert check_realtime(50.0, _health(12.0, 296.0, 5.2), bursty=True).passed  # a link that loses bursts
+    late = check_realtime(50.0, _health(80.0, 90.0, 5.2))
+    assert not late.passed and late.time_s == 2.0  # the loop's own lateness, at its moment

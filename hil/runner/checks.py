@@ -72,6 +72,7 @@ class Observations:
     faults: tuple[Fault, ...] = ()  # as flown: those timed after a mission event carry their times
     phases: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # phase -> sim intervals
     onboard_abort_reason: str | None = None  # why the onboard program aborted (its reason and detail)
+    command_link_bursty: bool = False  # the command link loses frames in bursts by design (its burst)
 
 
 #: one registered check's verdicts from the scenario's expectations and the run's observations (none
@@ -182,18 +183,47 @@ def check_lockstep(obs: Observations) -> Check:
     return Check("lockstep", t is None, "every tick's mocap read in full", observed, t)
 
 
-def check_realtime(limit_ms: float, health: dict[str, Any]) -> Check:
-    """The emulator kept real time: its loop never woke more than ``limit_ms`` late (a late loop runs
-    the physics in a burst and holds the links meanwhile: the onboard program flew against wrong
-    physics), and the onboard program made contact at all."""
+#: the longest silence between setpoints at the FC a real-time run may have, against the loop's lateness
+#: limit: twice it (100 ms by default, the onboard program's stale-mocap limit; the loop's own lateness
+#: shows in the setpoint stream as that lateness plus up to a control period)
+SETPOINT_GAP_PER_LATE = 2.0
+#: a fault explains a setpoint gap that ends within this long after it (s)
+FAULT_AFTERMATH_S = 1.0
+#: the faults that may silence the setpoints (the link, the program, what it flies by)
+SILENCING_FAULTS = ("command_link_down", "corrupt_bytes", "onboard_killed", "onboard_stalled", "mocap_frozen",
+                    "mocap_dropped")
+
+
+def check_realtime(limit_ms: float, health: dict[str, Any], faults: tuple[Fault, ...] = (),
+                   abort_s: float | None = None, bursty: bool = False) -> Check:
+    """The run kept real time on both sides: the emulator's loop never woke more than ``limit_ms``
+    late (a late loop runs the physics in a burst and holds the links meanwhile: the onboard program
+    flew against wrong physics), the onboard program made contact at all, and its setpoints never
+    stopped reaching the FC for more than `SETPOINT_GAP_PER_LATE` times that (an onboard side starved
+    of CPU flies blind as much), unless a fault or its abort explains the silence, or the command link
+    loses setpoints in bursts by design (``bursty``: the scenario's ``links.command.burst``)."""
     loop = health.get("loop") or {}
     worst = float(loop.get("late_worst_ms") or 0.0)
-    expected = f"the emulator loop at most {limit_ms:g} ms late"
+    gap_limit = SETPOINT_GAP_PER_LATE * limit_ms
+    expected = (f"the emulator loop at most {limit_ms:g} ms late, setpoints at the FC at most "
+                f"{gap_limit:g} ms apart")
     if health.get("contact_s") is None:
         return Check("realtime", False, expected, "no frame from the onboard program")
+    sp = health.get("setpoints_at_fc") or {}
+    gap = float(sp.get("max_gap_ms") or 0.0)
+    end = sp.get("max_gap_end_s")
+    explained = end is not None and (
+        bursty or (abort_s is not None and end >= abort_s)
+        or any(f.kind in SILENCING_FAULTS and f.start_s <= end
+               and (f.end_s is None or end - gap * 1e-3 <= f.end_s + FAULT_AFTERMATH_S) for f in faults))
+    starved = gap > gap_limit and not explained
     observed = (f"worst {worst:g} ms late (median {loop.get('late_median_ms')} ms, p99 "
-                f"{loop.get('late_p99_ms')} ms), {loop.get('caught_up_steps')} physics steps caught up")
-    return Check("realtime", worst <= limit_ms, expected, observed, loop.get("late_worst_at_s"))
+                f"{loop.get('late_p99_ms')} ms), {loop.get('caught_up_steps')} physics steps caught up; "
+                f"longest setpoint gap at the FC {gap:g} ms")
+    if explained:
+        observed += " (in a fault, after the abort or on a bursty link)"
+    when = end if starved and worst <= limit_ms else loop.get("late_worst_at_s")
+    return Check("realtime", worst <= limit_ms and not starved, expected, observed, when)
 
 
 def check_stays_in_lab(obs: Observations) -> Check:
@@ -413,11 +443,13 @@ def _lockstep(e: Expectations, obs: Observations) -> list[Check]:
 
 
 @register_check("realtime", expect="realtime_max_late_ms",
-                doc="the emulator loop kept to the wall clock (real-time runs)")
+                doc="both sides kept to the wall clock: the emulator loop's lateness and the setpoints' "
+                    "gaps at the FC (real-time runs)")
 def _realtime(e: Expectations, obs: Observations) -> list[Check]:
     if obs.lockstep or obs.realtime is None:
         return []
-    return [check_realtime(e.realtime_max_late_ms, obs.realtime)]
+    return [check_realtime(e.realtime_max_late_ms, obs.realtime, obs.faults, obs.onboard_abort_s,
+                           bursty=obs.command_link_bursty)]
 
 
 @register_check("stays_in_lab", expect="stays_in_lab", doc="the vehicle never leaves the lab volume")

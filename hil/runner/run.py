@@ -399,6 +399,7 @@ def observe(s: Scenario, emu: EmulatorSide, loop: LoopReport, onboard: OnboardRe
         failsafe_states=emu.failsafes(),
         onboard_abort_s=onboard.abort_s,
         onboard_abort_reason=onboard.abort_reason,
+        command_link_bursty=s.links.command.burst is not None,
         hover_point_m=recovery_point_m(emu.gap.axes(), np.asarray(emu.gap.centre_m),
                                        np.asarray(s.initial.pos_m)),
         columns=cols,
