@@ -82,7 +82,7 @@ def pytest_configure(config: pytest.Config) -> None:
         config.addinivalue_line("markers", f"{name}: {text}")
     pilot = config.getoption("--pilot", None)
     if pilot is not None:  # as a vehicle: an unknown pilot is a usage error, not a failure per scenario
-        from policies.onboard.pilots import pilot_names
+        from policies.onboard.pilots import pilot_names  # (the onboard side only when a pilot is given)
 
         if pilot not in pilot_names():
             raise pytest.UsageError(f"--pilot {pilot}: unknown pilot; one of {', '.join(pilot_names())}")

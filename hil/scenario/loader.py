@@ -502,6 +502,7 @@ class _Builder:
         return value
 
     def vehicle(self, node: Node, path: str) -> str:
+        # (heavy: numba through the emulator, loaded only when a file needs it)
         from emulator.profile import builtin_profiles
 
         value = self.convert(str, node, path, {})
@@ -527,6 +528,7 @@ class _Builder:
     def flyable(self, node: Node, path: str, profile_path: str) -> None:
         """A profile file the FC can fly, with the onboard configuration beside it (README, "Bringing
         your own airframe"); the error says why not."""
+        # (heavy: numba through the emulator, loaded only when a file names a profile file)
         from emulator.fc.tuning import fc_gains
         from emulator.profile import ProfileError, load_profile
 
@@ -541,11 +543,13 @@ class _Builder:
             )
 
     def physics(self, node: Node, path: str) -> str:
+        # (heavy: numba through the emulator, loaded only when a file needs it)
         from emulator.physics import backend_names
 
         return self.convert(str, node, path, {"choices": tuple(backend_names())})
 
     def pilot(self, node: Node, path: str) -> str:
+        # (the onboard side, loaded only when a file names a pilot)
         from policies.onboard.pilots import pilot_names
 
         return self.convert(str, node, path, {"choices": tuple(pilot_names())})
@@ -774,6 +778,7 @@ class _Builder:
 
     def fc_param(self, name: str, value: Any, node: Node, path: str) -> float:
         """``value`` for the FC parameter ``name``, checked against its table (name, type, range)."""
+        # (heavy: numba through the emulator, loaded only when a file needs it)
         from emulator.fc.params import ParamError, param_def
 
         if isinstance(value, int) and not _finite(value):  # the table compares it as a float
@@ -800,6 +805,7 @@ class _Builder:
 
     def check_tilt(self, s: Scenario, doc_line: int) -> None:
         """The gap's tilt within the vehicle profile's tilt limit (the traverse flies at the gap's tilt)."""
+        # (heavy: numba through the emulator, loaded only when a file needs it)
         from emulator.profile import ProfileError, load_profile
 
         try:
