@@ -11,9 +11,9 @@ from typing import Any
 
 from emulator.profile import VehicleProfile
 from hil.report import write_summary
-from hil.runner.checks import Check
+from hil.runner.checks import Check, Observations, register_check
 from hil.runner.onboard_side import DEFAULT_APPROACH_SPEED_M_S
-from hil.scenario.schema import Scenario
+from hil.scenario.schema import Expectations, Scenario
 from policies.gap_planning import BodyClearance, passage
 
 REFUSED_END = "refused before take-off"
@@ -25,6 +25,13 @@ def refusal(s: Scenario, profile: VehicleProfile) -> str | None:
     speed = s.approach.speed_m_s or DEFAULT_APPROACH_SPEED_M_S
     return passage(s.gap.width_m, s.gap.height_m, math.radians(s.gap.tilt_deg), speed,
                    BodyClearance(profile.body_box_m), math.radians(profile.max_tilt_deg)).refusal
+
+
+@register_check("preflight", expect="refused",
+                doc="the opening is one the vehicle's body box can pass at the attitude it reaches there, "
+                    "judged before take-off (a refused run flies nothing); `refused: true` expects a refusal")
+def _preflight(e: Expectations, obs: Observations) -> list[Check]:
+    return []  # judged before take-off (`preflight_check`): a run that flew passed it
 
 
 def preflight_check(s: Scenario, reason: str | None) -> Check:
