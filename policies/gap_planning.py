@@ -221,19 +221,20 @@ class BodyClearance:
 POINT_BODY = BodyClearance((0.0, 0.0, 0.0), 0.0)
 
 
-#: how far the FC trails the gap's bank at the crossing, per degree of the gap's tilt and per m/s of
-#: crossing speed (deg / (deg m/s)): 1.35 times the most the shipped gap scenarios show in lockstep
-#: (22.7 deg at 70 deg and 4 m/s, 16.9 at 70 deg and 3 m/s, 10.5 at 60 deg and 2.5 m/s: 0.07-0.081), the
-#: rest standing for the crossing's position error, which grows with them alike
-BANK_LAG_DEG_PER_DEG_M_S = 0.11
+#: the attitude error the body box passes the opening with, per degree of the gap's tilt and per m/s of
+#: crossing speed (deg / (deg m/s)): the FC trailing the bank and the crossing's position error taken
+#: together, fitted to the smallest clearances the shipped gap scenarios fly in lockstep (the 15-60 deg
+#: ones within 1 cm; at 70 deg the 0.65 m openings leave 2-3 cm where this leaves 10-15)
+ATTITUDE_ERROR_DEG_PER_DEG_M_S = 0.185
 
 
 @dataclass(frozen=True)
 class Passage:
-    """What the body box needs of an opening to pass it (m, each side's ``margin_m`` included) at the
-    attitude it reaches there: the gap's tilt less what the vehicle cannot bank beyond its tilt limit,
-    and the bank the FC trails by at that crossing speed (`BANK_LAG_DEG_PER_DEG_M_S`). The box turned
-    by that error in the opening's plane spans ``long sin + height cos`` along the short side."""
+    """What the body box needs of an opening to pass it (m) at the attitude it reaches there: off the
+    gap's orientation by what the vehicle cannot bank beyond its tilt limit, and by the error of a
+    crossing at that speed (`ATTITUDE_ERROR_DEG_PER_DEG_M_S`). The box turned by that error in the
+    opening's plane spans ``long sin + height cos`` along the short side, ``long cos + height sin``
+    along the long one."""
 
     width_m: float  # the opening's long side
     height_m: float  # its short side
@@ -255,17 +256,17 @@ class Passage:
 
 def passage(width_m: float, height_m: float, tilt_rad: float, crossing_speed_m_s: float,
             body: BodyClearance, max_tilt_rad: float) -> Passage:
-    """The `Passage` of ``body`` (its box and margin) through a ``width_m`` x ``height_m`` opening tilted
-    ``tilt_rad``, crossed at ``crossing_speed_m_s``, by a vehicle that banks ``max_tilt_rad`` at most."""
+    """The `Passage` of ``body``'s box through a ``width_m`` x ``height_m`` opening tilted ``tilt_rad``,
+    crossed at ``crossing_speed_m_s``, by a vehicle that banks ``max_tilt_rad`` at most (the plans'
+    ``margin_m`` is not added: the fitted error holds the crossing's position error)."""
     tilt_deg = math.degrees(abs(tilt_rad))
     shortfall_deg = max(0.0, tilt_deg - math.degrees(max_tilt_rad))
-    error_deg = min(90.0, shortfall_deg + BANK_LAG_DEG_PER_DEG_M_S * tilt_deg * abs(crossing_speed_m_s))
+    error_deg = min(90.0, shortfall_deg + ATTITUDE_ERROR_DEG_PER_DEG_M_S * tilt_deg * abs(crossing_speed_m_s))
     err = math.radians(error_deg)
     length, height = max(body.body_box_m[:2]), body.body_box_m[2]
-    room = 2 * body.margin_m
     return Passage(width_m, height_m, error_deg,
-                   length * math.cos(err) + height * math.sin(err) + room,
-                   length * math.sin(err) + height * math.cos(err) + room)
+                   length * math.cos(err) + height * math.sin(err),
+                   length * math.sin(err) + height * math.cos(err))
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ def test_an_opening_smaller_than_the_body_is_refused_before_take_off_with_the_re
     r = run_scenario(s, tmp_path / "o", RunOptions(in_process=True))
     assert not r.passed and [c.name for c in r.failed_checks] == ["preflight"]
     why = r.summary["refused"]
-    assert "0.20 x 0.10 m opening is too small" in why and "short side 0.10 m, needs 0.28 m" in why, why
+    assert "0.20 x 0.10 m opening is too small" in why and "short side 0.10 m, needs 0.18 m" in why, why
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["report.html", "summary.json"]  # not flown
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["refused"] == why
     assert "REFUSED" in (tmp_path / "o" / "report.html").read_text()
