@@ -20,6 +20,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Protocol
 
+from hil.view.replay import ReplayError, load_replay
+
 #: frames a second sent while a run flies
 DEFAULT_RATE_HZ = 25.0
 #: frames a run's log keeps (two hours at the default rate; a scenario lasts an hour at most): beyond,
@@ -99,8 +101,6 @@ class ViewServer:
 
     def replay(self, run_dir: str | Path) -> dict[str, Any]:
         """Serve the finished run in ``run_dir`` (ReplayError when it is none); returns what is served."""
-        from hil.view.replay import load_replay
-
         data = load_replay(run_dir)
         with self._cond:
             self._source, self._done, self._replay, self._replay_dir = None, True, data, Path(run_dir)
@@ -151,8 +151,6 @@ class ViewServer:
         return {"mode": "replay" if data else "waiting", "scene": data["scene"] if data else None, "run": run}
 
     def _replay_data(self) -> dict[str, Any] | None:
-        from hil.view.replay import ReplayError, load_replay
-
         with self._cond:
             if self._replay is not None or self._replay_dir is None:
                 return self._replay
