@@ -69,6 +69,7 @@ def _check_replay(b: Browser) -> None:
     assert b.eval("hilView.frames[hilView.index].pos") != early
 
 
+@pytest.mark.realtime
 def test_the_live_page_follows_a_realtime_run_then_replays_it(tmp_path):
     path = tmp_path / "live.scenario.yaml"
     path.write_text(SCENARIO)
@@ -253,6 +254,7 @@ expect: {crosses_gap: false, recovery: false}
 """
 
 
+@pytest.mark.realtime
 def test_the_page_follows_each_scenario_of_a_file_live_in_turn(tmp_path):
     path = tmp_path / "two.scenario.yaml"
     path.write_text(TWO_SCENARIOS)
@@ -332,6 +334,7 @@ FAILING = SCENARIO.replace("expect: {crosses_gap: false, recovery: false, failsa
                            "expect: {failsafe_expected: hover}")
 
 
+@pytest.mark.realtime
 def test_a_page_opened_late_or_reloaded_shows_this_runs_whole_log_and_why_it_failed(tmp_path):
     from hil.view.live import plan_points
 
