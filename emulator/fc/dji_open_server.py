@@ -2,7 +2,8 @@
 UART), over the same FC core as the MAVLink server: version query and activation, control authority,
 arm/disarm, flight tasks (take-off, landing, motors), the flight-control setpoint (`emulator.fc.n3`), the
 telemetry subscription (`emulator.fc.dji_subscription`) and the broadcast flight data at the rates the
-onboard side sets (values: `emulator.fc.dji_telemetry`).
+onboard side sets (values: `emulator.fc.dji_telemetry`). On a serial line the pushes keep to the line's
+data-rate budget (`emulator.fc.link_budget`): their rates scaled down to fit, the ACKs first.
 
 `DjiOpenServer.poll(now_s)` parses what arrived, acts on it and sends what is due at ``now_s`` (clock
 seconds), as `MavlinkServer.poll` does. Bad input is counted in `stats` (and the codec's) and answered
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field, fields
 
 from emulator.fc import dji_telemetry
 from emulator.fc.dji_subscription import Subscriptions
+from emulator.fc.link_budget import LinkBudget
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import SetpointRejected
 from emulator.fc.params import Parameters
@@ -34,6 +36,12 @@ DEFAULT_RATES_HZ: tuple[float, ...] = (50.0, 50.0, 50.0, 50.0, 50.0, 50.0, 0.0, 
                                        1.0, 1.0)
 _TASKS = frozenset({dj.TASK_TAKEOFF, dj.TASK_LAND, dj.TASK_GO_HOME, dj.TASK_START_MOTORS,
                     dj.TASK_STOP_MOTORS})
+#: the link budget's stream keys: one per broadcast item, one per subscription package (0-4)
+ITEM_STREAMS = tuple(f"broadcast {name}" for name, _ in dj.BROADCAST_ITEMS)
+PACKAGE_STREAMS = tuple(f"package {pkg}" for pkg in range(dj.SUB_MAX_PACKAGES))
+#: the bytes of a flight-data frame, its items aside, and of a subscription push, its topics aside
+BROADCAST_FRAME_BYTES = dj.COMMAND_FRAME_BYTES + dj.BROADCAST_FLAG_BYTES
+PACKAGE_FRAME_BYTES = dj.COMMAND_FRAME_BYTES + 1  # (the package id)
 #: the FC states whose flight the onboard device's setpoints take over (with authority): the FC's hover
 #: and the setpoint-loss hover (a failsafe landing, of any cause, is not interrupted)
 _TAKEOVER_STATES = frozenset({FcState.HOLD, FcState.FAILSAFE_HOVER})
@@ -52,6 +60,12 @@ class DjiServerConfig:
     #: the highest broadcast rate granted (Hz): the N3's 100 Hz UART push (codes 6, 7, OSDK's 200 and
     #: 400 Hz, are granted this)
     max_rate_hz: float = 100.0
+    #: the command link's baud when it is a serial line (bit/s): the pushes then keep to its data rate
+    #: (`emulator.fc.link_budget`); None: no budget unless ``budget_bytes_s`` sets one
+    link_baud: int | None = None
+    #: the pushes' data-rate budget (bytes/s; 0: half a serial line, none off one), as MAVLink's
+    #: MAV_0_RATE (`hil fc --link-budget-bytes-s`: the OPEN protocol has no parameters)
+    budget_bytes_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.activation_code <= 8:
@@ -60,6 +74,8 @@ class DjiServerConfig:
             raise ValueError(f"RC mode switch must be P, A or F, got {self.rc_mode!r}")
         if len(self.broadcast_rates_hz) != len(dj.BROADCAST_ITEMS):
             raise ValueError(f"broadcast rates: one per item ({len(dj.BROADCAST_ITEMS)})")
+        if not (math.isfinite(self.budget_bytes_s) and self.budget_bytes_s >= 0):
+            raise ValueError(f"link budget must be a finite number >= 0 bytes/s, got {self.budget_bytes_s!r}")
 
 
 @dataclass
@@ -76,7 +92,7 @@ class DjiServerStats:
     encrypted_refused: int = 0  # AES frames (ACK 0xFF00: the emulator has no key)
     retries_answered: int = 0  # a reliable command sent again: its ACK again, not acted on twice
     malformed: int = 0  # payloads of the wrong size or value
-    broadcasts_sent: int = 0
+    broadcasts_sent: int = 0  # flight-data frames written (not those the link budget dropped)
     subscription_pushes: int = 0
     subscription_refused: int = 0  # 0x0B commands answered with a code other than success
     handler_errors: int = 0
@@ -104,10 +120,23 @@ class DjiOpenServer:
         self.sdk_control = False  # the onboard device holds control authority
         #: the home point (world ENU east, north, m): where the motors last started (None: not yet)
         self.home_en_m: tuple[float, float] | None = None
-        self._rates_hz = list(self.config.broadcast_rates_hz)
+        self._rates_hz = list(self.config.broadcast_rates_hz)  # asked (Hz)
+        #: pushed at (Hz): the rates asked, the same list, unless a budget scales them (`_regrant`)
+        self._granted_hz = self._rates_hz
         self._next_due = [0.0] * len(self._rates_hz)
         self._next_push_s = 0.0
         self.subscriptions = Subscriptions(frozenset(dji_telemetry.TOPIC_VALUES))
+        #: the link's data-rate budget (None: none, every push at the rate asked)
+        self.budget: LinkBudget | None = None
+        self._push_bytes: dict[str, float] = {}  # a budget stream key -> the bytes one push costs
+        if self.config.link_baud is not None or self.config.budget_bytes_s > 0:
+            self.budget = LinkBudget(self.config.link_baud, getattr(codec.transport, "uart", None),
+                                     self._push_bytes.__getitem__, rate_bytes_s=self.config.budget_bytes_s)
+            self._granted_hz = list(self._rates_hz)
+            self._regrant(0.0)
+        #: called with the sentence that says a rate was granted less than asked (the OPEN ACK has no
+        #: room for a reason; `hil fc` prints it)
+        self.on_capped: Callable[[str], None] | None = None
         self._last_ack: dict[int, tuple[int, bytes]] = {}  # session -> (seq, ACK frame) of reliable ones
         self._events_seen = 0
         self._statustexts: list[str] = []
@@ -166,7 +195,8 @@ class DjiOpenServer:
             last = self._last_ack.get(f.session)
             if last is not None and last[0] == f.seq:  # sent again: its ACK was lost
                 self.stats.retries_answered += 1
-                self.codec.transport.send(last[1])
+                if self.budget is None or self.budget.admit(len(last[1]), False):
+                    self.codec.transport.send(last[1])
                 return
         handler = self._handlers.get((f.cmd_set, f.cmd_id))
         if handler is None:
@@ -184,7 +214,10 @@ class DjiOpenServer:
     def _ack(self, f: dj.Frame, value: bytes) -> None:
         if not f.wants_ack:
             return
-        frame = self.codec.send_ack(f.session, f.seq, value)
+        if self.budget is not None and not self.budget.admit(dj.MIN_FRAME_BYTES + len(value), False):
+            frame = dj.encode_ack(f.session, f.seq, value)  # the line's buffer is full: kept for a resend
+        else:
+            frame = self.codec.send_ack(f.session, f.seq, value)
         if f.session in dj.RELIABLE_SESSIONS:
             self._last_ack[f.session] = (f.seq, frame)
 
@@ -236,6 +269,9 @@ class DjiOpenServer:
                 self._rates_hz[i] = min(dj.BROADCAST_RATES_HZ[c], self.config.max_rate_hz)
                 self._next_due[i] = now_s
         self._next_push_s = now_s
+        if self.budget is not None:
+            self._regrant(now_s)
+            self._say_broadcast_caps([i for i, c in enumerate(p[:n]) if c != dj.BROADCAST_KEEP])
         self._count(True)
         return dj.ack_code(dj.ACK_SUCCESS)
 
@@ -331,13 +367,71 @@ class DjiOpenServer:
         return self._sub_code(dj.SUB_SUCCESS if ok else dj.SUB_VERSION_MISMATCH)
 
     def _on_sub_add(self, f: dj.Frame, now_s: float) -> bytes:
-        return self._sub_code(self.subscriptions.add(f.payload, now_s))
+        code = self.subscriptions.add(f.payload, now_s)
+        if code == dj.SUB_SUCCESS and self.budget is not None:
+            self._regrant(now_s)
+            pkg = f.payload[0]
+            p = self.subscriptions.packages[pkg]
+            self._say_if_capped(PACKAGE_STREAMS[pkg], p.hz, p.granted_hz)
+        return self._sub_code(code)
 
     def _on_sub_remove(self, f: dj.Frame, now_s: float) -> bytes:
-        return self._sub_code(self.subscriptions.remove(f.payload))
+        return self._sub_code(self._regranted(self.subscriptions.remove(f.payload), now_s))
 
     def _on_sub_reset(self, f: dj.Frame, now_s: float) -> bytes:
-        return self._sub_code(self.subscriptions.reset())
+        return self._sub_code(self._regranted(self.subscriptions.reset(), now_s))
+
+    # --- the link's data-rate budget -------------------------------------------------------------
+    def _regrant(self, now_s: float) -> None:
+        """Scale the broadcast items' and the packages' rates alike to fit the budget (`LinkBudget.grant`).
+        Each push's cost is its bytes on the line; the broadcast items asked at one rate share one frame
+        (its header, command, flag word and CRC), so items kept at one rate stay in one frame."""
+        budget = self.budget
+        assert budget is not None
+        costs, asked = self._push_bytes, {}
+        costs.clear()
+        for i, hz in enumerate(self._rates_hz):
+            if hz > 0.0:
+                key = ITEM_STREAMS[i]
+                asked[key] = 1.0 / hz
+                sharing = sum(1 for r in self._rates_hz if r == hz)
+                costs[key] = dj.BROADCAST_STRUCTS[i].size + BROADCAST_FRAME_BYTES / sharing
+        packages = self.subscriptions.packages
+        for pkg, p in packages.items():
+            asked[PACKAGE_STREAMS[pkg]] = 1.0 / p.hz
+            costs[PACKAGE_STREAMS[pkg]] = PACKAGE_FRAME_BYTES + p.data_bytes
+        granted = budget.grant(asked)
+        rates = [1.0 / granted[key] if key in granted else 0.0 for key in ITEM_STREAMS]
+        if rates != self._granted_hz:  # the items due together from now, one frame a rate
+            self._granted_hz = rates
+            self._next_due = [now_s] * len(rates)
+            self._next_push_s = now_s
+        for pkg, p in packages.items():
+            p.granted_hz = 1.0 / granted[PACKAGE_STREAMS[pkg]]
+
+    def _regranted(self, code: int, now_s: float) -> int:
+        """``code``; the rates granted again first when it is a success and there is a budget."""
+        if code == dj.SUB_SUCCESS and self.budget is not None:
+            self._regrant(now_s)
+        return code
+
+    def _say_broadcast_caps(self, items: list[int]) -> None:
+        """Say the broadcast ``items`` just asked for that are granted less: one line per rate asked and
+        granted, naming its items."""
+        capped: dict[tuple[float, float], list[str]] = {}
+        for i in items:
+            capped.setdefault((self._rates_hz[i], self._granted_hz[i]), []).append(dj.BROADCAST_ITEMS[i][0])
+        for (asked_hz, granted_hz), names in capped.items():
+            self._say_if_capped("broadcast " + ",".join(names), asked_hz, granted_hz)
+
+    def _say_if_capped(self, stream: str, asked_hz: float, granted_hz: float) -> None:
+        """Record and say a request granted less than asked (the OPEN ACK has no room for a reason)."""
+        if self.budget is None or granted_hz >= asked_hz * (1 - 1e-9):
+            return
+        text = self.budget.capped(stream, asked_hz, granted_hz)
+        self._statustexts.append(text)
+        if self.on_capped is not None:
+            self.on_capped(text)
 
     # --- setpoints -------------------------------------------------------------------------------
     def _on_setpoint(self, f: dj.Frame, now_s: float) -> None:
@@ -377,17 +471,16 @@ class DjiOpenServer:
 
     # --- broadcast and subscription pushes -------------------------------------------------------
     def _push_packages(self, now_s: float) -> None:
-        send, pack = self.codec.transport.send, self.codec.pack_command
         for pkg, p in self.subscriptions.due(now_s):
             data = dji_telemetry.package_data(self, pkg, p.uids, p.timestamp, now_s)
-            send(pack(dj.SET_BROADCAST, dj.CMD_SUBSCRIPTION_DATA, data))
-            self.stats.subscription_pushes += 1
+            if self._send_push(dj.CMD_SUBSCRIPTION_DATA, data):
+                self.stats.subscription_pushes += 1
 
     def _push(self, now_s: float) -> None:
         """One flight-data frame of the items due at ``now_s``; the next push at the earliest due."""
         flags = 0
         nxt = math.inf
-        due, rates = self._next_due, self._rates_hz
+        due, rates = self._next_due, self._granted_hz
         for i, hz in enumerate(rates):
             if hz <= 0.0:
                 flags &= ~(1 << i)
@@ -399,10 +492,18 @@ class DjiOpenServer:
             if due[i] < nxt:
                 nxt = due[i]
         self._next_push_s = nxt
-        if flags:
-            payload = dji_telemetry.flight_data(self, now_s, flags)
-            self.codec.transport.send(self.codec.pack_command(dj.SET_BROADCAST, dj.CMD_FLIGHT_DATA, payload))
+        if flags and self._send_push(dj.CMD_FLIGHT_DATA, dji_telemetry.flight_data(self, now_s, flags)):
             self.stats.broadcasts_sent += 1
+
+    def _send_push(self, cmd_id: int, payload: bytes) -> bool:
+        """Push a frame of the broadcast set unless the line's queue is too deep for it (counted in the
+        budget's ``frames_dropped``); whether it went."""
+        if self.budget is not None and not self.budget.admit(dj.COMMAND_FRAME_BYTES + len(payload), True):
+            return False
+        codec = self.codec
+        codec.transport.send(codec.pack_command(dj.SET_BROADCAST, cmd_id, payload))
+        return True
+
 
 def _input_due(transport: object) -> bool:
     """False only when a transport that models arrival times says nothing can be read now."""

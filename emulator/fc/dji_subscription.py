@@ -14,12 +14,24 @@ from hil.link import dji_open as dj
 
 @dataclass
 class Package:
-    """One subscribed package: its topics (UIDs, in order), rate (Hz), time stamp, next push (s)."""
+    """One subscribed package: its topics (UIDs, in order), rate asked (Hz), time stamp, next push (s),
+    and the rate it is pushed at (Hz: the rate asked, or less where the line's budget cannot carry it)."""
 
     uids: tuple[int, ...]
     hz: int
     timestamp: bool
     next_due_s: float
+    granted_hz: float
+
+    @property
+    def data_bytes(self) -> int:
+        """Its topics' bytes in a push (time stamp included; the package id byte not)."""
+        return topics_bytes(self.uids, self.timestamp)
+
+
+def topics_bytes(uids: tuple[int, ...], timestamp: bool) -> int:
+    """The bytes of topics ``uids`` (known UIDs) in a push, with the time stamp when ``timestamp``."""
+    return (dj.SUB_TIMESTAMP_BYTES if timestamp else 0) + sum(dj.TOPIC_STRUCTS[u].size for u in uids)
 
 
 class Subscriptions:
@@ -49,11 +61,10 @@ class Subscriptions:
             return dj.SUB_MULTIPLE_SUBSCRIBE  # a topic is subscribed once
         code = self._check_topics(uids, hz, bool(config & 1))
         if code == dj.SUB_SUCCESS:
-            self.packages[pkg] = Package(uids, hz, bool(config & 1), now_s)
+            self.packages[pkg] = Package(uids, hz, bool(config & 1), now_s, float(hz))
         return code
 
     def _check_topics(self, uids: tuple[int, ...], hz: int, timestamp: bool) -> int:
-        size = dj.SUB_TIMESTAMP_BYTES if timestamp else 0
         for uid in uids:
             if uid in dj.RTK_TOPICS:
                 return dj.SUB_SOURCE_OFFLINE  # no RTK receiver on this N3
@@ -61,8 +72,8 @@ class Subscriptions:
                 return dj.SUB_ILLEGAL_UID
             if hz not in dj.SUB_FREQUENCIES_HZ or hz > dj.TOPICS[uid][2]:
                 return dj.SUB_ILLEGAL_FREQUENCY
-            size += dj.TOPIC_STRUCTS[uid].size
-        return dj.SUB_PACKAGE_TOO_LARGE if size > dj.SUB_MAX_PACKAGE_BYTES else dj.SUB_SUCCESS
+        too_large = topics_bytes(uids, timestamp) > dj.SUB_MAX_PACKAGE_BYTES
+        return dj.SUB_PACKAGE_TOO_LARGE if too_large else dj.SUB_SUCCESS
 
     def remove(self, payload: bytes) -> int:
         """Remove the package a 0x0B 0x03 payload names; its code."""
@@ -79,12 +90,12 @@ class Subscriptions:
         return dj.SUB_SUCCESS
 
     def due(self, now_s: float) -> list[tuple[int, Package]]:
-        """The packages due at ``now_s`` (s), their next push scheduled."""
+        """The packages due at ``now_s`` (s), their next push scheduled (at the rate granted)."""
         out = []
         for pkg, p in self.packages.items():
             if now_s >= p.next_due_s - 1e-9:
-                nxt = p.next_due_s + 1.0 / p.hz
-                p.next_due_s = nxt if nxt > now_s else now_s + 1.0 / p.hz
+                nxt = p.next_due_s + 1.0 / p.granted_hz
+                p.next_due_s = nxt if nxt > now_s else now_s + 1.0 / p.granted_hz
                 out.append((pkg, p))
         return out
 

@@ -248,7 +248,7 @@ def _home_rad(server: DjiOpenServer) -> tuple:
 
 def flight_data(server: DjiOpenServer, now_s: float, flags: int) -> bytes:
     """The flight-data payload (0x02 0x00) of the items in ``flags`` at ``now_s`` (s)."""
-    parts = [flags.to_bytes(2, "little")]
+    parts = [flags.to_bytes(dj.BROADCAST_FLAG_BYTES, "little")]
     x = server.vehicle.state_vector().tolist()
     structs = dj.BROADCAST_STRUCTS
     for i, fn in enumerate(BROADCAST_VALUES):

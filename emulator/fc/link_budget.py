@@ -1,6 +1,9 @@
-"""The data-rate budget of the FC's MAVLink link, as PX4 keeps one per MAVLink instance: the telemetry
-streams are scaled to fit a share of what the line carries (``MAV_0_RATE`` bytes/s, or with 0 half the
-line: baud / 20 at 10 bits a byte), the rest left for answers (parameters, command ACKs, status text).
+"""The data-rate budget of the FC's command link, as PX4 keeps one per MAVLink instance: the telemetry
+streams are scaled to fit a share of what the line carries (a configured rate in bytes/s, MAVLink's
+``MAV_0_RATE`` or `hil fc --link-budget-bytes-s`, or with 0 half the line: baud / 20 at 10 bits a byte),
+the rest left for answers (parameters, command ACKs, status text). It knows no protocol: a stream is any
+key, its cost the bytes one of its frames puts on the line (``frame_bytes``, the protocol's to say), so
+MAVLink's messages and the OPEN protocol's broadcast items and subscription packages share it.
 
 On a paced line (`hil.link.uart.UartTransport`) the budget also watches the line's queue: a stream frame
 that would wait behind more than `STREAM_QUEUE_S` of queued bytes is not sent (counted in
@@ -10,26 +13,18 @@ buffer has room for the whole frame (else they are dropped whole, counted, never
 
 from __future__ import annotations
 
+from collections.abc import Callable, Collection, Hashable
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, TypeVar
 
 from hil.link.channel import BITS_PER_BYTE
-from hil.link.mavlink import SIGNATURE_BYTES, mav
 
 STREAM_QUEUE_S = 0.05  # a stream frame waits behind at most this much of the line's queue (s)
-LINE_SHARE_DEFAULT = 0.5  # MAV_0_RATE 0: the streams get this share of the line (PX4: baud / 20)
-FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header (10) and CRC (2)
-#: streams kept at their rate whatever the budget, up to once every `MIN_RATE_INTERVAL_S` (a ground
-#: station counts a link lost without them); faster, they are scaled with the others
-FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
+LINE_SHARE_DEFAULT = 0.5  # a configured rate of 0: the streams get this share of the line (PX4: baud / 20)
 MIN_RATE_INTERVAL_S = 1.0  # no stream is scaled below 1 Hz (one asked slower keeps its rate)
 CAPS_KEPT = 20  # the summary lists at most this many capped requests
 
-
-def frame_bytes(msg_id: int, signed: bool) -> int:
-    """The longest frame of message ``msg_id`` on the wire (bytes; trailing zeros may make it shorter)."""
-    size = mav.mavlink_map[msg_id].unpacker.size + FRAME_OVERHEAD_BYTES
-    return size + SIGNATURE_BYTES if signed else size
+K = TypeVar("K", bound=Hashable)
 
 
 @dataclass
@@ -41,7 +36,9 @@ class BudgetStats:
     answers_dropped: int = 0  # answers and heartbeats dropped whole: the transmit buffer was full
     queue_bytes_max: int = 0  # the deepest line queue seen when a frame was queued
     answer_wait_max_s: float = 0.0  # the longest an answer waited behind the line's queue (s)
-    rates_capped: int = 0  # rate requests granted less than asked (SET_MESSAGE_INTERVAL, N3_RATE_*)
+    #: rate requests granted less than asked (SET_MESSAGE_INTERVAL, N3_RATE_*; OPEN: broadcast
+    #: frequencies, subscription packages)
+    rates_capped: int = 0
     caps: list[dict[str, Any]] = field(default_factory=list)  # the first `CAPS_KEPT` of them
 
     def as_dict(self) -> dict[str, Any]:
@@ -51,13 +48,16 @@ class BudgetStats:
 class LinkBudget:
     """The budget of one link: which stream rates fit, and whether a frame may be queued now."""
 
-    def __init__(self, baud: int | None, uart: Any = None, signed: bool = False) -> None:
+    def __init__(self, baud: int | None, uart: Any, frame_bytes: Callable[[Any], float],
+                 fixed: Collection[Any] = (), rate_bytes_s: float = 0.0) -> None:
         """``baud``: the line's (bit/s; None: not a serial line); ``uart``: its `UartModel` when the
-        link is paced, else None."""
-        self.baud, self.uart, self.signed = baud, uart, signed
-        self.rate_param_bytes_s = 0.0  # MAV_0_RATE (0: from the baud)
+        link is paced, else None; ``frame_bytes``: a stream key -> the bytes one of its frames costs on
+        the line; ``fixed``: streams kept at their rate up to once every `MIN_RATE_INTERVAL_S` (a
+        ground station counts a link lost without its heartbeat; faster, they are scaled with the
+        others); ``rate_bytes_s``: the configured budget (0: from the baud)."""
+        self.baud, self.uart, self.frame_bytes, self.fixed = baud, uart, frame_bytes, frozenset(fixed)
+        self.rate_param_bytes_s = float(rate_bytes_s)  # MAV_0_RATE's value (0: from the baud)
         self.stats = BudgetStats()
-        self._sizes: dict[int, int] = {}
 
     @property
     def line_bytes_s(self) -> float | None:
@@ -72,15 +72,15 @@ class LinkBudget:
         line = self.line_bytes_s
         return None if line is None else LINE_SHARE_DEFAULT * line
 
-    def grant(self, requested_s: dict[int, float]) -> dict[int, float]:
-        """The intervals (s) the streams get: ``requested_s`` (msg id -> interval) scaled alike until
+    def grant(self, requested_s: dict[K, float]) -> dict[K, float]:
+        """The intervals (s) the streams get: ``requested_s`` (stream key -> interval) scaled alike until
         they fit the budget, none slower than once every `MIN_RATE_INTERVAL_S` (or than asked, if
-        slower): `FIXED_STREAMS` at that rate or slower are kept as asked."""
+        slower): the ``fixed`` streams at that rate or slower are kept as asked."""
         budget = self.stream_bytes_s
         if budget is None:
             return dict(requested_s)
         granted = dict(requested_s)
-        free = [i for i, s in requested_s.items() if not (i in FIXED_STREAMS and s >= MIN_RATE_INTERVAL_S)]
+        free = [i for i, s in requested_s.items() if not (i in self.fixed and s >= MIN_RATE_INTERVAL_S)]
         while free:  # (each round pins at least one stream at its slowest, or ends)
             used = sum(self.frame_bytes(i) / s for i, s in granted.items() if i not in free)
             demand = sum(self.frame_bytes(i) / requested_s[i] for i in free)
@@ -94,40 +94,32 @@ class LinkBudget:
             free = [i for i in free if i not in pinned]
         return granted
 
-    def capped(self, msg_id: int, requested_hz: float, granted_hz: float) -> str:
-        """Record a request granted less than asked; the STATUSTEXT that says so (<= 50 characters)."""
+    def capped(self, name: str, requested_hz: float, granted_hz: float) -> str:
+        """Record a request for stream ``name`` granted less than asked; the sentence that says so
+        (a MAVLink message's name keeps it within a STATUSTEXT's 50 characters)."""
         self.stats.rates_capped += 1
-        name = mav.mavlink_map[msg_id].msgname
         if len(self.stats.caps) < CAPS_KEPT:
             self.stats.caps.append({"message": name, "requested_hz": round(requested_hz, 3),
                                     "granted_hz": round(granted_hz, 3),
                                     "stream_budget_bytes_s": round(self.stream_bytes_s or 0.0, 1)})
-        return f"{name[:19]} {requested_hz:.4g}Hz capped {granted_hz:.3g}Hz: line"
+        return f"{name} {requested_hz:.4g}Hz capped {granted_hz:.3g}Hz: line"
 
-    def frame_bytes(self, msg_id: int) -> int:
-        """`frame_bytes` of ``msg_id`` on this link (cached)."""
-        n = self._sizes.get(msg_id)
-        if n is None:
-            n = self._sizes[msg_id] = frame_bytes(msg_id, self.signed)
-        return n
-
-    def has_room(self, msg_id: int) -> bool:
-        """Whether a frame of ``msg_id`` sent at a stream's pace may go now (nothing counted)."""
+    def has_room(self, n_bytes: int) -> bool:
+        """Whether a frame of ``n_bytes`` sent at a stream's pace may go now (nothing counted)."""
         uart = self.uart
         if uart is None:
             return True
         queued = uart.backlog_bytes()
         return queued * BITS_PER_BYTE / uart.baud <= STREAM_QUEUE_S and \
-            uart.tx_buffer_bytes - queued >= self.frame_bytes(msg_id)
+            uart.tx_buffer_bytes - queued >= n_bytes
 
-    def admit(self, msg_id: int, stream: bool) -> bool:
-        """Whether a frame of ``msg_id`` may be written now (a periodic ``stream`` frame, or an answer or
+    def admit(self, n_bytes: int, stream: bool) -> bool:
+        """Whether a frame of ``n_bytes`` may be written now (a periodic ``stream`` frame, or an answer or
         heartbeat); a frame refused is counted in ``bytes_offered`` here (one sent, by the transport)."""
         uart = self.uart
         if uart is None:
             return True
         st = self.stats
-        n_bytes = self.frame_bytes(msg_id)
         queued = uart.backlog_bytes()
         wait_s = queued * BITS_PER_BYTE / uart.baud
         if stream and wait_s > STREAM_QUEUE_S:

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from emulator.fc.link_budget import FIXED_STREAMS, LinkBudget
+from emulator.fc.link_budget import LinkBudget
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
 from emulator.fc.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
@@ -32,6 +32,7 @@ from hil.link.mavlink import (
     decode_frame,
     euler_from_quat,
     mav,
+    max_frame_bytes,
     message_from_payload,
 )
 
@@ -46,6 +47,8 @@ RAW_MSG_IDS: frozenset[int] = frozenset({mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET}
 _SET_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker  # its payload, in wire order
 #: streamed messages read from the vehicle's state (`TelemetryEncoder.state_values`, read once per send)
 _STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
+#: streams the link budget keeps at their rate up to 1 Hz (a ground station counts a link lost without it)
+FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
 
 
 @dataclass(frozen=True)
@@ -104,8 +107,7 @@ class MavlinkServer:
         #: the link's data-rate budget (None: none, every stream at the rate asked)
         self.budget: LinkBudget | None = None
         if self.config.link_baud is not None:
-            self.budget = LinkBudget(self.config.link_baud, getattr(codec.transport, "uart", None),
-                                     codec.signing)
+            self.budget = self._new_budget(self.config.link_baud)
         self._intervals = self._granted()  # intervals streamed at (s)
         self._next_due: dict[int, float] = {}
         self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
@@ -231,7 +233,7 @@ class MavlinkServer:
 
     def send(self, msg: MAVLinkMessage) -> None:
         """Send an answer (or anything not streamed); on a budgeted line only while it fits whole."""
-        if self.budget is None or self.budget.admit(msg.get_msgId(), False):
+        if self._admitted(msg.get_msgId(), False):
             self.codec.send(msg)
 
     def statustext(self, severity: int, text: str, now_s: float, key: str | None = None) -> bool:
@@ -256,7 +258,7 @@ class MavlinkServer:
             due = next_due.get(msg_id, now_s)
             if now_s >= due:
                 make = payloads.get(msg_id)
-                if budget is not None and msg_id not in FIXED_STREAMS and not budget.admit(msg_id, True):
+                if budget is not None and msg_id not in FIXED_STREAMS and not self._admitted(msg_id, True):
                     pass  # the line's queue is too deep: this one is dropped (counted)
                 elif make is None:
                     self.codec.send(self._senders[msg_id](now_s))
@@ -286,7 +288,7 @@ class MavlinkServer:
         self._send_payload(mav.MAVLINK_MSG_ID_HEARTBEAT, self.telemetry.heartbeat_payload())
 
     def _send_payload(self, msg_id: int, payload: bytes) -> None:
-        if self.budget is not None and msg_id in FIXED_STREAMS and not self.budget.admit(msg_id, False):
+        if msg_id in FIXED_STREAMS and not self._admitted(msg_id, False):
             return
         codec = self.codec
         codec.transport.send(codec.pack_payload(msg_id, payload))
@@ -455,9 +457,21 @@ class MavlinkServer:
     def set_link_rate(self, rate_bytes_s: float) -> None:
         """Set MAV_0_RATE (bytes/s, 0: from the baud) and scale the streams to it, from now."""
         if self.budget is None:
-            self.budget = LinkBudget(None, getattr(self.codec.transport, "uart", None), self.codec.signing)
+            self.budget = self._new_budget(None)
         self.budget.rate_param_bytes_s = float(rate_bytes_s)
         self._regrant()
+
+    def _new_budget(self, baud: int | None) -> LinkBudget:
+        return LinkBudget(baud, getattr(self.codec.transport, "uart", None), self._frame_bytes, FIXED_STREAMS)
+
+    def _frame_bytes(self, msg_id: int) -> int:
+        """The longest frame of ``msg_id`` on this link (bytes)."""
+        return max_frame_bytes(msg_id, self.codec.signing)
+
+    def _admitted(self, msg_id: int, stream: bool) -> bool:
+        """Whether a frame of ``msg_id`` may be written now (a ``stream``'s, or an answer): always without
+        a budget (`LinkBudget.admit`)."""
+        return self.budget is None or self.budget.admit(self._frame_bytes(msg_id), stream)
 
     def _regrant(self) -> None:
         self._intervals = self._granted()
@@ -482,8 +496,8 @@ class MavlinkServer:
         self._regrant()
         asked, granted = self.stream_rate_hz(msg_id), self.granted_rate_hz(msg_id)
         if granted < asked * (1 - 1e-9):  # the line cannot carry it: say so
-            self.statustext(mav.MAV_SEVERITY_WARNING, self.budget.capped(msg_id, asked, granted),
-                            self._now_s, key=f"cap:{msg_id}")
+            text = self.budget.capped(mav.mavlink_map[msg_id].msgname, asked, granted)
+            self.statustext(mav.MAV_SEVERITY_WARNING, text, self._now_s, key=f"cap:{msg_id}")
 
     def _set_mode(self, base_mode: int, main: int, sub: int, now_s: float) -> CommandResult:
         if not base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -536,7 +550,8 @@ class MavlinkServer:
         """The parameter list's next PARAM_VALUEs, as many as the line takes now without queueing
         answers behind them; the rest in later passes."""
         budget, pending = self.budget, self._param_list
-        while pending and (budget is None or budget.has_room(mav.MAVLINK_MSG_ID_PARAM_VALUE)):
+        n_bytes = self._frame_bytes(mav.MAVLINK_MSG_ID_PARAM_VALUE)
+        while pending and (budget is None or budget.has_room(n_bytes)):
             index = pending.popleft()
             self.codec.send(self._param_value(index, self.params.get(PARAMS[index].name)))
             self.stats.params_sent += 1

@@ -9,7 +9,7 @@ import math
 import signal
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -88,6 +88,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "1-8 refuse)")
     p.add_argument("--rc-mode", default="F", choices=("P", "A", "F"),
                    help="dji-open: the RC's mode switch; only F lets the onboard device obtain control")
+    p.add_argument("--link-budget-bytes-s", type=float, default=None, metavar="B_S",
+                   help="the telemetry's data-rate budget on the command link (bytes/s; 0: half a serial "
+                   "line, none on other links; default 0): MAVLink's MAV_0_RATE, the OPEN protocol's pushes")
     p.add_argument("--signing-key", default=None, metavar="HEX", help="MAVLink 2 signing key (64 hex digits)")
     p.add_argument(
         "--esc-bus", default=None, metavar="SPEC",
@@ -174,11 +177,15 @@ def main(args: argparse.Namespace) -> int:
                   "MAV_CMD_PREFLIGHT_STORAGE", file=sys.stderr)
         if args.failsafe_timeout is not None:  # the flag wins over the file
             params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
+        budget_bytes_s = 0.0 if args.link_budget_bytes_s is None else args.link_budget_bytes_s
+        if args.link_budget_bytes_s is not None and args.protocol == "mavlink":  # (the flag wins too)
+            params["MAV_0_RATE"] = param_def("MAV_0_RATE").check(budget_bytes_s)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
         protocol = args.protocol.replace("-", "_")
         if key is not None and protocol != "mavlink":
             raise ValueError("--signing-key signs MAVLink: the OPEN protocol has no signing")
-        dji_config = DjiServerConfig(activation_code=args.activation_code, rc_mode=args.rc_mode)
+        dji_config = DjiServerConfig(activation_code=args.activation_code, rc_mode=args.rc_mode,
+                                     budget_bytes_s=budget_bytes_s)
     except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
     if args.external_esc and args.esc_bus is None:
@@ -200,8 +207,8 @@ def main(args: argparse.Namespace) -> int:
         return fail(str(exc))
     try:
         spec = parse_endpoint(args.link)
-        # a serial line carries baud / 10 bytes a second: MAVLink leaves at that pace, within its budget
-        link_baud = spec.baud if spec.kind == "serial" and protocol == "mavlink" else None
+        # a serial line carries baud / 10 bytes a second: the FC writes at that pace, within its budget
+        link_baud = spec.baud if spec.kind == "serial" else None
         link = open_link(spec, "fc", uart_baud=link_baud)
     except (ValueError, OSError) as exc:
         return fail(str(exc))
@@ -237,7 +244,7 @@ def main(args: argparse.Namespace) -> int:
             uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
             signing_epoch_unix_s=epoch_unix_s,
             server_config=ServerConfig(param_file=args.params, link_baud=link_baud),
-            protocol=protocol, dji_config=dji_config,
+            protocol=protocol, dji_config=replace(dji_config, link_baud=link_baud),
         )
         try:
             emu.server.params.set_many(params)
@@ -249,6 +256,8 @@ def main(args: argparse.Namespace) -> int:
             except (ValueError, OSError) as exc:
                 return fail(f"--esc-bus: {exc}")
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
+        if isinstance(server, DjiOpenServer):  # (MAVLink says it in a STATUSTEXT)
+            server.on_capped = _say_capped
         links: list = [server]
         if emu.world is not None:
             links.append(GapWatch(vehicle, emu.world, server))
@@ -315,6 +324,11 @@ def main(args: argparse.Namespace) -> int:
         link.close()
         if mocap_link is not None:
             mocap_link.close()
+
+
+def _say_capped(text: str) -> None:
+    print(f"hil fc: link budget: {text} (the OPEN ACK says success: it has no room for a reason)",
+          file=sys.stderr, flush=True)
 
 
 def _esc_bus(args: argparse.Namespace, emu: Any) -> EscBusStepper:

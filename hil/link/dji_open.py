@@ -27,6 +27,7 @@ SOF = 0xAA
 HEADER_BYTES = 12
 CRC32_BYTES = 4
 MIN_FRAME_BYTES = HEADER_BYTES + CRC32_BYTES  # a frame with no data
+COMMAND_FRAME_BYTES = MIN_FRAME_BYTES + 2  # a command frame with no payload (command set and id)
 MAX_FRAME_BYTES = 1023  # LEN is 10 bits (12 header + 1007 data + 4 CRC32)
 MAX_DATA_BYTES = MAX_FRAME_BYTES - MIN_FRAME_BYTES
 CRC_INIT = 0x3AA3
@@ -218,6 +219,7 @@ BROADCAST_ITEMS: tuple[tuple[str, str], ...] = (
     ("control_device", "<BB"),  # API control mode, device (bits 0-2: 0 RC, 1 app, 2 onboard) | flags
 )
 BROADCAST_STRUCTS = tuple(struct.Struct(layout) for _, layout in BROADCAST_ITEMS)
+BROADCAST_FLAG_BYTES = 2  # the u16 flag word before the items
 BROADCAST_BIT = {name: i for i, (name, _) in enumerate(BROADCAST_ITEMS)}
 RC_MODE_P, RC_MODE_A, RC_MODE_F = -8000, 0, 8000
 #: flight status (broadcast and subscription), the N3's: motors stopped, on the ground, in the air

@@ -4,6 +4,7 @@ ENU/FLU <-> NED/FRD conversions both sides need at the wire (common dialect, pym
 from __future__ import annotations
 
 import binascii
+import functools
 import hashlib
 import math
 import struct
@@ -28,6 +29,7 @@ SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink signing timestamps count 10 us unit
 #: minute) behind the receiver's own signing timestamp (the MAVLink signing spec's window)
 SIGNING_NEW_STREAM_WINDOW = 6_000_000
 SIGNATURE_BYTES = 13  # link id (1), timestamp (6), signature (6)
+FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header (10) and CRC (2), signature not counted
 #: messages a signed link also takes unsigned: they ask or announce and change nothing (PX4 and ArduPilot
 #: let RADIO_STATUS through unsigned for the same reason). Every other message (parameters, commands,
 #: setpoints, modes, missions, FTP, SETUP_SIGNING, ...) must be signed with the key and a fresh timestamp.
@@ -90,6 +92,13 @@ def frame_size(buf: bytes | bytearray, i: int) -> int:
     if magic == MAVLINK_V1_MAGIC:
         return 8 + buf[i + 1] if i + 2 <= len(buf) else 0
     return -1
+
+
+@functools.cache
+def max_frame_bytes(msg_id: int, signed: bool) -> int:
+    """The longest frame of message ``msg_id`` on the wire (bytes; trailing zeros may make it shorter)."""
+    size = mavlink2.mavlink_map[msg_id].unpacker.size + FRAME_OVERHEAD_BYTES
+    return size + SIGNATURE_BYTES if signed else size
 
 
 class FrameSplitter:
