@@ -18,9 +18,10 @@ import numpy as np
 
 from emulator.assembly import assemble, warm_up
 from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.fc import EmulatedVehicle, FcConfig, RealtimeRunner, ServerConfig, resting_state
+from emulator.fc.dji_open_server import DjiServerConfig
 from emulator.fc.params import describe, param_def, read_param_file
+from emulator.fc.server import FC_SERVERS, FcServer
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
@@ -81,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="FC parameters to load (NAME VALUE lines, MAVProxy's or QGroundControl's files); "
         "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
-    p.add_argument("--protocol", default="mavlink", choices=("mavlink", "dji-open"),
+    p.add_argument("--protocol", default="mavlink", choices=[n.replace("_", "-") for n in FC_SERVERS],
                    help="what the command link speaks: MAVLink 2 (default) or DJI's OPEN protocol (as an N3)")
     p.add_argument("--activation-code", type=int, default=0, metavar="CODE",
                    help="dji-open: answer every activation with this documented code (0 accepts, default; "
@@ -129,7 +130,7 @@ def _serial_stats(link: object) -> dict[str, int] | None:
 class GapWatch:
     """Samples the vehicle against the gap world and reports crossings and collisions as STATUSTEXT."""
 
-    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer | DjiOpenServer) -> None:
+    def __init__(self, vehicle: EmulatedVehicle, world: World, server: FcServer) -> None:
         self.vehicle, self.server = vehicle, server
         self.tracker = CrossingTracker(world)
         self._next_s = 0.0
