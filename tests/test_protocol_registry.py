@@ -1,10 +1,12 @@
 """A command-link protocol is one unit: a toy protocol (its codec, its FC server, its onboard link), added
-through the three tables from this file alone, flies a shipped scenario in lockstep; its frames are in the
-run's capture and `hil decode` reads them; the tables refuse a taken name and name the known ones."""
+through the three tables from this file alone, flies a shipped scenario in lockstep, in one process and
+over ptys (the program's own process registering it on start); its frames are in the run's capture and
+`hil decode` reads them; the tables refuse a taken name and name the known ones."""
 
 from __future__ import annotations
 
 import math
+import os
 import struct
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
@@ -262,13 +264,18 @@ class ToyLink(CommandLink):
 
 
 # --- the test ------------------------------------------------------------------------------------------
-@pytest.fixture
-def toy() -> Iterator[str]:
-    """The toy protocol in the three tables for one test, and out of them after."""
+def register_toy() -> None:
+    """The toy protocol into the three tables (as a plugin module's import would)."""
     register_protocol(LinkProtocol("toy", ToyCodec, toy_framing, MAX_FRAME_BYTES, frozenset({SOF}), frame_at,
                                    describe))
     register_server("toy", toy_server)
     register_command_link("toy", ToyLink)
+
+
+@pytest.fixture
+def toy() -> Iterator[str]:
+    """The toy protocol in the three tables for one test, and out of them after."""
+    register_toy()
     try:
         yield "toy"
     finally:
@@ -287,6 +294,20 @@ def test_a_toy_protocol_registered_from_a_test_flies_a_scenario_in_lockstep(toy,
     kinds = {decode(f).type for f in frames}
     assert {"TOY_P", "TOY_C", "TOY_K", "TOY_S"} <= kinds  # setpoints, commands, their acks, the status
     assert "TOY_T" not in kinds and "TOY_A" not in kinds  # the lockstep's ticks are not the FC's traffic
+
+
+def test_a_toy_protocol_flies_over_ptys_with_the_program_in_its_own_process(toy, tmp_path, monkeypatch):
+    # the program's new interpreter registers the toy on start (sitecustomize), as a plugin module would
+    (tmp_path / "plugin").mkdir()
+    (tmp_path / "plugin" / "sitecustomize.py").write_text(
+        "import test_protocol_registry\ntest_protocol_registry.register_toy()\n")
+    paths = [str(tmp_path / "plugin"), str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
+    s = load_scenarios(SCENARIOS / "gap_roll30_2ms.scenario.yaml")[0]
+    result = run_scenario(s, tmp_path / "run", RunOptions(in_process=False, cold_start=True, protocol=toy))
+    assert result.passed, [f"{c.name}: {c.observed}" for c in result.failed_checks]
+    assert result.summary["onboard"]["toy"]["frames_sent"] > 0  # the program's own counters, over the pty
+    assert {decode(f).type for _, f in read_tlog(result.tlog_path)} >= {"TOY_P", "TOY_C", "TOY_K", "TOY_S"}
 
 
 def test_the_scenario_schema_and_the_program_take_a_registered_protocol(toy):
