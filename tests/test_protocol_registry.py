@@ -23,7 +23,14 @@ from hil.link import dji_open
 from hil.link.clock import Clock
 from hil.link.lockstep import MOCAP_COUNT_MASK, NS_PER_S, Framing, tick_answer_ns
 from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
-from hil.link.protocols import PROTOCOLS, LinkProtocol, decode, framing, register_protocol
+from hil.link.protocols import (
+    PROTOCOLS,
+    LinkProtocol,
+    decode,
+    framing,
+    register_protocol,
+    unregister_protocol,
+)
 from hil.link.tlog import read_tlog
 from hil.link.transport import Transport
 from hil.runner import RunOptions, run_scenario
@@ -279,7 +286,7 @@ def toy() -> Iterator[str]:
     try:
         yield "toy"
     finally:
-        PROTOCOLS.pop("toy")
+        unregister_protocol("toy")
         FC_SERVERS.pop("toy")
         COMMAND_LINKS.pop("toy")
 

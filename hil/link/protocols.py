@@ -41,6 +41,7 @@ class LinkProtocol:
 
 #: name -> protocol; `register_protocol` adds one
 PROTOCOLS: dict[str, LinkProtocol] = {}
+_BY_START: dict[int, LinkProtocol] = {}  # a frame's first byte -> its protocol
 
 
 def register_protocol(protocol: LinkProtocol) -> None:
@@ -51,6 +52,14 @@ def register_protocol(protocol: LinkProtocol) -> None:
         if protocol.start_bytes & other.start_bytes:
             raise ValueError(f"protocol {protocol.name!r} shares a start byte with {other.name!r}")
     PROTOCOLS[protocol.name] = protocol
+    _BY_START.update(dict.fromkeys(protocol.start_bytes, protocol))
+
+
+def unregister_protocol(name: str) -> None:
+    """Take protocol ``name`` out of the table (KeyError: not in it)."""
+    protocol = PROTOCOLS.pop(name)
+    for b in protocol.start_bytes:
+        del _BY_START[b]
 
 
 def link_protocol(name: str) -> LinkProtocol:
@@ -68,17 +77,15 @@ def framing(name: str, system_id: int = 1, component_id: int = mavlink.mav.MAV_C
 
 def frame_at(data: bytes, j: int) -> bytes | None:
     """The whole, CRC-checked frame of any registered protocol that starts at ``data[j]``, or None."""
-    for p in PROTOCOLS.values():
-        if data[j] in p.start_bytes:
-            return p.frame_at(data, j)
-    return None
+    p = _BY_START.get(data[j])
+    return None if p is None else p.frame_at(data, j)
 
 
 def decode(frame: bytes) -> Decoded:
     """A captured frame (CRC checked) of any registered protocol, read (ValueError: no protocol's)."""
-    for p in PROTOCOLS.values():
-        if frame[0] in p.start_bytes:
-            return Decoded(p.name, *p.describe(frame))
+    p = _BY_START.get(frame[0])
+    if p is not None:
+        return Decoded(p.name, *p.describe(frame))
     raise ValueError(f"no command-link protocol starts a frame with 0x{frame[0]:02X}")
 
 
