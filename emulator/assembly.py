@@ -1,17 +1,19 @@
 """The emulator assembled: vehicle (physics + FC), the gap world, the FC's server on the command link
-(MAVLink, or DJI's OPEN protocol with ``protocol="dji_open"``) and mocap over UWB on the mocap link, one
-clock for all. `hil fc` (real time) and the runner's
-emulator side (simulated time) both build theirs here and add their own loop around it."""
+(by protocol name, `emulator.fc.server.FC_SERVERS`: MAVLink, DJI's OPEN protocol) and mocap over UWB on
+the mocap link, one clock for all. `hil fc` (real time) and the runner's emulator side (simulated
+time) both build theirs here and add their own loop around it."""
 
 from __future__ import annotations
 
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, ServerConfig
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.fc import EmulatedVehicle, FcConfig, ServerConfig
+from emulator.fc.dji_open_server import DjiServerConfig
+from emulator.fc.server import FcServer, ServerOptions, make_server
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
@@ -19,8 +21,7 @@ from emulator.profile import VehicleProfile
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume, World
 from hil.link.clock import Clock
-from hil.link.dji_open import OpenCodec
-from hil.link.mavlink import SIGNING_EPOCH_UNIX_S, MavlinkCodec, mav
+from hil.link.mavlink import SIGNING_EPOCH_UNIX_S
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 
@@ -31,8 +32,8 @@ class Emulator:
 
     vehicle: EmulatedVehicle
     world: World | None  # None: no gap to watch
-    codec: MavlinkCodec | OpenCodec
-    server: MavlinkServer | DjiOpenServer
+    codec: Any  # the server's codec
+    server: FcServer
     mocap: MocapLinkServer | None  # None: no mocap link
 
 
@@ -70,21 +71,11 @@ def assemble(
     clock should start after `warm_up`."""
     vehicle = EmulatedVehicle(profile, backend=backend, config=fc_config, initial_state=initial_state)
     world = None if gap is None else World.for_profile(gap, lab or LabVolume(), profile)
-    codec: MavlinkCodec | OpenCodec
-    server: MavlinkServer | DjiOpenServer
-    if protocol == "dji_open":
-        codec = OpenCodec(command_link, clock, recorder=tlog)
-        server = DjiOpenServer(vehicle, codec, dji_config)
-    elif protocol == "mavlink":
-        codec = MavlinkCodec(command_link, clock, system_id, mav.MAV_COMP_ID_AUTOPILOT1,
-                             signing_key=signing_key, recorder=tlog, raw_ids=raw_ids,
-                             signing_epoch_unix_s=signing_epoch_unix_s)
-        server = MavlinkServer(vehicle, codec, server_config)
-    else:
-        raise ValueError(f"command-link protocol must be mavlink or dji_open, got {protocol!r}")
+    server = make_server(protocol, vehicle, command_link, clock, ServerOptions(
+        system_id, raw_ids, tlog, signing_key, signing_epoch_unix_s, server_config, dji_config))
     mocap = None
     if mocap_link is not None:
         if mocap_rng is None:
             raise ValueError("a mocap link needs mocap_rng")
         mocap = MocapLinkServer(mocap_link, clock, mocap_rng, mocap_config, uwb_config)
-    return Emulator(vehicle, world, codec, server, mocap)
+    return Emulator(vehicle, world, server.codec, server, mocap)

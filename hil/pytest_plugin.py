@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from hil.link.protocols import PROTOCOLS
 from hil.scenario import ScenarioError, loads_scenarios
 from hil.scenario.loader import SUFFIX
 from hil.scenario.schema import Scenario
@@ -52,7 +53,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption(
         "--hil-protocol",
         default=None,
-        choices=("mavlink", "dji_open"),
+        choices=PROTOCOLS.keys(),
         help="the command link's protocol for every scenario (default: each scenario's, mavlink)",
     )
     group.addoption(

@@ -1,6 +1,7 @@
 """`hil decode`: a command link's raw capture (a .tlog of `hil fc --tlog` or a run's run.tlog), frame by
-frame: MAVLink messages or DJI OPEN-protocol frames, each with its time and its sender, past damaged spots
-(each reported, exit 0 with a warning), filtered by type, as text or JSON lines."""
+frame (each by its protocol's reader, `hil.link.protocols`: MAVLink messages, DJI OPEN frames), each
+with its time and its sender, past damaged spots (each reported, exit 0 with a warning), filtered by
+type, as text or JSON lines."""
 
 from __future__ import annotations
 
@@ -9,20 +10,13 @@ import fnmatch
 import json
 import math
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.link import dji_open
-from hil.link.mavlink import decode_frame, mav
+from hil.link.protocols import Decoded, decode
 from hil.link.tlog import scan_tlog
 
-#: DJI OPEN frames the FC sends (besides every ACK): pushed flight data, and the lockstep's tick
-FC_SENT_DJI: frozenset[tuple[int, int]] = frozenset(
-    {(dji_open.SET_BROADCAST, dji_open.CMD_FLIGHT_DATA), (dji_open.SET_BROADCAST, dji_open.CMD_CONTROL_LOST),
-     (dji_open.SET_BROADCAST, dji_open.CMD_SUBSCRIPTION_DATA), (dji_open.SET_HIL, dji_open.CMD_HIL_TICK)}
-)
-
+__all__ = ["Decoded", "decode", "main", "register"]
 
 SHOW_SKIPPED_BYTES = 16  # of a damaged spot, its first bytes are shown
 
@@ -36,48 +30,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "FLIGHT_DATA, ACK; shell wildcards, case ignored)")
     p.add_argument("--json", action="store_true", help="one JSON object a line (frames, and damaged spots)")
     p.set_defaults(func=main)
-
-
-@dataclass(frozen=True)
-class Decoded:
-    """One captured frame read: protocol, type name, sender ('fc' or 'peer'), one line and the fields."""
-
-    protocol: str
-    type: str
-    sender: str
-    text: str
-    fields: dict[str, Any]
-
-
-def decode(frame: bytes) -> Decoded:
-    """A captured frame (CRC checked) of either protocol, read. The sender of a MAVLink frame is its
-    source component (MAV_COMP_ID_AUTOPILOT1: the FC); of a DJI OPEN frame, its kind (the FC sends the
-    ACKs and the pushed data)."""
-    if frame[0] == dji_open.SOF:
-        return _decode_dji(frame)
-    try:
-        msg = decode_frame(frame)
-    except Exception as exc:  # a frame pymavlink cannot read: say so, go on
-        return Decoded("mavlink", "UNDECODED", "?", f"MAVLink frame not decoded ({type(exc).__name__}): "
-                       f"{frame.hex(' ')}", {})
-    sender = "fc" if msg.get_srcComponent() == mav.MAV_COMP_ID_AUTOPILOT1 else "peer"
-    fields = {k: v for k, v in msg.to_dict().items() if k != "mavpackettype"}
-    fields.update(src_system=msg.get_srcSystem(), src_component=msg.get_srcComponent(), seq=msg.get_seq(),
-                  signed=bool(frame[0] == 0xFD and frame[2] & mav.MAVLINK_IFLAG_SIGNED))
-    return Decoded("mavlink", msg.get_type(), sender, "MAVLink " + str(msg), fields)
-
-
-def _decode_dji(frame: bytes) -> Decoded:
-    f = dji_open.decode(frame)
-    if f.is_ack:
-        kind, sender = "ACK", "fc"
-    else:
-        name = dji_open.COMMAND_NAMES.get((f.cmd_set, f.cmd_id))
-        kind = name.upper().replace(" ", "_").replace("/", "_") if name else \
-            f"0X{f.cmd_set:02X}_0X{f.cmd_id:02X}"
-        sender = "fc" if (f.cmd_set, f.cmd_id) in FC_SENT_DJI else "peer"
-    fields = {"session": f.session, "seq": f.seq, "ack": f.is_ack, "enc": f.enc, "data": f.data.hex()}
-    return Decoded("dji_open", kind, sender, "DJI " + dji_open.describe(frame), fields)
 
 
 def _wanted(types: str | None) -> list[str] | None:

@@ -18,30 +18,22 @@ import numpy as np
 
 from emulator.assembly import assemble, warm_up
 from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
-from emulator.fc import EmulatedVehicle, FcConfig, MavlinkServer, RealtimeRunner, ServerConfig, resting_state
+from emulator.fc import FcConfig, RealtimeRunner, ServerConfig, resting_state
 from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
 from emulator.fc.params import describe, param_def, read_param_file
+from emulator.fc.server import FC_SERVERS
 from emulator.fc.tuning import fc_gains
 from emulator.mocap import MocapConfig
-from emulator.mocap_link import MocapLinkServer
 from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
+from emulator.standalone import GAPS, loop_links
 from emulator.uwb import UwbConfig
-from emulator.world import CrossingTracker, Gap, World
 from hil.commands import port_number, say_if_compiling
 from hil.link.clock import WallClock
 from hil.link.endpoint import open_link, parse_endpoint
-from hil.link.mavlink import mav, parse_signing_key
+from hil.link.mavlink import parse_signing_key
 from hil.link.tlog import TlogWriter
 from hil.runner.realtime import WireWatch
-
-#: built-in gaps and where the vehicle starts (x, y on the ground, m): the paper's test case (centre
-#: (0, 0.5, 2.1) m, rolled -60 deg, start (-2, -1)), or a level gap at (0, 0, 1.5) m
-GAPS: dict[str, tuple[Gap, tuple[float, float]]] = {
-    "paper": (Gap(centre_m=(0.0, 0.5, 2.1), roll_rad=math.radians(-60.0)), (-2.0, -1.0)),
-    "level": (Gap(), (-2.0, 0.0)),
-}
-GAP_SAMPLE_S = 0.01  # collision and crossing checks at 100 Hz
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -81,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="FC parameters to load (NAME VALUE lines, MAVProxy's or QGroundControl's files); "
         "MAV_CMD_PREFLIGHT_STORAGE writes the values in force back to it",
     )
-    p.add_argument("--protocol", default="mavlink", choices=("mavlink", "dji-open"),
+    p.add_argument("--protocol", default="mavlink", choices=[n.replace("_", "-") for n in FC_SERVERS],
                    help="what the command link speaks: MAVLink 2 (default) or DJI's OPEN protocol (as an N3)")
     p.add_argument("--activation-code", type=int, default=0, metavar="CODE",
                    help="dji-open: answer every activation with this documented code (0 accepts, default; "
@@ -110,49 +102,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
-class MocapPoll:
-    """Feeds the true vehicle and gap poses to the mocap-over-UWB link when it has something due."""
-
-    def __init__(self, vehicle: EmulatedVehicle, server: MocapLinkServer, gap: Gap | None) -> None:
-        self.vehicle, self.server, self.gap = vehicle, server, gap
-
-    def poll(self, now_s: float) -> None:
-        if now_s >= self.server.next_event_s():
-            self.server.update(now_s, self.vehicle.state, self.gap)
-
-
 def _serial_stats(link: object) -> dict[str, int] | None:
     """A serial link's unplugs and replugs (None for other links)."""
     link = getattr(link, "inner", link)  # (under its UART pacing)
     if not hasattr(link, "disconnects"):
         return None
     return {"disconnects": link.disconnects, "reconnects": link.reconnects}  # type: ignore[attr-defined]
-
-
-class GapWatch:
-    """Samples the vehicle against the gap world and reports crossings and collisions as STATUSTEXT."""
-
-    def __init__(self, vehicle: EmulatedVehicle, world: World, server: MavlinkServer | DjiOpenServer) -> None:
-        self.vehicle, self.server = vehicle, server
-        self.tracker = CrossingTracker(world)
-        self._next_s = 0.0
-        self._reported_collision = False
-
-    def poll(self, now_s: float) -> None:
-        if now_s < self._next_s:
-            return
-        self._next_s = now_s + GAP_SAMPLE_S
-        if self.vehicle.fc.landed:  # resting on the ground is no collision
-            return
-        s = self.vehicle.state
-        crossing = self.tracker.update(s.time_s + 1e-9 * self.tracker.samples, s.pos_m, s.quat_wxyz)
-        if crossing is not None:
-            where = "through the gap" if crossing.through_opening else "outside the gap"
-            self.server.statustext(mav.MAV_SEVERITY_INFO, f"Crossed the wall {where}", now_s, key="crossing")
-        hit = self.tracker.first_collision
-        if hit is not None and not self._reported_collision:
-            self._reported_collision = True
-            self.server.statustext(mav.MAV_SEVERITY_CRITICAL, f"Collision: {hit.obstacle}", now_s)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -258,12 +213,9 @@ def main(args: argparse.Namespace) -> int:
         vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
         if isinstance(server, DjiOpenServer):  # (MAVLink says it in a STATUSTEXT)
             server.on_capped = _say_capped
-        links: list = [server]
-        if emu.world is not None:
-            links.append(GapWatch(vehicle, emu.world, server))
+        links = loop_links(emu, gap)
         endpoints = {"command_link": link.endpoint, "protocol": protocol}
         if mocap is not None and mocap_link is not None:
-            links.append(MocapPoll(vehicle, mocap, gap))
             endpoints["mocap_link"] = mocap_link.endpoint
         fds = [link.fileno()] if _has_fileno(link) else []
         wire = WireWatch(server, mocap)

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from emulator.physics import backend_names
 from hil.commands import output_folder, port_number, say_if_compiling
+from hil.link.protocols import PROTOCOLS
 from hil.runner import RunOptions, RunResult, RunSetupError, run_scenario
 from hil.runner.emulator_side import EmulatorSide
 from hil.scenario import ScenarioError, load_scenarios
@@ -51,7 +52,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--protocol",
         default=None,
-        choices=("mavlink", "dji_open"),
+        choices=PROTOCOLS.keys(),
         help="the command link's protocol instead of the scenario's (docs/dji-open-link.md)",
     )
     p.add_argument(

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import crcmod
 
@@ -656,6 +656,35 @@ COMMAND_NAMES: dict[tuple[int, int], str] = {
     (SET_HIL, CMD_HIL_TICK): "hil tick",
     (SET_HIL, CMD_HIL_ANSWER): "hil tick answer",
 }
+
+
+#: frames the FC sends (besides every ACK): pushed flight data, and the lockstep's tick
+FC_SENT: frozenset[tuple[int, int]] = frozenset(
+    {(SET_BROADCAST, CMD_FLIGHT_DATA), (SET_BROADCAST, CMD_CONTROL_LOST),
+     (SET_BROADCAST, CMD_SUBSCRIPTION_DATA), (SET_HIL, CMD_HIL_TICK)}
+)
+
+
+def good_frame_at(data: bytes, j: int) -> bytes | None:
+    """The whole, CRC-checked frame that starts at ``data[j]``, or None."""
+    size = frame_size(data, j)
+    frame = data[j : j + size]
+    return frame if size > 0 and len(frame) == size and crc32(frame) == 0 else None
+
+
+def describe_frame(frame: bytes) -> tuple[str, str, str, dict[str, Any]]:
+    """A captured (CRC-checked) frame read for a person: its kind (ACK, or the command's name in capitals),
+    sender ('fc' for ACKs and what the FC pushes; else 'peer'), one line (`describe`) and the fields."""
+    f = decode(frame)
+    if f.is_ack:
+        kind, sender = "ACK", "fc"
+    else:
+        name = COMMAND_NAMES.get((f.cmd_set, f.cmd_id))
+        kind = name.upper().replace(" ", "_").replace("/", "_") if name else \
+            f"0X{f.cmd_set:02X}_0X{f.cmd_id:02X}"
+        sender = "fc" if (f.cmd_set, f.cmd_id) in FC_SENT else "peer"
+    fields = {"session": f.session, "seq": f.seq, "ack": f.is_ack, "enc": f.enc, "data": f.data.hex()}
+    return kind, sender, "DJI " + describe(frame), fields
 
 
 def describe(frame: bytes) -> str:

@@ -15,10 +15,11 @@ drops what was written before) is sent again after `RESEND_FILLER`; the program 
 acts on a tick once.
 
 The convention's logic is in plain values (`tick_request_s`, `tick_answer_ns`, `mocap_count`); its
-frames on each command-link protocol are at the end of this module (`FRAMINGS`): MAVLink 2 as above,
-and DJI's OPEN protocol, where the tick is one frame of command set `SET_HIL` (0xFE, which DJI does not
-use, so an Onboard SDK program never sees it) on session 0: id 0x00 carries the tick time (i64 ns) and
-the mocap total (u32), id 0x01 the answer (i64 ns), read through the same plain-value functions.
+frames on each command-link protocol are at the end of this module (`mavlink_framing`, `dji_framing`, read
+through `hil.link.protocols`): MAVLink 2 as above, and DJI's OPEN protocol, where the tick is one frame of
+command set `SET_HIL` (0xFE, which DJI does not use, so an Onboard SDK program never sees it) on session
+0: id 0x00 carries the tick time (i64 ns) and the mocap total (u32), id 0x01 the answer (i64 ns), read
+through the same plain-value functions.
 """
 
 from __future__ import annotations
@@ -176,12 +177,13 @@ class Framing:
     is_setpoint: Callable[[bytes], bool]
 
 
-def framing(protocol: str, system_id: int = 1, component_id: int = mav.MAV_COMP_ID_AUTOPILOT1) -> Framing:
-    """The framing of ``protocol`` ("mavlink" with the FC's ids, "dji_open"); ValueError otherwise."""
-    if protocol == "mavlink":
-        return Framing(lambda t, n: tick_frames(t, n, system_id, component_id), answered_ns, RESEND_FILLER,
-                       FrameSplitter, is_mavlink_setpoint)
-    if protocol == "dji_open":
-        return Framing(dji_tick_frames, dji_answered_ns, DJI_RESEND_FILLER, dji_open.FrameSplitter,
-                       is_dji_setpoint)
-    raise ValueError(f"command-link protocol must be mavlink or dji_open, got {protocol!r}")
+def mavlink_framing(system_id: int = 1, component_id: int = mav.MAV_COMP_ID_AUTOPILOT1) -> Framing:
+    """The lockstep's framing on MAVLink, the FC's ticks sent with its ids."""
+    return Framing(lambda t, n: tick_frames(t, n, system_id, component_id), answered_ns, RESEND_FILLER,
+                   FrameSplitter, is_mavlink_setpoint)
+
+
+def dji_framing(system_id: int = 1, component_id: int = 0) -> Framing:
+    """The lockstep's framing on DJI's OPEN protocol (which has no sender ids: they are not used)."""
+    return Framing(dji_tick_frames, dji_answered_ns, DJI_RESEND_FILLER, dji_open.FrameSplitter,
+                   is_dji_setpoint)

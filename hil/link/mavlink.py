@@ -435,6 +435,31 @@ def decode_frame(frame: bytes) -> MAVLinkMessage:
     return _DECODER.decode(bytearray(frame))
 
 
+#: the first byte of every MAVLink 2 and 1 frame
+START_BYTES = frozenset({MAVLINK_V2_MAGIC, MAVLINK_V1_MAGIC})
+
+
+def good_frame_at(data: bytes, j: int) -> bytes | None:
+    """The whole, CRC-checked MAVLink frame that starts at ``data[j]``, or None."""
+    size = frame_size(data, j)
+    frame = data[j : j + size]
+    return frame if size > 0 and frame_ok(frame) else None
+
+
+def describe_frame(frame: bytes) -> tuple[str, str, str, dict[str, Any]]:
+    """A captured (CRC-checked) frame read for a person: message type, sender ('fc': the autopilot
+    component; else 'peer'), one line and the fields; a frame pymavlink cannot read is UNDECODED."""
+    try:
+        msg = decode_frame(frame)
+    except Exception as exc:  # a frame pymavlink cannot read: say so, go on
+        return "UNDECODED", "?", f"MAVLink frame not decoded ({type(exc).__name__}): {frame.hex(' ')}", {}
+    sender = "fc" if msg.get_srcComponent() == mav.MAV_COMP_ID_AUTOPILOT1 else "peer"
+    fields = {k: v for k, v in msg.to_dict().items() if k != "mavpackettype"}
+    fields.update(src_system=msg.get_srcSystem(), src_component=msg.get_srcComponent(), seq=msg.get_seq(),
+                  signed=bool(frame[0] == 0xFD and frame[2] & mav.MAVLINK_IFLAG_SIGNED))
+    return msg.get_type(), sender, "MAVLink " + str(msg), fields
+
+
 # --- frames: world ENU / body FLU inside, NED / FRD on the wire ------------------------------
 _SQRT_HALF = math.sqrt(0.5)
 _Q_ENU_NED = np.array([0.0, _SQRT_HALF, _SQRT_HALF, 0.0])  # pi about (x+y): swaps NED <-> ENU

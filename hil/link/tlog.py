@@ -10,8 +10,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
-from hil.link import dji_open
-from hil.link.mavlink import frame_ok, frame_size
+from hil.link.protocols import frame_at
 
 FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
 
@@ -83,14 +82,15 @@ class TlogScan:
 
 def scan_tlog(data: bytes) -> TlogScan:
     """The records of a .tlog's bytes, resynchronising past damage (a cut tail, a flipped byte): a record
-    is taken where a timestamp is followed by a whole frame of either protocol whose CRC is good; bytes
-    that start no such record are skipped a byte at a time and reported, as mavlogdump does."""
+    is taken where a timestamp is followed by a whole frame, its CRC good, of a registered protocol
+    (`hil.link.protocols`); bytes that start no such record are skipped a byte at a time and reported,
+    as mavlogdump does."""
     records: list[tuple[int, bytes]] = []
     skipped: list[tuple[int, int]] = []
     i, n, bad_from = 0, len(data), -1
     while i + 8 < n:
         j = i + 8
-        frame = _good_frame(data, j)
+        frame = frame_at(data, j)
         if frame is None:
             if bad_from < 0:
                 bad_from = i
@@ -105,17 +105,6 @@ def scan_tlog(data: bytes) -> TlogScan:
     if start < n:
         skipped.append((start, n - start))
     return TlogScan(records, skipped)
-
-
-def _good_frame(data: bytes, j: int) -> bytes | None:
-    """The whole, CRC-checked MAVLink or DJI OPEN frame that starts at ``data[j]``, or None."""
-    if data[j] == dji_open.SOF:
-        size = dji_open.frame_size(data, j)
-        frame = data[j : j + size]
-        return frame if size > 0 and len(frame) == size and dji_open.crc32(frame) == 0 else None
-    size = frame_size(data, j)
-    frame = data[j : j + size]
-    return frame if size > 0 and frame_ok(frame) else None
 
 
 def read_tlog(path: str | Path) -> list[tuple[int, bytes]]:

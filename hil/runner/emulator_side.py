@@ -31,8 +31,8 @@ from emulator.profile import VehicleProfile
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume
 from hil.link.clock import SimClock
-from hil.link.lockstep import framing
 from hil.link.mavlink import mav
+from hil.link.protocols import framing
 from hil.link.tlog import TlogWriter
 from hil.link.transport import Transport
 from hil.runner.faults import FaultSchedule

@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from emulator.fc import MavlinkServer
+from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
 from hil.link.clock import GapStats, PacingStats
 from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
@@ -28,7 +28,7 @@ POLL_S = 0.001  # the loop wakes at least this often (s)
 class WireWatch:
     """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
 
-    def __init__(self, server: MavlinkServer, mocap: MocapLinkServer | None) -> None:
+    def __init__(self, server: FcServer, mocap: MocapLinkServer | None) -> None:
         self.server, self.mocap = server, mocap
         self.setpoints, self.mocap_frames = GapStats(), GapStats()
 

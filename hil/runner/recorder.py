@@ -12,8 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from emulator.fc import FcState, FlightController, MavlinkServer
+from emulator.fc import FcState, FlightController
 from emulator.fc.n3 import AttitudeThrustTarget
+from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
 from emulator.profile import VehicleProfile
@@ -210,7 +211,7 @@ class Recorder:
         t: float,
         x: np.ndarray,
         fc: FlightController,
-        server: MavlinkServer,
+        server: FcServer,
         mocap: MocapLinkServer,
     ) -> None:
         """Take the sample at sim time ``t`` (s) of the state ``x`` (a flat `VehicleState.to_vector`

@@ -20,7 +20,8 @@ import numpy as np
 
 from hil.link.channel import Channel, ChannelModel, UartWire
 from hil.link.clock import SimClock
-from hil.link.lockstep import Framing, framing
+from hil.link.lockstep import Framing
+from hil.link.protocols import framing
 from hil.link.transport import Transport, wait_readable
 from hil.runner.faults import FaultSchedule
 from hil.scenario.schema import LinkSpec

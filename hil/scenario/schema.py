@@ -12,6 +12,7 @@ import math
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
+from hil.link.protocols import PROTOCOLS
 from hil.scenario.fault_kinds import NoParams, fault_kind
 from hil.scenario.spec import Vec3, spec
 
@@ -129,8 +130,9 @@ class LinkSpec:
     burst: BurstLoss | None = spec(None, doc="burst loss on top of `loss`; null: none")
 
 
-#: the command link's protocols: MAVLink 2 (PX4-flavoured) or DJI's OPEN protocol (Onboard SDK 3.x)
-COMMAND_PROTOCOLS = ("mavlink", "dji_open")
+#: the command link's protocols, a live view of `hil.link.protocols.PROTOCOLS` (MAVLink 2, PX4-flavoured;
+#: DJI's OPEN protocol, Onboard SDK 3.x; any registered later)
+COMMAND_PROTOCOLS = PROTOCOLS.keys()
 
 
 @dataclass(frozen=True)

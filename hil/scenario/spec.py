@@ -3,6 +3,7 @@ which the loader validates against and the format document is checked against.""
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import MISSING, field
 from typing import Any
 
@@ -17,7 +18,7 @@ def spec(
     hi: float | None = None,
     lo_open: bool = False,
     hi_open: bool = False,
-    choices: tuple[str, ...] = (),
+    choices: Collection[str] = (),
     doc: str = "",
 ) -> Any:
     """A dataclass field carrying its validation limits (``lo``/``hi`` inclusive unless ``*_open``)."""

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, MavlinkServer
+from emulator.fc import EmulatedVehicle
+from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
 from emulator.world import World
 from hil.runner.flight_quality import mission_plan
@@ -83,7 +84,7 @@ class LiveSource:
     program's event log (JSON lines) to take the plan and an abort from; ``faults`` answers which
     faults act (`hil.runner.faults.FaultSchedule`)."""
 
-    def __init__(self, vehicle: EmulatedVehicle, server: MavlinkServer, mocap: MocapLinkServer | None,
+    def __init__(self, vehicle: EmulatedVehicle, server: FcServer, mocap: MocapLinkServer | None,
                  world: World | None, *, title: str, lock: threading.Lock | None = None,
                  events_path: Path | None = None, faults: Any = None, links: dict[str, Any] | None = None,
                  ) -> None:

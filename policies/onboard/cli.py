@@ -10,6 +10,7 @@ from types import FrameType
 
 from hil.link.endpoint import open_link
 from hil.link.transport import LinkError
+from policies.onboard.command_links import COMMAND_LINKS
 from policies.onboard.estimator import EstimatorConfig
 from policies.onboard.pilots import PILOTS
 from policies.onboard.program import EXIT_ERROR, MIN_RATE_HZ, EventLog, OnboardProgram, ProgramConfig
@@ -33,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--command-link", required=True, metavar="SPEC",
                    help="link to the FC (MAVLink, or DJI OPEN with --fc-protocol dji-open), e.g. "
                         "serial:/dev/pts/5:921600 or udpout:127.0.0.1:14550")
-    p.add_argument("--fc-protocol", default=d.fc_protocol, choices=("mavlink", "dji-open", "dji_open"),
+    aliases = [n.replace("_", "-") for n in COMMAND_LINKS if "_" in n]  # dji-open as well as dji_open
+    p.add_argument("--fc-protocol", default=d.fc_protocol, choices=[*COMMAND_LINKS, *aliases],
                    help="what the FC speaks on the command link: MAVLink 2 (default) or DJI's OPEN protocol")
     p.add_argument("--mocap-link", required=True, metavar="SPEC",
                    help="mocap (LinkTrack) link, e.g. serial:/dev/pts/6:921600 or udp:127.0.0.1:14660")

@@ -58,8 +58,7 @@ from policies.gap_planning import (
     start_height,
 )
 from policies.mocap_reader import MocapReader
-from policies.onboard.command_link import CommandLink
-from policies.onboard.dji_command_link import DjiCommandLink
+from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
 from policies.onboard.estimator import (
     EstimatorConfig,
     PoseEstimator,
@@ -71,8 +70,6 @@ from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
-#: the command link's protocols (what the FC speaks) -> the program's client of it
-COMMAND_LINKS: dict[str, type[CommandLink]] = {"mavlink": CommandLink, "dji_open": DjiCommandLink}
 MIN_RATE_HZ = 50.0  # the N3 expects setpoints at 50 Hz at least
 HEARTBEAT_REQUEST_S = 0.1  # how often the FC's heartbeat is asked for until one comes (s)
 VEHICLE_BODY_ID = BODY_IDS["vehicle"]  # the mocap body whose poses feed the estimator
@@ -253,7 +250,7 @@ class _Request:
         self.next_send_s = now_s
         self.tries = 0
 
-    def update(self, link: CommandLink, now_s: float) -> bool | None:
+    def update(self, link: OnboardLink, now_s: float) -> bool | None:
         """True when done, False when timed out, None while pending (sends or resends as due)."""
         ack = link.acks.get(self.command)
         if ack is not None and ack.accepted and self.done():
@@ -275,7 +272,7 @@ class OnboardProgram:
                  events: EventLog | None = None) -> None:
         self.config = cfg = config or ProgramConfig()
         self.clock = ProgramClock()
-        self.link = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
+        self.link: OnboardLink = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
         self.estimator = PoseEstimator(cfg.estimator, cfg.full_thrust_n / cfg.mass_kg + GRAVITY_M_S2)
         noise_jump_m = plausible_jump_m(0.0, 0.0, 0.0, cfg.estimator.jump_sigmas, cfg.estimator.pos_noise_m)
