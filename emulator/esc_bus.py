@@ -432,7 +432,8 @@ class CanBus:
     def deliver_head(self) -> None:
         """Deliver the transfer at the head of the queue through Python: one the compiled nodes cannot
         take alone (a message from Python, a frame from a real bus, a real bus or a listener to serve)."""
-        self.flush_outbox()  # (what went before it goes out first)
+        if self.bridge is not None:
+            self.flush_outbox()  # (what went before it goes out first)
         row = self._row
         k.pop_head(self.wire, self.queue, row)
         kind, src, done = int(row[k.Q_KIND]), int(row[k.Q_SRC]), float(row[k.Q_DONE_S])
@@ -523,7 +524,8 @@ class CanBus:
 
     def flush_events(self) -> None:
         """Hand what the compiled nodes have to say to ``on_events``, and send their outbox."""
-        self.flush_outbox()
+        if self.bridge is not None:
+            self.flush_outbox()
         n = int(self.fc[k.F_EVENTS])
         if n:
             rows = self.events[:n].copy()
@@ -889,7 +891,8 @@ class EscBusStepper:
                 f[k.F_QUIETED] = 0.0
                 fc.stepped_outside(float(f[k.F_QUIET_T]), float(f[k.F_QUIET_Z]), float(f[k.F_QUIET_VZ]))
             if why == k.DONE:
-                b.flush_outbox()  # (what the compiled nodes sent in the call, to the real bus)
+                if b.bridge is not None:
+                    b.flush_outbox()  # (what the compiled nodes sent in the call, to the real bus)
                 return
             if why == k.FOR_PYTHON:
                 b.deliver_head()
