@@ -48,6 +48,7 @@ DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`es
 #: wire could carry since the last pass (shortest frames back to back), at least the first, at most the
 #: second: a bound on the time a pass spends on them, whatever floods the real bus
 MIN_INTAKE_FRAMES, MAX_INTAKE_FRAMES = 64, 1024
+FRAMES_KEPT = 4096  # encoded messages kept for sending again (`CanBus._compiled_frames`)
 
 
 @dataclass
@@ -266,6 +267,7 @@ class CanBus:
         self.fc[k.F_NODE] = -1.0
         self.fc[k.F_NODES_DUE_S] = math.inf
         self.events = np.zeros((k.EVENT_ROWS, 4))
+        self.outbox = np.zeros((k.OUTBOX_ROWS, k.Q_SIZE))
         self.throttle = np.zeros(4)
         self._layouts: dict[tuple[Any, ...], tuple[int, ...]] = {}
         types = _kind_types()
@@ -283,6 +285,8 @@ class CanBus:
         #: frames, and whether they go out (an answer to a request) or came in from the real bus
         self._python: dict[int, tuple[Message | None, list[tuple[int, bytes]], bool]] = {}
         self._row = np.zeros(k.Q_SIZE)
+        self._objects = [dtype() for dtype in types]  # a DSDL object of each compiled kind, to encode on
+        self._frames: dict[tuple[float, ...], list[tuple[int, bytes]]] = {}  # (see `_compiled_frames`)
         self._rx = TransferManager()
         self._routes: list[tuple[int, Callable[[Message, float], None], tuple[Any, ...] | None]] = []
         self._by_type: dict[Any, list[tuple[int, Callable[[Message, float], None]]]] = {}  # (from _routes)
@@ -418,7 +422,7 @@ class CanBus:
         """Deliver every transfer whose frames are off the wire by ``t`` (s)."""
         while True:
             why = k.deliver(self.wire, self.queue, self.escs, self.health, self.fc, self.events,
-                            self.throttle, t)
+                            self.outbox, self.throttle, t)
             self.flush_events()
             if why == k.FOR_PYTHON:
                 self.deliver_head()
@@ -428,17 +432,18 @@ class CanBus:
     def deliver_head(self) -> None:
         """Deliver the transfer at the head of the queue through Python: one the compiled nodes cannot
         take alone (a message from Python, a frame from a real bus, a real bus or a listener to serve)."""
+        if self.bridge is not None:
+            self.flush_outbox()  # (what went before it goes out first)
         row = self._row
         k.pop_head(self.wire, self.queue, row)
         kind, src, done = int(row[k.Q_KIND]), int(row[k.Q_SRC]), float(row[k.Q_DONE_S])
         mask = int(row[k.Q_MASK])
         frames: list[tuple[int, bytes]] | None
         outgoing = True
-        if kind == k.PYTHON:
-            message, frames, outgoing = self._python.pop(int(row[k.Q_SEQ]))
-        else:
-            dtype = _kind_types()[kind]
-            message, frames = Message(dtype, src, _fields_of(kind, row[k.Q_PAYLOAD:])), None
+        if kind != k.PYTHON:  # a compiled node's message
+            self._deliver_compiled(kind, src, row, mask, done)
+            return
+        message, frames, outgoing = self._python.pop(int(row[k.Q_SEQ]))
         if message is None:
             if outgoing:  # an answer to a request: its frames that were not lost
                 self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
@@ -446,11 +451,50 @@ class CanBus:
                 self._take_in(*frames[0], done)
             return
         if self.bridge is not None:
-            if frames is None:
-                frames = message.encode(int(row[k.Q_TID]), int(row[k.Q_PRIORITY]))
             self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
         if row[k.Q_KEPT] == row[k.Q_FRAMES]:
             self._hand_out(message, done)
+
+    def _deliver_compiled(self, kind: int, src: int, row: np.ndarray, mask: int, done: float) -> None:
+        """A compiled node's transfer, off the wire: its frames to the real bus, the message to the
+        compiled nodes and the listeners when complete."""
+        payload = row[k.Q_PAYLOAD:]
+        if self.bridge is not None:
+            frames = self._compiled_frames(kind, src, int(row[k.Q_TID]), int(row[k.Q_PRIORITY]), payload)
+            self._send_out([f for i, f in enumerate(frames) if mask >> i & 1])
+        if row[k.Q_KEPT] != row[k.Q_FRAMES]:
+            return
+        if self.fc[k.F_NODE] >= 0:
+            k.hand_to_nodes(self.escs, self.health, self.fc, self.events, self.throttle, kind, src, payload,
+                            done)
+            self.flush_events()
+        dtype = _kind_types()[kind]
+        receivers = self._receivers(dtype)
+        if receivers:
+            message = Message(dtype, src, _fields_of(kind, payload))
+            for nid, on_message in receivers:
+                if nid != src:
+                    on_message(message, done)
+
+    def _compiled_frames(self, kind: int, src: int, tid: int, priority: int,
+                         payload: np.ndarray) -> list[tuple[int, bytes]]:
+        """A compiled node's message as dronecan cuts it into frames. dronecan's encoding is pure Python
+        (a few hundred us a message): a message the same as one sent before (an idle motor's command,
+        a resting ESC's status) takes the frames kept from then; the others are encoded on a DSDL
+        object kept for the kind (setting its fields costs less than building one)."""
+        key = (kind, src, tid, priority, *payload.tolist())
+        frames = self._frames.get(key)
+        if frames is None:
+            from dronecan.transport import Transfer
+
+            if len(self._frames) >= FRAMES_KEPT:
+                self._frames.clear()
+            obj = self._objects[kind]
+            for name, value in _fields_of(kind, payload).items():
+                setattr(obj, name, value)
+            tr = Transfer(payload=obj, source_node_id=src, transfer_id=tid, transfer_priority=priority)
+            frames = self._frames[key] = [(f.message_id, bytes(f.bytes)) for f in tr.to_frames()]
+        return frames
 
     def _take_in(self, can_id: int, data: bytes, t: float) -> None:
         """A frame from the real bus off the model's wire at ``t`` (s): once its transfer is complete, a
@@ -479,12 +523,29 @@ class CanBus:
                            request.transfer_priority, t)
 
     def flush_events(self) -> None:
-        """Hand what the compiled nodes have to say to ``on_events``."""
+        """Hand what the compiled nodes have to say to ``on_events``, and send their outbox."""
+        if self.bridge is not None:
+            self.flush_outbox()
         n = int(self.fc[k.F_EVENTS])
         if n:
             rows = self.events[:n].copy()
             self.fc[k.F_EVENTS] = 0.0
             self.on_events(rows)
+
+    def flush_outbox(self) -> None:
+        """Send the compiled nodes' transfers delivered since the last flush to the real bus, in order
+        (each one's frames that were not lost)."""
+        n = int(self.wire[k.W_OUTBOX])
+        if not n:
+            return
+        self.wire[k.W_OUTBOX] = 0.0
+        frames: list[tuple[int, bytes]] = []
+        for row in self.outbox[:n]:
+            mask = int(row[k.Q_MASK])
+            cut = self._compiled_frames(int(row[k.Q_KIND]), int(row[k.Q_SRC]), int(row[k.Q_TID]),
+                                        int(row[k.Q_PRIORITY]), row[k.Q_PAYLOAD:])
+            frames.extend(f for i, f in enumerate(cut) if mask >> i & 1)
+        self._send_out(frames)
 
     def _send_out(self, frames: list[tuple[int, bytes]]) -> None:
         if self.bridge is not None:
@@ -515,13 +576,17 @@ class CanBus:
             k.hand_to_nodes(self.escs, self.health, self.fc, self.events, self.throttle, kind, src,
                             _payload_of(kind, message.fields), t)
             self.flush_events()
-        receivers = self._by_type.get(message.dtype)
-        if receivers is None:
-            receivers = self._by_type[message.dtype] = [
-                (nid, fn) for nid, fn, dtypes in self._routes if dtypes is None or message.dtype in dtypes]
-        for nid, on_message in receivers:
+        for nid, on_message in self._receivers(message.dtype):
             if nid != src:
                 on_message(message, t)
+
+    def _receivers(self, dtype: Any) -> list[tuple[int, Callable[[Message, float], None]]]:
+        """The listeners attached from Python that take ``dtype``."""
+        receivers = self._by_type.get(dtype)
+        if receivers is None:
+            receivers = self._by_type[dtype] = [
+                (nid, fn) for nid, fn, dtypes in self._routes if dtypes is None or dtype in dtypes]
+        return receivers
 
     def load(self, now_s: float) -> float:
         """Fraction of the time since the first frame the wire was busy."""
@@ -703,8 +768,8 @@ class EscBus:
         rotor = np.asarray(rotor_speed_rad_s, dtype=np.float64)
         while True:
             b.ready()
-            why = k.poll(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
-                         b.throttle, rotor, t, armed)
+            why = k.poll(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.outbox, b.layouts,
+                         b.n_frames, b.throttle, rotor, t, armed)
             b.flush_events()
             if why == k.FOR_PYTHON:
                 b.deliver_head()
@@ -716,8 +781,8 @@ class EscBus:
         scheduled, what is due delivered."""
         b = self.bus
         b.ready()
-        why = k.command(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.layouts, b.n_frames,
-                        b.throttle, np.asarray(throttles, dtype=np.float64), t)
+        why = k.command(b.wire, b.queue, b.draws, b.escs, b.health, b.fc, b.events, b.outbox, b.layouts,
+                        b.n_frames, b.throttle, np.asarray(throttles, dtype=np.float64), t)
         b.flush_events()
         if why != k.DONE:  # (a delivery for Python, or events taken before the rest is delivered)
             b.advance_to(t)
@@ -769,21 +834,22 @@ class EscBusStepper:
         inner = v.fc.inner
         wire, queue, fc = b.wire.copy(), b.queue.copy(), b.fc.copy()
         escs, health, events, throttle = b.escs.copy(), b.health.copy(), b.events.copy(), b.throttle.copy()
+        outbox = b.outbox.copy()
         x = v.state_vector()
         aux, p = (self._arrays[1].copy(), self._arrays[2]) if self._arrays is not None else (x, x)
-        k.run(x, aux, p, self._arrays is not None, wire, queue, b.draws, escs, health, fc, events, b.layouts,
-              b.n_frames, throttle, self._target, inner.params, inner.mix_inv, inner.motor_cmd.copy(), 0, 0.0,
-              0, v.dt_s, False)
-        k.poll(wire, queue, b.draws, escs, health, fc, events, b.layouts, b.n_frames, throttle, x[13:17],
-               -1.0, False)
-        k.command(wire, queue, b.draws, escs, health, fc, events, b.layouts, b.n_frames, throttle,
+        k.run(x, aux, p, self._arrays is not None, wire, queue, b.draws, escs, health, fc, events, outbox,
+              b.layouts, b.n_frames, throttle, self._target, inner.params, inner.mix_inv,
+              inner.motor_cmd.copy(), 0, 0.0, 0, v.dt_s, False)
+        k.poll(wire, queue, b.draws, escs, health, fc, events, outbox, b.layouts, b.n_frames, throttle,
+               x[13:17], -1.0, False)
+        k.command(wire, queue, b.draws, escs, health, fc, events, outbox, b.layouts, b.n_frames, throttle,
                   np.zeros(4), -1.0)
         k.pop_head(wire, queue, np.zeros(k.Q_SIZE))
         k.hand_to_nodes(escs, health, fc, events, throttle, k.RAW_COMMAND, -1.0, np.zeros(k.PAYLOAD), -1.0)
         k.queue_transfer(wire, queue, b.draws, k.PYTHON, 0, 0, 0, self._none, np.zeros(1, dtype=np.int64), 1,
                          -1.0)
         k.next_event_s(wire, queue, fc)
-        k.deliver(wire, queue, escs, health, fc, events, throttle, -1.0)
+        k.deliver(wire, queue, escs, health, fc, events, outbox, throttle, -1.0)
         k.send_command(wire, queue, b.draws, b.layouts, b.n_frames, fc, np.zeros(4), -1.0)
 
     def step(self, n_steps: int) -> None:
@@ -814,7 +880,7 @@ class EscBusStepper:
                 aux = p = x
                 t0, steps0 = v.time_s, 0
             taken, why = k.run(x, aux, p, native, b.wire, b.queue, b.draws, b.escs, b.health, f, b.events,
-                               b.layouts, b.n_frames, b.throttle, tg, inner.params, inner.mix_inv,
+                               b.outbox, b.layouts, b.n_frames, b.throttle, tg, inner.params, inner.mix_inv,
                                inner.motor_cmd, n_steps, t0, steps0, dt, armed)
             if taken:
                 be.advance_clock(taken)
@@ -825,6 +891,8 @@ class EscBusStepper:
                 f[k.F_QUIETED] = 0.0
                 fc.stepped_outside(float(f[k.F_QUIET_T]), float(f[k.F_QUIET_Z]), float(f[k.F_QUIET_VZ]))
             if why == k.DONE:
+                if b.bridge is not None:
+                    b.flush_outbox()  # (what the compiled nodes sent in the call, to the real bus)
                 return
             if why == k.FOR_PYTHON:
                 b.deliver_head()

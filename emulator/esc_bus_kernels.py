@@ -13,6 +13,7 @@ State lives in flat float64 arrays whose layouts are the index constants below:
 - ``escs`` (4 or 0, `E_SIZE`), ``health`` (4 or 0, `H_SIZE`): the ESC nodes and what the FC knows of
   each; ``fc`` (`F_SIZE`,): the FC's node, its command schedule and the stepper's counters;
 - ``events`` (`EVENT_ROWS`, 4): what the nodes have to say through the FC (code, ESC index, value, t);
+- ``outbox`` (`OUTBOX_ROWS`, `Q_SIZE`): transfers delivered that the caller sends to a real bus;
 - ``layouts`` (`N_KINDS`, `MAX_FRAMES`) and ``n_frames`` (`N_KINDS`,): each message kind's frame
   lengths, as dronecan's transport cuts it; ``throttle`` (4,): what each ESC drives its motor at.
 
@@ -52,8 +53,10 @@ PAYLOAD = 8  # payload values of a queued transfer
 # wire
 (W_FREE_S, W_BIT_S, W_LOSS, W_EXTRA_LOSS, W_CORRUPTION, W_BUS_OFF_UNTIL_S, W_START_S, W_FRAMES, W_BITS,
  W_BUSY_S, W_LOST, W_ERROR_FRAMES, W_BUS_OFF_DROPPED, W_SEQ, W_HEAD, W_COUNT, W_EXTERNAL_IN,
- W_EXTERNAL_OUT, W_DRAW_AT, W_BRIDGE, W_LISTEN) = range(21)
+ W_EXTERNAL_OUT, W_DRAW_AT, W_BRIDGE, W_OUTBOX, W_LISTEN) = range(22)
 W_SIZE = W_LISTEN + N_KINDS  # W_LISTEN + kind: a Python listener takes that kind
+#: rows of ``outbox``: the compiled nodes' transfers delivered for a real bus, for the caller to send
+OUTBOX_ROWS = 64
 # queue columns
 Q_DONE_S, Q_SEQ, Q_KIND, Q_SRC, Q_KEPT, Q_FRAMES, Q_MASK, Q_TID, Q_PRIORITY, Q_PAYLOAD = range(10)
 Q_SIZE = Q_PAYLOAD + PAYLOAD
@@ -239,14 +242,15 @@ def hand_to_nodes(escs, health, fc, events, throttle, kind, src, payload, t):  #
 @njit(cache=True)
 def _needs_caller(wire, row):  # pragma: no cover
     kind = int(row[Q_KIND])
-    return kind == PYTHON or wire[W_BRIDGE] != 0 or wire[W_LISTEN + kind] != 0
+    return kind == PYTHON or wire[W_LISTEN + kind] != 0
 
 
 @njit(cache=True)
-def deliver(wire, queue, escs, health, fc, events, throttle, t):  # pragma: no cover
-    """Hand on every transfer off the wire by ``t`` (s) to the compiled nodes. Returns `DONE`, or stops
-    for the caller: `FOR_PYTHON` at a transfer it must see first (`_needs_caller`: it pops that one
-    itself), `EVENTS` when the events must be taken before more can come."""
+def deliver(wire, queue, escs, health, fc, events, outbox, throttle, t):  # pragma: no cover
+    """Hand on every transfer off the wire by ``t`` (s) to the compiled nodes, and with a real bus
+    (``W_BRIDGE``) copy it to ``outbox`` (``W_OUTBOX`` rows) for the caller to send. Returns `DONE`,
+    or stops for the caller: `FOR_PYTHON` at a transfer it must see first (`_needs_caller`: it pops
+    that one itself), `EVENTS` when the events or the outbox must be taken before more can come."""
     tmp = np.empty(Q_SIZE)
     while wire[W_COUNT] > 0:
         row = queue[int(wire[W_HEAD])]
@@ -256,7 +260,13 @@ def deliver(wire, queue, escs, health, fc, events, throttle, t):  # pragma: no c
             return FOR_PYTHON
         if fc[F_EVENTS] > EVENT_ROWS - EVENTS_A_POLL - EVENTS_A_DELIVERY:
             return EVENTS
+        bridged = wire[W_BRIDGE] != 0
+        if bridged and wire[W_OUTBOX] >= outbox.shape[0]:
+            return EVENTS
         pop_head(wire, queue, tmp)
+        if bridged:
+            outbox[int(wire[W_OUTBOX])] = tmp
+            wire[W_OUTBOX] += 1
         if tmp[Q_KEPT] == tmp[Q_FRAMES]:  # complete
             hand_to_nodes(escs, health, fc, events, throttle, int(tmp[Q_KIND]), tmp[Q_SRC],
                           tmp[Q_PAYLOAD:], tmp[Q_DONE_S])
@@ -384,13 +394,13 @@ def fc_poll(wire, queue, draws, layouts, n_frames, health, fc, events, t, armed)
 
 
 @njit(cache=True)
-def poll(wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle, rotor_w, t,
+def poll(wire, queue, draws, escs, health, fc, events, outbox, layouts, n_frames, throttle, rotor_w, t,
          armed):  # pragma: no cover
     """Everything due by ``t`` (s): transfers delivered, the nodes' reports, the FC's watch, the motors of
     ESCs outside this process (they follow the rpm they report). Returns `FOR_PYTHON` when a delivery
     waits for the caller (the nodes are polled after it, at the next call), `EVENTS` when the nodes
     have something to say (or must be heard before more is delivered), else `DONE`."""
-    why = deliver(wire, queue, escs, health, fc, events, throttle, t)
+    why = deliver(wire, queue, escs, health, fc, events, outbox, throttle, t)
     if why != DONE:
         return why
     if t >= fc[F_NODES_DUE_S] - 1e-12:
@@ -448,7 +458,7 @@ def send_command(wire, queue, draws, layouts, n_frames, fc, throttles, t):  # pr
 
 
 @njit(cache=True)
-def command(wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle, throttles,
+def command(wire, queue, draws, escs, health, fc, events, outbox, layouts, n_frames, throttle, throttles,
             t):  # pragma: no cover
     """The FC's motor tick at ``t`` (s): its outputs ``throttles`` sent, its next tick scheduled, what is
     due delivered. Returns what `deliver` stops for, `EVENTS` when the nodes have something to say, else
@@ -458,7 +468,7 @@ def command(wire, queue, draws, escs, health, fc, events, layouts, n_frames, thr
     fc[F_NEXT_COMMAND_S] += fc[F_COMMAND_PERIOD_S]
     if fc[F_NEXT_COMMAND_S] <= t:
         fc[F_NEXT_COMMAND_S] = t + fc[F_COMMAND_PERIOD_S]
-    why = deliver(wire, queue, escs, health, fc, events, throttle, t)
+    why = deliver(wire, queue, escs, health, fc, events, outbox, throttle, t)
     if why != DONE:
         return why
     return EVENTS if fc[F_EVENTS] > 0 else DONE
@@ -478,8 +488,8 @@ def _quiet_command(fc, target, x, t, dt):  # pragma: no cover
 
 
 @njit(cache=True)
-def run(x, aux, p, native, wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle, target,
-        gains, mix_inv, motor_out, n_steps, t0, steps0, dt, armed):  # pragma: no cover
+def run(x, aux, p, native, wire, queue, draws, escs, health, fc, events, outbox, layouts, n_frames, throttle,
+        target, gains, mix_inv, motor_out, n_steps, t0, steps0, dt, armed):  # pragma: no cover
     """Step the vehicle (state row ``x``, ``aux``, parameters ``p``: `NativeBackend.kernel_arrays`) with
     its motors behind the bus for up to ``n_steps`` physics steps of ``dt`` (s) from step ``steps0`` of a
     clock started at ``t0`` (s): the bus and its nodes polled at their events, the FC's motor tick at
@@ -496,8 +506,8 @@ def run(x, aux, p, native, wire, queue, draws, escs, health, fc, events, layouts
         event_s = next_event_s(wire, queue, fc)
         if t >= event_s - 1e-9:
             fc[F_POLLS] += 1
-            why = poll(wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle, x[13:17], t,
-                       armed)
+            why = poll(wire, queue, draws, escs, health, fc, events, outbox, layouts, n_frames, throttle,
+                       x[13:17], t, armed)
             if why != DONE:
                 return taken, why
             event_s = next_event_s(wire, queue, fc)
@@ -508,7 +518,7 @@ def run(x, aux, p, native, wire, queue, draws, escs, health, fc, events, layouts
                     gains, mix_inv, motor_out)
             fc[F_QUIET_T], fc[F_QUIET_Z], fc[F_QUIET_VZ], fc[F_QUIETED] = t, x[2], x[5], 1.0
             fc[F_QUIET_STEPS] += 1
-            why = command(wire, queue, draws, escs, health, fc, events, layouts, n_frames, throttle,
+            why = command(wire, queue, draws, escs, health, fc, events, outbox, layouts, n_frames, throttle,
                           motor_out, t)
             if why != DONE:
                 return taken, why

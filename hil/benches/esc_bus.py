@@ -1,9 +1,12 @@
-"""ESC bus figures: frames per second through the DroneCAN bus model, and the full stack's real-time
-factor with the motors on the bus beside the one without it, measured in the same run."""
+"""ESC bus figures: frames per second through the DroneCAN bus model, the FC's CPU time per simulated
+second with its motors directly, on the bus model and on the bus bridged to a real one, and the full
+stack's real-time factor with the motors on the bus beside the one without it, measured in the same run."""
 
 from __future__ import annotations
 
+import os
 import tempfile
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -11,13 +14,63 @@ from pathlib import Path
 import numpy as np
 
 from emulator.esc_bus import EscBus, EscBusConfig
+from emulator.fc import EmulatedVehicle, MavlinkServer
+from emulator.profile import GRAVITY_M_S2, load_profile
 from hil.benches import BenchRow, time_per_call
 from hil.benches.runner import RTF_SCENARIO
+from hil.link import MemoryTransport, SimClock
+from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, quat_from_euler
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
 from hil.scenario.schema import EscBusSpec
 
 RUNS = 3  # runs of each stack; the figure is their median
+#: the FC's motors: directly, behind the bus model, behind the model bridged to a real bus (a loopback
+#: multicast group of this bench's own: the frames are dronecan's bytes, sent and read back)
+MOTOR_PATHS = ("direct", "sim", "mcast")
+
+
+def fc_cpu_s_per_sim_s(path: str, sim_s: float) -> float:
+    """The FC's CPU time (s) per simulated second, hovering in OFFBOARD on 50 Hz attitude setpoints in
+    lockstep (1 kHz physics, the FC's loop at 400 Hz), with its motors on ``path`` (`MOTOR_PATHS`)."""
+    from emulator.esc_bus import Bridge, EscBusConfig, attach
+
+    profile = load_profile("n3_tx2")
+    clock = SimClock()
+    fc_end, gcs_end = MemoryTransport.pair()
+    vehicle = EmulatedVehicle(profile)
+    server = MavlinkServer(vehicle, MavlinkCodec(fc_end, clock, 1, 1))
+    client = MavlinkCodec(gcs_end, clock, 255, 190)
+    stepper = None
+    if path != "direct":
+        bridge = None if path == "sim" else Bridge(f"mcast:{os.getpid() % 200 + 50}", 1_000_000)
+        stepper = attach(vehicle, server, EscBusConfig(), np.random.default_rng(0), bridge)
+    hover = profile.mass_kg * GRAVITY_M_S2 / profile.n3_full_thrust_n
+    q = list(quat_from_euler(0.0, 0.0, 0.0))
+
+    def fly(seconds: float) -> None:
+        for _ in range(round(seconds / vehicle.dt_s)):
+            now = round(clock.now_s() + vehicle.dt_s, 9)
+            clock.advance_to(now)
+            if round(now * 1000) % 20 == 0:
+                client.send(client.mav.set_attitude_target_encode(0, 1, 1, 7, q, 0, 0, 0, 1.05 * hover))
+            server.poll(now)
+            vehicle.step_to(now)
+            client.receive()
+
+    try:
+        arm = mav.MAV_CMD_COMPONENT_ARM_DISARM
+        client.send(client.mav.command_long_encode(1, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))
+        fly(0.3)
+        client.send(client.mav.command_long_encode(1, 1, mav.MAV_CMD_DO_SET_MODE, 0, 129, PX4_MAIN_OFFBOARD,
+                                                   0, 0, 0, 0, 0))
+        fly(0.5)  # (in the air; every kernel compiled)
+        start = time.process_time()
+        fly(sim_s)
+        return (time.process_time() - start) / sim_s
+    finally:
+        if stepper is not None:
+            stepper.esc.close()
 
 
 def collect(quick: bool) -> Iterator[BenchRow]:
@@ -36,6 +89,17 @@ def collect(quick: bool) -> Iterator[BenchRow]:
         raise RuntimeError("bench: the RawCommands did not reach the ESC nodes")
     yield BenchRow("can_frames_per_s", 1.0 / per_frame, "frames/s",
                    "RawCommand (one frame) from the FC's node to its four ESC nodes through the bus model")
+    cpu: dict[str, list[float]] = {p: [] for p in MOTOR_PATHS}
+    for _ in range(1 if quick else 5):  # alternated: a busy spell of the machine meets each alike
+        for p in MOTOR_PATHS:
+            cpu[p].append(fc_cpu_s_per_sim_s(p, 1.0 if quick else 3.0))
+    cpu_med = {p: float(np.median(v)) * 1e3 for p, v in cpu.items()}
+    for p in MOTOR_PATHS:
+        spread = ", ".join(f"{x * 1e3:.1f}" for x in cpu[p])
+        yield BenchRow(f"fc_cpu_ms_per_sim_s_{p}", cpu_med[p], "ms", f"the FC hovering in lockstep, motors "
+                       f"{p}: CPU time per simulated second, median of alternated runs ({spread})")
+    yield BenchRow("esc_bus_bridge_share_ms_per_sim_s", cpu_med["mcast"] - cpu_med["sim"], "ms",
+                   "what bridging the bus model to a real bus (dronecan's bytes, loopback multicast) adds")
     base = loads_scenarios(RTF_SCENARIO)[0]
     on_bus = replace(base, links=replace(base.links, esc_bus=EscBusSpec()))
     runs = 1 if quick else RUNS

@@ -18,6 +18,7 @@ process's node ids is heard. A datagram that is not a frame of its format is cou
 
 from __future__ import annotations
 
+import binascii
 import contextlib
 import ipaddress
 import socket
@@ -50,9 +51,13 @@ class WireFormat:
 def _dronecan_format() -> WireFormat:
     # (dronecan loads every DSDL type on import, about 0.7 s: only for a bus that needs it)
     from dronecan.driver.mcast import MCAST_ADDRESS_BASE, MCAST_FLAG_CANFD, MCAST_MAGIC, MCAST_PORT
-    from dronecan.dsdl.common import crc16_from_bytes
 
     extended_flag = 1 << 31
+
+    def crc16_from_bytes(data: bytes) -> int:
+        # the datagram's CRC-16/CCITT-FALSE (polynomial 0x1021, initial 0xFFFF), as dronecan's driver
+        # computes it, by the standard library in C (dronecan's is Python, a tenth of a ms a datagram)
+        return binascii.crc_hqx(data, 0xFFFF)
 
     def encode(can_id: int, data: bytes) -> bytes:
         body = struct.pack("<HI", 0, can_id | extended_flag) + data
@@ -138,7 +143,7 @@ class McastCanSocket:
         if kind not in FORMATS:
             raise ValueError(f"multicast CAN bus {kind!r}: expected one of {', '.join(FORMATS)}")
         fmt = FORMATS[kind]()
-        self.format, self.interface, self.stats = fmt, interface, McastStats()
+        self.format, self.interface, self._stats = fmt, interface, McastStats()
         self.group = fmt.group_of(arg)
         try:
             if not ipaddress.IPv4Address(self.group).is_multicast:
@@ -178,17 +183,16 @@ class McastCanSocket:
         try:
             self._tx.send(self.format.encode(can_id, bytes(data)))
         except OSError:
-            self.stats.send_errors += 1
+            self._stats.send_errors += 1
             return False
-        self.stats.sent += 1
+        self._stats.sent += 1
         return True
 
     def receive(self, max_frames: int) -> tuple[list[Frame], bool]:
         """Up to ``max_frames`` frames from other processes, and whether more may be waiting (the caller
         takes them at its next pass; the socket holds them meanwhile)."""
         out: list[Frame] = []
-        st, decode = self.stats, self.format.decode
-        self._count_drops()
+        st, decode = self._stats, self.format.decode
         while len(out) < max_frames:
             try:
                 datagram, source = self._rx.recvfrom(MAX_DATAGRAM)
@@ -207,10 +211,14 @@ class McastCanSocket:
             out.append(frame)
         return out, True
 
-    def _count_drops(self) -> None:
+    @property
+    def stats(self) -> McastStats:
+        """Its counts, the socket's drops as the kernel counts them now (Linux; elsewhere 0)."""
         if sys.platform.startswith("linux"):
-            info = self._rx.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * SK_MEMINFO_VARS)
-            self.stats.dropped = struct.unpack_from(f"{SK_MEMINFO_VARS}I", info)[SK_MEMINFO_DROPS]
+            with contextlib.suppress(OSError):  # (a closed socket keeps the last count)
+                info = self._rx.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * SK_MEMINFO_VARS)
+                self._stats.dropped = struct.unpack_from(f"{SK_MEMINFO_VARS}I", info)[SK_MEMINFO_DROPS]
+        return self._stats
 
     def multicast_options(self) -> dict[str, object]:
         """The sending socket's multicast settings as the kernel holds them (interface, TTL, loop) and the
