@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emulator.esc_bus import EscBus, EscBusConfig
+from emulator.esc_bus import Bridge, EscBus, EscBusConfig, attach
 from emulator.fc import EmulatedVehicle, MavlinkServer
 from emulator.profile import GRAVITY_M_S2, load_profile
 from hil.benches import BenchRow, time_per_call
@@ -33,8 +33,6 @@ MOTOR_PATHS = ("direct", "sim", "mcast")
 def fc_cpu_s_per_sim_s(path: str, sim_s: float) -> float:
     """The FC's CPU time (s) per simulated second, hovering in OFFBOARD on 50 Hz attitude setpoints in
     lockstep (1 kHz physics, the FC's loop at 400 Hz), with its motors on ``path`` (`MOTOR_PATHS`)."""
-    from emulator.esc_bus import Bridge, EscBusConfig, attach
-
     profile = load_profile("n3_tx2")
     clock = SimClock()
     fc_end, gcs_end = MemoryTransport.pair()
