@@ -1,0 +1,62 @@
+"""Fine-tuning that can learn (`hil.rl.fine_tune`, `RLConfig.fine_tune`): the expert's steps are left out
+of the update (and only they), the critic is fitted on imitation roll-outs until its explained variance
+on a fresh batch reaches the target before the policy moves, and the methods and their deviations are
+named."""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+import torch
+
+from hil.rl.env import CrossGapCore, CrossGapVecEnv, EnvConfig
+from hil.rl.fine_tune import MaskedRolloutBuffer
+from hil.rl.train import DEVIATIONS, METHODS, RLConfig, _Progress, _ScaledReward, make_model
+
+SMALL = EnvConfig(pool_size=4, seed=5)
+
+
+@pytest.fixture(scope="module")
+def pool():
+    return CrossGapCore(1, SMALL).pool
+
+
+def _model(pool, tmp_path, cfg: RLConfig, n_envs: int):
+    env = CrossGapVecEnv(n_envs, SMALL, pool)
+    model = make_model(_ScaledReward(env, cfg.reward_scale), cfg, seed=0, device="cpu")
+    progress = _Progress(tmp_path, float("inf"), 10**6, False, 0, core=env.core)
+    model.progress_callback = progress
+    return model, env, progress
+
+
+def test_the_expert_steps_and_only_they_are_left_out_of_the_update(pool, tmp_path):
+    cfg = replace(RLConfig(), n_steps=300, mask_expert_steps=True, critic_batch=256, n_critic_updates=1)
+    model, _env, progress = _model(pool, tmp_path, cfg, 4)
+    model.learn(total_timesteps=4 * 300, callback=progress)
+    buf = model.rollout_buffer
+    assert isinstance(buf, MaskedRolloutBuffer)
+    active = buf.active_flat()
+    obs = buf.observations  # flattened env by env, as the update read them
+    # each step's crossing from its planner inputs, and whether the expert flew it: mission time + lead
+    # (input 12) at or past the crossing's approach time
+    which = [int(np.argmin(np.abs(pool.x17[:, 1:] - o[13:]).sum(1))) for o in obs]
+    expert = obs[:, 12] >= pool.t_approach_s[which] - 1e-6
+    np.testing.assert_array_equal(active, ~expert)
+    assert 0.03 < expert.mean() < 0.3  # the traverse: a small part of each episode
+    (everything,) = list(buf.get(None))
+    assert len(everything.observations) == active.sum()
+    served = {tuple(o) for o in everything.observations.numpy()}
+    assert served == {tuple(o) for o in obs[active]}
+
+
+def test_methods_and_deviations_are_named():
+    release, tuned = METHODS["release"](), METHODS["fine_tune"]()
+    assert release == RLConfig()
+    assert (release.gae_lambda, release.cg_damping, release.target_kl) == (1.0, 0.01, 1e-7)
+    assert release.sub_sampling_factor == 1 and not release.mask_expert_steps
+    assert release.critic_pretrain_ev is None
+    changed = {f.name for f in fields(RLConfig) if getattr(release, f.name) != getattr(tuned, f.name)}
+    assert changed <= set(DEVIATIONS)  # every change of fine_tune is a listed deviation, with its reason
+    assert {"mask_expert_steps", "critic_pretrain_ev"} <= changed
