@@ -9,7 +9,6 @@ from dataclasses import fields, replace
 
 import numpy as np
 import pytest
-import torch
 
 from hil.rl.env import CrossGapCore, CrossGapVecEnv, EnvConfig
 from hil.rl.fine_tune import MaskedRolloutBuffer
