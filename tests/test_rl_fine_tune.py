@@ -9,6 +9,7 @@ from dataclasses import fields, replace
 
 import numpy as np
 import pytest
+import torch
 
 from hil.rl.env import CrossGapCore, CrossGapVecEnv, EnvConfig
 from hil.rl.fine_tune import MaskedRolloutBuffer
@@ -48,6 +49,30 @@ def test_the_expert_steps_and_only_they_are_left_out_of_the_update(pool, tmp_pat
     assert len(everything.observations) == active.sum()
     served = {tuple(o) for o in everything.observations.numpy()}
     assert served == {tuple(o) for o in obs[active]}
+
+
+def test_the_critic_is_fitted_before_the_policy_moves(pool, tmp_path):
+    torch.manual_seed(0)
+    cfg = replace(RLConfig(), n_steps=300, mask_expert_steps=True, critic_pretrain_ev=0.8,
+                  critic_pretrain_max_batches=12, critic_pretrain_batch=128, critic_batch=128, target_kl=1e-3)
+    model, _env, progress = _model(pool, tmp_path, cfg, 8)
+    actor = model.policy.actor_module()
+    start = [p.detach().clone() for p in actor.controller.parameters()]
+    updates = 0
+    while not model.critic_ready:
+        model.learn(total_timesteps=8 * 300, callback=progress, reset_num_timesteps=False)
+        updates += 1
+        if not model.critic_ready:  # a critic-only batch: the policy has not moved
+            assert all(torch.equal(a, b) for a, b in zip(start, actor.controller.parameters(), strict=True))
+    print("critic explained variance per batch, before fitting on it:", model.critic_evs)
+    assert model.critic_batches >= 1 and model.critic_evs[0] < 0.8  # the critic began untrained
+    assert model.critic_evs[-1] >= 0.8  # reached on a batch it had not been fitted on
+    assert updates == model.critic_batches + 1
+    moved = max(float((a - b).abs().max()) for a, b in zip(start, actor.controller.parameters(), strict=True))
+    assert moved > 0  # the first policy update came with the batch that showed the target met
+    rows = (tmp_path / "returns.csv").read_text().splitlines()
+    assert rows[0].endswith("explained_variance,critic_only") and rows[-1].endswith(",0")
+    assert all(r.endswith(",1") for r in rows[1:-1])
 
 
 def test_methods_and_deviations_are_named():
