@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import fields, replace
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -51,10 +52,23 @@ def test_the_expert_steps_and_only_they_are_left_out_of_the_update(pool, tmp_pat
     assert served == {tuple(o) for o in obs[active]}
 
 
-def test_the_critic_is_fitted_before_the_policy_moves(pool, tmp_path):
+@pytest.fixture
+def one_thread():
+    """torch and numba on one thread each (on a shared host two threads a parallel region wait for each
+    other), restored after."""
+    threads, parallel = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+    numba.set_num_threads(parallel)
+
+
+def test_the_critic_is_fitted_before_the_policy_moves(pool, tmp_path, one_thread):
     torch.manual_seed(0)
     cfg = replace(RLConfig(), n_steps=300, mask_expert_steps=True, critic_pretrain_ev=0.8,
-                  critic_pretrain_max_batches=12, critic_pretrain_batch=128, critic_batch=128, target_kl=1e-3)
+                  critic_pretrain_max_batches=4, critic_pretrain_epochs=100, critic_pretrain_batch=256,
+                  critic_batch=128, target_kl=1e-3)
     model, _env, progress = _model(pool, tmp_path, cfg, 8)
     actor = model.policy.actor_module()
     start = [p.detach().clone() for p in actor.controller.parameters()]
