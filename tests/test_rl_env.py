@@ -1,6 +1,7 @@
 """`CrossGap-v0`: registered, a one-vehicle view passes gymnasium's and SB3's checks, the batch sees what
 the `e2e` pilot sees and commands the FC as the link does, the imitation policy crosses in it, the reward
-terms are the paper's, a collision ends an episode with its penalty, and crossings are seeded."""
+terms are the release's (and the paper's on its switch), a collision ends an episode with its
+penalty, and crossings are seeded."""
 
 from __future__ import annotations
 
@@ -16,8 +17,9 @@ from emulator.mocap import MocapConfig, measured_pose
 from emulator.uwb import UwbConfig
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
 from hil.rl import ENV_ID
-from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig
+from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig, RewardWeights
 from hil.rl.link_observe import QUEUE, LinkModel
+from hil.rl.reward import pack_weights, score_rows
 from hil.rl.scenarios import CrossingPool, draw_crossings
 from policies.learning.learned_pilots import EndToEndPilot
 from policies.learning.onnx_runtime import load_shipped
@@ -84,7 +86,7 @@ def test_tilt_and_thrust_are_limited_as_the_fc_does(pool):
         core.step(np.zeros((2, 3)))
 
 
-def test_imitation_policy_crosses_and_reward_terms_are_the_papers(pool):
+def test_imitation_policy_crosses_and_reward_terms_are_the_releases(pool):
     model = load_shipped("e2e")
     env = CrossGapVecEnv(len(pool), SMALL, pool)
     obs = env.reset()
@@ -101,8 +103,10 @@ def test_imitation_policy_crosses_and_reward_terms_are_the_papers(pool):
         assert set(terms) == set(REWARD_TERMS)
         assert info["success"] and info["arrived"] and info["TimeLimit.truncated"]
         assert terms["arrival"] == 5e5 and terms["collision"] == 0.0
-        assert 0 < terms["position"] < 1000 * 0.2 * 0.01 * info["episode"]["l"]
-        assert terms["rate"] < 0 and terms["angular_acceleration"] < 0 and terms["jerk"] < 0
+        assert 0 < terms["position"] < 1000 * 0.2 * info["episode"]["l"]  # per step, unscaled
+        # the release's offsets: 2 x 57.3 x (2 - |w|) x 2 a step, positive while |w| < 2 rad/s
+        assert 0 < terms["rate"] < 2 * 57.3 * 2 * 2 * info["episode"]["l"]
+        assert terms["angular_acceleration"] < 10 * 57.3 * 2 * 2 * info["episode"]["l"] and terms["jerk"] < 0
         assert info["episode"]["r"] == pytest.approx(sum(terms.values()), rel=1e-4)
         assert info["terminal_observation"].shape == (29,)
 
@@ -122,6 +126,43 @@ def test_a_collision_terminates_with_the_penalty(pool):
     assert terminated and not truncated
     assert info["reward_terms"]["collision"] == -1e6 and reward < -0.99e6
     assert not info["success"]
+
+
+def _score(weights: RewardWeights, w: tuple, dw: tuple, da: tuple, collided: bool = False,
+           last: bool = False) -> np.ndarray:
+    """One row scored after a control step of 10 ms: body rates ``w`` (rad/s) changed by ``dw`` and the
+    acceleration by ``da`` (m/s^2) over the step, 1 m from the gap centre."""
+    x = np.zeros((1, 17))
+    x[0, 10:13] = w
+    aux = np.zeros((1, 9))
+    aux[0, 3:6] = da
+    terms, reward = np.zeros((1, 6)), np.zeros(1)
+    flags = [np.zeros(1, bool) for _ in range(4)]
+    score_rows(x, aux, pack_weights(weights, 0.01), np.array([[1.0, 0.0, 0.0]]), np.array([[1.0, 0, 0]]),
+               np.array([5 if last else 1]), np.array([5]), np.array([1 if collided else 0]), flags[0],
+               np.array([np.subtract(w, dw)]), np.zeros((1, 3)), terms, reward, *flags[1:])
+    assert reward[0] == pytest.approx(terms.sum())
+    return terms[0]
+
+
+def test_the_releases_reward_form_and_the_papers():
+    """The release: 2 x 57.3 x (2 - |w|) and 10 x 57.3 x (2 - |alpha|) (alpha = dw/dt, rad/s^2) and
+    -10 |a_t - a_(t-1)|, each x dt / 0.005; a collision's step pays -1e6 alone; the last step 0. The
+    paper: -(2 x 57.3 |w| + 5 x 57.3 |dw/dt| + 10 |da/dt|) dt, a collision adds -1e9."""
+    release, paper = RewardWeights(), RewardWeights.paper()
+    t = _score(release, (0.3, 0.4, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 2.0))
+    k = 0.01 / 0.005
+    assert t[2] == pytest.approx(2 * 57.3 * (2 - 0.5) * k)
+    assert t[3] == pytest.approx(10 * 57.3 * (2 - 5.0) * k)
+    assert t[4] == pytest.approx(-10 * 2.0 * k) and t[0] == t[1] == t[5] == 0.0
+    p = _score(paper, (0.3, 0.4, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 2.0))
+    assert p[2] == pytest.approx(-2 * 57.3 * 0.5 * 0.01)
+    assert p[3] == pytest.approx(-5 * 57.3 * 5.0 * 0.01) and p[4] == pytest.approx(-10 * 200.0 * 0.01)
+    assert _score(release, (0.3, 0.4, 0.0), (0, 0, 0), (0, 0, 0), collided=True).tolist() == [0] * 5 + [-1e6]
+    hit = _score(paper, (0.3, 0.4, 0.0), (0, 0, 0), (0, 0, 0), collided=True)
+    assert hit[5] == -1e9 and hit[2] < 0
+    assert _score(release, (0.3, 0.4, 0.0), (0, 0, 0), (0, 0, 0), last=True).tolist() == [0] * 6
+    assert _score(paper, (0.3, 0.4, 0.0), (0, 0, 0), (0, 0, 0), last=True)[2] < 0
 
 
 def test_crossings_are_seeded_and_vary():

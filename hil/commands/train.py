@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -65,8 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     rl.add_argument("--observe", choices=("state", "link"), default="state",
                     help="what the policy sees, in training and in the held-out evaluation: the true state "
                          "(default) or the onboard filter's estimate from the mocap frames through the radio")
+    rl.add_argument("--method", choices=("release", "fine_tune"), default="release",
+                    help="release: TRPO as the paper's release ran it (default); fine_tune: with the "
+                         "documented deviations (expert steps masked, the critic fitted first, a larger "
+                         "batch and KL bound, the actor chosen on held-out crossings; "
+                         "hil.rl.train.DEVIATIONS)")
     rl.add_argument("--envs", type=int, default=None,
-                    help="vehicles flown at once (default 64; the batch stays about 10,240 steps)")
+                    help="vehicles flown at once (default 64; the batch keeps its size in steps)")
     rl.add_argument("--seed", type=int, default=0, help="seed of the crossings and of TRPO (default 0)")
     rl.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.zip")
     rl.add_argument("--out", default="out/rl", help="output folder (default out/rl)")
@@ -76,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main_rl(args: argparse.Namespace) -> int:
     try:
-        from hil.rl.train import RLConfig, train_rl  # (torch and gymnasium: the optional 'learn' extra)
+        from hil.rl.train import METHODS, train_rl  # (torch and gymnasium: the optional 'learn' extra)
     except ImportError as exc:  # the 'learn' extra
         print(f"hil train rl: needs the 'learn' extra (torch, gymnasium, stable-baselines3, sb3-contrib): "
               f"{exc}", file=sys.stderr)
@@ -84,7 +90,8 @@ def main_rl(args: argparse.Namespace) -> int:
     try:
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
                            progress=not args.no_progress, updates=args.updates,
-                           cfg=RLConfig(world_check=args.world_check, observe=args.observe))
+                           cfg=replace(METHODS[args.method](), world_check=args.world_check,
+                                       observe=args.observe))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"hil train rl: {exc}", file=sys.stderr)
         return 1

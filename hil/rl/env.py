@@ -26,8 +26,8 @@ filter's prediction; the latest frame's attitude), so that the policy sees what 
 link. (The first observation of an episode is the true state's either way: the filter has settled on
 the hover by then.)
 
-Reward: the paper's (Lin et al. 2019, section V-B) with the release's constants, each term kept apart
-(`hil.rl.reward`, compiled over the rows).
+Reward: the release's (`RewardWeights()`; the paper's text: `RewardWeights.paper()`), each term kept
+apart (`hil.rl.reward`, compiled over the rows).
 """
 
 from __future__ import annotations
@@ -58,15 +58,33 @@ from policies.onboard.program import ProgramConfig
 
 @dataclass(frozen=True)
 class RewardWeights:
-    """The paper's reward constants; where the release differs from the paper, the release's (REFERENCE)."""
+    """The reward's constants and switches (`hil.rl.reward`): by default the release's reward
+    (cross_grap_env_v2.py), `paper()` the paper's (section V-B). Units per step of ``step_unit_s``."""
 
-    position_per_m_s: float = 1000.0  # w_r (1/(m s))
+    position_per_m: float = 1000.0  # w_r
     active_distance_m: float = 0.2  # d_a: the release's 0.2 m (paper: 0.15 m)
+    position_scaled: bool = False  # the release pays the position reward per step; the paper x dt
     arrival: float = 5e5  # S, once
-    rate_per_rad: float = 2 * 57.3  # w_omega (per rad/s, per s)
-    angular_acceleration_per_rad: float = 5 * 57.3  # w_alpha (per rad/s^2, per s)
-    jerk_per_m: float = 10.0  # w_j (per m/s^3, per s)
+    rate_per_rad_s: float = 2 * 57.3  # w_w
+    rate_offset_rad_s: float = 2.0  # the release's (2 - |w|) (paper: 0, a pure penalty)
+    angular_acceleration_per_rad_s2: float = 10 * 57.3  # w_alpha: the release's 10 x 57.3 (paper: 5 x 57.3)
+    angular_acceleration_offset_rad_s2: float = 2.0  # the release's (2 - |alpha|) (paper: 0)
+    jerk_per_m_s2: float = 10.0  # w_j
+    jerk_as_difference: bool = True  # the release: |a_t - a_{t-1}|; the paper: |da/dt|
+    #: the shaping terms are scaled by dt / step_unit_s: the release's 0.005 s; the paper's dt in s: 1.0
+    step_unit_s: float = 0.005
     collision: float = 1e6  # C: the release's 1e6 (paper: 1e9)
+    collision_replaces: bool = True  # the release: a collision's step pays -C alone (paper: added)
+    end_step_zero: bool = True  # the release: the last step of an episode without collision pays 0
+
+    @classmethod
+    def paper(cls) -> RewardWeights:
+        """The paper's reward as its text gives it: Delta t in seconds, no offsets, w_alpha 5 x 57.3,
+        d_a 0.15 m, C 1e9."""
+        return cls(active_distance_m=0.15, position_scaled=True, rate_offset_rad_s=0.0,
+                   angular_acceleration_per_rad_s2=5 * 57.3, angular_acceleration_offset_rad_s2=0.0,
+                   jerk_as_difference=False, step_unit_s=1.0, collision=1e9, collision_replaces=False,
+                   end_step_zero=False)
 
 
 @dataclass(frozen=True)
@@ -145,6 +163,9 @@ class CrossGapCore:
         self.which = np.zeros(self.n, np.int64)  # the pool crossing each row flies
         self.tick = np.zeros(self.n, np.int64)  # control steps since the episode began
         self.arrived = np.zeros(self.n, bool)
+        #: whether each row's last action flew its vehicle (False: the expert flew the traverse, the action
+        #: had no effect)
+        self.policy_flew = np.ones(self.n, bool)
         self._prev_w = np.zeros((self.n, 3))
         self._prev_a = np.zeros((self.n, 3))
         self._pred_pos = np.zeros((self.n, 3))
@@ -247,7 +268,9 @@ class CrossGapCore:
             raise ValueError("actions must be finite (roll, pitch in rad, thrust in N)")
         cfg = self.config
         roll, pitch, thrust = a[:, 0].copy(), a[:, 1].copy(), a[:, 2] * self._mass_scale  # (contiguous)
-        expert = np.flatnonzero(self.tick * cfg.dt_s + cfg.lead_s >= self._row_t_approach)  # the traverse
+        flown_by_expert = self.tick * cfg.dt_s + cfg.lead_s >= self._row_t_approach  # the traverse
+        np.logical_not(flown_by_expert, out=self.policy_flew)
+        expert = np.flatnonzero(flown_by_expert)
         if expert.size:  # the expert flies the traverse
             ref = self.pool.ref[self.which[expert], self.tick[expert]]
             er, ep, _, et = expert_command_batch(ref[:, 0:3], ref[:, 3:6], ref[:, 6:9], self._row_yaw[expert],
