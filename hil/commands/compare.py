@@ -30,8 +30,9 @@ from hil.report.paired import INTERVAL_METHOD, paired_difference
 from hil.report.svg import View
 from hil.runner import RunOptions, RunSetupError, run_scenario
 from hil.runner.emulator_side import make_gap
-from hil.scenario import ScenarioError, load_scenarios
+from hil.scenario import ScenarioError, load_scenarios, loads_scenarios
 from hil.scenario.schema import Scenario
+from policies.onboard.pilots import pilot_names
 
 DEFAULT_PILOTS = ("traditional", "e2e", "e2e_rl")
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
@@ -72,7 +73,6 @@ def held_out_scenarios(n: int, seed: int) -> list[Scenario]:
     """``n`` scenarios of crossings drawn as `CrossGap-v0` draws them (`hil.rl.scenarios`, from
     ``seed``): a hover at the start, the gap, the crossing speed; 11 s each."""
     from hil.rl.scenarios import draw_crossings  # the 'learn' extra
-    from hil.scenario import loads_scenarios
 
     docs = []
     for i, c in enumerate(draw_crossings(n, np.random.default_rng(seed))):
@@ -346,8 +346,6 @@ def main(args: argparse.Namespace) -> int:
         print(f"hil compare: --held-out must be 0 or more crossings, got {args.held_out}", file=sys.stderr)
         return 2
     try:
-        from policies.onboard.pilots import pilot_names
-
         unknown = sorted(set(pilots) - set(pilot_names()))
         if unknown:
             print(f"hil compare: unknown pilot(s) {', '.join(unknown)}; known: {', '.join(pilot_names())}",
