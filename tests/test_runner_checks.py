@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from emulator.profile import load_profile
-from hil.link.clock import SimClock
+from hil.link.clock import GapStats, SimClock
 from hil.link.memory import MemoryTransport
 from hil.runner.checks import Observations, evaluate
 from hil.runner.emulator_side import EmulatorSide
@@ -106,3 +106,15 @@ def test_the_realtime_check_fails_a_run_whose_onboard_side_starved_with_the_mome
     assert check_realtime(50.0, _health(12.0, 296.0, 5.2), bursty=True).passed  # a link that loses bursts
     late = check_realtime(50.0, _health(80.0, 90.0, 5.2))
     assert not late.passed and late.time_s == 2.0  # the loop's own lateness, at its moment
+
+
+def test_a_streams_rate_counts_the_moves_after_its_first_reading():
+    """The wire's rate of a counter (setpoints applied, mocap frames written) is what moved while it was
+    watched: a first reading that finds 60 frames already written (a late start) does not raise it."""
+    watch = GapStats()
+    watch.update(1.0, 60)
+    for k in range(1, 121):  # 120 Hz for a second
+        watch.update(1.0 + k / 120, 60 + k)
+    stats = watch.as_dict()
+    assert stats["rate_hz"] == 120.0 and stats["count"] == 180
+    assert stats["max_gap_ms"] == pytest.approx(1000 / 120, abs=0.01)

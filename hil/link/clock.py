@@ -107,6 +107,7 @@ class GapStats:
 
     def __init__(self) -> None:
         self.count = 0
+        self.first_count = 0  # the count when it first moved (what came before is no rate)
         self.first_s: float | None = None
         self.last_s: float | None = None
         self.max_gap_s = 0.0
@@ -119,14 +120,16 @@ class GapStats:
         if self.last_s is not None and now_s - self.last_s > self.max_gap_s:
             self.max_gap_s, self.max_gap_end_s = now_s - self.last_s, now_s
         if self.first_s is None:
-            self.first_s = now_s
+            self.first_s, self.first_count = now_s, count
         self.count, self.last_s = count, now_s
 
     def as_dict(self) -> dict[str, float | int | None]:
         span = 0.0 if self.first_s is None or self.last_s is None else self.last_s - self.first_s
         return {
             "count": self.count,
-            "rate_hz": round(self.count / span, 2) if span > 0 else None,
+            # (the moves after the first over the time they took: a first reading that finds several
+            # already counted, after a late start, does not raise the rate)
+            "rate_hz": round((self.count - self.first_count) / span, 2) if span > 0 else None,
             "max_gap_ms": round(self.max_gap_s * 1e3, 2),
             "max_gap_end_s": None if self.max_gap_end_s is None else round(self.max_gap_end_s, 3),
         }
