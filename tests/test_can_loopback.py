@@ -37,7 +37,7 @@ def test_no_frame_of_the_default_buses_leaves_the_loopback_interface():
     assert run.returncode == 0, run.stderr
     got = json.loads(run.stdout.strip().splitlines()[-1])
     for spec, bus in got["buses"].items():  # the buses worked, both ways, between the two processes
-        assert bus["external_out"] > 100 and bus["node_raw_commands"] > 20, spec
+        assert bus["external_out"] > 20 and bus["node_raw_commands"] > 20, spec
         # (ESC 3's motor at the outside node's rpm for the FC's 0.25: its esc.Status came back)
         assert bus["external_in"] > 20 and bus["throttle_3"] == pytest.approx(0.25, abs=0.01), spec
     assert got["leaked"] == []  # not a frame, not an IGMP report through the default route
