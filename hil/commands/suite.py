@@ -8,6 +8,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import signal
 import sys
 import time
 from collections.abc import Iterator
@@ -91,8 +92,11 @@ _compiling = Compiling()  # kernel families compiling beside the warm-up (the wo
 def _start_worker(numbers: Any, warm: bool) -> None:
     """A worker's start: its number (its runs keep to that core when the workers fill the cores, see
     `lockstep_cpu`), and the onboard fork server (this process's, if it was not forked from one that
-    has it)."""
+    has it); it leaves Ctrl-C to the suite's own process."""
     global _worker
+    # Ctrl-C reaches the whole process group: the suite's own process decides (no run started after it,
+    # the ones flying finish and are indexed); a worker would only print a traceback from its queue
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     with numbers.get_lock():
         _worker = numbers.value
         numbers.value += 1
