@@ -255,6 +255,16 @@ class CrossGapCore:
                           self._obs)
 
     # --- one control step -----------------------------------------------------------------------------
+    def fly_control_period(self) -> None:
+        """Every row flies its FC target (the last step's) for one control period: the fused flight kernel
+        (`fly_targets`: the FC's inner loop, the physics, the world check), its collision codes and least
+        clearances (m) left for the reward. `step` calls it; `hil bench` times it alone."""
+        cfg = self.config
+        x, aux, p = self.physics.kernel_arrays
+        fly_targets(x, aux, p, self._targets, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
+                    self.pool.worlds, self.which, cfg.world_check == "physics", self._codes, self.clearance_m)
+        self.physics.advance_clock(cfg.physics_steps)
+
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Fly one control period under ``actions`` (N, 3); returns (reward (N,), terminated (N,),
         truncated (N,), reward terms (N, 6) in `REWARD_TERMS` order, success (N,): crossed the gap plane
@@ -279,12 +289,10 @@ class CrossGapCore:
             roll[expert], pitch[expert], thrust[expert] = er, ep, et
         tg = self._targets  # (the command link's SET_ATTITUDE_TARGET, as the FC reads it)
         fc_targets(roll, pitch, thrust, self._row_ned_yaw, self._full, self._max_tilt, tg)
-        x, aux, p = self.physics.kernel_arrays
+        x, aux, _ = self.physics.kernel_arrays
         if self.link is not None:
             self.link.save(x)
-        fly_targets(x, aux, p, tg, self._gains, self._mix_inv, self._outs, cfg.physics_steps,
-                    self.pool.worlds, self.which, cfg.world_check == "physics", self._codes, self.clearance_m)
-        self.physics.advance_clock(cfg.physics_steps)
+        self.fly_control_period()
         self.tick += 1
         score_rows(x, aux, self._weights, self._row_centre, self._row_dir, self.tick, self._row_steps,
                    self._codes, self.arrived, self._prev_w, self._prev_a, self._terms, self._reward,
