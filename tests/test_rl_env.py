@@ -6,6 +6,7 @@ penalty, and crossings are seeded."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
@@ -20,7 +21,7 @@ from hil.rl import ENV_ID
 from hil.rl.env import REWARD_TERMS, CrossGapCore, CrossGapEnv, CrossGapVecEnv, EnvConfig, RewardWeights
 from hil.rl.link_observe import QUEUE, LinkModel
 from hil.rl.reward import pack_weights, score_rows
-from hil.rl.scenarios import CrossingPool, draw_crossings
+from hil.rl.scenarios import CrossingPool, CrossingRanges, draw_crossings
 from policies.learning.learned_pilots import EndToEndPilot
 from policies.learning.onnx_runtime import load_shipped
 from policies.onboard.estimator import PoseEstimator
@@ -173,6 +174,16 @@ def test_crossings_are_seeded_and_vary():
     env = CrossGapEnv(SMALL, CrossGapCore(1, SMALL).pool)
     picks = [env.reset(seed=s)[1]["crossing"] for s in (1, 1, 2, 3, 4, 5)]
     assert picks[0] == picks[1] and len(set(picks)) > 1
+
+
+def test_crossings_through_a_smaller_opening_past_the_papers_envelope():
+    steep = CrossingRanges(roll_deg=(60.0, 70.0), speeds_m_s=(4.0,), gap_height_m=0.65)
+    drawn = draw_crossings(3, np.random.default_rng(3), steep)
+    assert all(c.plan.gap.height_m == 0.65 and c.speed_m_s == 4.0 and 60 <= c.roll_deg <= 70 for c in drawn)
+    with pytest.raises(RuntimeError, match="no plannable crossing"):  # none at 4 m/s through 0.45 m
+        draw_crossings(1, np.random.default_rng(3), replace(steep, gap_height_m=None))
+    with pytest.raises(ValueError, match="gap_height_m"):
+        CrossingRanges(gap_height_m=0.0)
 
 
 def test_world_checked_every_physics_step_flies_the_same_and_catches_a_collision(pool):

@@ -14,7 +14,18 @@ import torch
 
 from hil.rl.env import CrossGapCore, CrossGapVecEnv, EnvConfig
 from hil.rl.fine_tune import MaskedRolloutBuffer
-from hil.rl.train import DEVIATIONS, METHODS, RLConfig, _Progress, _ScaledReward, make_model
+from hil.rl.scenarios import CrossingRanges, draw_crossings
+from hil.rl.train import (
+    DEVIATIONS,
+    METHODS,
+    STEEP_FAST,
+    RLConfig,
+    _Progress,
+    _ScaledReward,
+    make_model,
+    selection_crossings,
+)
+from policies.onboard.program import ProgramConfig
 
 SMALL = EnvConfig(pool_size=4, seed=5)
 
@@ -98,3 +109,18 @@ def test_methods_and_deviations_are_named():
     changed = {f.name for f in fields(RLConfig) if getattr(release, f.name) != getattr(tuned, f.name)}
     assert changed <= set(DEVIATIONS)  # every change of fine_tune is a listed deviation, with its reason
     assert {"mask_expert_steps", "critic_pretrain_ev"} <= changed
+
+
+def test_the_selection_holds_the_steepest_and_fastest_crossings():
+    tuned = replace(RLConfig.fine_tune(), select_size=3, select_extra_size=2)
+    assert tuned.select_extra == STEEP_FAST and tuned.world_check == "physics"  # trained as judged
+    chosen = selection_crossings(tuned, 0, CrossingRanges())
+    assert len(chosen) == 3 + 2 * len(STEEP_FAST)
+    for i, ranges in enumerate(STEEP_FAST):
+        for c in chosen[3 + 2 * i: 5 + 2 * i]:
+            assert ranges.roll_deg[0] <= c.roll_deg <= ranges.roll_deg[1] and c.speed_m_s in ranges.speeds_m_s
+            assert c.plan.gap.height_m == (ranges.gap_height_m or ProgramConfig().gap_height_m)
+    again = selection_crossings(tuned, 0, CrossingRanges())
+    assert [c.gap_centre_m for c in again] == [c.gap_centre_m for c in chosen]  # seeded
+    held_out = draw_crossings(3, np.random.default_rng(tuned.eval_seed_offset), CrossingRanges())
+    assert not {c.gap_centre_m for c in held_out} & {c.gap_centre_m for c in chosen}  # none evaluated on

@@ -10,7 +10,7 @@ planner inputs the policy sees are those of a flight through the links.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -36,6 +36,9 @@ class CrossingRanges:
     gap_z_m: tuple[float, float] = (1.4, 2.3)
     roll_deg: tuple[float, float] = (-60.0, 60.0)
     speeds_m_s: tuple[float, ...] = (1.5, 2.0, 2.5, 3.0)
+    #: the opening's height (m; None: the onboard program's default), for sets like the shipped
+    #: scenarios past the paper's envelope (a 0.65 m opening at 70 deg)
+    gap_height_m: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("start_x_m", "start_y_m", "start_z_m", "ahead_m", "aside_m", "gap_z_m", "roll_deg"):
@@ -44,6 +47,8 @@ class CrossingRanges:
                 raise ValueError(f"CrossingRanges.{name}: want finite (lo, hi) with lo <= hi, got {(lo, hi)}")
         if not self.speeds_m_s or not all(0 < s <= 6 for s in self.speeds_m_s):
             raise ValueError(f"CrossingRanges.speeds_m_s: want speeds in (0, 6] m/s, got {self.speeds_m_s}")
+        if self.gap_height_m is not None and not (0.0 < self.gap_height_m <= 2.0):
+            raise ValueError(f"CrossingRanges.gap_height_m: want (0, 2] m or None, got {self.gap_height_m}")
 
 
 @dataclass(frozen=True)
@@ -58,9 +63,13 @@ class Crossing:
 
 
 def plan_crossing(start_m: tuple[float, float, float], centre_m: tuple[float, float, float], roll_deg: float,
-                  speed_m_s: float, config: ProgramConfig | None = None) -> MissionPlan:
-    """The onboard program's plan from a hover at ``start_m`` through the gap (PlanningError if none)."""
+                  speed_m_s: float, config: ProgramConfig | None = None,
+                  gap_height_m: float | None = None) -> MissionPlan:
+    """The onboard program's plan from a hover at ``start_m`` through the gap (PlanningError if none),
+    the opening ``gap_height_m`` high (None: the program's)."""
     cfg = config or ProgramConfig()
+    if gap_height_m is not None:
+        cfg = replace(cfg, gap_height_m=gap_height_m)
     gap = GapPose.from_deg(centre_m, roll_deg, width_m=cfg.gap_width_m, height_m=cfg.gap_height_m)
     request = MissionRequest(start_m, (0.0, 0.0, 0.0), gap, PlanLab(cfg.lab_min_m, cfg.lab_max_m),
                              cfg.approach_duration_s, speed_m_s, cfg.traverse_lead_m,
@@ -84,7 +93,7 @@ def draw_crossings(n: int, rng: np.random.Generator, ranges: CrossingRanges | No
             roll = float(rng.uniform(*r.roll_deg))
             speed = float(r.speeds_m_s[rng.integers(len(r.speeds_m_s))])
             try:
-                plan = plan_crossing(start, centre, roll, speed)
+                plan = plan_crossing(start, centre, roll, speed, gap_height_m=r.gap_height_m)
             except PlanningError:
                 continue
             out.append(Crossing(tuple(map(float, start)), tuple(map(float, centre)), roll, speed, plan))
