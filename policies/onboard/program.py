@@ -5,8 +5,12 @@ wait for the ACK and the heartbeat's mode) -> arm -> take off and settle (expert
 mission (approach -> traverse -> recovery -> hover, flown by the pilot) -> hand back to the FC's HOLD.
 
 Driven by time, not by sleeping: `step(now_s)` does everything due at ``now_s`` and returns at once.
-`run_realtime()` calls it on the wall clock, waiting on the links' fds; `run_lockstep()` takes its
-clock from the FC's TIMESYNC ticks and answers each tick once its outputs are sent.
+`run_realtime()` calls it on the wall clock, waiting on the command link's fd and its own schedule;
+`run_lockstep()` takes its clock from the FC's TIMESYNC ticks and answers each tick once its outputs
+are sent. On either clock the mocap link is read at the control steps (in lockstep: at the ticks they
+fall on), each pose stamped with that moment: a program that read each pose as it came would predict
+from estimates a few ms fresher in real time than lockstep can model, and cross closer to the wall
+(docs/notes/realtime-vs-lockstep.md).
 
 Safe hover on stale mocap (no vehicle pose taken by the state estimator for ``stale_mocap_s``: poses the
 mocap reader or the estimator refuse, non-finite, from the future, out of order, do not count as fresh;
@@ -295,6 +299,7 @@ class OnboardProgram:
         self._started_s: float | None = None
         self._phase_since_s = 0.0
         self._next_control_s: float | None = None
+        self._mocap_read_s = -math.inf  # when `step` last read the mocap link (s)
         self._next_heartbeat_s = -math.inf
         self._next_heartbeat_request_s = -math.inf  # (while waiting for the FC's first heartbeat)
         self._clock_zero_monotonic_s: float | None = None  # on the wall clock only (`run_realtime`)
@@ -324,7 +329,9 @@ class OnboardProgram:
         try:
             self.link.read()
             self.link.take_ticks()  # only meaningful in lockstep (see `lockstep_tick`)
-            self.mocap.poll()
+            if now_s >= self._mocap_due_s():
+                self.mocap.poll()
+                self._mocap_read_s = now_s
         except LinkError as exc:
             self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
             return
@@ -342,12 +349,16 @@ class OnboardProgram:
         self._act(tick_s)
         self.link.answer_tick(tick_s)
 
-    def next_wake_s(self) -> float:
-        """When `step` next has something to do if no input arrives (s)."""
-        nxt = self._next_heartbeat_s
+    def _mocap_due_s(self) -> float:
+        """When `step` next reads the mocap link (s): at the next control step, as lockstep reads it at
+        the tick the step falls on; every control period while no step is scheduled."""
         if self._next_control_s is not None:
-            nxt = min(nxt, self._next_control_s)
-        return nxt
+            return self._next_control_s
+        return self._mocap_read_s + self.config.period_s
+
+    def next_wake_s(self) -> float:
+        """When `step` next has something to do if no command-link input arrives (s)."""
+        return min(self._next_heartbeat_s, self._mocap_due_s())
 
     def _act(self, now_s: float) -> None:
         if self.finished:
@@ -692,7 +703,8 @@ class OnboardProgram:
         # where this clock's zero lies on the machine's monotonic clock (s): a harness on the same
         # machine puts the events' times on its own time line with it
         self._clock_zero_monotonic_s = time.monotonic() - clock.now_s()
-        fds = _fds(self.link.transport, self.mocap.transport)
+        # (not the mocap's: it is read on the program's schedule, and unread bytes would wake it at once)
+        fds = _fds(self.link.transport)
         while not self.finished:
             now = clock.now_s()
             if max_duration_s is not None and now > max_duration_s:
