@@ -38,7 +38,7 @@ import math
 import select
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 from typing import IO, Any
 
@@ -196,6 +196,29 @@ class ProgramConfig:
     @property
     def hover_thrust_n(self) -> float:
         return self.mass_kg * GRAVITY_M_S2
+
+
+def mission_request(cfg: ProgramConfig, pos_m: np.ndarray, vel_m_s: np.ndarray,
+                    gap: GapPose) -> MissionRequest:
+    """The mission a program of ``cfg`` plans from ``pos_m`` (m) at ``vel_m_s`` (m/s) through ``gap`` (its
+    `plan` is the plan; its `to_dict` goes into the plan event)."""
+    return MissionRequest(tuple(map(float, pos_m)), tuple(map(float, vel_m_s)), gap,
+                          LabVolume(cfg.lab_min_m, cfg.lab_max_m), cfg.approach_duration_s,
+                          cfg.approach_speed_m_s, cfg.traverse_lead_m,
+                          BodyClearance(cfg.body_box_m, cfg.clearance_margin_m), cfg.max_body_rate_rad_s)
+
+
+def pre_takeoff_check(cfg: ProgramConfig, pos_m: object, gap: GapPose) -> float:
+    """The height (m, world z) a program of ``cfg`` on the ground at ``pos_m`` (m) starts its mission
+    through ``gap`` from (`start_height`, from where its climb ends), once it has planned the mission from
+    there (it plans again when it gets there); PlanningError when there is no plan, PassageError when the
+    plan crosses at a speed the body cannot pass the opening at (`MissionRequest.checked_plan`)."""
+    start = np.array(pos_m, dtype=float)
+    start[2] = max(start[2], cfg.takeoff_height_m)
+    request = mission_request(cfg, start, np.zeros(3), gap)
+    z = start_height(request)
+    replace(request, start_pos_m=(float(start[0]), float(start[1]), z)).checked_plan()
+    return z
 
 
 class ProgramClock:
@@ -437,13 +460,11 @@ class OnboardProgram:
             self._abort_yaw = float(est.euler_rad[2])
             # before taking off: a plan from where the climb ends must exist (it is planned again there);
             # a slow vehicle climbs higher where its approach needs the room (`start_height`)
-            start = est.pos_m.copy()
-            start[2] = max(start[2], cfg.takeoff_height_m)
             gap_pose = self._gap_pose(now_s)
             if gap_pose is None:
                 return  # (aborted, naming why)
             try:
-                self._start_height_m = start_height(self._mission_request(start, np.zeros(3), gap_pose))
+                self._start_height_m = pre_takeoff_check(cfg, est.pos_m, gap_pose)
             except (PlanningError, ValueError) as exc:
                 self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
                 return
@@ -549,8 +570,8 @@ class OnboardProgram:
         if gap is None:
             return
         try:
-            request = self._mission_request(est.pos_m, est.vel_m_s, gap)
-            plan = request.plan()
+            request = mission_request(self.config, est.pos_m, est.vel_m_s, gap)
+            plan = request.checked_plan()
         except (PlanningError, ValueError) as exc:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
@@ -564,14 +585,6 @@ class OnboardProgram:
                          approach=plan.approach_feasibility.name.lower(), tried=plan.candidates_tried,
                          search_ms=round(plan.search_time_s * 1e3, 3), request=request.to_dict())
         self._go(Phase.MISSION, now_s)
-
-    def _mission_request(self, pos_m: np.ndarray, vel_m_s: np.ndarray, gap: GapPose) -> MissionRequest:
-        """The mission to plan from ``pos_m`` (m) at ``vel_m_s`` (m/s) with this program's settings and
-        body box (its `plan` is the plan; its `to_dict` goes into the plan event)."""
-        cfg = self.config
-        return MissionRequest(tuple(pos_m.tolist()), tuple(vel_m_s.tolist()), gap, self.lab,
-                              cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m, self.body,
-                              cfg.max_body_rate_rad_s)
 
     def _mission_progress(self, now_s: float) -> None:
         assert self.plan is not None
