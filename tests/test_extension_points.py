@@ -126,6 +126,40 @@ def test_a_checks_own_expect_field_is_validated_like_the_projects() -> None:
         assert "toy" not in CHECK_KINDS and not EXPECT_FIELDS
 
 
+# docs/extending.md, "A pilot": one module with a `make_pilot(context)` factory, found by its name
+
+TOY_PILOT = """
+from policies.onboard.pilots import flown_by
+from policies.onboard.pilots.traditional import TraditionalPilot
+
+
+class ToyPilot(TraditionalPilot):
+    \"\"\"The expert on the plan's reference, saying that a toy flew the approach.\"\"\"
+
+    def __init__(self, mass_kg, max_tilt_deg):
+        super().__init__(mass_kg, max_tilt_deg)
+        self.flies = flown_by(approach="toy pilot")
+
+
+def make_pilot(context):
+    return ToyPilot(context.mass_kg, context.max_tilt_deg)
+"""
+
+
+def test_a_toy_pilot_added_as_one_module_flies_a_scenario(tmp_path: Path, monkeypatch) -> None:
+    import policies.onboard.pilots as pilots
+
+    (tmp_path / "pilots").mkdir()
+    (tmp_path / "pilots" / "toy_pilot.py").write_text(TOY_PILOT)
+    monkeypatch.setattr(pilots, "__path__", [*pilots.__path__, str(tmp_path / "pilots")])
+    text = (ROOT / "scenarios" / "gap_roll30_2ms.scenario.yaml").read_text() + "pilot: toy_pilot\n"
+    [s] = loads_scenarios(text)
+    r = run_scenario(s, tmp_path / "run", RunOptions(in_process=True, html_report=False))
+    assert r.passed, [f"{c.name}: {c.observed}" for c in r.failed_checks]
+    assert r.summary["mode"]["pilot"] == "toy_pilot"
+    assert r.summary["mode"]["pilot_flies"]["approach"] == "toy pilot"  # the program flew the toy
+
+
 def test_a_registered_fault_kinds_parameters_are_validated_like_the_projects(tmp_path: Path) -> None:
     with fault_kind_registered(Updraft):
         for fault, where, why in (
