@@ -253,7 +253,9 @@ def check_realtime(limit_ms: float, health: dict[str, Any], faults: tuple[Fault,
     gap = float(sp.get("max_gap_ms") or 0.0)
     end = sp.get("max_gap_end_s")
     explained = end is not None and (
-        bursty or (abort_s is not None and end >= abort_s)
+        # (an abort explains a silence that starts after it: a program that aborts on what its own
+        # silence did, stale mocap once it runs again, does not excuse the silence)
+        bursty or (abort_s is not None and end - gap * 1e-3 >= abort_s)
         or any(f.kind in SILENCING_FAULTS and f.start_s <= end
                and (f.end_s is None or end - gap * 1e-3 <= f.end_s + FAULT_AFTERMATH_S) for f in faults))
     starved = gap > gap_limit and not explained

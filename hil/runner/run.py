@@ -239,7 +239,7 @@ def _run(
         raise RunSetupError(str(exc)) from exc
     out = Path(out_dir)
     clear_run_folder(out)
-    why = refusal(s, profile)
+    why = refusal(s, profile, config)
     if why is not None:  # an opening too small for the body is never flown
         check = preflight_check(s.expect.refused, why)
         summary = refused_summary(s, check, why)
