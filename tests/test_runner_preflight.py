@@ -47,6 +47,27 @@ def test_an_opening_smaller_than_the_body_is_refused_before_take_off_with_the_re
     assert "REFUSED" in (tmp_path / "o" / "report.html").read_text()
 
 
+def test_a_scenario_expecting_a_refusal_of_a_gap_the_vehicle_can_pass_flies_and_fails_the_check(tmp_path):
+    [s] = loads_scenarios("description: t\ngap: {roll_deg: 0}\nduration_s: 3\n"
+                          "expect: {refused: true, crosses_gap: false, recovery: false}\n")
+    r = run_scenario(s, tmp_path / "o", RunOptions(in_process=True, html_report=False))
+    assert [c.to_dict() for c in r.failed_checks] == [{
+        "name": "preflight", "passed": False, "expected": "refused before take-off",
+        "observed": "accepted, flown", "time_s": 0.0}]
+    assert (tmp_path / "o" / "timeseries.npz").is_file() and "refused" not in r.summary
+
+
+def test_a_run_expected_to_fly_passes_without_a_preflight_line_and_one_refused_as_expected_passes(tmp_path):
+    [flown] = loads_scenarios("description: t\ngap: {roll_deg: 0}\nduration_s: 1\n"
+                              "expect: {crosses_gap: false, recovery: false}\n")
+    r = run_scenario(flown, tmp_path / "f", RunOptions(in_process=True, html_report=False))
+    assert "preflight" not in [c.name for c in r.checks]
+    [small] = loads_scenarios("description: t\ngap: {width_m: 0.2, height_m: 0.1}\nexpect: {refused: true}\n")
+    r = run_scenario(small, tmp_path / "s", RunOptions(in_process=True))
+    assert r.passed and [c.name for c in r.checks] == ["preflight"]
+    assert r.checks[0].observed.startswith("refused: the 0.20 x 0.10 m opening is too small")
+
+
 @pytest.mark.parametrize("speed", [2.0, 3.0, 4.0])
 def test_a_seventy_degree_gap_with_a_045_m_opening_is_refused_by_hil_run(tmp_path, speed):
     # (asked for 2 m/s, the planner finds plans from the start at 3 m/s and faster only, where the

@@ -47,19 +47,23 @@ def refusal(s: Scenario, profile: VehicleProfile, config: ProgramConfig | None =
     return None
 
 
-@register_check("preflight", expect="refused",
-                doc="the opening is one the vehicle's body box can pass at the attitude it reaches there, "
-                    "judged before take-off (a refused run flies nothing); `refused: true` expects a refusal")
-def _preflight(e: Expectations, obs: Observations) -> list[Check]:
-    return []  # judged before take-off (`preflight_check`): a run that flew passed it
-
-
-def preflight_check(s: Scenario, reason: str | None) -> Check:
-    """The verdict of the pre-flight check: a refusal passes where the scenario expects one."""
-    observed = "accepted" if reason is None else f"refused: {reason}"
-    if s.expect.refused:
+def preflight_check(refusal_expected: bool, reason: str | None) -> Check:
+    """The pre-flight check's verdict: whether the run was refused before take-off (``reason``, None: it
+    was accepted and flown) as the scenario expects (``expect.refused``)."""
+    observed = "accepted, flown" if reason is None else f"refused: {reason}"
+    if refusal_expected:
         return Check("preflight", reason is not None, REFUSED_END, observed, 0.0)
     return Check("preflight", reason is None, "a gap the vehicle can pass", observed, 0.0)
+
+
+@register_check("preflight", expect="refused",
+                doc="the run was refused before take-off, or flown, as `refused` expects (a gap too small "
+                    "for the vehicle's body box at the attitude it reaches there is refused and flies "
+                    "nothing; listed in refused runs and in flown runs that expected a refusal)")
+def _preflight(e: Expectations, obs: Observations) -> list[Check]:
+    """A flown run was accepted before take-off: a failure where the scenario expected a refusal (a run
+    that passed needs no line for it; a refused run is judged by `preflight_check` alone)."""
+    return [preflight_check(True, None)] if e.refused else []
 
 
 def refused_summary(s: Scenario, check: Check, reason: str | None) -> dict[str, Any]:
