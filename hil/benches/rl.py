@@ -20,7 +20,7 @@ def collect(quick: bool) -> Iterator[BenchRow]:
     """`rl_env_steps_per_s`: `CrossGapVecEnv.step` at N = 4096 under the hover-ish action of the
     imitation policy's order (physics 10 x 1 ms with the FC's inner loop, world check, reward, the
     29 inputs, restarts), control steps (one vehicle, 10 ms) a second; `rl_flight_kernel_steps_per_s`
-    the fused flight kernel alone (`emulator.fc.batched_steps.fly_targets`: the FC's inner loop, the
+    the fused flight kernel alone (`emulator.loops.batched_steps.fly_targets`: the FC's inner loop, the
     physics and the world check, 10 x 1 ms) on the same rows in the same units, so that the two rates
     say what the environment's own work costs; `rl_env_link_steps_per_s` the environment with the
     observation through the link model (`EnvConfig.link`)."""

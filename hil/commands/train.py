@@ -60,10 +60,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     rl.add_argument("--updates", type=int, default=None,
                     help="stop after this many TRPO updates in all (the budget that gives the same weights "
                          "on any machine; the minutes still bound it)")
-    rl.add_argument("--world-check", choices=("control", "physics"), default="control",
+    rl.add_argument("--world-check", choices=("control", "physics"), default=None,
                     help="when the environment checks the world, in training and in the held-out evaluation: "
-                         "once a control step (default) or after every physics step, as the runner does")
-    rl.add_argument("--observe", choices=("state", "link"), default="state",
+                         "once a control step or after every physics step, as the runner does (default: the "
+                         "method's: control for release, physics for fine_tune)")
+    rl.add_argument("--observe", choices=("state", "link"), default=None,
                     help="what the policy sees, in training and in the held-out evaluation: the true state "
                          "(default) or the onboard filter's estimate from the mocap frames through the radio")
     rl.add_argument("--method", choices=("release", "fine_tune"), default="release",
@@ -87,11 +88,12 @@ def main_rl(args: argparse.Namespace) -> int:
         print(f"hil train rl: needs the 'learn' extra (torch, gymnasium, stable-baselines3, sb3-contrib): "
               f"{exc}", file=sys.stderr)
         return 2
+    # (the method's own world check and observation unless asked otherwise)
+    asked = {k: v for k, v in (("world_check", args.world_check), ("observe", args.observe)) if v is not None}
     try:
         metrics = train_rl(args.out, args.minutes, seed=args.seed, resume=args.resume, n_envs=args.envs,
                            progress=not args.no_progress, updates=args.updates,
-                           cfg=replace(METHODS[args.method](), world_check=args.world_check,
-                                       observe=args.observe))
+                           cfg=replace(METHODS[args.method](), **asked))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"hil train rl: {exc}", file=sys.stderr)
         return 1
