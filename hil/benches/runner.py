@@ -141,6 +141,6 @@ def tick_cpu_rows(summaries: list[dict]) -> Iterator[BenchRow]:
                 f"tick_cpu_us_{side}",
                 float(np.median(per_tick)),
                 "us",
-                f"CPU time of {what} per tick, its start-up included, median over {len(per_tick)} runs of the "
-                f"suite ({per_tick[0]:.0f}..{per_tick[-1]:.0f})",
+                f"CPU time of {what} per tick, its start-up included, median over {len(per_tick)} runs "
+                f"of the suite ({per_tick[0]:.0f}..{per_tick[-1]:.0f})",
             )
