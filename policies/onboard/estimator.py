@@ -195,7 +195,8 @@ class StaticPoseCheck:
         if self._ref is None:
             self._ref = (pos, quat)
         ref_pos, ref_quat = self._ref
-        jump = float(np.linalg.norm(pos - ref_pos))
+        d = pos - ref_pos
+        jump = math.sqrt(d.dot(d))  # `np.linalg.norm` of a vector, without its dispatch (once per frame)
         turn = 2.0 * math.acos(min(1.0, abs(float(quat @ ref_quat))))  # angle between the attitudes
         if jump > self.jump_m or turn > self.turn_rad:
             self.implausible += 1
