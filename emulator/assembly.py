@@ -1,5 +1,5 @@
 """The emulator assembled: vehicle (physics + FC), the gap world, the FC's server on the command link
-(by protocol name, `emulator.fc.server.FC_SERVERS`: MAVLink, DJI's OPEN protocol) and mocap over UWB on
+(by protocol name, `emulator.servers.registry.FC_SERVERS`: MAVLink, DJI's OPEN protocol) and mocap over UWB on
 the mocap link, one clock for all. `hil fc` (real time) and the runner's emulator side (simulated
 time) both build theirs here and add their own loop around it."""
 
@@ -11,14 +11,16 @@ from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcConfig, ServerConfig
-from emulator.fc.dji_open_server import DjiServerConfig
-from emulator.fc.server import FcServer, ServerOptions, make_server
+from emulator.fc import FcConfig
 from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
+from emulator.servers.dji_open_server import DjiServerConfig
+from emulator.servers.mavlink_server import ServerConfig
+from emulator.servers.registry import FcServer, ServerOptions, make_server
 from emulator.uwb import UwbConfig
+from emulator.vehicle import EmulatedVehicle
 from emulator.world import Gap, LabVolume, World
 from hil.link.clock import Clock
 from hil.link.mavlink import SIGNING_EPOCH_UNIX_S

@@ -73,13 +73,16 @@ def configure() -> Path | None:
 
 
 def cold(module: str = "") -> Path | None:
-    """This digest's folder when no kernel (of ``module``, e.g. ``esc_bus_kernels``, if named) is cached
-    in it yet (the first use after an install or a change compiles them, about 10-20 s on two cores),
-    else None; None too when ``NUMBA_CACHE_DIR`` is the user's own."""
+    """This digest's folder when no kernel (of ``module``, a dotted name such as ``emulator.esc.kernels``,
+    if named) is cached in it yet (the first use after an install or a change compiles them, about 10-20 s
+    on two cores), else None; None too when ``NUMBA_CACHE_DIR`` is the user's own."""
     folder = os.environ.get("NUMBA_CACHE_DIR")
     if not folder or Path(folder) != cache_root() / sources_digest():
         return None
-    pattern = f"{module}.*.nbi" if module else "*.nbi"
+    # numba files a module's kernels under a folder named by the module's own folder (and a hash of its
+    # path), each named by the module file's stem: ``esc_<hash>/kernels.run-40.py311.nbi``
+    package, _, stem = module.rpartition(".")
+    pattern = f"{package.rpartition('.')[2]}_*/{stem}.*.nbi" if module else "*.nbi"
     return Path(folder) if next(Path(folder).rglob(pattern), None) is None else None
 
 

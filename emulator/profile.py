@@ -59,7 +59,7 @@ class VehicleProfile:
     max_tilt_deg: float  # flight controller's roll/pitch limit
     max_body_rate_rad_s: float  # the inner loop's body-rate limit
     max_yaw_rate_deg_s: float = 150.0
-    # the power train as the ESCs report it (esc.Status: `emulator.esc_bus_kernels.esc_power`)
+    # the power train as the ESCs report it (esc.Status: `emulator.esc.kernels.esc_power`)
     battery_voltage_v: float = 15.2  # the pack's open-circuit voltage (a 4S lithium pack part-charged)
     battery_resistance_ohm: float = 0.05  # the pack's internal resistance, its wiring and connectors
     motor_efficiency: float = 0.7  # shaft power / electrical power drawn, motor and ESC together

@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 
 from emulator.assembly import Emulator
-from emulator.fc import EmulatedVehicle
-from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
+from emulator.servers.registry import FcServer
+from emulator.vehicle import EmulatedVehicle
 from emulator.world import CrossingTracker, Gap, World
 from hil.link.mavlink import mav
 

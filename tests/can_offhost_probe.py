@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emulator.esc_bus import Bridge, EscBus, EscBusConfig
+from emulator.esc.bus import Bridge, EscBus, EscBusConfig
 
 TUNSETIFF, IFF_TUN, IFF_NO_PI = 0x400454CA, 0x0001, 0x1000
 TUN = "offhost0"

@@ -12,9 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcState, MavlinkServer, resting_state
+from emulator.fc import FcState
 from emulator.mocap_link import MocapLinkServer
 from emulator.profile import load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle, resting_state
 from emulator.world import CrossingTracker, Gap, LabVolume, World
 from hil.link import MemoryTransport, SimClock
 from hil.link.linktrack import BODY_VALUES, FrameDecoder, crc16_ccitt, encode_node_frame, unpack_mocap_payload

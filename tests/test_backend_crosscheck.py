@@ -24,9 +24,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emulator.fc.vehicle import resting_state
 from emulator.physics import make_backend
 from emulator.profile import load_profile
+from emulator.vehicle import resting_state
 
 POS_TOL_M = 0.015
 VEL_TOL_M_S = 0.015

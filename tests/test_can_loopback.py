@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from emulator.esc_bus import Bridge
+from emulator.esc.bus import Bridge
 from hil.link.can_dronecan import McastDriver
 
 PROBE = Path(__file__).with_name("can_offhost_probe.py")

@@ -15,7 +15,7 @@ from dronecan import uavcan
 from dronecan.transport import Frame, Transfer, TransferManager
 from test_fc_mavlink import HOVER, Bench, of_type
 
-from emulator.esc_bus import (
+from emulator.esc.bus import (
     MAX_INTAKE_FRAMES,
     MIN_INTAKE_FRAMES,
     RAW_COMMAND_MAX,
@@ -29,7 +29,7 @@ from emulator.esc_bus import (
     parse_bus_spec,
 )
 from emulator.fc import FcState
-from emulator.fc.batched_steps import FastStepper
+from emulator.loops.batched_steps import FastStepper
 from hil.link.can_multicast import McastCanSocket
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, mav
 
@@ -367,8 +367,8 @@ def test_every_report_of_a_busy_moment_reaches_the_fc_none_dropped():
     """All four ESCs fall silent at once and then come back with rising error counts, their statuses
     delivered together: each "silent", each failsafe request, each "errors" and "answers again" is
     reported, in order, however many pile up at one instant."""
-    from emulator import esc_bus_kernels as k
-    from emulator.esc_bus import EscBus
+    from emulator.esc import kernels as k
+    from emulator.esc.bus import EscBus
 
     said: list[tuple[str, str]] = []
     esc = EscBus(EscBusConfig(failsafe_action="land"), np.random.default_rng(0), 0.0,

@@ -16,9 +16,9 @@ from dronecan import uavcan
 from test_esc_bus import decode, flying_bench, take_off
 from test_fc_mavlink import HOVER
 
-from emulator.esc_bus import Bridge, EscBus, EscBusConfig
-from emulator.esc_bus_kernels import AMBIENT_K, ESC_THERMAL_K_PER_W
-from emulator.esc_bus_services import ESC_NAME, FC_NAME, NodeIdentity
+from emulator.esc.bus import Bridge, EscBus, EscBusConfig
+from emulator.esc.kernels import AMBIENT_K, ESC_THERMAL_K_PER_W
+from emulator.esc.services import ESC_NAME, FC_NAME, NodeIdentity
 from hil.link.can_dronecan import McastDriver
 from hil.link.mavlink import mav
 

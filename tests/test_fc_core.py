@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcConfig, FcState, N3Setpoint, SetpointRejected
+from emulator.fc import FcConfig, FcState, N3Setpoint, SetpointRejected
 from emulator.fc.n3 import (
     ATTITUDE_THRUST_YAW_ANGLE,
     ATTITUDE_THRUST_YAW_RATE,
@@ -20,6 +20,7 @@ from emulator.fc.n3 import (
 )
 from emulator.physics.native import hover_state
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.vehicle import EmulatedVehicle
 from hil.link.mavlink import euler_from_quat, quat_enu_flu_to_ned_frd
 
 PROFILE = load_profile("n3_tx2")
@@ -221,7 +222,7 @@ def _hovering_east(z_m: float = 2.0) -> EmulatedVehicle:
 def test_hold_keeps_the_heading_it_had_when_armed_in_the_air(batched):
     """Armed in the air the FC holds (PX4's Hold: the heading on entry), on the per-step path and the
     batched one: the heading stays at 90 deg (it used to swing toward north at ~60 deg/s)."""
-    from emulator.fc.batched_steps import FastStepper
+    from emulator.loops.batched_steps import FastStepper
 
     v = _hovering_east()
     assert ned_euler(v)[2] == pytest.approx(math.pi / 2, abs=1e-9)

@@ -13,10 +13,11 @@ import sys
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcConfig, FcState
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.fc.params import PARAMS, ParamError
+from emulator.fc import FcConfig, FcState
+from emulator.params import PARAMS, ParamError
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.dji_open import OpenCodec
 

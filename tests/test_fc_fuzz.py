@@ -8,8 +8,10 @@ import struct
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
+from emulator.fc import FcState
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, quat_from_euler
 

@@ -18,10 +18,10 @@ import pytest
 from test_fc_mavsdk import start_fc, stop_fc, wait_for
 from test_fc_params_clients import MAVPROXY, Lines, stop_gcs
 
-from emulator.fc import EmulatedVehicle
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.fc.params import PARAMS
+from emulator.params import PARAMS
 from emulator.profile import load_profile
+from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.vehicle import EmulatedVehicle
 from hil.link import SerialTransport, SimClock, WallClock
 from hil.link import dji_open as dj
 from hil.link.channel import BITS_PER_BYTE

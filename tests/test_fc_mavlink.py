@@ -8,9 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcConfig, FcState, MavlinkServer
-from emulator.fc.mavlink_server import MAX_MESSAGES_PER_POLL
+from emulator.fc import FcConfig, FcState
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.mavlink_server import MAX_MESSAGES_PER_POLL, MavlinkServer
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import (
     PX4_AUTO_LOITER,

@@ -12,7 +12,7 @@ from test_fc_mavlink import HOVER, Bench, of_type
 
 from emulator.fc import FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE
-from emulator.fc.params import PARAMS, ParamError, param_def, read_param_file
+from emulator.params import PARAMS, ParamError, param_def, read_param_file
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, decode_frame, mav
 from hil.link.tlog import read_tlog
 
@@ -209,7 +209,7 @@ def test_parameter_file_loaded_and_written_back_on_request(tmp_path: Path):
     path = tmp_path / "fc.params"
     path.write_text("# mine\nCOM_OF_LOSS_T 0.5\n1\t1\tMPC_TILTMAX_AIR\t25\t9\n")  # MAVProxy and QGC lines
     assert read_param_file(path) == {"COM_OF_LOSS_T": 0.5, "MPC_TILTMAX_AIR": 25.0}
-    from emulator.fc import ServerConfig
+    from emulator.servers.mavlink_server import ServerConfig
 
     b = Bench()
     b.server.config = ServerConfig(param_file=str(path))
@@ -251,7 +251,7 @@ def test_each_parameter_default_is_its_settings_default():
 
 
 def test_the_readme_shows_the_table_as_it_is():
-    from emulator.fc.params import describe
+    from emulator.params import describe
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     missing = [row for row in describe() if row not in readme]

@@ -19,7 +19,7 @@ import pytest
 from test_fc_mavsdk import HOVER, start_fc, stop_fc, wait_for
 from test_fc_signing import Station, packer
 
-from emulator.fc.params import PARAMS, read_param_file
+from emulator.params import PARAMS, read_param_file
 from hil.link import SerialTransport, WallClock
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, decode_frame, mav, quat_from_euler
 from hil.link.tlog import read_tlog

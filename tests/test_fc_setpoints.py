@@ -11,8 +11,7 @@ from dataclasses import astuple
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
-from emulator.fc.mavlink_server import RAW_MSG_IDS, attitude_target_values
+from emulator.fc import FcState
 from emulator.fc.n3 import (
     ATTITUDE_THRUST_YAW_ANGLE,
     ATTITUDE_THRUST_YAW_RATE,
@@ -27,6 +26,8 @@ from emulator.fc.n3 import (
     wrap_pi,
 )
 from emulator.profile import GRAVITY_M_S2, VehicleProfile, load_profile
+from emulator.servers.mavlink_server import RAW_MSG_IDS, MavlinkServer, attitude_target_values
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import (
     PX4_MAIN_OFFBOARD,

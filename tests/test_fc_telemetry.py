@@ -7,10 +7,12 @@ import math
 
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcState, MavlinkServer
-from emulator.fc.telemetry import CUSTOM_MODE
+from emulator.fc import FcState
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.servers.telemetry import CUSTOM_MODE
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, px4_custom_mode
 

@@ -10,10 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcState, fc_gains
+from emulator.fc import FcState, fc_gains
 from emulator.fc.tuning import MIN_ATTITUDE_P_PER_S
 from emulator.physics.native import hover_state
 from emulator.profile import ProfileError, load_profile
+from emulator.vehicle import EmulatedVehicle
 
 N3 = load_profile("n3_tx2")
 F450 = load_profile("f450")

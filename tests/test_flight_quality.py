@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from onboard_rig import run_mission
 
-from emulator.fc import EmulatedVehicle, MavlinkServer
 from emulator.physics.native import hover_state
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import MavlinkCodec, euler_from_quat, mav
 from policies.frames import quat_to_matrix

@@ -1,6 +1,6 @@
 """Every module a user or a tool imports first loads on its own in a fresh interpreter: no import cycle
 that only works when another module happened to be imported before (the ESC bus model once failed
-`import emulator.esc_bus` alone: its kernels load the FC, whose parameters named the bus's settings)."""
+`import emulator.esc.bus` alone: its kernels load the FC, whose parameters named the bus's settings)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FIRST_IMPORTS = (
-    "emulator.esc_bus", "emulator.esc_bus_kernels", "emulator.esc_bus_config", "emulator.fc",
-    "emulator.fc.params", "emulator.fc.n3", "emulator.fc.batched_steps", "emulator.physics.native",
+    "emulator.esc.bus", "emulator.esc.kernels", "emulator.esc.config", "emulator.fc",
+    "emulator.params", "emulator.fc.n3", "emulator.loops.batched_steps", "emulator.physics.native",
     "emulator.world", "hil.rl.env", "hil.rl.observe", "hil.rl.targets", "hil.link.mavlink", "hil.runner",
     "hil.cli", "policies.onboard.cli", "policies.learning.learned_pilots",
 )

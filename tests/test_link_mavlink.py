@@ -110,9 +110,10 @@ def test_codec_pack_of_per_tick_messages_is_pymavlinks_bytes():
 def test_everything_the_fc_sends_is_framed_as_pymavlink_frames_it():
     # the FC's codec frames every message itself on an unsigned link: each kind it can send, from a
     # vehicle in flight, must be pymavlink's bytes
-    from emulator.fc import EmulatedVehicle, MavlinkServer
     from emulator.physics.native import hover_state
     from emulator.profile import load_profile
+    from emulator.servers.mavlink_server import MavlinkServer
+    from emulator.vehicle import EmulatedVehicle
 
     profile = load_profile("n3_tx2")
     vehicle = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.5, -1.0, 1.5)))

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import math
 
-from emulator.fc import EmulatedVehicle, FcState
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.fc import FcState
 from emulator.profile import load_profile
+from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.dji_open import OpenCodec
 from hil.link.lockstep import dji_tick_frames

@@ -12,9 +12,12 @@ import sys
 import numpy as np
 import pytest
 
-from emulator.fc import EmulatedVehicle, FcState, MavlinkServer, RealtimeRunner, resting_state
+from emulator.fc import FcState
+from emulator.loops.realtime_runner import RealtimeRunner
 from emulator.mocap_link import MocapLinkServer
 from emulator.profile import load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle, resting_state
 from emulator.world import CrossingTracker, Gap, LabVolume, World
 from hil.link import PtyTransport, WallClock
 from hil.link.mavlink import MavlinkCodec, mav

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emulator.fc.vehicle import resting_state
 from emulator.physics import make_backend
 from emulator.physics.native import BatchPhysics, NativeBackend, hover_state
 from emulator.physics.state import STATE_SIZE, VehicleState
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.vehicle import resting_state
 
 PROFILE = load_profile("n3_tx2")
 NO_DRAG = PROFILE.with_changes(linear_drag_n_s_m=(0.0, 0.0, 0.0), angular_drag_nm_s_rad=(0.0, 0.0, 0.0))

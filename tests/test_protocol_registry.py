@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from emulator.fc import EmulatedVehicle
 from emulator.fc.modes import FcState
 from emulator.fc.n3 import SetpointRejected
-from emulator.fc.params import Parameters
-from emulator.fc.server import FC_SERVERS, ServerOptions, make_server, register_server
+from emulator.params import Parameters
+from emulator.servers.registry import FC_SERVERS, ServerOptions, make_server, register_server
+from emulator.vehicle import EmulatedVehicle
 from hil.link import dji_open
 from hil.link.clock import Clock
 from hil.link.lockstep import MOCAP_COUNT_MASK, NS_PER_S, Framing, tick_answer_ns

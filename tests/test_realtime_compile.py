@@ -18,7 +18,9 @@ import json, math
 import numpy as np
 from numba.core import event
 
-from emulator.fc import EmulatedVehicle, N3Setpoint, RealtimeRunner
+from emulator.fc import N3Setpoint
+from emulator.loops.realtime_runner import RealtimeRunner
+from emulator.vehicle import EmulatedVehicle
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE
 from emulator.physics.native import hover_state
 from emulator.profile import GRAVITY_M_S2, load_profile
@@ -31,8 +33,8 @@ vehicle = EmulatedVehicle(profile, initial_state=start)
 tracker = CrossingTracker(World.for_profile(Gap(centre_m=(0.0, 2.0, 1.5)), LabVolume(), profile))
 RealtimeRunner(vehicle, [], clock=SimClock())  # the set-up a real-time loop has: it compiles now
 # and `hil fc --esc-bus`'s: the motors behind the compiled DroneCAN bus model
-from emulator.esc_bus import EscBusConfig, attach
-from emulator.fc import MavlinkServer
+from emulator.esc.bus import EscBusConfig, attach
+from emulator.servers.mavlink_server import MavlinkServer
 from hil.link import MemoryTransport
 from hil.link.mavlink import MavlinkCodec
 

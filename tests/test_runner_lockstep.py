@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from onboard_rig import rewrite_mocap_from
 
-from emulator.fc import EmulatedVehicle, FcState
-from emulator.fc.batched_steps import FastStepper
+from emulator.fc import FcState
 from emulator.fc.n3 import N3Setpoint
+from emulator.loops.batched_steps import FastStepper
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
+from emulator.vehicle import EmulatedVehicle
 from hil.link.lockstep import answered_ns
 from hil.link.mavlink import (
     FrameSplitter,

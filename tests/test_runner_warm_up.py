@@ -22,14 +22,18 @@ def test_a_family_is_cold_until_one_of_its_kernels_is_in_the_cache(tmp_path, mon
     folder = kernel_cache.cache_root() / kernel_cache.sources_digest()
     (folder / "fc_0123").mkdir(parents=True)
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(folder))
-    assert kernel_cache.cold() == folder and kernel_cache.cold("esc_bus_kernels") == folder
+    assert kernel_cache.cold() == folder and kernel_cache.cold("emulator.esc.kernels") == folder
     (folder / "fc_0123" / "inner_loop.control-86.py311.nbi").write_bytes(b"")
     assert kernel_cache.cold() is None  # some kernels cached: not cold as a whole
-    assert kernel_cache.cold("esc_bus_kernels") == folder  # but the ESC bus's are not
-    (folder / "fc_0123" / "esc_bus_kernels.run-40.py311.nbi").write_bytes(b"")
-    assert kernel_cache.cold("esc_bus_kernels") is None
+    assert kernel_cache.cold("emulator.esc.kernels") == folder  # but the ESC bus's are not
+    (folder / "physics_0123").mkdir()
+    (folder / "physics_0123" / "kernels.step_vehicle-40.py311.nbi").write_bytes(b"")  # another `kernels`
+    assert kernel_cache.cold("emulator.esc.kernels") == folder
+    (folder / "esc_4567").mkdir()
+    (folder / "esc_4567" / "kernels.run-40.py311.nbi").write_bytes(b"")
+    assert kernel_cache.cold("emulator.esc.kernels") is None
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "mine"))  # the user's own folder: never cold
-    assert kernel_cache.cold("box_kernel") is None
+    assert kernel_cache.cold("emulator.world.box_kernel") is None
 
 
 def test_only_runs_with_an_esc_bus_use_the_esc_bus_family():
@@ -54,7 +58,7 @@ def test_a_run_of_a_family_waits_for_its_compiling_child_and_no_other_run_does()
     compiling.wait_for(ESC)  # until the child has flown its flight
     child.join(timeout=60)
     assert child.exitcode == 0
-    assert kernel_cache.cold("esc_bus_kernels") is None  # which left the family's kernels in the cache
+    assert kernel_cache.cold("emulator.esc.kernels") is None  # which left the family's kernels in the cache
     compiling.join()
 
 

@@ -48,7 +48,7 @@ class InnerLoop:
     """Attitude and rate control plus mixing for one profile; `update` returns motor throttles (4,),
     `update_batch` those of a batch of vehicles.
 
-    Contract for compiled callers that fuse the loop with physics (`emulator.fc.batched_steps`):
+    Contract for compiled callers that fuse the loop with physics (`emulator.loops.batched_steps`):
     ``control(q, w, roll, pitch, yaw, thrust_n, params, mix_inv, out)`` (`control`, numba) with this
     loop's ``params`` and ``mix_inv`` writes the throttles into ``out`` (4,), here ``motor_cmd``;
     ``control_quat`` takes the target as its quaternion (`target_quat_floats`), for a target held over

@@ -128,7 +128,7 @@ class NativeBackend:
     def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(state row (STATE_SIZE,), auxiliary row (AUX_SIZE,), parameters) as `step_vehicle` advances
         them in place: for a compiled caller that fuses its own per-step work with the physics step
-        (`emulator.fc.batched_steps`); it reports the steps it took with `advance_clock`."""
+        (`emulator.loops.batched_steps`); it reports the steps it took with `advance_clock`."""
         return self._x, self._aux, self._params
 
     @property

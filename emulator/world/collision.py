@@ -125,7 +125,7 @@ class World:
     @property
     def packed(self) -> np.ndarray:
         """This world's constants as `box_kernel.pack_world` packs them (27,): a row of the worlds that
-        `emulator.fc.batched_steps.fly_targets` checks a batch against, each row its own world."""
+        `emulator.loops.batched_steps.fly_targets` checks a batch against, each row its own world."""
         return self._packed
 
     def compile_kernels(self) -> None:

@@ -9,9 +9,9 @@ from collections.abc import Callable, Iterable
 from dataclasses import replace
 from pathlib import Path
 
-from emulator.fc import EmulatedVehicle
-from emulator.fc.dji_open_server import DjiOpenServer
-from emulator.fc.realtime_runner import Pollable
+from emulator.loops.realtime_runner import Pollable
+from emulator.servers.dji_open_server import DjiOpenServer
+from emulator.vehicle import EmulatedVehicle
 from hil.benches import BenchRow
 from hil.benches.fc import setpoint_latency
 from hil.benches.runner import RTF_RUNS, RTF_SCENARIO

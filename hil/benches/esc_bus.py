@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from emulator.esc_bus import Bridge, EscBus, EscBusConfig, attach
-from emulator.fc import EmulatedVehicle, MavlinkServer
+from emulator.esc.bus import Bridge, EscBus, EscBusConfig, attach
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle
 from hil.benches import BenchRow, time_per_call
 from hil.benches.runner import RTF_SCENARIO
 from hil.link import MemoryTransport, SimClock

@@ -8,9 +8,10 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Protocol
 
-from emulator.fc import EmulatedVehicle, MavlinkServer, RealtimeRunner
-from emulator.fc.realtime_runner import Pollable
+from emulator.loops.realtime_runner import Pollable, RealtimeRunner
 from emulator.profile import GRAVITY_M_S2, load_profile
+from emulator.servers.mavlink_server import MavlinkServer
+from emulator.vehicle import EmulatedVehicle
 from hil.benches import BenchRow
 from hil.link import MemoryTransport, PtyTransport, SerialTransport, SimClock, WallClock
 from hil.link.mavlink import MavlinkCodec, quat_from_euler

@@ -17,17 +17,20 @@ from typing import Any
 import numpy as np
 
 from emulator.assembly import assemble, warm_up
-from emulator.esc_bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
-from emulator.fc import FcConfig, RealtimeRunner, ServerConfig, resting_state
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.fc.params import describe, param_def, read_param_file
-from emulator.fc.server import FC_SERVERS
+from emulator.esc.bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
+from emulator.fc import FcConfig
 from emulator.fc.tuning import fc_gains
+from emulator.loops.realtime_runner import RealtimeRunner
 from emulator.mocap import MocapConfig
+from emulator.params import describe, param_def, read_param_file
 from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
+from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.servers.mavlink_server import ServerConfig
+from emulator.servers.registry import FC_SERVERS
 from emulator.standalone import GAPS, loop_links
 from emulator.uwb import UwbConfig
+from emulator.vehicle import resting_state
 from hil.commands import port_number, say_if_compiling
 from hil.link.clock import WallClock
 from hil.link.endpoint import open_link, parse_endpoint

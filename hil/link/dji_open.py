@@ -1,6 +1,6 @@
 """DJI's OPEN protocol (Onboard SDK 3.x, the N3/A3's UART protocol): frames, CRCs, a streaming parser,
 sessions, ACKs, and the command sets and ids this project speaks. One module owns the protocol: the
-emulator's server (`emulator.fc.dji_open_server`) and the onboard client (`policies.onboard`) both
+emulator's server (`emulator.servers.dji_open_server`) and the onboard client (`policies.onboard`) both
 frame and read through it. Layout and codes: docs/dji-open-link.md.
 
 A frame: a 12-byte header (SOF 0xAA; LEN, 10 bits: the whole frame's length; VER, 6 bits, 0; SESSION,

@@ -1,7 +1,7 @@
 """The command link's protocols, by name: what the link layer knows of each (its codec, its lockstep
 framing, its longest frame, how a captured frame is found and read). The scenario schema, the CLIs'
 choices, the .tlog reader and `hil decode` read this table; the emulator's FC servers
-(`emulator.fc.server`) and the onboard program's links (`policies.onboard.command_links`) have their
+(`emulator.servers.registry`) and the onboard program's links (`policies.onboard.command_links`) have their
 own tables under the same names. Adding a protocol: its codec module here, one `register_protocol`
 call (docs/extending.md)."""
 

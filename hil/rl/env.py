@@ -2,7 +2,7 @@
 
 One process, N vehicles as rows of arrays: the emulator's own code flies them (`BatchPhysics` rows, the
 FC's inner loop, physics and the world's compiled check in one parallel call,
-`emulator.fc.batched_steps.fly_targets`), nothing re-written.
+`emulator.loops.batched_steps.fly_targets`), nothing re-written.
 
 Episode (as in the paper's release): a hover at a drawn start facing the crossing, the onboard program's
 plan of a drawn gap (`hil.rl.scenarios`), then the approach and the traverse; it ends at approach time
@@ -42,10 +42,10 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from emulator.fc import EmulatedVehicle
-from emulator.fc.batched_steps import fly_targets
+from emulator.loops.batched_steps import fly_targets
 from emulator.physics.native import BatchPhysics, hover_state
 from emulator.profile import load_profile
+from emulator.vehicle import EmulatedVehicle
 from hil.rl.link_observe import DRAWS, LinkModel, LinkRows, link_observe_rows
 from hil.rl.observe import observe_rows
 from hil.rl.reward import REWARD_TERMS, pack_weights, score_rows

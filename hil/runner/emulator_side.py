@@ -19,15 +19,15 @@ from typing import Any
 import numpy as np
 
 from emulator.assembly import assemble
-from emulator.esc_bus import EscBusConfig, EscBusStepper
-from emulator.esc_bus import attach as attach_esc_bus
-from emulator.fc import FcConfig, ServerConfig
-from emulator.fc.batched_steps import FastStepper
-from emulator.fc.mavlink_server import RAW_MSG_IDS
-from emulator.fc.params import ParamError
+from emulator.esc.bus import EscBusConfig, EscBusStepper
+from emulator.esc.bus import attach as attach_esc_bus
+from emulator.fc import FcConfig
+from emulator.loops.batched_steps import FastStepper
 from emulator.mocap import MocapConfig, pose_of
+from emulator.params import ParamError
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
+from emulator.servers.mavlink_server import RAW_MSG_IDS, ServerConfig
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume
 from hil.link.clock import SimClock

@@ -14,8 +14,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
+from emulator.servers.registry import FcServer
 from hil.link.clock import GapStats, PacingStats
 from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
 from hil.runner.lockstep import RECORD_BATCH, LoopReport, apply_process_faults, note_divergence

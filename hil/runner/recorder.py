@@ -14,10 +14,10 @@ from numba import njit
 
 from emulator.fc import FcState, FlightController
 from emulator.fc.n3 import AttitudeThrustTarget
-from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
 from emulator.profile import VehicleProfile
+from emulator.servers.registry import FcServer
 from emulator.world import CrossingTracker, Obstacle, World
 
 SAMPLE_S = 0.01  # away from the wall (s)

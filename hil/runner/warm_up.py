@@ -40,7 +40,7 @@ class Family:
 
 #: the families, by name
 FAMILIES = {
-    "esc_bus": Family("esc_bus_kernels", WARM_UP_SCENARIO + "links:\n  esc_bus: {}\n",
+    "esc_bus": Family("emulator.esc.kernels", WARM_UP_SCENARIO + "links:\n  esc_bus: {}\n",
                       lambda s: s.links.esc_bus is not None),
 }
 

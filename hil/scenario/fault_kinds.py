@@ -41,7 +41,7 @@ FrameOut = tuple[bytes | None, int]
 class FaultTarget(Protocol):
     """What an ``"emulator"`` fault acts on: the FC side of one run (`hil.runner.emulator_side`)."""
 
-    esc: Any  # the DroneCAN ESC bus's stepper (`emulator.esc_bus.EscBusStepper`), None without one
+    esc: Any  # the DroneCAN ESC bus's stepper (`emulator.esc.bus.EscBusStepper`), None without one
 
     def set_wind(self, force_n: np.ndarray, moment_nm: np.ndarray) -> None:
         """An external force (N, world ENU) and moment (N m, body FLU) on the airframe from now on."""
@@ -158,7 +158,7 @@ class WindGustParams:
 
 @dataclass(frozen=True)
 class ParamSetParams:
-    """Set one FC parameter (by its MAVLink name, `emulator.fc.params`) while the fault acts; the value
+    """Set one FC parameter (by its MAVLink name, `emulator.params`) while the fault acts; the value
     in force before comes back when it ends."""
 
     name: str = spec(MISSING, doc="the parameter's name, e.g. COM_OF_LOSS_T")

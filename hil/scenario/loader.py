@@ -779,7 +779,7 @@ class _Builder:
     def fc_param(self, name: str, value: Any, node: Node, path: str) -> float:
         """``value`` for the FC parameter ``name``, checked against its table (name, type, range)."""
         # (heavy: numba through the emulator, loaded only when a file needs it)
-        from emulator.fc.params import ParamError, param_def
+        from emulator.params import ParamError, param_def
 
         if isinstance(value, int) and not _finite(value):  # the table compares it as a float
             raise self.error(node, path, f"expected a number, got {_describe(value, node)}")

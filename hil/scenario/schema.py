@@ -152,7 +152,7 @@ class MocapLinkSpec(LinkSpec):
 
 @dataclass(frozen=True)
 class EscBusSpec:
-    """The motors behind DroneCAN ESCs on a CAN bus (`emulator.esc_bus`); the FC's watch over them is
+    """The motors behind DroneCAN ESCs on a CAN bus (`emulator.esc.bus`); the FC's watch over them is
     set by its parameters N3_ESC_TOUT and N3_ESC_FS_ACT."""
 
     bitrate_bps: int = spec(1_000_000, lo=10_000, hi=1_000_000, doc="CAN bit rate")
@@ -460,7 +460,7 @@ class Scenario:
     pilot: str = "traditional"
     approach: ApproachSpec = field(default_factory=ApproachSpec)
     links: LinksSpec = field(default_factory=LinksSpec)
-    #: FC parameters set before the flight (name, value), by their MAVLink names (`emulator.fc.params`)
+    #: FC parameters set before the flight (name, value), by their MAVLink names (`emulator.params`)
     params: tuple[tuple[str, float], ...] = ()
     faults: tuple[Fault, ...] = ()
     seed: int = 0

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from emulator.fc import EmulatedVehicle
-from emulator.fc.server import FcServer
 from emulator.mocap_link import MocapLinkServer
+from emulator.servers.registry import FcServer
+from emulator.vehicle import EmulatedVehicle
 from emulator.world import World
 from hil.runner.flight_quality import mission_plan
 from hil.runner.recorder import state_values

@@ -17,9 +17,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from emulator.esc_bus_config import EscBusConfig
+from emulator.esc.config import EscBusConfig
 from emulator.fc.flight_controller import FcConfig, FlightController
-from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S
+from emulator.servers.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S
 from hil.link.mavlink import mav
 
 FLOAT, INT = "float", "int"
@@ -41,7 +41,7 @@ class ParamDef:
     ``fc`` (an `FcConfig` field, in flight from the next step), ``limit`` (a setpoint limit of the FC's
     vehicle profile, from the next setpoint), ``stream`` (the rate of the telemetry message with id
     ``key``, 0 Hz: off), ``esc`` (an `EscBusConfig` field of the ESC bus; kept for when one is on),
-    ``link`` (the MAVLink link's data-rate budget, `emulator.fc.link_budget`)."""
+    ``link`` (the MAVLink link's data-rate budget, `emulator.servers.link_budget`)."""
 
     name: str
     kind: str  # FLOAT or INT (MAV_PARAM_TYPE_REAL32 / INT32 on the wire)

@@ -56,7 +56,7 @@ class EmulatedVehicle:
         self._state: VehicleState | None = self.backend.state
         self.steps = 0
         #: steps the vehicle instead of `step`'s own loop when set (the motors behind an ESC bus,
-        #: `emulator.esc_bus.EscBusStepper`); it counts ``steps`` itself
+        #: `emulator.esc.bus.EscBusStepper`); it counts ``steps`` itself
         self.motor_path: MotorPath | None = None
 
     @property

@@ -9,11 +9,11 @@ from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from emulator.fc.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.fc.mavlink_server import MavlinkServer, ServerConfig
 from emulator.fc.modes import FcState
-from emulator.fc.params import Parameters
-from emulator.fc.vehicle import EmulatedVehicle
+from emulator.params import Parameters
+from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.servers.mavlink_server import MavlinkServer, ServerConfig
+from emulator.vehicle import EmulatedVehicle
 from hil.link.clock import Clock
 from hil.link.dji_open import OpenCodec
 from hil.link.mavlink import SIGNING_EPOCH_UNIX_S, MavlinkCodec, mav

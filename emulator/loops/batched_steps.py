@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from emulator.fc import EmulatedVehicle, FcState
+from emulator.fc import FcState
 from emulator.fc.flight_controller import HOLD_STATES
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import control, control_quat, target_quat_floats
@@ -28,6 +28,7 @@ from emulator.fc.landed import body_landed
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
+from emulator.vehicle import EmulatedVehicle
 from emulator.world.box_kernel import check_packed, quat_to_rot_into
 
 

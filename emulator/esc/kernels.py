@@ -1,6 +1,6 @@
 """The ESC bus's arithmetic, compiled: the wire's timing, loss and corruption, the queue of transfers,
 the emulated ESC nodes, the FC's node and its watch, and a stepper that flies the vehicle behind them.
-`emulator.esc_bus` is the readable API over these arrays (its classes are views of them); this module
+`emulator.esc.bus` is the readable API over these arrays (its classes are views of them); this module
 is the only place the bus model is written out.
 
 State lives in flat float64 arrays whose layouts are the index constants below:
@@ -67,7 +67,7 @@ E_SIZE = 12
 # what the FC knows of each ESC
 H_LAST_S, H_ERRORS, H_RPM, H_VOLTAGE_V, H_CURRENT_A, H_TEMPERATURE_K, H_FAILED = range(7)
 H_SIZE = 7
-# the FC's node, its command schedule and the stepper (``F_ACTION``: an index of `esc_bus_config.ACTIONS`)
+# the FC's node, its command schedule and the stepper (``F_ACTION``: an index of `config.ACTIONS`)
 (F_NODE, F_T0, F_NEXT_NODE_S, F_HEALTH, F_TID_RAW, F_TID_NODE, F_COMMANDS, F_TIMEOUT_S, F_ACTION,
  F_NODES_DUE_S, F_NEXT_COMMAND_S, F_COMMAND_PERIOD_S, F_STATUS_PERIOD_S, F_MAX_ROTOR, F_POLLS,
  F_FC_STEPS, F_QUIET_STEPS, F_PHYSICS_STEPS, F_EVENTS, F_QUIET_T, F_QUIET_Z, F_QUIET_VZ, F_QUIETED,

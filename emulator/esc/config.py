@@ -1,5 +1,5 @@
 """The ESC bus's settings (`EscBusConfig`), apart from the bus model so that the FC's parameters can name
-them without loading the model (`emulator.esc_bus`)."""
+them without loading the model (`emulator.esc.bus`)."""
 
 from __future__ import annotations
 

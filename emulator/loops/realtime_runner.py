@@ -7,7 +7,7 @@ import threading
 from collections.abc import Sequence
 from typing import Protocol
 
-from emulator.fc.vehicle import EmulatedVehicle
+from emulator.vehicle import EmulatedVehicle
 from hil.link.clock import Clock, PacingStats, WallClock
 
 POLL_PERIOD_S = 0.001  # the loop wakes at least this often, and at once when a link has data

@@ -16,7 +16,7 @@ then follows the rpm that node reports).
 and the physics at its own rate, each motor at the throttle its ESC holds.
 
 The arithmetic of all of it (the wire, the queue, the emulated nodes, the stepper's loop) is compiled,
-in `emulator.esc_bus_kernels`, over flat arrays; the classes here are views of those arrays and do in
+in `emulator.esc.kernels`, over flat arrays; the classes here are views of those arrays and do in
 Python only what needs Python: dronecan's encoding for a real bus, frames coming in from one, listeners
 attached from Python, the FC's reports and failsafe.
 """
@@ -31,19 +31,19 @@ from typing import Any
 
 import numpy as np
 
-from emulator import esc_bus_kernels as k
-from emulator.esc_bus_config import ACTIONS
-from emulator.esc_bus_config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
-from emulator.esc_bus_config import EscBusConfig as EscBusConfig
-from emulator.esc_bus_kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
-from emulator.esc_bus_kernels import frame_bits as frame_bits
+from emulator.esc import kernels as k
+from emulator.esc.config import ACTIONS
+from emulator.esc.config import ESC_STATUS_RATE_HZ as ESC_STATUS_RATE_HZ
+from emulator.esc.config import EscBusConfig as EscBusConfig
+from emulator.esc.kernels import RAW_COMMAND_MAX as RAW_COMMAND_MAX
+from emulator.esc.kernels import frame_bits as frame_bits
 from hil.link.can_multicast import FORMATS as MCAST_FORMATS
 from hil.link.can_multicast import McastCanSocket, split_interface
 
 BUS_SPECS = ("sim", "virtual:CHANNEL", "udp_multicast[:GROUP][@ADDR]", "socketcan:IFACE", "mcast[:N][@ADDR]")
 #: NodeStatus health and mode values (uavcan.protocol.NodeStatus)
 MODE_OPERATIONAL = 0
-DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`esc_bus_kernels`)
+DRAW_BLOCK = 8192  # uniform draws taken from the bus's generator at a time (`emulator.esc.kernels`)
 #: frames taken from a real bus in one pass (`CanBus.take_external`, about once a millisecond): what the
 #: wire could carry since the last pass (shortest frames back to back), at least the first, at most the
 #: second: a bound on the time a pass spends on them, whatever floods the real bus
@@ -199,7 +199,7 @@ class _Slot:
 
 
 def _kind_types() -> tuple[Any, Any, Any]:
-    """The DSDL types of the kinds the compiled nodes send (`esc_bus_kernels` RAW_COMMAND, ESC_STATUS,
+    """The DSDL types of the kinds the compiled nodes send (`emulator.esc.kernels` RAW_COMMAND, ESC_STATUS,
     NODE_STATUS), in that order."""
     from dronecan import uavcan
 
@@ -222,7 +222,7 @@ def _fields_of(kind: int, p: np.ndarray) -> dict[str, Any]:
 
 
 def _payload_of(kind: int, fields: dict[str, Any]) -> np.ndarray:
-    """The payload (`esc_bus_kernels.PAYLOAD`,) a compiled node takes from a message's fields."""
+    """The payload (`emulator.esc.kernels.PAYLOAD`,) a compiled node takes from a message's fields."""
     p = np.zeros(k.PAYLOAD)
     if kind == k.RAW_COMMAND:
         cmd = list(fields.get("cmd", ()))[:k.PAYLOAD - 1]
@@ -245,7 +245,7 @@ class CanBus:
     trip; its frames are encoded by dronecan whenever they leave for a real bus (``bridge``), and frames
     from a real bus are reassembled and decoded by dronecan's transport.
 
-    Its state is the compiled model's arrays (`emulator.esc_bus_kernels`): ``wire``, ``queue`` and the
+    Its state is the compiled model's arrays (`emulator.esc.kernels`): ``wire``, ``queue`` and the
     nodes' (none until an `EscBus` puts its own there)."""
 
     def __init__(self, config: EscBusConfig, rng: np.random.Generator, bridge: Bridge | None = None) -> None:
@@ -671,7 +671,7 @@ class EscBus:
         self.fc_node = FcEscNode(b, config)
         #: whether the motors are armed (an ESC refuses to restart then); `attach` asks the FC
         self.armed: Callable[[], bool] = lambda: False
-        from emulator import esc_bus_services as sv  # (dronecan's types: loaded with a bus, not this module)
+        from emulator.esc import services as sv  # (dronecan's types: loaded with a bus, not this module)
 
         identities = {config.fc_node_id: sv.NodeIdentity(config.fc_node_id, sv.FC_NAME)}
         identities.update({nid: sv.NodeIdentity(nid, sv.ESC_NAME) for nid in config.esc_node_ids
@@ -701,8 +701,8 @@ class EscBus:
         return True
 
     def _interface_counts(self) -> Any:
-        """The process's interface to the bus (`esc_bus_services.InterfaceCounts`)."""
-        from emulator.esc_bus_services import InterfaceCounts  # (loaded with the bus: see __init__)
+        """The process's interface to the bus (`emulator.esc.services.InterfaceCounts`)."""
+        from emulator.esc.services import InterfaceCounts  # (loaded with the bus: see __init__)
 
         b, w = self.bus, self.bus.wire
         return InterfaceCounts(transfers_tx=int(w[k.W_SEQ]) - b.frames_in_queued, transfers_rx=b.transfers_in,
@@ -736,7 +736,7 @@ class EscBus:
 
     def set_power_train(self, profile: Any) -> None:
         """The motors, their top speed and the pack of a `VehicleProfile`: what the emulated ESCs report
-        in esc.Status (`esc_bus_kernels.esc_power`)."""
+        in esc.Status (`emulator.esc.kernels.esc_power`)."""
         f = self.bus.fc
         f[k.F_MAX_ROTOR] = profile.max_rotor_speed_rad_s
         f[k.F_DRAG_COEFF] = profile.drag_torque_coeff_nm_s2
@@ -801,7 +801,7 @@ class EscBusStepper:
     """Steps an EmulatedVehicle with its motors behind an `EscBus`: the FC's loop at the motor rate
     (its output sent as RawCommand), the physics at its own rate with each motor at its ESC's throttle.
 
-    One compiled loop (`esc_bus_kernels.run`) does it, the FC's motor ticks included while it flies an
+    One compiled loop (`emulator.esc.kernels.run`) does it, the FC's motor ticks included while it flies an
     offboard attitude target with nothing timed due (its inner loop on the state's rows, then
     `stepped_outside`'s bookkeeping, as the lockstep runner's batched steps do); it hands back to
     Python for the FC's own `update` on its other ticks, for what a real bus or a listener needs, and

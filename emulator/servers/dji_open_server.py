@@ -1,9 +1,9 @@
 """The FC's DJI OPEN-protocol endpoint (Onboard SDK 3.x, as an N3 with FC firmware 3.3 answers on its API
 UART), over the same FC core as the MAVLink server: version query and activation, control authority,
 arm/disarm, flight tasks (take-off, landing, motors), the flight-control setpoint (`emulator.fc.n3`), the
-telemetry subscription (`emulator.fc.dji_subscription`) and the broadcast flight data at the rates the
-onboard side sets (values: `emulator.fc.dji_telemetry`). On a serial line the pushes keep to the line's
-data-rate budget (`emulator.fc.link_budget`): their rates scaled down to fit, the ACKs first.
+telemetry subscription (`emulator.servers.dji_subscription`) and the broadcast flight data at the rates the
+onboard side sets (values: `emulator.servers.dji_telemetry`). On a serial line the pushes keep to the line's
+data-rate budget (`emulator.servers.link_budget`): their rates scaled down to fit, the ACKs first.
 
 `DjiOpenServer.poll(now_s)` parses what arrived, acts on it and sends what is due at ``now_s`` (clock
 seconds), as `MavlinkServer.poll` does. Bad input is counted in `stats` (and the codec's) and answered
@@ -18,14 +18,14 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 
-from emulator.fc import dji_telemetry
-from emulator.fc.dji_subscription import Subscriptions
-from emulator.fc.link_budget import LinkBudget
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import SetpointRejected
-from emulator.fc.params import Parameters
-from emulator.fc.telemetry import Home, TelemetryEncoder
-from emulator.fc.vehicle import EmulatedVehicle
+from emulator.params import Parameters
+from emulator.servers import dji_telemetry
+from emulator.servers.dji_subscription import Subscriptions
+from emulator.servers.link_budget import LinkBudget
+from emulator.servers.telemetry import Home, TelemetryEncoder
+from emulator.vehicle import EmulatedVehicle
 from hil.link import dji_open as dj
 
 #: the version (activation's third word: OSDK puts the FC firmware there) this FC accepts: 3.1.10 on
@@ -61,7 +61,7 @@ class DjiServerConfig:
     #: 400 Hz, are granted this)
     max_rate_hz: float = 100.0
     #: the command link's baud when it is a serial line (bit/s): the pushes then keep to its data rate
-    #: (`emulator.fc.link_budget`); None: no budget unless ``budget_bytes_s`` sets one
+    #: (`emulator.servers.link_budget`); None: no budget unless ``budget_bytes_s`` sets one
     link_baud: int | None = None
     #: the pushes' data-rate budget (bytes/s; 0: half a serial line, none off one), as MAVLink's
     #: MAV_0_RATE (`hil fc --link-budget-bytes-s`: the OPEN protocol has no parameters)
@@ -109,7 +109,7 @@ class DjiOpenServer:
         self.vehicle = vehicle
         self.fc = vehicle.fc
         self.codec = codec
-        #: the FC's parameters (`emulator.fc.params`), set from files and scenarios: the OPEN protocol
+        #: the FC's parameters (`emulator.params`), set from files and scenarios: the OPEN protocol
         #: has no parameter messages, and no MAVLink telemetry whose rates they would set
         self.params = Parameters(self.fc, streams=None)
         self.config = config or DjiServerConfig()

@@ -16,12 +16,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from emulator.fc.link_budget import LinkBudget
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
-from emulator.fc.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
-from emulator.fc.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
-from emulator.fc.vehicle import EmulatedVehicle
+from emulator.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
+from emulator.servers.link_budget import LinkBudget
+from emulator.servers.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
+from emulator.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
     PX4_AUTO_LOITER,
@@ -63,7 +63,7 @@ class ServerConfig:
     #: the parameter file MAV_CMD_PREFLIGHT_STORAGE reads (param1 0) and writes (param1 1); None: none
     param_file: str | None = None
     #: the command link's baud when it is a serial line (bit/s): the streams then keep to its data rate
-    #: (`emulator.fc.link_budget`); None: no budget unless MAV_0_RATE sets one
+    #: (`emulator.servers.link_budget`); None: no budget unless MAV_0_RATE sets one
     link_baud: int | None = None
 
 
@@ -163,7 +163,7 @@ class MavlinkServer:
                 i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
-        #: the FC's parameters (`emulator.fc.params`); every change is broadcast as a PARAM_VALUE
+        #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
 

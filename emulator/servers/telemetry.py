@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from emulator.fc.modes import FcState
-from emulator.fc.vehicle import EmulatedVehicle
 from emulator.profile import GRAVITY_M_S2
+from emulator.vehicle import EmulatedVehicle
 from hil.link.mavlink import (
     PX4_AUTO_LAND,
     PX4_AUTO_LOITER,

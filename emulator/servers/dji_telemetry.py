@@ -2,7 +2,7 @@
 and the values of every broadcast item and subscription topic it serves, each computed once, from the
 vehicle's state, for both (layouts: `hil.link.dji_open`, docs/dji-open-link.md).
 
-A value function takes the server (`emulator.fc.dji_open_server.DjiOpenServer`, for the vehicle, FC,
+A value function takes the server (`emulator.servers.dji_open_server.DjiOpenServer`, for the vehicle, FC,
 battery model and home point) and the state vector (`VehicleState.to_vector` layout, a list) and returns
 the fields of its struct in order. World ENU / body FLU inside; the N3's north-east-down frames (or
 north-east-up where DJI says so) on the wire.
@@ -21,7 +21,7 @@ from hil.link import dji_open as dj
 from hil.link.mavlink import quat_enu_flu_to_ned_frd_tuple
 
 if TYPE_CHECKING:  # (the server imports this module)
-    from emulator.fc.dji_open_server import DjiOpenServer
+    from emulator.servers.dji_open_server import DjiOpenServer
 
 Values = Callable[["DjiOpenServer", list], tuple]
 
