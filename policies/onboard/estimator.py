@@ -196,8 +196,9 @@ class StaticPoseCheck:
             self._ref = (pos, quat)
         ref_pos, ref_quat = self._ref
         d = pos - ref_pos
-        jump = math.sqrt(d.dot(d))  # `np.linalg.norm` of a vector, without its dispatch (once per frame)
-        turn = 2.0 * math.acos(min(1.0, abs(float(quat @ ref_quat))))  # angle between the attitudes
+        # (`np.linalg.norm`'s and ``@``'s own products, without their dispatch: once per mocap frame)
+        jump = math.sqrt(d.dot(d))
+        turn = 2.0 * math.acos(min(1.0, abs(float(quat.dot(ref_quat)))))  # angle between the attitudes
         if jump > self.jump_m or turn > self.turn_rad:
             self.implausible += 1
             self.implausible_run += 1
