@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emulator.physics import make_backend
+from emulator.physics import backend_names, make_backend
 from emulator.profile import load_profile
 from emulator.vehicle import resting_state
 
@@ -91,7 +91,7 @@ def test_trajectories_agree(trajectories):
     assert att_err.max() < ATT_TOL_RAD, f"attitude differs by {att_err.max():.4f} rad"
 
 
-@pytest.mark.parametrize("name", ["native", "jsbsim"])
+@pytest.mark.parametrize("name", backend_names())
 def test_an_external_torque_turns_the_body_at_torque_over_inertia(name):
     """A gust's yaw moment (body FLU, N m) on a body held up against gravity: the yaw rate grows at
     tau / Izz, nose to the left for a positive moment, in both backends; removing it stops the push."""

@@ -13,7 +13,7 @@ import pytest
 from emulator.fc import FcState, fc_gains
 from emulator.fc.tuning import MIN_ATTITUDE_P_PER_S
 from emulator.physics.native import hover_state
-from emulator.profile import ProfileError, load_profile
+from emulator.profile import ProfileError, builtin_profiles, load_profile
 from emulator.vehicle import EmulatedVehicle
 
 N3 = load_profile("n3_tx2")
@@ -76,7 +76,7 @@ def test_heavier_inertia_and_a_0p08_s_motor_still_tune():
     assert MIN_ATTITUDE_P_PER_S <= g.inner.attitude_p_per_s[0] < fc_gains(F450).inner.attitude_p_per_s[0]
 
 
-@pytest.mark.parametrize("name", ["n3_tx2", "f450"])
+@pytest.mark.parametrize("name", builtin_profiles())
 def test_hold_steadies_a_tilted_moving_vehicle_of_each_profile(name):
     """The FC's own hover (velocity hold) on the tuned gains brings a vehicle thrown at 2 m/s, tilted
     20 deg, to a stop within 4 s."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from policies.onboard.cli import add_arguments, config_from_args
-from policies.onboard.pilots import PilotContext, make_pilot
+from policies.onboard.pilots import PILOTS, PilotContext, make_pilot
 from policies.vehicle import DEFAULT_VEHICLE, load_vehicle, vehicle_names
 
 
@@ -76,7 +76,7 @@ def test_a_bad_file_is_an_error_naming_it_and_the_field(tmp_path, text, words):
     assert load_vehicle(f).mass_kg == 1.0
 
 
-@pytest.mark.parametrize("pilot", ["traditional", "planner_net", "e2e"])
+@pytest.mark.parametrize("pilot", PILOTS.names())
 def test_pilots_fly_with_the_vehicles_mass_and_tilt_limit(pilot):
     p = make_pilot(pilot, PilotContext(mass_kg=1.4, full_thrust_n=62.88, max_tilt_deg=40.0))
     expert = getattr(p, "controller", None) or p.expert

@@ -102,7 +102,9 @@ def test_the_realtime_check_fails_a_run_whose_onboard_side_starved_with_the_mome
     assert not check_realtime(50.0, _health(12.0, 296.0, 7.5), (down,)).passed  # long after it
     gust = Fault("wind_gust", 0.0, None, NoParams())
     assert not check_realtime(50.0, _health(12.0, 296.0, 5.2), (gust,)).passed  # a gust silences nothing
-    assert check_realtime(50.0, _health(12.0, 296.0, 5.2), abort_s=4.0).passed
+    assert check_realtime(50.0, _health(12.0, 296.0, 5.2), abort_s=4.0).passed  # silent after its abort
+    # a program that aborts once it runs again (its mocap went stale while it was starved) is no excuse
+    assert not check_realtime(50.0, _health(12.0, 296.0, 5.2), abort_s=5.19).passed
     assert check_realtime(50.0, _health(12.0, 296.0, 5.2), bursty=True).passed  # a link that loses bursts
     late = check_realtime(50.0, _health(80.0, 90.0, 5.2))
     assert not late.passed and late.time_s == 2.0  # the loop's own lateness, at its moment

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from emulator.physics import backend_names
 from hil.link.mavlink import decode_frame
 from hil.link.tlog import read_tlog
 from hil.runner import RunOptions, run_scenario
@@ -42,7 +43,7 @@ def test_a_run_on_the_esc_bus_is_the_same_twice_and_its_faults_show(tmp_path):
     assert a.passed, a.failed_checks  # a 40 ms bus-off is shorter than the ESCs' 100 ms command timeout
 
 
-@pytest.mark.parametrize("backend", ["native", "jsbsim"])
+@pytest.mark.parametrize("backend", backend_names())
 def test_the_shipped_esc_loss_ends_in_the_failsafe_and_a_reported_crash(tmp_path, backend):
     [s] = load_scenarios(SCENARIOS / "esc_lost_approach.scenario.yaml")
     r = run_scenario(s, tmp_path, RunOptions(in_process=True, backend=backend))

@@ -26,7 +26,7 @@ from hil.runner.flight_quality import (
 )
 from hil.runner.run import RunOptions, run_scenario
 from hil.scenario import load_scenarios
-from hil.scenario.schema import QualityExpectations
+from hil.scenario.schema import QUALITY_CHECKS, QualityExpectations
 from policies.gap_planning import GapPose, LabVolume, MissionRequest
 
 SCENARIOS = Path(__file__).parent.parent / "scenarios"
@@ -161,8 +161,7 @@ def test_the_heading_stays_held_and_commanded_from_the_first_tick(tmp_path: Path
     fq = summary["flight_quality"]
     assert fq["heading_error_deg"]["held"]["value"] == pytest.approx(err[held].max())
     names = {c["name"]: c for c in summary["checks"]}
-    for name in ("heading_error_deg", "attitude_tracking_deg", "position_error_m", "thrust_saturation_s",
-                 "settling_time_s"):
+    for name in QUALITY_CHECKS:
         assert names[name]["passed"], names[name]
     assert set(fq["position_error_m"]) == {"approach", "traverse", "recovery"}
     assert all(f["value"] < 0.2 for f in fq["position_error_m"].values())

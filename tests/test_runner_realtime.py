@@ -5,10 +5,14 @@ makes the loop late, and the `realtime` check says so instead of passing on wron
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -113,3 +117,61 @@ def test_real_time_counts_from_the_programs_spawn_however_slow_the_harness_is_to
     onboard = [e for e in sm["events"] if e["source"] == "onboard"]
     assert onboard and min(e["time_s"] for e in onboard) >= 0.0
     assert "takeoff" in [e["text"] for e in onboard]
+
+
+class Starve:
+    """Stops the onboard program's process for ``stop_s`` of wall time once it has started its take-off
+    (a progress callback; the process found by its event log's path, which a cold start's command line
+    names): a host that leaves the program off its CPUs that long, no fault declared."""
+
+    def __init__(self, stop_s: float = 0.3) -> None:
+        self.stop_s, self.log_path, self.pid, self.at_s = stop_s, None, None, None
+
+    def watch(self, emu, log_path):
+        self.log_path = log_path
+        return None
+
+    def __call__(self, sim_s: float, duration_s: float) -> None:
+        if self.at_s is not None or self.log_path is None or not self.log_path.exists() \
+                or '"takeoff"' not in self.log_path.read_text():
+            return
+        self.pid = next(int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+                        and str(self.log_path).encode() in _cmdline(p))
+        os.kill(self.pid, signal.SIGSTOP)
+        self.at_s = sim_s
+        threading.Timer(self.stop_s, os.kill, (self.pid, signal.SIGCONT)).start()
+
+
+def _cmdline(proc_dir: Path) -> bytes:
+    try:
+        return (proc_dir / "cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+@pytest.mark.realtime
+def test_an_onboard_program_starved_mid_flight_fails_the_realtime_check_with_the_moment(tmp_path):
+    # the emulator's loop keeps time, but the onboard program gets no CPU for 0.3 s in its take-off: its
+    # setpoints stop reaching the FC that long, which the run's verdict must not pass (the flight after it
+    # is not the one the scenario describes), and summary.json and the report say when
+    s = loads_scenarios(SHORT.replace("duration_s: 3.0", "duration_s: 4.0"))[0]
+    starve = Starve()
+    r = run_scenario(s, tmp_path, RunOptions(realtime=True, in_process=False, cold_start=True),
+                     progress=starve, watch=starve.watch)
+    assert starve.at_s is not None, "the run ended before the take-off"
+    check = next(c for c in r.checks if c.name == "realtime")
+    assert not check.passed and not r.passed, check
+    health = r.summary["realtime"]
+    gap = health["setpoints_at_fc"]
+    assert gap["max_gap_ms"] >= 250.0, gap
+    assert "longest setpoint gap at the FC" in check.observed
+    if health["loop"]["late_worst_ms"] <= s.expect.realtime_max_late_ms:  # (else the loop's moment)
+        # the moment is the end of the silence: the program stopped at (or just before) the progress
+        # call, for 0.3 s, and its next setpoint reaches the FC within a control period and the wire
+        assert starve.at_s < check.time_s < starve.at_s + 0.3 + 0.2, (starve.at_s, check)
+        assert check.time_s == pytest.approx(gap["max_gap_end_s"])
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    entry = next(c for c in saved["checks"] if c["name"] == "realtime")
+    assert entry["passed"] is False and entry["time_s"] == pytest.approx(check.time_s)
+    report = (tmp_path / "report.html").read_text()
+    assert "realtime" in report and "longest setpoint gap at the FC" in report

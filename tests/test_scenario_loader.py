@@ -10,8 +10,17 @@ from pathlib import Path
 import pytest
 import yaml
 
-from hil.scenario import Scenario, ScenarioError, load_all, load_scenarios, loads_scenarios, schema
+from hil.scenario import (
+    Expectations,
+    Scenario,
+    ScenarioError,
+    load_all,
+    load_scenarios,
+    loads_scenarios,
+    schema,
+)
 from hil.scenario.fault_kinds import FAULT_KINDS, CorruptBytesParams, NoParams, ParamSetParams, WindGustParams
+from hil.scenario.loader import EXPECT_ALIASES, FAULT_KEYS
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "scenarios" / "examples"
@@ -376,9 +385,8 @@ def test_the_format_document_names_every_field() -> None:
     names: set[str] = set()
     for cls in schema_classes():
         names.update(f.name for f in dataclasses.fields(cls))
-    names -= set(Scenario.META_FIELDS)
-    names |= {"at_s", "start", "at", "duration_s", "phase", "no_collision", *FAULT_KINDS,
-              *schema.MISSION_EVENTS, *schema.FLIGHT_PHASES}
+    names -= {*Scenario.META_FIELDS, *Expectations.INTERNAL_FIELDS}
+    names |= {*FAULT_KEYS, *EXPECT_ALIASES, *FAULT_KINDS, *schema.MISSION_EVENTS, *schema.FLIGHT_PHASES}
     missing = sorted(n for n in names if not re.search(rf"`{re.escape(n)}`", doc))
     assert missing == []
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import yaml
 
-from emulator.profile import VehicleProfile, load_profile
+from emulator.physics import backend_names
+from emulator.profile import VehicleProfile, builtin_profiles, load_profile
 from hil.cli import main as hil_main
 from hil.runner import RunOptions, run_scenario
 from hil.runner.onboard_side import onboard_options
@@ -88,7 +89,7 @@ def test_f450_crosses_a_0p95_by_0p5_m_opening_at_2p5_m_s(tmp_path, roll_deg, phy
     assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
 
 
-@pytest.mark.parametrize("name", ["n3_tx2", "f450"])
+@pytest.mark.parametrize("name", builtin_profiles())
 def test_attitude_tracking_of_each_profile_on_the_30_deg_scenario(tmp_path, name):
     s = for_vehicle(scenario(30.0, 2.0), name)
     r, tracking = fly(s, tmp_path)
@@ -226,7 +227,7 @@ def test_the_suite_skips_what_does_not_apply_to_the_vehicle_and_flies_the_rest(t
     assert "beyond f450's 65 deg tilt limit" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("physics", ["native", "jsbsim"])
+@pytest.mark.parametrize("physics", backend_names())
 def test_f450_flies_the_minus_60_deg_scenario_from_the_start_its_approach_needs(tmp_path, physics):
     """The shipped -60 deg scenario flown by the f450. From the 0.5 m take-off height its plan crossed
     at 4.5 m/s after a 2 s approach turning it at up to 12 rad/s and failed its heading, tracking and

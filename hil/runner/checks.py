@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.runner.flight_quality import SETTLE_BAND_M, Figure, FlightQuality
 from hil.runner.mission import window_hits
+from hil.scenario.expect_fields import EXPECT_FIELDS, ExpectField, add_expect_field
 from hil.scenario.schema import (
     QUALITY_CHECKS,
     Expectations,
@@ -80,17 +81,24 @@ class Observations:
 CheckFn = Callable[[Expectations, Observations], list[Check]]
 
 
+#: what a check reads from ``expect:``: a field of `Expectations` by name, or a field the check brings
+#: (`ExpectField`: its type, default, range and meaning, added to the schema while the check is registered)
+ExpectRef = str | ExpectField
+
+
 @dataclass(frozen=True)
 class CheckKind:
     """A registered check: ``name`` (the `Check` names it gives: ``gives``, default its name alone),
-    ``expect`` (the `Expectations` field that sets it; None: set by nothing in ``expect``, asked for by
-    the run itself), ``doc`` (what it checks, the format document's check table) and ``run``."""
+    ``expect`` (the ``expect:`` fields it owns and reads; none: the run itself asks for it), ``doc`` (what
+    it checks, the format document's check table) and ``run``. ``added`` are the fields of ``expect`` it
+    brought to the schema (`hil.scenario.expect_fields`), the rest are `Expectations`' own."""
 
     name: str
-    expect: str | None
+    expect: tuple[str, ...]
     doc: str
     run: CheckFn
     gives: tuple[str, ...] = ()
+    added: tuple[ExpectField, ...] = ()
 
     @property
     def check_names(self) -> tuple[str, ...]:
@@ -99,38 +107,70 @@ class CheckKind:
     def table_row(self) -> str:
         """The check's row in docs/scenario-format.md's check table."""
         names = ", ".join(f"`{n}`" for n in self.check_names)
-        return f"| {names} | {'none' if self.expect is None else f'`{self.expect}`'} | {self.doc} |"
+        set_by = ", ".join(f"`{n}`" for n in self.expect) or "none"
+        return f"| {names} | {set_by} | {self.doc} |"
 
 
 #: check name -> kind, in the order a run's checks are listed
 CHECK_KINDS: dict[str, CheckKind] = {}
 
 
+def _expect_refs(expect: ExpectRef | tuple[ExpectRef, ...] | None) -> tuple[ExpectRef, ...]:
+    if expect is None:
+        return ()
+    return expect if isinstance(expect, tuple) else (expect,)
+
+
 def register_check(
-    name: str, *, expect: str | None, doc: str, gives: tuple[str, ...] = ()
+    name: str, *, expect: ExpectRef | tuple[ExpectRef, ...] | None, doc: str, gives: tuple[str, ...] = ()
 ) -> Callable[[CheckFn], CheckFn]:
-    """Register the decorated function as the check ``name`` (see `CheckKind`); ValueError for a name
-    taken."""
+    """Register the decorated function as the check ``name`` (see `CheckKind`); ``expect`` names the
+    `Expectations` fields it reads, or brings its own (`ExpectField`), which scenario files may then give
+    in ``expect:``. ValueError for a name taken, an `Expectations` field that does not exist or is owned
+    by another check, or an added field whose name is taken."""
+    refs = _expect_refs(expect)
 
     def add(run: CheckFn) -> CheckFn:
         if name in CHECK_KINDS:
             raise ValueError(f"check {name!r} is registered already")
-        CHECK_KINDS[name] = CheckKind(name, expect, doc, run, gives)
+        own = Expectations.own_fields()
+        owned = {n for k in CHECK_KINDS.values() for n in k.expect}
+        for ref in refs:
+            if isinstance(ref, str) and (ref not in own or ref in owned):
+                why = "is set by another check" if ref in own else "is no field of expect"
+                raise ValueError(f"check {name!r}: {ref!r} {why}")
+        added = tuple(r for r in refs if isinstance(r, ExpectField))
+        for i, f in enumerate(added):
+            try:
+                add_expect_field(f, own)
+            except ValueError:
+                for done in added[:i]:
+                    EXPECT_FIELDS.pop(done.name, None)
+                raise
+        names = tuple(r if isinstance(r, str) else r.name for r in refs)
+        CHECK_KINDS[name] = CheckKind(name, names, doc, run, gives, added)
         return run
 
     return add
 
 
+def unregister_check(name: str) -> None:
+    """Remove the check ``name`` and the ``expect:`` fields it added (nothing when it is not registered)."""
+    kind = CHECK_KINDS.pop(name, None)
+    for f in kind.added if kind is not None else ():
+        EXPECT_FIELDS.pop(f.name, None)
+
+
 @contextmanager
 def check_registered(
-    name: str, run: CheckFn, *, expect: str | None = None, doc: str = ""
+    name: str, run: CheckFn, *, expect: ExpectRef | tuple[ExpectRef, ...] | None = None, doc: str = ""
 ) -> Iterator[CheckKind]:
     """The check ``name`` registered for the block, unregistered after (one added by a test or a plugin)."""
     register_check(name, expect=expect, doc=doc)(run)
     try:
         yield CHECK_KINDS[name]
     finally:
-        CHECK_KINDS.pop(name, None)
+        unregister_check(name)
 
 
 def evaluate(scenario: Scenario, obs: Observations) -> list[Check]:
@@ -213,7 +253,9 @@ def check_realtime(limit_ms: float, health: dict[str, Any], faults: tuple[Fault,
     gap = float(sp.get("max_gap_ms") or 0.0)
     end = sp.get("max_gap_end_s")
     explained = end is not None and (
-        bursty or (abort_s is not None and end >= abort_s)
+        # (an abort explains a silence that starts after it: a program that aborts on what its own
+        # silence did, stale mocap once it runs again, does not excuse the silence)
+        bursty or (abort_s is not None and end - gap * 1e-3 >= abort_s)
         or any(f.kind in SILENCING_FAULTS and f.start_s <= end
                and (f.end_s is None or end - gap * 1e-3 <= f.end_s + FAULT_AFTERMATH_S) for f in faults))
     starved = gap > gap_limit and not explained

@@ -1,9 +1,13 @@
 """The harness's pre-flight check: a gap whose opening the flown vehicle's body box cannot pass (at the
 attitude it reaches there, `policies.gap_planning.passage`: the one computation the onboard planner
-refuses by too) is refused before take-off, with the reason, and never flown into the wall."""
+refuses by too) is refused before take-off, with the reason, and never flown into the wall. It is judged
+at the crossing speed asked for, then at the speed the onboard planner would fly from the start (the
+plan it makes before taking off): a steep gap is often flown faster than asked, where the attitude error
+is larger."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from html import escape
 from pathlib import Path
@@ -14,32 +18,52 @@ from hil.report import write_summary
 from hil.runner.checks import Check, Observations, register_check
 from hil.runner.onboard_side import DEFAULT_APPROACH_SPEED_M_S
 from hil.scenario.schema import Expectations, Scenario
-from policies.gap_planning import BodyClearance, passage
+from policies.gap_planning import BodyClearance, GapPose, PassageError, passage
+from policies.onboard import ProgramConfig
+from policies.onboard.program import pre_takeoff_check
 
 REFUSED_END = "refused before take-off"
 
 
-def refusal(s: Scenario, profile: VehicleProfile) -> str | None:
+def refusal(s: Scenario, profile: VehicleProfile, config: ProgramConfig | None = None) -> str | None:
     """Why ``profile`` (the flown vehicle: its box, its tilt limit) cannot pass ``s``'s true opening at
-    the scenario's crossing speed, or None."""
+    the scenario's crossing speed, or, given the onboard program's ``config``, at the speed of the plan
+    it would make from the scenario's start (with the flown body box); None when it can."""
     speed = s.approach.speed_m_s or DEFAULT_APPROACH_SPEED_M_S
-    return passage(s.gap.width_m, s.gap.height_m, math.radians(s.gap.tilt_deg), speed,
-                   BodyClearance(profile.body_box_m), math.radians(profile.max_tilt_deg)).refusal
+    why = passage(s.gap.width_m, s.gap.height_m, math.radians(s.gap.tilt_deg), speed,
+                  BodyClearance(profile.body_box_m), math.radians(profile.max_tilt_deg)).refusal
+    if why is not None or config is None:
+        return why
+    g = s.gap
+    gap = GapPose.from_deg(g.centre_m, g.roll_deg, g.pitch_deg, g.yaw_deg, width_m=g.width_m,
+                           height_m=g.height_m)
+    flown = dataclasses.replace(config, body_box_m=tuple(profile.body_box_m))
+    try:
+        pre_takeoff_check(flown, s.initial.pos_m, gap)
+    except PassageError as exc:
+        return str(exc)
+    except ValueError:  # (a PlanningError of another kind: the onboard program's to report, on the ground)
+        return None
+    return None
+
+
+def preflight_check(refusal_expected: bool, reason: str | None) -> Check:
+    """The pre-flight check's verdict: whether the run was refused before take-off (``reason``, None: it
+    was accepted and flown) as the scenario expects (``expect.refused``)."""
+    observed = "accepted, flown" if reason is None else f"refused: {reason}"
+    if refusal_expected:
+        return Check("preflight", reason is not None, REFUSED_END, observed, 0.0)
+    return Check("preflight", reason is None, "a gap the vehicle can pass", observed, 0.0)
 
 
 @register_check("preflight", expect="refused",
-                doc="the opening is one the vehicle's body box can pass at the attitude it reaches there, "
-                    "judged before take-off (a refused run flies nothing); `refused: true` expects a refusal")
+                doc="the run was refused before take-off, or flown, as `refused` expects (a gap too small "
+                    "for the vehicle's body box at the attitude it reaches there is refused and flies "
+                    "nothing; listed in refused runs and in flown runs that expected a refusal)")
 def _preflight(e: Expectations, obs: Observations) -> list[Check]:
-    return []  # judged before take-off (`preflight_check`): a run that flew passed it
-
-
-def preflight_check(s: Scenario, reason: str | None) -> Check:
-    """The verdict of the pre-flight check: a refusal passes where the scenario expects one."""
-    observed = "accepted" if reason is None else f"refused: {reason}"
-    if s.expect.refused:
-        return Check("preflight", reason is not None, REFUSED_END, observed, 0.0)
-    return Check("preflight", reason is None, "a gap the vehicle can pass", observed, 0.0)
+    """A flown run was accepted before take-off: a failure where the scenario expected a refusal (a run
+    that passed needs no line for it; a refused run is judged by `preflight_check` alone)."""
+    return [preflight_check(True, None)] if e.refused else []
 
 
 def refused_summary(s: Scenario, check: Check, reason: str | None) -> dict[str, Any]:

@@ -239,9 +239,9 @@ def _run(
         raise RunSetupError(str(exc)) from exc
     out = Path(out_dir)
     clear_run_folder(out)
-    why = refusal(s, profile)
-    if why is not None or s.expect.refused:  # an opening too small for the body is never flown
-        check = preflight_check(s, why)
+    why = refusal(s, profile, config)
+    if why is not None:  # an opening too small for the body is never flown
+        check = preflight_check(s.expect.refused, why)
         summary = refused_summary(s, check, why)
         write_refused(out, summary)
         return RunResult(check.passed, (check,), out, summary)

@@ -22,6 +22,7 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from hil.scenario import schema
 from hil.scenario.dispersions import PathError, apply, base_document, value_at
+from hil.scenario.expect_fields import EXPECT_FIELDS
 from hil.scenario.fault_kinds import FAULT_KINDS, NoParams, ParamSetParams, WindGustParams
 from hil.scenario.schema import (
     DISTRIBUTIONS,
@@ -44,6 +45,11 @@ MAX_FILE_BYTES = 256 * 1024
 #: the deepest nesting of values read (the document's mapping is level 1; the schema needs 6): libyaml
 #: stops at 1000 levels and PyYAML's pure-Python composer recurses about 3 frames a level
 MAX_DEPTH = 50
+#: the fields of one entry of ``faults:`` (a window: start_s or start, then end_s or duration_s; an
+#: instant: at_s or at)
+FAULT_KEYS = ("kind", "start_s", "end_s", "at_s", "start", "at", "duration_s", "phase", "params")
+#: ``expect:`` fields that write another field the other way round (``no_collision``: collision_expected)
+EXPECT_ALIASES = ("no_collision",)
 
 
 class _TooDeep(yaml.YAMLError):
@@ -568,8 +574,13 @@ class _Builder:
         return tuple(out)
 
     def expectations(self, node: Node, path: str) -> Expectations:
+        """The project's own fields, ``no_collision`` and the fields registered checks added."""
         custom = {"recovery": self.recovery}
-        kwargs, items = self.dataclass(Expectations, node, path, custom=custom, extra_keys=("no_collision",))
+        kwargs, items = self.dataclass(Expectations, node, path, custom=custom,
+                                       extra_keys=(*EXPECT_ALIASES, *EXPECT_FIELDS),
+                                       skip=Expectations.INTERNAL_FIELDS)
+        kwargs["extra"] = tuple((name, self.convert(f.type, items[name], f"{path}.{name}", f.meta))
+                                for name, f in EXPECT_FIELDS.items() if name in items)
         if "no_collision" in items:
             sub = items["no_collision"]
             inverse = not self.convert(bool, sub, f"{path}.no_collision", {})
@@ -688,9 +699,7 @@ class _Builder:
         return tuple(self.fault(n, f"{path}[{i}]") for i, n in enumerate(self.sequence(node, path)))
 
     def fault(self, node: Node, path: str) -> Fault:
-        items = self.mapping(
-            node, path, ("kind", "start_s", "end_s", "at_s", "start", "at", "duration_s", "phase", "params")
-        )
+        items = self.mapping(node, path, FAULT_KEYS)
         if "kind" not in items:
             raise self.error(node, f"{path}.kind", f"required field missing; one of {', '.join(FAULT_KINDS)}")
         kind = self.convert(str, items["kind"], f"{path}.kind", {"choices": tuple(FAULT_KINDS)})

@@ -13,6 +13,7 @@ from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from typing import Any
 
 from hil.link.protocols import PROTOCOLS
+from hil.scenario.expect_fields import EXPECT_FIELDS
 from hil.scenario.fault_kinds import NoParams, fault_kind
 from hil.scenario.spec import Vec3, spec
 
@@ -440,6 +441,33 @@ class Expectations:
     refused: bool = spec(
         False, doc="the pre-flight check refuses the gap, too small for the body (never flown)"
     )
+    #: the fields registered checks added (`hil.scenario.expect_fields.EXPECT_FIELDS`), (name, value), each
+    #: registered one present (its default unless given); read them as attributes (``e.my_field``)
+    extra: tuple[tuple[str, Any], ...] = ()
+
+    INTERNAL_FIELDS = ("extra",)
+
+    def __post_init__(self) -> None:
+        given = dict(self.extra)
+        values = {name: given.pop(name, f.default) for name, f in EXPECT_FIELDS.items()}
+        object.__setattr__(self, "extra", tuple({**values, **given}.items()))
+
+    def __getattr__(self, name: str) -> Any:
+        """A registered check's field (`extra`)."""
+        for key, value in self.__dict__.get("extra", ()):
+            if key == name:
+                return value
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @classmethod
+    def own_fields(cls) -> tuple[str, ...]:
+        """The project's own fields (those registered checks add are in `extra`)."""
+        return tuple(f.name for f in fields(cls) if f.name not in cls.INTERNAL_FIELDS)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The block as written in a scenario file (added fields beside the project's own)."""
+        return {**{name: _plain(getattr(self, name)) for name in self.own_fields()},
+                **{name: _plain(value) for name, value in self.extra}}
 
 
 @dataclass(frozen=True)
@@ -489,6 +517,8 @@ class Scenario:
                 out["params"] = dict(value)
             elif f.name == "dispersions":
                 out[f.name] = None if value is None else value.to_dict()
+            elif f.name == "expect":
+                out[f.name] = value.to_dict()
             else:
                 out[f.name] = _plain(value)
         return out

@@ -5,8 +5,12 @@ wait for the ACK and the heartbeat's mode) -> arm -> take off and settle (expert
 mission (approach -> traverse -> recovery -> hover, flown by the pilot) -> hand back to the FC's HOLD.
 
 Driven by time, not by sleeping: `step(now_s)` does everything due at ``now_s`` and returns at once.
-`run_realtime()` calls it on the wall clock, waiting on the links' fds; `run_lockstep()` takes its
-clock from the FC's TIMESYNC ticks and answers each tick once its outputs are sent.
+`run_realtime()` calls it on the wall clock, waiting on the command link's fd and its own schedule;
+`run_lockstep()` takes its clock from the FC's TIMESYNC ticks and answers each tick once its outputs
+are sent. On either clock the mocap link is read at the control steps (in lockstep: at the ticks they
+fall on), each pose stamped with that moment: a program that read each pose as it came would predict
+from estimates a few ms fresher in real time than lockstep can model, and cross closer to the wall
+(docs/notes/realtime-vs-lockstep.md).
 
 Safe hover on stale mocap (no vehicle pose taken by the state estimator for ``stale_mocap_s``: poses the
 mocap reader or the estimator refuse, non-finite, from the future, out of order, do not count as fresh;
@@ -34,7 +38,7 @@ import math
 import select
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 from typing import IO, Any
 
@@ -194,6 +198,29 @@ class ProgramConfig:
         return self.mass_kg * GRAVITY_M_S2
 
 
+def mission_request(cfg: ProgramConfig, pos_m: np.ndarray, vel_m_s: np.ndarray,
+                    gap: GapPose) -> MissionRequest:
+    """The mission a program of ``cfg`` plans from ``pos_m`` (m) at ``vel_m_s`` (m/s) through ``gap`` (its
+    `plan` is the plan; its `to_dict` goes into the plan event)."""
+    return MissionRequest(tuple(map(float, pos_m)), tuple(map(float, vel_m_s)), gap,
+                          LabVolume(cfg.lab_min_m, cfg.lab_max_m), cfg.approach_duration_s,
+                          cfg.approach_speed_m_s, cfg.traverse_lead_m,
+                          BodyClearance(cfg.body_box_m, cfg.clearance_margin_m), cfg.max_body_rate_rad_s)
+
+
+def pre_takeoff_check(cfg: ProgramConfig, pos_m: object, gap: GapPose) -> float:
+    """The height (m, world z) a program of ``cfg`` on the ground at ``pos_m`` (m) starts its mission
+    through ``gap`` from (`start_height`, from where its climb ends), once it has planned the mission from
+    there (it plans again when it gets there); PlanningError when there is no plan, PassageError when the
+    plan crosses at a speed the body cannot pass the opening at (`MissionRequest.checked_plan`)."""
+    start = np.array(pos_m, dtype=float)
+    start[2] = max(start[2], cfg.takeoff_height_m)
+    request = mission_request(cfg, start, np.zeros(3), gap)
+    z = start_height(request)
+    replace(request, start_pos_m=(float(start[0]), float(start[1]), z)).checked_plan()
+    return z
+
+
 class ProgramClock:
     """The program's notion of now (s): set by `step` (wall time or the latest lockstep tick)."""
 
@@ -295,6 +322,7 @@ class OnboardProgram:
         self._started_s: float | None = None
         self._phase_since_s = 0.0
         self._next_control_s: float | None = None
+        self._mocap_read_s = -math.inf  # when `step` last read the mocap link (s)
         self._next_heartbeat_s = -math.inf
         self._next_heartbeat_request_s = -math.inf  # (while waiting for the FC's first heartbeat)
         self._clock_zero_monotonic_s: float | None = None  # on the wall clock only (`run_realtime`)
@@ -324,7 +352,9 @@ class OnboardProgram:
         try:
             self.link.read()
             self.link.take_ticks()  # only meaningful in lockstep (see `lockstep_tick`)
-            self.mocap.poll()
+            if now_s >= self._mocap_due_s():
+                self.mocap.poll()
+                self._mocap_read_s = now_s
         except LinkError as exc:
             self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
             return
@@ -342,12 +372,16 @@ class OnboardProgram:
         self._act(tick_s)
         self.link.answer_tick(tick_s)
 
-    def next_wake_s(self) -> float:
-        """When `step` next has something to do if no input arrives (s)."""
-        nxt = self._next_heartbeat_s
+    def _mocap_due_s(self) -> float:
+        """When `step` next reads the mocap link (s): at the next control step, as lockstep reads it at
+        the tick the step falls on; every control period while no step is scheduled."""
         if self._next_control_s is not None:
-            nxt = min(nxt, self._next_control_s)
-        return nxt
+            return self._next_control_s
+        return self._mocap_read_s + self.config.period_s
+
+    def next_wake_s(self) -> float:
+        """When `step` next has something to do if no command-link input arrives (s)."""
+        return min(self._next_heartbeat_s, self._mocap_due_s())
 
     def _act(self, now_s: float) -> None:
         if self.finished:
@@ -426,13 +460,11 @@ class OnboardProgram:
             self._abort_yaw = float(est.euler_rad[2])
             # before taking off: a plan from where the climb ends must exist (it is planned again there);
             # a slow vehicle climbs higher where its approach needs the room (`start_height`)
-            start = est.pos_m.copy()
-            start[2] = max(start[2], cfg.takeoff_height_m)
             gap_pose = self._gap_pose(now_s)
             if gap_pose is None:
                 return  # (aborted, naming why)
             try:
-                self._start_height_m = start_height(self._mission_request(start, np.zeros(3), gap_pose))
+                self._start_height_m = pre_takeoff_check(cfg, est.pos_m, gap_pose)
             except (PlanningError, ValueError) as exc:
                 self._abort(now_s, "planning_failed", detail=str(exc))  # landed: ends; flying: holds
                 return
@@ -538,8 +570,8 @@ class OnboardProgram:
         if gap is None:
             return
         try:
-            request = self._mission_request(est.pos_m, est.vel_m_s, gap)
-            plan = request.plan()
+            request = mission_request(self.config, est.pos_m, est.vel_m_s, gap)
+            plan = request.checked_plan()
         except (PlanningError, ValueError) as exc:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
@@ -553,14 +585,6 @@ class OnboardProgram:
                          approach=plan.approach_feasibility.name.lower(), tried=plan.candidates_tried,
                          search_ms=round(plan.search_time_s * 1e3, 3), request=request.to_dict())
         self._go(Phase.MISSION, now_s)
-
-    def _mission_request(self, pos_m: np.ndarray, vel_m_s: np.ndarray, gap: GapPose) -> MissionRequest:
-        """The mission to plan from ``pos_m`` (m) at ``vel_m_s`` (m/s) with this program's settings and
-        body box (its `plan` is the plan; its `to_dict` goes into the plan event)."""
-        cfg = self.config
-        return MissionRequest(tuple(pos_m.tolist()), tuple(vel_m_s.tolist()), gap, self.lab,
-                              cfg.approach_duration_s, cfg.approach_speed_m_s, cfg.traverse_lead_m, self.body,
-                              cfg.max_body_rate_rad_s)
 
     def _mission_progress(self, now_s: float) -> None:
         assert self.plan is not None
@@ -692,7 +716,8 @@ class OnboardProgram:
         # where this clock's zero lies on the machine's monotonic clock (s): a harness on the same
         # machine puts the events' times on its own time line with it
         self._clock_zero_monotonic_s = time.monotonic() - clock.now_s()
-        fds = _fds(self.link.transport, self.mocap.transport)
+        # (not the mocap's: it is read on the program's schedule, and unread bytes would wake it at once)
+        fds = _fds(self.link.transport)
         while not self.finished:
             now = clock.now_s()
             if max_duration_s is not None and now > max_duration_s:
