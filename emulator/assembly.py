@@ -16,8 +16,6 @@ from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
-from emulator.servers.dji_open_server import DjiServerConfig
-from emulator.servers.mavlink_server import ServerConfig
 from emulator.servers.registry import FcServer, ServerOptions, make_server
 from emulator.uwb import UwbConfig
 from emulator.vehicle import EmulatedVehicle
@@ -60,21 +58,21 @@ def assemble(
     mocap_rng: np.random.Generator | None = None,
     mocap_config: MocapConfig | None = None,
     uwb_config: UwbConfig | None = None,
-    server_config: ServerConfig | None = None,
     system_id: int = 1,
     raw_ids: Collection[int] = (),
     tlog: TlogWriter | None = None,
     signing_key: bytes | None = None,
     signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S,
     protocol: str = "mavlink",
-    dji_config: DjiServerConfig | None = None,
+    protocol_config: object | None = None,
 ) -> Emulator:
-    """Build the emulator (see the module doc); ``mocap_rng`` is needed with a mocap link. A wall
-    clock should start after `warm_up`."""
+    """Build the emulator (see the module doc); ``mocap_rng`` is needed with a mocap link;
+    ``protocol_config``: the settings of the protocol's server (`emulator.servers.registry.server_config`).
+    A wall clock should start after `warm_up`."""
     vehicle = EmulatedVehicle(profile, backend=backend, config=fc_config, initial_state=initial_state)
     world = None if gap is None else World.for_profile(gap, lab or LabVolume(), profile)
     server = make_server(protocol, vehicle, command_link, clock, ServerOptions(
-        system_id, raw_ids, tlog, signing_key, signing_epoch_unix_s, server_config, dji_config))
+        system_id, raw_ids, tlog, signing_key, signing_epoch_unix_s, protocol_config))
     mocap = None
     if mocap_link is not None:
         if mocap_rng is None:

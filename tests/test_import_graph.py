@@ -6,6 +6,7 @@ dependency, a cycle that cannot be cut)."""
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -101,6 +102,15 @@ def circles(edges: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+_DIRECTIVES = re.compile(r"noqa(:\s*[A-Z0-9, ]+)?|type:\s*ignore(\[[^\]]*\])?")
+
+
+def says_why(line: str) -> bool:
+    """Whether ``line`` has a comment that gives a reason: words, not only a linter's directive."""
+    _, hash_, comment = line.partition("#")
+    return bool(hash_) and re.search(r"[A-Za-z]", _DIRECTIVES.sub("", comment)) is not None
+
+
 def unexplained_inner_imports() -> list[str]:
     """Project imports inside functions with no comment on their line nor on the line above their
     block of imports."""
@@ -112,12 +122,12 @@ def unexplained_inner_imports() -> list[str]:
             if not in_function or not targets(node, name, known):
                 continue
             i = node.lineno - 1
-            if "#" in lines[node.end_lineno - 1] or "#" in lines[i]:
+            if says_why(lines[node.end_lineno - 1]) or says_why(lines[i]):
                 continue
             above = i - 1
             while above >= 0 and lines[above].strip().startswith(("from ", "import ")):
                 above -= 1
-            if above >= 0 and lines[above].strip().startswith("#"):
+            if above >= 0 and lines[above].strip().startswith("#") and says_why(lines[above]):
                 continue
             out.append(f"{path.relative_to(ROOT)}:{node.lineno}: {lines[i].strip()}")
     return out
@@ -129,6 +139,13 @@ def test_the_graph_sees_the_projects_imports() -> None:
     assert "hil.runner.emulator_side" in edges["hil.runner.run"]
     assert "policies.onboard.cli" in edges["hil.commands.onboard"]  # (inside a function)
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_a_linters_directive_is_no_reason() -> None:
+    assert says_why("    from a import b  # (heavy: numba, only when a file needs it)")
+    assert not says_why("    from a import b  # noqa: F401")
+    assert not says_why("    from a import b  # type: ignore[attr-defined]")
+    assert not says_why("    from a import b")
 
 
 def test_no_import_circle_among_the_projects_modules() -> None:

@@ -17,12 +17,14 @@ import pytest
 from emulator.fc.modes import FcState
 from emulator.fc.n3 import SetpointRejected
 from emulator.params import Parameters
-from emulator.servers.registry import FC_SERVERS, ServerOptions, make_server, register_server
+from emulator.profile import load_profile
+from emulator.servers.registry import FC_SERVERS, ServerOptions, make_server, register_server, server_config
 from emulator.vehicle import EmulatedVehicle
 from hil.link import dji_open
-from hil.link.clock import Clock
+from hil.link.clock import Clock, SimClock
 from hil.link.lockstep import MOCAP_COUNT_MASK, NS_PER_S, Framing, tick_answer_ns
 from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
+from hil.link.memory import MemoryTransport
 from hil.link.protocols import (
     PROTOCOLS,
     LinkProtocol,
@@ -338,3 +340,19 @@ def test_the_tables_refuse_a_taken_name_and_name_the_known_ones():
         make_server("toy", None, None, None, ServerOptions())  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="mavlink, dji_open"):
         ProgramConfig(fc_protocol="toy")
+
+
+def test_each_server_takes_its_own_settings_and_refuses_another_protocols():
+    vehicle, (fc_end, _) = EmulatedVehicle(load_profile("n3_tx2")), MemoryTransport.pair()
+    asked = {"activation_code": 6, "rc_mode": "P", "param_file": "fc.params", "link_baud": 57600}
+    mav_config, dji_config = server_config("mavlink", **asked), server_config("dji_open", **asked)
+    assert (mav_config.param_file, mav_config.link_baud) == ("fc.params", 57600)  # type: ignore[attr-defined]
+    assert (dji_config.activation_code, dji_config.rc_mode) == (6, "P")  # type: ignore[attr-defined]
+    server = make_server("dji_open", vehicle, fc_end, SimClock(), ServerOptions(protocol_config=dji_config))
+    assert server.config is dji_config  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="the mavlink server takes a ServerConfig, got a DjiServerConfig"):
+        make_server("mavlink", vehicle, fc_end, SimClock(), ServerOptions(protocol_config=dji_config))
+    with pytest.raises(ValueError, match="the OPEN protocol has no signing"):
+        make_server("dji_open", vehicle, fc_end, SimClock(), ServerOptions(signing_key=bytes(32)))
+    with pytest.raises(ValueError, match="RC mode switch must be P, A or F"):
+        server_config("dji_open", rc_mode="X")

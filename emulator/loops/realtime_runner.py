@@ -1,4 +1,5 @@
-"""Running an emulated vehicle and its links in real time: physics to the wall clock, links polled ~1 kHz."""
+"""Running an emulated vehicle and its links in real time: physics to the wall clock, links polled ~1 kHz,
+and the watch of the setpoint and mocap streams as the wire sees them (`WireWatch`)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,10 @@ import threading
 from collections.abc import Sequence
 from typing import Protocol
 
+from emulator.mocap_link import MocapLinkServer
+from emulator.servers.registry import FcServer
 from emulator.vehicle import EmulatedVehicle
-from hil.link.clock import Clock, PacingStats, WallClock
+from hil.link.clock import Clock, GapStats, PacingStats, WallClock
 
 POLL_PERIOD_S = 0.001  # the loop wakes at least this often, and at once when a link has data
 
@@ -84,3 +87,20 @@ class RealtimeRunner:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
+
+
+class WireWatch:
+    """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
+
+    def __init__(self, server: FcServer, mocap: MocapLinkServer | None) -> None:
+        self.server, self.mocap = server, mocap
+        self.setpoints, self.mocap_frames = GapStats(), GapStats()
+
+    def poll(self, now_s: float) -> None:
+        self.setpoints.update(now_s, self.server.stats.setpoints_applied)
+        if self.mocap is not None:
+            self.mocap_frames.update(now_s, self.mocap.frames_written)
+
+    def as_dict(self) -> dict[str, object]:
+        return {"setpoints_at_fc": self.setpoints.as_dict(),
+                "mocap_frames_written": self.mocap_frames.as_dict()}

@@ -134,9 +134,9 @@ class DjiOpenServer:
                                      self._push_bytes.__getitem__, rate_bytes_s=self.config.budget_bytes_s)
             self._granted_hz = list(self._rates_hz)
             self._regrant(0.0)
-        #: called with the sentence that says a rate was granted less than asked (the OPEN ACK has no
-        #: room for a reason; `hil fc` prints it)
-        self.on_capped: Callable[[str], None] | None = None
+        #: told the sentence that says a rate was granted less than asked: the OPEN ACK has no room for a
+        #: reason (`emulator.servers.registry.FcServer.on_untold`; `hil fc` prints it)
+        self.on_untold: Callable[[str], None] | None = None
         self._last_ack: dict[int, tuple[int, bytes]] = {}  # session -> (seq, ACK frame) of reliable ones
         self._events_seen = 0
         self._statustexts: list[str] = []
@@ -430,8 +430,8 @@ class DjiOpenServer:
             return
         text = self.budget.capped(stream, asked_hz, granted_hz)
         self._statustexts.append(text)
-        if self.on_capped is not None:
-            self.on_capped(text)
+        if self.on_untold is not None:
+            self.on_untold(f"link budget: {text} (the OPEN ACK says success: it has no room for a reason)")
 
     # --- setpoints -------------------------------------------------------------------------------
     def _on_setpoint(self, f: dj.Frame, now_s: float) -> None:

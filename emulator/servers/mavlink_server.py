@@ -118,6 +118,9 @@ class MavlinkServer:
         self._arrival: Callable[[], float] | None = None
         self._arrival_clock: Any = None
         self._last_text_s: dict[str, float] = {}
+        #: never called: whatever this server has to say goes to the peer in a STATUSTEXT
+        #: (`emulator.servers.registry.FcServer.on_untold`)
+        self.on_untold: Callable[[str], None] | None = None
         #: called with (message, now_s) after a setpoint is applied (for latency measurements)
         self.on_setpoint: Callable[[MAVLinkMessage, float], None] | None = None
         self._senders: dict[int, Callable[[float], MAVLinkMessage]] = {

@@ -6,7 +6,7 @@ one `register_server` call (docs/extending.md)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
 from emulator.fc.modes import FcState
@@ -43,6 +43,10 @@ class FcServer(Protocol):
     def poll(self, now_s: float) -> None:
         """Parse and act on what arrived, then send what is due at ``now_s`` (s)."""
 
+    #: told what the server could not tell its peer (a text, for whoever runs the FC: a rate the link's
+    #: budget capped where the protocol's answer has no room for a reason); None: kept to itself
+    on_untold: Callable[[str], None] | None
+
     def statustext(self, severity: int, text: str, now_s: float, key: str | None = None) -> bool:
         """Tell the peer a text (MAVLink severity), as the protocol can; True if told."""
 
@@ -57,44 +61,77 @@ class ServerOptions:
     tlog: TlogWriter | None = None  # every good frame, both directions
     signing_key: bytes | None = None  # MAVLink signing
     signing_epoch_unix_s: float = SIGNING_EPOCH_UNIX_S
-    server_config: ServerConfig | None = None  # the MAVLink server's
-    dji_config: DjiServerConfig | None = None  # the OPEN-protocol server's
+    #: the server's own settings, of the type its protocol registers (`ServerEntry.config_type`, built by
+    #: `server_config`); None: its defaults
+    protocol_config: object | None = None
 
 
 #: (vehicle, command link, clock, options) -> the FC's server on that link
 ServerFactory = Callable[[EmulatedVehicle, Transport, Clock, ServerOptions], FcServer]
 
 
+@dataclass(frozen=True)
+class ServerEntry:
+    """One protocol's FC server: its factory, and the type of its settings (None: it takes none)."""
+
+    factory: ServerFactory
+    config_type: type | None = None
+
+
 def _mavlink(vehicle: EmulatedVehicle, link: Transport, clock: Clock, o: ServerOptions) -> MavlinkServer:
     codec = MavlinkCodec(link, clock, o.system_id, mav.MAV_COMP_ID_AUTOPILOT1, signing_key=o.signing_key,
                          recorder=o.tlog, raw_ids=o.raw_ids, signing_epoch_unix_s=o.signing_epoch_unix_s)
-    return MavlinkServer(vehicle, codec, o.server_config)
+    return MavlinkServer(vehicle, codec, o.protocol_config)  # type: ignore[arg-type]
 
 
 def _dji_open(vehicle: EmulatedVehicle, link: Transport, clock: Clock, o: ServerOptions) -> DjiOpenServer:
-    return DjiOpenServer(vehicle, OpenCodec(link, clock, recorder=o.tlog), o.dji_config)
+    if o.signing_key is not None:
+        raise ValueError("a signing key signs MAVLink: the OPEN protocol has no signing")
+    return DjiOpenServer(vehicle, OpenCodec(link, clock, recorder=o.tlog), o.protocol_config)  # type: ignore[arg-type]
 
 
-#: protocol name -> the factory of its FC server; `register_server` adds one
-FC_SERVERS: dict[str, ServerFactory] = {}
+#: protocol name -> its FC server; `register_server` adds one
+FC_SERVERS: dict[str, ServerEntry] = {}
 
 
-def register_server(name: str, factory: ServerFactory) -> None:
-    """Serve protocol ``name`` (a name of `hil.link.protocols.PROTOCOLS`) with ``factory``'s servers;
-    ValueError if a server is registered under that name already."""
+def register_server(name: str, factory: ServerFactory, config_type: type | None = None) -> None:
+    """Serve protocol ``name`` (a name of `hil.link.protocols.PROTOCOLS`) with ``factory``'s servers, their
+    settings of ``config_type`` (a dataclass; None: they take none); ValueError if a server is registered
+    under that name already."""
     if name in FC_SERVERS:
         raise ValueError(f"an FC server for {name!r} is registered already")
-    FC_SERVERS[name] = factory
+    FC_SERVERS[name] = ServerEntry(factory, config_type)
+
+
+def _entry(name: str) -> ServerEntry:
+    entry = FC_SERVERS.get(name)
+    if entry is None:
+        raise ValueError(f"command-link protocol must be one of {', '.join(FC_SERVERS)}, got {name!r}")
+    return entry
+
+
+def server_config(name: str, **settings: Any) -> object | None:
+    """The settings of protocol ``name``'s server from those of ``settings`` its config type has a field
+    for (each protocol takes what it has a use for), the rest its defaults; None for a server that takes
+    none. ValueError for an unknown protocol or a value its config refuses."""
+    config_type = _entry(name).config_type
+    if config_type is None:
+        return None
+    own = {f.name for f in fields(config_type)}
+    return config_type(**{k: v for k, v in settings.items() if k in own})
 
 
 def make_server(name: str, vehicle: EmulatedVehicle, link: Transport, clock: Clock,
                 options: ServerOptions) -> FcServer:
-    """The FC server of protocol ``name``; ValueError naming the served ones otherwise."""
-    factory = FC_SERVERS.get(name)
-    if factory is None:
-        raise ValueError(f"command-link protocol must be one of {', '.join(FC_SERVERS)}, got {name!r}")
-    return factory(vehicle, link, clock, options)
+    """The FC server of protocol ``name``; ValueError naming the served ones otherwise, or when
+    ``options.protocol_config`` is not of the type that protocol's server takes."""
+    entry = _entry(name)
+    config = options.protocol_config
+    if config is not None and (entry.config_type is None or not isinstance(config, entry.config_type)):
+        wanted = "no settings" if entry.config_type is None else f"a {entry.config_type.__name__}"
+        raise ValueError(f"the {name} server takes {wanted}, got a {type(config).__name__}")
+    return entry.factory(vehicle, link, clock, options)
 
 
-register_server("mavlink", _mavlink)
-register_server("dji_open", _dji_open)
+register_server("mavlink", _mavlink, ServerConfig)
+register_server("dji_open", _dji_open, DjiServerConfig)

@@ -113,6 +113,7 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
         f"median over the suite's {len(startups)} runs, from the onboard program's spawn to its first "
         f"answered tick (max {1e3 * startups[-1]:.0f} ms)",
     )
+    yield from tick_cpu_rows(summaries)
     harness = sum(sm["cpu_s"]["harness"] for sm in summaries)
     onboard = [sm["cpu_s"]["onboard"] for sm in summaries]
     if all(isinstance(v, float) for v in onboard):  # (every program forked warm: its CPU time is known)
@@ -124,3 +125,22 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
             f"onboard programs {sum(onboard):.1f} s, reports excluded): what a suite costs, which the "
             "host's load moves less than its wall time",
         )
+
+
+def tick_cpu_rows(summaries: list[dict]) -> Iterator[BenchRow]:
+    """``tick_cpu_us_emulator`` and ``tick_cpu_us_onboard``: each side's process CPU time over a run
+    (summary.json's ``cpu_s``) per lockstep tick, medians over the flown runs of ``summaries`` (a refused
+    run flies no tick; a run's onboard CPU is known where its program was forked warm)."""
+    flown = [sm for sm in summaries if sm.get("ticks")]
+    for side, key, what in (("emulator", "harness", "the harness's process (emulator side, runner, recorder, "
+                             "checks)"), ("onboard", "onboard", "the onboard program's process")):
+        per_tick = sorted(1e6 * sm["cpu_s"][key] / sm["ticks"] for sm in flown
+                          if isinstance(sm["cpu_s"][key], float))
+        if per_tick:
+            yield BenchRow(
+                f"tick_cpu_us_{side}",
+                float(np.median(per_tick)),
+                "us",
+                f"CPU time of {what} per tick, its start-up included, median over {len(per_tick)} runs "
+                f"of the suite ({per_tick[0]:.0f}..{per_tick[-1]:.0f})",
+            )

@@ -8,35 +8,20 @@ import json
 import math
 import signal
 import sys
-import time
-from dataclasses import asdict, replace
 from pathlib import Path
 from types import FrameType
-from typing import Any
 
-import numpy as np
-
-from emulator.assembly import assemble, warm_up
-from emulator.esc.bus import Bridge, EscBusConfig, EscBusStepper, attach, parse_bus_spec
-from emulator.fc import FcConfig
 from emulator.fc.tuning import fc_gains
 from emulator.loops.realtime_runner import RealtimeRunner
 from emulator.mocap import MocapConfig
 from emulator.params import describe, param_def, read_param_file
 from emulator.physics import backend_names
 from emulator.profile import ProfileError, load_profile
-from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
-from emulator.servers.mavlink_server import ServerConfig
-from emulator.servers.registry import FC_SERVERS
-from emulator.standalone import GAPS, loop_links
+from emulator.servers.registry import FC_SERVERS, server_config
+from emulator.standalone import GAPS, SetupError, StandaloneConfig, StandaloneFc
 from emulator.uwb import UwbConfig
-from emulator.vehicle import resting_state
 from hil.commands import port_number, say_if_compiling
-from hil.link.clock import WallClock
-from hil.link.endpoint import open_link, parse_endpoint
 from hil.link.mavlink import parse_signing_key
-from hil.link.tlog import TlogWriter
-from hil.runner.realtime import WireWatch
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -124,7 +109,6 @@ def main(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile)
         fc_gains(profile)  # a vehicle the FC cannot stabilise is refused with the reason
-        config = FcConfig()
         params: dict[str, float | int] = {}
         if args.params is not None and Path(args.params).exists():
             params = read_param_file(args.params)
@@ -135,15 +119,10 @@ def main(args: argparse.Namespace) -> int:
                   "MAV_CMD_PREFLIGHT_STORAGE", file=sys.stderr)
         if args.failsafe_timeout is not None:  # the flag wins over the file
             params["COM_OF_LOSS_T"] = param_def("COM_OF_LOSS_T").check(args.failsafe_timeout)
-        budget_bytes_s = 0.0 if args.link_budget_bytes_s is None else args.link_budget_bytes_s
-        if args.link_budget_bytes_s is not None and args.protocol == "mavlink":  # (the flag wins too)
-            params["MAV_0_RATE"] = param_def("MAV_0_RATE").check(budget_bytes_s)
         key = parse_signing_key(args.signing_key) if args.signing_key else None
         protocol = args.protocol.replace("-", "_")
-        if key is not None and protocol != "mavlink":
-            raise ValueError("--signing-key signs MAVLink: the OPEN protocol has no signing")
-        dji_config = DjiServerConfig(activation_code=args.activation_code, rc_mode=args.rc_mode,
-                                     budget_bytes_s=budget_bytes_s)
+        settings = {"activation_code": args.activation_code, "rc_mode": args.rc_mode}
+        server_config(protocol, **settings)  # (its settings checked before any link is opened)
     except (ProfileError, ValueError, OSError) as exc:
         return fail(str(exc))
     if args.external_esc and args.esc_bus is None:
@@ -155,76 +134,31 @@ def main(args: argparse.Namespace) -> int:
     if not 1 <= args.system_id <= 255:
         return fail(f"--system-id must be 1..255, got {args.system_id}")
     try:
-        mocap_cfg = MocapConfig(rate_hz=args.mocap_rate)
-        uwb_cfg = UwbConfig(
-            latency_s=args.uwb_latency_ms / 1000.0,
-            jitter_s=args.uwb_jitter_ms / 1000.0,
-            loss_prob=args.uwb_loss,
+        config = StandaloneConfig(
+            profile, command_link=args.link,
+            mocap_link=None if args.mocap_link == "none" else args.mocap_link, backend=args.physics,
+            gap=None if args.gap == "none" else args.gap, protocol=protocol, protocol_settings=settings,
+            params=params, param_file=args.params, link_budget_bytes_s=args.link_budget_bytes_s,
+            signing_key=key, system_id=args.system_id, seed=args.seed, duration_s=args.duration,
+            tlog_path=args.tlog, mocap=MocapConfig(rate_hz=args.mocap_rate),
+            uwb=UwbConfig(latency_s=args.uwb_latency_ms / 1000.0, jitter_s=args.uwb_jitter_ms / 1000.0,
+                          loss_prob=args.uwb_loss),
+            esc_bus=args.esc_bus, external_esc=tuple(args.external_esc),
         )
     except ValueError as exc:
         return fail(str(exc))
+    say_if_compiling("hil fc")
     try:
-        spec = parse_endpoint(args.link)
-        # a serial line carries baud / 10 bytes a second: the FC writes at that pace, within its budget
-        link_baud = spec.baud if spec.kind == "serial" else None
-        link = open_link(spec, "fc", uart_baud=link_baud)
-    except (ValueError, OSError) as exc:
-        return fail(str(exc))
-    mocap_link = None
-    if args.mocap_link != "none":
-        try:
-            mocap_link = open_link(args.mocap_link, "fc")
-        except (ValueError, OSError) as exc:
-            link.close()
-            return fail(f"--mocap-link: {exc}")
-    esc_stepper: EscBusStepper | None = None
-    tlog = None
+        fc = StandaloneFc(config)
+    except SetupError as exc:
+        flag = {"mocap_link": "--mocap-link: ", "esc_bus": "--esc-bus: "}.get(exc.part, "")
+        return fail(f"{flag}{exc}")
     view = None
-    if args.tlog:
-        try:
-            tlog = TlogWriter(args.tlog)
-        except OSError as exc:
-            link.close()
-            return fail(str(exc))
     try:
-        gap, start_xy = GAPS.get(args.gap, (None, (0.0, 0.0)))
-        start = resting_state(profile, *start_xy, yaw_rad=0.0)  # facing world +x, the paper's reference yaw
-        say_if_compiling("hil fc")
-        warm_up(profile)  # before the clock starts
-        if args.esc_bus is not None:
-            import dronecan  # noqa: F401 (its message types load here, not on the clock)
-        clock, epoch_unix_s = WallClock(), time.time()  # clock zero in Unix time, for tlog and signing
-        if tlog is not None:
-            tlog.epoch_unix_s = epoch_unix_s
-        emu = assemble(
-            profile, link, clock, initial_state=start, backend=args.physics, fc_config=config, gap=gap,
-            mocap_link=mocap_link, mocap_rng=np.random.default_rng(args.seed), mocap_config=mocap_cfg,
-            uwb_config=uwb_cfg, system_id=args.system_id, tlog=tlog, signing_key=key,
-            signing_epoch_unix_s=epoch_unix_s,
-            server_config=ServerConfig(param_file=args.params, link_baud=link_baud),
-            protocol=protocol, dji_config=replace(dji_config, link_baud=link_baud),
-        )
-        try:
-            emu.server.params.set_many(params)
-        except ValueError as exc:
-            return fail(str(exc))
-        if args.esc_bus is not None:
-            try:
-                esc_stepper = _esc_bus(args, emu)
-            except (ValueError, OSError) as exc:
-                return fail(f"--esc-bus: {exc}")
-        vehicle, codec, server, mocap = emu.vehicle, emu.codec, emu.server, emu.mocap
-        if isinstance(server, DjiOpenServer):  # (MAVLink says it in a STATUSTEXT)
-            server.on_capped = _say_capped
-        links = loop_links(emu, gap)
-        endpoints = {"command_link": link.endpoint, "protocol": protocol}
-        if mocap is not None and mocap_link is not None:
-            endpoints["mocap_link"] = mocap_link.endpoint
-        fds = [link.fileno()] if _has_fileno(link) else []
-        wire = WireWatch(server, mocap)
-        links.append(wire)
-        runner = RealtimeRunner(vehicle, links, clock=clock, duration_s=args.duration, wait_fds=fds)
-        _stop_on_signals(runner)
+        emu = fc.emulator
+        emu.server.on_untold = _say
+        _stop_on_signals(fc.runner)
+        endpoints = fc.endpoints()
         if args.view:
             from hil.view import LiveSource, ViewServer  # (the view server's imports only with --view)
 
@@ -233,75 +167,23 @@ def main(args: argparse.Namespace) -> int:
             except OSError as exc:
                 return fail(f"--view: cannot serve on 127.0.0.1:{args.view_port}: {exc}")
             uwb = {"latency_ms": args.uwb_latency_ms, "loss": args.uwb_loss}
-            view.live(LiveSource(vehicle, server, mocap, emu.world, title=f"hil fc ({profile.name})",
-                                 lock=runner.lock, links={"mocap": uwb} if mocap is not None else {}))
+            view.live(LiveSource(emu.vehicle, emu.server, emu.mocap, emu.world,
+                                 title=f"hil fc ({profile.name})", lock=fc.runner.lock,
+                                 links={"mocap": uwb} if emu.mocap is not None else {}))
             endpoints["view"] = view.url
         print(json.dumps(endpoints), flush=True)
-        runner.run()
-        count_drops = getattr(link, "count_drops", None)  # (UDP: the kernel's drops until now)
-        if count_drops is not None:
-            count_drops()
-        summary = {
-            "sim_time_s": round(vehicle.time_s, 3),
-            "state": vehicle.fc.state.value,
-            "events": [
-                {"time_s": round(e.time_s, 4), "to": e.to_state.value, "reason": e.reason}
-                for e in vehicle.fc.events
-            ],
-            "link": codec.stats.as_dict(),
-            "transport": asdict(link.stats),
-            "server": server.stats.as_dict(),
-            "realtime": {"loop": runner.pacing.as_dict(), **wire.as_dict(), "serial": _serial_stats(link)},
-        }
-        budget = getattr(server, "budget", None)
-        if budget is not None:
-            summary["link_budget"] = budget.summary(link, clock.now_s())
-        if esc_stepper is not None:
-            summary["esc_bus"] = esc_stepper.summary(clock.now_s())
-        if mocap is not None:
-            st = mocap.stats
-            summary["mocap"] = {
-                "frames_written": st.frames_written,
-                "radio_sent": st.radio.sent,
-                "radio_delivered": st.radio.delivered,
-                "radio_lost": st.radio.lost,
-            }
-        print(json.dumps(summary), flush=True)
+        fc.run()
+        print(json.dumps(fc.summary()), flush=True)
         return 0
     finally:
-        if esc_stepper is not None:
-            esc_stepper.esc.close()
         if view is not None:
             view.finish(None)
             view.close()
-        if tlog is not None:
-            tlog.close()
-        link.close()
-        if mocap_link is not None:
-            mocap_link.close()
+        fc.close()
 
 
-def _say_capped(text: str) -> None:
-    print(f"hil fc: link budget: {text} (the OPEN ACK says success: it has no room for a reason)",
-          file=sys.stderr, flush=True)
-
-
-def _esc_bus(args: argparse.Namespace, emu: Any) -> EscBusStepper:
-    """The ESC bus ``--esc-bus`` names, with the FC's ESC parameters; ValueError or OSError say why not."""
-    spec = parse_bus_spec(args.esc_bus)
-    if spec == "sim" and args.external_esc:
-        raise ValueError("--external-esc needs a bus other processes reach (mcast, udp_multicast, socketcan)")
-    config = EscBusConfig(external=tuple(args.external_esc), **emu.server.params.esc_settings())
-    bridge = None if spec == "sim" else Bridge(spec, config.bitrate_bps)
-    return attach(emu.vehicle, emu.server, config, np.random.default_rng(args.seed), bridge)
-
-
-def _has_fileno(link: object) -> bool:
-    try:
-        link.fileno()  # type: ignore[attr-defined]
-    except (NotImplementedError, ValueError, OSError):
-        return False
-    return True
+def _say(text: str) -> None:
+    print(f"hil fc: {text}", file=sys.stderr, flush=True)
 
 
 def _stop_on_signals(runner: RealtimeRunner) -> None:

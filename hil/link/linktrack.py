@@ -146,7 +146,7 @@ def encode_node_frame(
                           _u8("role", role), _u8("module id", module_id)) + bytes(4) + bytes((1,)) + \
             struct.pack("<BBH", _u8("node role", node_role), _u8("node id", node_id), len(data))
         head = _ONE_NODE_HEADS[key] = (raw, sum(raw))
-    return b"".join((head[0], data, _BYTE[(head[1] + sum(data)) & 0xFF]))
+    return b"".join((head[0], data, _BYTE[(head[1] + sum8(data)) & 0xFF]))
 
 
 def _node_spans(buf: bytes | bytearray | memoryview) -> list[tuple[int, int]]:

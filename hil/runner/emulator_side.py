@@ -27,7 +27,8 @@ from emulator.mocap import MocapConfig, pose_of
 from emulator.params import ParamError
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
-from emulator.servers.mavlink_server import RAW_MSG_IDS, ServerConfig
+from emulator.servers.mavlink_server import RAW_MSG_IDS
+from emulator.servers.registry import server_config
 from emulator.uwb import UwbConfig
 from emulator.world import Gap, LabVolume
 from hil.link.clock import SimClock
@@ -199,9 +200,9 @@ class EmulatorSide:
             fc_config=FcConfig(ground_z_m=ground_z),
             gap=self.gap, lab=LabVolume(scenario.lab.min_m, scenario.lab.max_m), mocap_link=self.mocap_link,
             mocap_rng=mocap_rng, mocap_config=MocapConfig(rate_hz=m.rate_hz), uwb_config=uwb,
-            server_config=ServerConfig(stream_intervals_s=dict(RUN_STREAMS_S)), system_id=FC_SYSTEM_ID,
-            raw_ids=RAW_MSG_IDS, tlog=tlog,  # setpoints reach the server as frames (see RAW_MSG_IDS)
-            protocol=protocol,
+            protocol_config=server_config(protocol, stream_intervals_s=dict(RUN_STREAMS_S)),
+            system_id=FC_SYSTEM_ID, tlog=tlog, protocol=protocol,
+            raw_ids=RAW_MSG_IDS,  # setpoints reach the server as frames (see RAW_MSG_IDS)
         )
         self.vehicle, self.codec, self.server = emu.vehicle, emu.codec, emu.server
         self.world, self.mocap = emu.world, emu.mocap

@@ -14,9 +14,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from emulator.mocap_link import MocapLinkServer
-from emulator.servers.registry import FcServer
-from hil.link.clock import GapStats, PacingStats
+from emulator.loops.realtime_runner import WireWatch
+from hil.link.clock import PacingStats
 from hil.runner.emulator_side import CHECK_OVERRUN_S, EmulatorSide
 from hil.runner.lockstep import RECORD_BATCH, LoopReport, apply_process_faults, note_divergence
 from hil.runner.mission import CONTACT_EVENT
@@ -25,21 +24,6 @@ from hil.runner.onboard_side import InProcessOnboard, OnboardSide, ProcessOnboar
 POLL_S = 0.001  # the loop wakes at least this often (s)
 
 
-class WireWatch:
-    """The setpoint and mocap streams as the wire sees them: rates and the longest silences."""
-
-    def __init__(self, server: FcServer, mocap: MocapLinkServer | None) -> None:
-        self.server, self.mocap = server, mocap
-        self.setpoints, self.mocap_frames = GapStats(), GapStats()
-
-    def poll(self, now_s: float) -> None:
-        self.setpoints.update(now_s, self.server.stats.setpoints_applied)
-        if self.mocap is not None:
-            self.mocap_frames.update(now_s, self.mocap.frames_written)
-
-    def as_dict(self) -> dict[str, object]:
-        return {"setpoints_at_fc": self.setpoints.as_dict(),
-                "mocap_frames_written": self.mocap_frames.as_dict()}
 #: the longest the loop waits for the onboard program's first frame before flying ``duration_s`` anyway
 CONTACT_WAIT_S = 10.0
 

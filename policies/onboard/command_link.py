@@ -220,6 +220,12 @@ class CommandLink:
         elif kind == "STATUSTEXT":
             self.status_texts.append(str(m.text))
 
+    @property
+    def backlogged(self) -> bool:
+        """Lockstep: whether messages read are still waiting for their tick (the next `read` acts on
+        them without new bytes)."""
+        return bool(self._backlog)
+
     def take_ticks(self) -> list[float]:
         """The TIMESYNC tick times (s) received since the last call, oldest first."""
         ticks, self._ticks = self._ticks, []

@@ -55,6 +55,10 @@ class OnboardLink(Protocol):
     def read(self, timeout_s: float = 0.0) -> int:
         """Act on what arrived (waiting up to ``timeout_s``); how many messages."""
 
+    @property
+    def backlogged(self) -> bool:
+        """Lockstep: whether messages read are still waiting for their tick."""
+
     def take_ticks(self) -> list[float]:
         """The lockstep tick times (s) received since the last call."""
 

@@ -14,6 +14,7 @@ predicted over the extra delay (clock offset and slow drift cancel in the differ
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,28 +182,42 @@ class StaticPoseCheck:
 
     def __init__(self, jump_m: float, turn_rad: float) -> None:
         self.jump_m, self.turn_rad = jump_m, turn_rad
-        self._ref: tuple[np.ndarray, np.ndarray] | None = None
-        self.pose: tuple[np.ndarray, np.ndarray] | None = None  # position (m), quaternion (w, x, y, z)
+        #: the first pose: position (m), quaternion (w, x, y, z), as given
+        self._ref: tuple[Sequence[float], Sequence[float]] | None = None
+        self._taken: tuple[Sequence[float], Sequence[float]] | None = None  # the latest pose taken
+        self._pose: tuple[np.ndarray, np.ndarray] | None = None  # its arrays, made when first asked for
         self.received_s = -math.inf  # arrival of the latest pose taken (s)
         self.implausible = 0
         self.implausible_run = 0  # refused in a row since the latest pose taken
         self.latest_jump_m = 0.0  # the latest refused pose's distance from the reference (m)
 
-    def update(self, pos_m: tuple[float, float, float], quat_wxyz: tuple[float, float, float, float],
-               received_s: float) -> bool:
-        """Take one pose (arriving at ``received_s``, s); False if refused."""
-        pos, quat = np.array(pos_m), np.array(quat_wxyz)
+    @property
+    def pose(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The latest pose taken: position (m), quaternion (w, x, y, z); None before the first."""
+        if self._pose is None and self._taken is not None:
+            pos, quat = self._taken
+            self._pose = (np.array(pos, dtype=float), np.array(quat, dtype=float))
+        return self._pose
+
+    def update(self, pos_m: Sequence[float], quat_wxyz: Sequence[float], received_s: float) -> bool:
+        """Take one pose (arriving at ``received_s``, s); False if refused. On plain floats: the check
+        runs once per mocap frame (the planner asks for `pose` a few times a run)."""
+        pos_m, quat_wxyz = tuple(pos_m), tuple(quat_wxyz)  # (kept: a copy of what the caller may reuse)
         if self._ref is None:
-            self._ref = (pos, quat)
-        ref_pos, ref_quat = self._ref
-        jump = float(np.linalg.norm(pos - ref_pos))
-        turn = 2.0 * math.acos(min(1.0, abs(float(quat @ ref_quat))))  # angle between the attitudes
+            self._ref = (pos_m, quat_wxyz)
+        (px, py, pz), (qw, qx, qy, qz) = pos_m, quat_wxyz
+        (rx, ry, rz), (rw, rqx, rqy, rqz) = self._ref
+        dx, dy, dz = px - rx, py - ry, pz - rz
+        jump = math.sqrt(dx * dx + dy * dy + dz * dz)
+        # the angle between the attitudes
+        turn = 2.0 * math.acos(min(1.0, abs(qw * rw + qx * rqx + qy * rqy + qz * rqz)))
         if jump > self.jump_m or turn > self.turn_rad:
             self.implausible += 1
             self.implausible_run += 1
             self.latest_jump_m = jump
             return False
-        self.pose, self.received_s, self.implausible_run = (pos, quat), received_s, 0
+        self._taken, self._pose = (pos_m, quat_wxyz), None
+        self.received_s, self.implausible_run = received_s, 0
         return True
 
 

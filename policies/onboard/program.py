@@ -733,7 +733,7 @@ class OnboardProgram:
 
     def lockstep_poll(self) -> list[float]:
         """Read the links and process every TIMESYNC tick that has arrived, one after the other
-        (non-blocking); returns them."""
+        (non-blocking; bytes arriving meanwhile wait for the next call); returns them."""
         done: list[float] = []
         while not self.finished:
             try:
@@ -763,6 +763,10 @@ class OnboardProgram:
                 done.append(tick)
                 if self.finished:
                     break
+            if not self.link.backlogged:
+                # all read is acted on: what arrives next, a caller waits for (`run_lockstep` on the
+                # link's descriptor) instead of a read per tick that finds nothing
+                break
         return done
 
     def _read_tick_mocap(self) -> None:
