@@ -72,8 +72,7 @@ def crossing_offset_m(r, s) -> float:
     return float(np.linalg.norm(np.array(r.summary["crossing"]["point_m"]) - np.array(s.gap.centre_m)))
 
 
-F450_CASES = [(0.0, "native"), (30.0, "native"), (-45.0, "native"), (0.0, "jsbsim"), (30.0, "jsbsim"),
-              (-45.0, "jsbsim")]
+F450_CASES = [(0.0, "native"), (30.0, "native"), (0.0, "jsbsim"), (30.0, "jsbsim")]
 
 
 @pytest.mark.parametrize(("roll_deg", "physics"), F450_CASES,
@@ -87,6 +86,17 @@ def test_f450_crosses_a_0p95_by_0p5_m_opening_at_2p5_m_s(tmp_path, roll_deg, phy
     print(f"f450 {physics} roll {roll_deg:+.0f}: attitude tracking {tracking}, crossing offset "
           f"{crossing_offset_m(r, s):.4f} m, clearance {r.summary['min_clearance_m']:.4f} m")
     assert tracking["rms_deg"] < 15.0 and tracking["hover_max_deg"] < 3.0, tracking
+
+
+def test_f450_at_minus_45_deg_through_a_0p95_by_0p5_m_opening_is_refused_at_the_plans_speed(tmp_path):
+    """The pre-flight check judges the passage at the speed the plan crosses at (3 m/s from this start,
+    asked for 2.5) with the crossing-error model fitted on the n3_tx2: for the f450 it is pessimistic
+    (flown without the check, this crossing cleared the frame by 4.7 cm with 3.7 deg of attitude error
+    at the crossing), so the run is refused on the safe side, with the reason, and nothing is flown."""
+    r = run_scenario(scenario(-45.0, 2.5, "f450", (0.95, 0.5)), tmp_path / "run", RunOptions(in_process=True))
+    assert not r.passed and [c.name for c in r.checks] == ["preflight"]
+    assert "the plan crosses at 3 m/s (asked for: 2.5 m/s)" in r.checks[0].observed
+    assert not (tmp_path / "run" / "timeseries.npz").exists()
 
 
 @pytest.mark.parametrize("name", builtin_profiles())
