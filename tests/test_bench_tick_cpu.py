@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hil.benches.runner import tick_cpu_rows
+from hil.benches.runner import suite_cpu_rows, tick_cpu_rows
 from hil.runner import RunOptions, run_scenario
 from hil.scenario.loader import load_scenarios
 
@@ -23,3 +23,8 @@ def test_tick_cpu_rows_are_each_sides_cpu_per_tick_of_the_flown_runs(tmp_path: P
     assert rows["tick_cpu_us_emulator"].value == 1e6 * sm["cpu_s"]["harness"] / sm["ticks"]
     assert rows["tick_cpu_us_onboard"].value == 1e6 * sm["cpu_s"]["onboard"] / sm["ticks"]
     assert all(r.unit == "us" and "over 1 runs" in r.note for r in rows.values())
+    # the suite's rows skip the refused run too (it has no onboard program to time)
+    suite = {r.name: r.value for r in suite_cpu_rows(summaries, sm["sim_time_s"])}
+    assert suite["onboard_startup_ms"] == 1e3 * sm["onboard_startup_s"]
+    assert suite["tick_cpu_us_emulator"] == rows["tick_cpu_us_emulator"].value
+    assert suite["suite_cpu_ms_per_sim_s"] == 1e3 * (sm["cpu_s"]["harness"] + sm["cpu_s"]["onboard"]) / sm["sim_time_s"]

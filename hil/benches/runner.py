@@ -105,17 +105,24 @@ def suite_rows(out: Path, jobs: int = 2) -> Iterator[BenchRow]:
         f"{index['wall_time_s']:.1f} s wall, all passed",
     )
     summaries = [json.loads((out / r["id"] / "summary.json").read_text(encoding="utf-8")) for r in results]
-    startups = sorted(sm["onboard_startup_s"] for sm in summaries)
+    yield from suite_cpu_rows(summaries, sim_s)
+
+
+def suite_cpu_rows(summaries: list[dict], sim_s: float) -> Iterator[BenchRow]:
+    """``onboard_startup_ms``, the tick CPU rows and ``suite_cpu_ms_per_sim_s`` from a suite's summaries
+    (``sim_s``: its simulated seconds); a run refused before take-off starts no program and flies no tick."""
+    flown = [sm for sm in summaries if sm.get("ticks")]
+    startups = sorted(sm["onboard_startup_s"] for sm in flown)
     yield BenchRow(
         "onboard_startup_ms",
         1e3 * float(np.median(startups)),
         "ms",
-        f"median over the suite's {len(startups)} runs, from the onboard program's spawn to its first "
+        f"median over the suite's {len(startups)} flown runs, from the onboard program's spawn to its first "
         f"answered tick (max {1e3 * startups[-1]:.0f} ms)",
     )
-    yield from tick_cpu_rows(summaries)
-    harness = sum(sm["cpu_s"]["harness"] for sm in summaries)
-    onboard = [sm["cpu_s"]["onboard"] for sm in summaries]
+    yield from tick_cpu_rows(flown)
+    harness = sum(sm["cpu_s"]["harness"] for sm in flown)
+    onboard = [sm["cpu_s"]["onboard"] for sm in flown]
     if all(isinstance(v, float) for v in onboard):  # (every program forked warm: its CPU time is known)
         yield BenchRow(
             "suite_cpu_ms_per_sim_s",
