@@ -186,7 +186,8 @@ class Trajectory:
                 raise ValueError(f"state_tuples needs a single trajectory, batch shape is {self.batch_shape}")
             coeffs = self._floats = tuple(zip(*(c.tolist() for c in self._coefficients()), strict=True))
         t1 = float(t)
-        x, y, z = (_poly_state(t1, *c) for c in coeffs)
+        cx, cy, cz = coeffs
+        x, y, z = _poly_state(t1, *cx), _poly_state(t1, *cy), _poly_state(t1, *cz)
         return (x[0], y[0], z[0]), (x[1], y[1], z[1]), (x[2], y[2], z[2])
 
     def jerk(self, t: object) -> np.ndarray:

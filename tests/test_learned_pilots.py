@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hil.link.mavlink import euler_from_quat
 from hil.runner import RunOptions, run_scenario
 from hil.scenario import loads_scenarios
 from policies.controller import ExpertController
@@ -18,7 +19,15 @@ from policies.frames import rot_z
 from policies.gap_planning import POINT_BODY, GapPose, LabVolume, plan_mission
 from policies.learning.learned_pilots import approach_planner_inputs
 from policies.learning.onnx_runtime import load_shipped, shipped_path
-from policies.onboard.pilots import EXPERT, SEGMENTS, Observation, PilotContext, make_pilot, pilot_names
+from policies.onboard.pilots import (
+    EXPERT,
+    SEGMENTS,
+    FloatObservation,
+    Observation,
+    PilotContext,
+    make_pilot,
+    pilot_names,
+)
 
 LAB = LabVolume((-4.0, -3.0, 0.0), (4.0, 4.0, 4.0))
 TIMES = np.linspace(0.0, 2.55, 12)
@@ -139,3 +148,27 @@ def test_a_run_reports_what_flew_each_segment(tmp_path):
     assert r.summary["mode"]["pilot_flies"] == make_pilot("e2e").flies
     assert "approach: end-to-end network; traverse, recovery, hover: expert" in (
         tmp_path / "report.html").read_text().replace("&#x27;", "'")
+
+
+def test_every_pilot_commands_the_same_from_the_programs_float_observation():
+    """The onboard program hands pilots a `FloatObservation` (arrays made when first read): it reads as the
+    Observation of the same numbers, and each pilot commands exactly what it commands from that one."""
+    gap, plan = _plan()
+    for t in (0.3, 1.7, 2.4, 3.0):  # approach (the networks fly it), then the expert's segments
+        ref, off = plan.reference(t), (0.05, -0.04, 0.03)
+        pos = tuple(float(x + d) for x, d in zip(ref.pos_m, off, strict=True))
+        vel = tuple(float(x - 0.5 * d) for x, d in zip(ref.vel_m_s, off, strict=True))
+        acc = tuple(float(x) for x in ref.acc_m_s2)
+        half = 0.5 * plan.yaw_rad
+        quat = (math.cos(half), 0.02, -0.01, math.sin(half))
+        lazy = FloatObservation.of_floats(t, pos, vel, acc, quat, gap, plan)
+        eager = Observation(t, np.array(pos), np.array(vel), np.array(acc), np.array(euler_from_quat(quat)),
+                            gap, plan)
+        assert lazy.pos_vel() == (pos, vel)
+        for name in ("traditional", "planner_net", "e2e"):
+            pilot = make_pilot(name)
+            assert pilot.command(FloatObservation.of_floats(t, pos, vel, acc, quat, gap, plan)) == \
+                pilot.command(eager), (name, t)
+        for field in ("pos_m", "vel_m_s", "acc_m_s2", "euler_rad"):
+            assert np.array_equal(getattr(lazy, field), getattr(eager, field))
+            assert getattr(lazy, field) is getattr(lazy, field)  # made once

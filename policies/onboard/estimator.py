@@ -98,6 +98,9 @@ class PoseEstimator:
         self.implausible = 0  # poses further from the prediction than the vehicle can move
         self.implausible_run = 0  # of those, how many in a row since the latest pose taken
         self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
+        cfg = self.config  # (frozen: its numbers read once, not per pose)
+        self._reset_after_s = cfg.reset_after_s
+        self._filter_settings = (cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s)
 
     @property
     def ready(self) -> bool:
@@ -116,18 +119,28 @@ class PoseEstimator:
         except (TypeError, ValueError):
             self.rejected += 1
             return False
+        return self.take(stamp_s, (px, py, pz), (qw, qx, qy, qz), received_s)
+
+    def take(self, stamp_s: float, pos_m: tuple[float, float, float],
+             quat_wxyz: tuple[float, float, float, float], received_s: float) -> bool:
+        """`update` of a pose given as plain floats: ``pos_m`` (m) and ``quat_wxyz`` tuples of floats, as
+        the mocap reader hands them over (the per-frame path, without the conversions)."""
+        px, py, pz = pos_m
+        qw, qx, qy, qz = quat_wxyz
         qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        cfg = self.config
+        reset_after_s = self._reset_after_s
         if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
-                stamp_s <= self._stamp_s and received_s - self._received_s <= cfg.reset_after_s):
+                stamp_s <= self._stamp_s and received_s - self._received_s <= reset_after_s):
             self.rejected += 1
             return False
         dt = stamp_s - self._stamp_s
         delay = received_s - stamp_s
-        restart = not self._ready or not 0.0 < dt <= cfg.reset_after_s
+        restart = not self._ready or not 0.0 < dt <= reset_after_s
+        x = self._x
         if not restart and self.max_accel_m_s2 < math.inf:
-            ex, ey, ez, _, _, _ = predicted(self._x, dt)
+            ex, ey, ez, _, _, _ = predicted(x, dt)
             jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
+            cfg = self.config
             if jump > plausible_jump_m(dt, self.max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas,
                                        cfg.pos_noise_m):
                 self.rejected += 1
@@ -137,8 +150,7 @@ class PoseEstimator:
                 return False
         self.implausible_run = 0
         self._x, self._P, self._mean_delay_s = filter_update(
-            self._x, self._P, self._mean_delay_s, restart, dt, delay, px, py, pz, cfg.pos_noise_m,
-            cfg.jerk_psd, cfg.delay_window_s)
+            x, self._P, self._mean_delay_s, restart, dt, delay, px, py, pz, *self._filter_settings)
         self._ready = True
         self._stamp_s = stamp_s
         self._received_s = received_s
@@ -157,22 +169,38 @@ class PoseEstimator:
             self._delay_s -= shift
             self._mean_delay_s -= shift
 
-    def estimate(self, now_s: float) -> StateEstimate:
-        """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the
-        configured mean latency, plus how much later than the average it arrived. ValueError if no
-        pose has come yet."""
+    def state_tuples(self, now_s: float) -> tuple[tuple[float, float, float], tuple[float, float, float],
+                                                  tuple[float, float, float]]:
+        """`estimate`'s position (m), velocity (m/s) and acceleration (m/s^2) at ``now_s`` as (x, y, z)
+        tuples of plain floats (the per-step path); ValueError if no pose has come yet."""
         if not self._ready:
             raise ValueError("no pose received yet")
         cfg = self.config
         h = prediction_horizon_s(now_s - self._received_s, cfg.latency_s, self._delay_s, self._mean_delay_s,
                                  cfg.reset_after_s)
-        px, py, pz, vx, vy, vz = predicted(self._x, h)
-        ax, ay, az = self._x[2], self._x[5], self._x[8]
+        x = self._x
+        px, py, pz, vx, vy, vz = predicted(x, h)
+        return (px, py, pz), (vx, vy, vz), (x[2], x[5], x[8])
+
+    @property
+    def quat_wxyz(self) -> tuple[float, float, float, float]:
+        """The latest pose's attitude (w, x, y, z; body FLU -> world ENU), unit."""
+        return self._quat
+
+    def euler_rad(self) -> tuple[float, float, float]:
+        """ZYX Euler angles (rad) of `quat_wxyz` (made once per pose)."""
         euler = self._euler
         if euler is None:
             euler = self._euler = euler_from_quat(self._quat)
-        return _new_estimate(np.array((px, py, pz)), np.array((vx, vy, vz)), np.array((ax, ay, az)),
-                             np.array(euler), np.array(self._quat))
+        return euler
+
+    def estimate(self, now_s: float) -> StateEstimate:
+        """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the
+        configured mean latency, plus how much later than the average it arrived. ValueError if no
+        pose has come yet."""
+        pos, vel, acc = self.state_tuples(now_s)
+        return _new_estimate(np.array(pos), np.array(vel), np.array(acc), np.array(self.euler_rad()),
+                             np.array(self._quat))
 
 
 class StaticPoseCheck:
@@ -288,8 +316,9 @@ def prediction_horizon_s(age_s: float, latency_s: float, delay_s: float, mean_de
                          reset_after_s: float) -> float:
     """How far (s) to predict the latest pose: over its age since arrival (``age_s``, 0 if negative),
     the mean latency, and how much later than the average it arrived; within [0, reset_after_s]."""
-    h = max(0.0, age_s) + latency_s + (delay_s - mean_delay_s)
-    return min(max(h, 0.0), reset_after_s)
+    h = (age_s if age_s > 0.0 else 0.0) + latency_s + (delay_s - mean_delay_s)  # (no max, min calls:
+    h = 0.0 if h < 0.0 else h  # per control step; the same choices, NaN passing as through them)
+    return reset_after_s if reset_after_s < h else h
 
 
 def predicted(x: tuple, h: float) -> tuple:

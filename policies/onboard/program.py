@@ -66,11 +66,10 @@ from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
 from policies.onboard.estimator import (
     EstimatorConfig,
     PoseEstimator,
-    StateEstimate,
     StaticPoseCheck,
     plausible_jump_m,
 )
-from policies.onboard.pilots import Observation, Pilot, PilotContext, make_pilot
+from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
@@ -111,6 +110,14 @@ _PHASE_HANDLERS = {
 
 
 FINAL_PHASES = (Phase.DONE, Phase.ABORTED, Phase.FAILED)
+# the members the per-tick paths compare with, as module constants (Python 3.11 reads a member through its
+# class with a descriptor call, about 0.4 us: a dozen a tick)
+_WAIT, _ABORTING, _TAKEOFF = Phase.WAIT, Phase.ABORTING, Phase.TAKEOFF
+#: the phases with a vehicle state to keep fresh (a stale one aborts), and those streaming a level setpoint
+_FRESH_STATE = frozenset({Phase.AUTHORITY, Phase.ARMING, Phase.TAKEOFF, Phase.MISSION, Phase.HANDBACK})
+_LEVEL = frozenset({Phase.AUTHORITY, Phase.ARMING})
+_PILOTED = frozenset({Phase.MISSION, Phase.HANDBACK})  # the pilot's commands
+_APPROACH = Segment.APPROACH
 
 
 @dataclass(frozen=True)
@@ -335,11 +342,13 @@ class OnboardProgram:
         # a command swinging across from its tilt limit in 0.1 s is one the f450's FC trails by 20 deg, and
         # at 70 deg the n3's command swung 10-20 deg a tick while the body was still turning through level
         self._tilt_step_rad = cfg.max_body_rate_rad_s * cfg.period_s
+        self._period_s = cfg.period_s  # (the control period, s: a property of the frozen config, read once)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
         self._clock_jumps = 0  # the mocap reader's clock jumps the estimator has followed
+        self._handlers = {ph: getattr(self, name) for ph, name in _PHASE_HANDLERS.items()}  # (bound once)
 
     # --- the step ---------------------------------------------------------------------------
     @property
@@ -398,15 +407,16 @@ class OnboardProgram:
         self._transitions(now_s)
         if self.finished or self._next_control_s is None:
             return
+        period = self._period_s
         steps = 0
         while self._next_control_s <= now_s and not self.finished:
             if steps >= self.config.max_catch_up_steps:
-                missed = math.floor((now_s - self._next_control_s) / self.config.period_s) + 1
+                missed = math.floor((now_s - self._next_control_s) / period) + 1
                 self.skipped_steps += missed
-                self._next_control_s += missed * self.config.period_s
+                self._next_control_s += missed * period
                 break
             self._control(self._next_control_s, now_s)
-            self._next_control_s += self.config.period_s
+            self._next_control_s += period
             steps += 1
 
     # --- phase logic ------------------------------------------------------------------------
@@ -425,12 +435,11 @@ class OnboardProgram:
 
     def _transitions(self, now_s: float) -> None:
         cfg, ph = self.config, self.phase
-        if ph is not Phase.WAIT and self.link.heartbeat_age_s(now_s) > cfg.fc_lost_s:
+        if ph is not _WAIT and self.link.heartbeat_age_s(now_s) > cfg.fc_lost_s:
             self._finish(Phase.FAILED, EXIT_ERROR, "fc_lost", phase=str(ph),
                          silence_s=round(self.link.heartbeat_age_s(now_s), 3))
             return
-        if ph in (Phase.AUTHORITY, Phase.ARMING, Phase.TAKEOFF, Phase.MISSION, Phase.HANDBACK) \
-                and not self._mocap_fresh(now_s):
+        if ph in _FRESH_STATE and not self._mocap_fresh(now_s):
             est = self.estimator
             if est.implausible_run:  # the poses came, but none the vehicle could have flown to
                 self._abort(now_s, "implausible_mocap", age_s=round(est.age_s(now_s), 4),
@@ -439,13 +448,13 @@ class OnboardProgram:
                 self._abort(now_s, "stale_mocap", age_s=round(est.age_s(now_s), 4))
             return
         gap = self.gap_check
-        if ph is not Phase.ABORTING and gap.implausible_run and now_s - gap.received_s > cfg.stale_mocap_s:
+        if ph is not _ABORTING and gap.implausible_run and now_s - gap.received_s > cfg.stale_mocap_s:
             self._abort(now_s, "implausible_gap_pose", refused=gap.implausible_run,
                         jump_m=round(gap.latest_jump_m, 3))
             return
-        handler = _PHASE_HANDLERS.get(ph)
+        handler = self._handlers.get(ph)
         if handler is not None:  # the final phases have none
-            getattr(self, handler)(now_s)
+            handler(now_s)
 
     def _wait(self, now_s: float) -> None:
         cfg = self.config
@@ -650,7 +659,7 @@ class OnboardProgram:
                                            cmd.thrust_n / self.config.full_thrust_n)
         except ValueError as exc:
             self.commands_refused += 1
-            if self.phase is not Phase.ABORTING:
+            if self.phase is not _ABORTING:
                 self._abort(self.clock.now_s(), "bad_command", detail=str(exc))
             return
         self._last_cmd = cmd
@@ -663,25 +672,27 @@ class OnboardProgram:
         """One control step scheduled at ``t_s`` (s), with the estimate at ``now_s``; the pilot and the
         expert see the state and the reference ``control_lead_s`` ahead (module docstring)."""
         ph = self.phase
-        if ph is Phase.ABORTING:
+        if ph is _ABORTING:
             self._send_safe_hover()
             return
         lead = self.config.control_lead_s
-        est = self.estimator.estimate(now_s + lead)
+        pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         t_s += lead
-        if ph in (Phase.AUTHORITY, Phase.ARMING):
+        if ph in _LEVEL:
             armed = self._fc("armed")
             thrust = self.config.hover_thrust_n if armed else 0.0
             self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, thrust))
-        elif ph is Phase.TAKEOFF:
+        elif ph is _TAKEOFF:
             assert self._takeoff is not None
             traj, yaw0, yaw1, t0 = self._takeoff
             tau = min(max(t_s - t0, 0.0), self.config.takeoff_duration_s)
             p, v, a = traj.state_tuples(tau)
             yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
-            self._send(self.expert.command(p, v, a, yaw, est.pos_m, est.vel_m_s))
-        elif ph in (Phase.MISSION, Phase.HANDBACK):
-            cmd = self.pilot.command(self._observation(t_s, est))
+            self._send(self.expert.command(p, v, a, yaw, pos, vel))
+        elif ph in _PILOTED:
+            assert self.plan is not None and self.gap is not None
+            cmd = self.pilot.command(FloatObservation.of_floats(
+                t_s - self._mission_start_s, pos, vel, acc, self.estimator.quat_wxyz, self.gap, self.plan))
             if self._last_cmd is not None and self._turns_limited(t_s):
                 cmd = limit_tilt_step(cmd, self._last_cmd, self._tilt_step_rad)
             self._send(cmd)
@@ -691,23 +702,19 @@ class OnboardProgram:
         from the traverse on (the traverse, the pull-out, the hover), not in the approach, which rolls the
         body into the gap's tilt before the wall (the planner lets it ask up to twice the rate there)."""
         assert self.plan is not None
-        return self.plan.segment_at(t_s - self._mission_start_s) is not Segment.APPROACH
-
-    def _observation(self, t_s: float, est: StateEstimate) -> Observation:
-        assert self.plan is not None and self.gap is not None
-        return Observation(t_s - self._mission_start_s, est.pos_m, est.vel_m_s, est.acc_m_s2, est.euler_rad,
-                           self.gap, self.plan)
+        return self.plan.segment_at(t_s - self._mission_start_s) is not _APPROACH
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
+        # (the reader's numbers are plain floats: the estimator takes them without converting)
         if body_id == GAP_BODY_ID:
             self.gap_check.update(pos_m, quat_wxyz, received_s)
-        elif body_id == VEHICLE_BODY_ID and not self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s):
+        elif body_id == VEHICLE_BODY_ID and not self.estimator.take(stamp_s, pos_m, quat_wxyz, received_s):
             jumps = self.mocap.clock_jumps
             if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
                 self._clock_jumps = jumps
                 self.estimator.rebase(stamp_s, received_s)
-                self.estimator.update(stamp_s, pos_m, quat_wxyz, received_s)
+                self.estimator.take(stamp_s, pos_m, quat_wxyz, received_s)
 
     # --- loops --------------------------------------------------------------------------------
     def run_realtime(self, max_duration_s: float | None = None) -> int:

@@ -14,14 +14,16 @@ AttitudeThrustCommand: roll and pitch are the ZYX Euler angles of the desired bo
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from hil.link.mavlink import euler_from_quat
 from hil.link.registry import Registry
 from policies.controller import AttitudeThrustCommand
-from policies.gap_planning import GapPose, MissionPlan
+from policies.gap_planning import GapPose, MissionPlan, Vec3
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,46 @@ class Observation:
     euler_rad: np.ndarray
     gap: GapPose
     plan: MissionPlan
+
+    def pos_vel(self) -> tuple[Any, Any]:
+        """``pos_m`` and ``vel_m_s``: as (x, y, z) tuples of plain floats where the observation holds
+        them so (`FloatObservation`: no arrays made), else the arrays."""
+        floats = self.__dict__.get("_pos_vel")
+        return floats if floats is not None else (self.pos_m, self.vel_m_s)
+
+
+class FloatObservation(Observation):
+    """An `Observation` held as plain floats (the onboard program's, one a control step): each array is
+    made when a pilot first reads it, and `pos_vel` hands over the floats without making any (the
+    traditional pilot's path). Build with `of_floats`."""
+
+    @classmethod
+    def of_floats(cls, t_s: float, pos_m: Vec3, vel_m_s: Vec3, acc_m_s2: Vec3,
+                  quat_wxyz: tuple[float, float, float, float], gap: GapPose,
+                  plan: MissionPlan) -> FloatObservation:
+        """The observation at ``t_s`` (s) of the state ``pos_m`` (m), ``vel_m_s`` (m/s), ``acc_m_s2`` (m/s^2),
+        attitude ``quat_wxyz`` (body FLU -> world ENU; ``euler_rad`` is its `euler_from_quat`)."""
+        obs = object.__new__(cls)  # (a frozen dataclass: filled without its per-field __setattr__)
+        obs.__dict__.update(t_s=t_s, gap=gap, plan=plan, _pos_vel=(pos_m, vel_m_s), _acc=acc_m_s2,
+                            _quat=quat_wxyz)
+        return obs
+
+    # (non-data descriptors: each array, once made, is read from the instance like a field)
+    @functools.cached_property
+    def pos_m(self) -> np.ndarray:  # type: ignore[override]
+        return np.array(self._pos_vel[0])
+
+    @functools.cached_property
+    def vel_m_s(self) -> np.ndarray:  # type: ignore[override]
+        return np.array(self._pos_vel[1])
+
+    @functools.cached_property
+    def acc_m_s2(self) -> np.ndarray:  # type: ignore[override]
+        return np.array(self._acc)
+
+    @functools.cached_property
+    def euler_rad(self) -> np.ndarray:  # type: ignore[override]
+        return np.array(euler_from_quat(self._quat))
 
 
 @dataclass(frozen=True)
@@ -101,4 +143,5 @@ def make_pilot(name: str, context: PilotContext | None = None) -> Pilot:
     return pilot
 
 
-__all__ = ["PILOTS", "Observation", "Pilot", "PilotContext", "UnknownPilot", "make_pilot", "pilot_names"]
+__all__ = ["PILOTS", "FloatObservation", "Observation", "Pilot", "PilotContext", "UnknownPilot", "make_pilot",
+           "pilot_names"]

@@ -18,7 +18,8 @@ class TraditionalPilot:
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
         p, v, a, yaw = obs.plan.reference_tuples(obs.t_s)  # `reference` in plain floats
-        return self.controller.command(p, v, a, yaw, obs.pos_m, obs.vel_m_s)
+        pos, vel = obs.pos_vel()  # (the same numbers; plain floats where the observation holds them so)
+        return self.controller.command(p, v, a, yaw, pos, vel)
 
 
 def make_pilot(context: PilotContext) -> TraditionalPilot:
