@@ -79,13 +79,14 @@ class ExpertController:
         Raises ValueError for non-finite or wrongly shaped inputs.
         """
         try:  # the usual case, checked in one go: five vectors of three finite numbers
-            vals = [_floats3(pos_ref_m), _floats3(vel_ref_m_s), _floats3(acc_ref_m_s2), _floats3(pos_m),
-                    _floats3(vel_m_s)]
+            vals = (_floats3(pos_ref_m), _floats3(vel_ref_m_s), _floats3(acc_ref_m_s2), _floats3(pos_m),
+                    _floats3(vel_m_s))
+            (a, b, c), (d, e, f), (g, h, i), (j, k, m), (n, o, q) = vals
+            finite = math.isfinite(a + b + c + d + e + f + g + h + i + j + k + m + n + o + q)
         except (TypeError, ValueError):
-            vals = None
-        if vals is None or not math.isfinite(sum(vals[0]) + sum(vals[1]) + sum(vals[2]) + sum(vals[3])
-                                             + sum(vals[4])):
-            vals = []  # find which input is bad (or, after an overflowing sum, that none is)
+            finite = False
+        if not finite:
+            checked = []  # find which input is bad (or, after an overflowing sum, that none is)
             for name, value in (("pos_ref_m", pos_ref_m), ("vel_ref_m_s", vel_ref_m_s),
                                 ("acc_ref_m_s2", acc_ref_m_s2), ("pos_m", pos_m), ("vel_m_s", vel_m_s)):
                 try:
@@ -94,7 +95,8 @@ class ExpertController:
                     raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
                 if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                     raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
-                vals.append((x, y, z))
+                checked.append((x, y, z))
+            vals = tuple(checked)
         if not math.isfinite(yaw_ref_rad):
             raise ValueError("yaw_ref_rad must be finite")
         yaw = float(yaw_ref_rad)

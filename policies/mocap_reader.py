@@ -182,12 +182,17 @@ class MocapReader:
         counted in ``lockstep_short_reads`` and read with the next call."""
         accepted = 0
         left = (total_bytes - self._lockstep_read) & LOCKSTEP_COUNT_MASK
-        deadline = time.monotonic() + timeout_s
+        deadline = None
+        recv = self.transport.recv
         while left > 0:
-            data = self.transport.recv(max(0.0, deadline - time.monotonic()), left)
+            data = recv(0.0, left)  # (what has arrived, usually all: no clock read for a deadline)
             if not data:
-                self.lockstep_short_reads += 1
-                break
+                if deadline is None:
+                    deadline = time.monotonic() + timeout_s
+                data = recv(max(0.0, deadline - time.monotonic()), left)
+                if not data:
+                    self.lockstep_short_reads += 1
+                    break
             left -= len(data)
             self._lockstep_read = (self._lockstep_read + len(data)) & LOCKSTEP_COUNT_MASK
             accepted += self._feed(data)
@@ -217,19 +222,20 @@ class MocapReader:
         last_stamps = self._last_stamp_s
         # a later stamp is from the future or lowers the reference
         newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
+        lo, hi, never, sqrt = _NORM2_LO, _NORM2_HI, _NEVER, math.sqrt  # (locals: read per body)
         for k in range(4, len(values), BODY_VALUES):
             body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
             pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
             norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
             stamp_s = stamp_us * 1e-6
-            last = last_stamps.get(body_id, _NEVER)
-            if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and _NORM2_LO <= norm2 <= _NORM2_HI
+            last = last_stamps.get(body_id, never)
+            if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and lo <= norm2 <= hi
                     and last < stamp_s <= newest_s):
                 if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
                     continue
                 newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
             last_stamps[body_id] = stamp_s
-            norm = math.sqrt(norm2)
+            norm = sqrt(norm2)
             pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
             if on_sample is None:
                 latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)

@@ -234,7 +234,7 @@ class FrameDecoder:
         out: list[_Parsed] = []
         n = len(buf)
         start = 0
-        while True:
+        while start < n:  # (at n: nothing left to look at, no header to hunt for)
             if not (start + 1 < n and buf[start] == HEADER and buf[start + 1] == FUNCTION_NODE_FRAME0):
                 start = self._find_header(buf, start)  # (a frame starting right here skips nothing)
             avail = n - start

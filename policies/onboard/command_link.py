@@ -57,10 +57,16 @@ READ_BYTES = 65536  # one read takes up to this much
 SHORT_READ_BYTES = 4000
 #: payload layouts (wire order) of the per-tick messages, framed by `MavlinkCodec.pack_payload`
 _ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker
+_ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
 PX4_BASE_MODE_CUSTOM = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def clipped_thrust(fraction: float) -> float:
+    """A thrust fraction within 0..1 (a finite one; as min(1, max(0, fraction)), without the two calls)."""
+    return (fraction if fraction < 1.0 else 1.0) if fraction > 0.0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -149,8 +155,10 @@ class CommandLink:
 
     def _poll(self, timeout_s: float) -> list[MAVLinkMessage | bytes]:
         """`poll`, with the frames of `RAW_MSG_IDS` the codec passed undecoded left as bytes."""
-        self.flush()
-        transport, codec = self.codec.transport, self.codec
+        if self._held:
+            self.flush()
+        codec = self.codec
+        transport = codec.transport
         data = transport.recv(timeout_s, READ_BYTES)
         msgs = codec.feed(data) if data else []
         # drain what is waiting; on a stream whose short read took it all, no second (empty) read
@@ -173,12 +181,13 @@ class CommandLink:
         handled = []
         tick_list = self._ticks
         ticks = len(tick_list)
+        handle_frame, handle = self._handle_frame, self._handle
         while backlog and len(tick_list) == ticks:
             m = backlog.popleft()
             if m.__class__ is bytes:
-                self._handle_frame(m)
+                handle_frame(m)
             else:
-                self._handle(m)
+                handle(m)
             handled.append(m)
         return handled
 
@@ -272,11 +281,11 @@ class CommandLink:
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
         q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
-        thrust = min(1.0, max(0.0, thrust))
+        thrust = clipped_thrust(thrust)
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
         payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
                                         FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK)
-        self._send_frame(self.codec.pack_payload(mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET, payload))
+        self._send_frame(self.codec.pack_payload(_ATTITUDE_TARGET_ID, payload))
         self.setpoints_sent += 1
 
     def send_command(self, command: int, *params: float) -> None:
@@ -306,15 +315,17 @@ class CommandLink:
         """Lockstep "done with this tick" (`hil.link.lockstep`). A tick answered before (sent again on the
         harness's wall-clock timeout) gets the same frame again, sequence number and all: how often a
         tick is repeated depends on process scheduling, and the frames after it must not."""
-        frame = self._answers.get(tick_s)
+        answers = self._answers
+        frame = answers.get(tick_s)
         if frame is None:
             frame = self._answer_frame(tick_s)
-            if len(self._answers) >= ANSWERS_KEPT:
-                del self._answers[next(iter(self._answers))]
-            self._answers[tick_s] = frame
+            if len(answers) >= ANSWERS_KEPT:
+                del answers[next(iter(answers))]
+            answers[tick_s] = frame
         self._send_frame(frame)
-        self._open_ticks = max(0, self._open_ticks - 1)
-        if self._open_ticks == 0:
+        open_ticks = self._open_ticks
+        self._open_ticks = open_ticks = open_ticks - 1 if open_ticks > 1 else 0  # max(0, open_ticks - 1)
+        if open_ticks == 0:
             self.flush()
 
     def _answer_frame(self, tick_s: float) -> bytes:

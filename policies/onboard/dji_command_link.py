@@ -25,7 +25,7 @@ from hil.link.clock import Clock
 from hil.link.lockstep import dji_answer_payload, dji_read_tick
 from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
 from hil.link.transport import Transport
-from policies.onboard.command_link import CommandAck, CommandLink
+from policies.onboard.command_link import CommandAck, CommandLink, clipped_thrust
 
 #: the Onboard SDK app's activation: app id, reserved, the FC's version (as OSDK sends it), the bundle id
 APP_ID = 1069806
@@ -226,7 +226,7 @@ class DjiCommandLink(CommandLink):
                              f"yaw {yaw_rad} rad, thrust {thrust}")
         q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
         roll, pitch, yaw = euler_from_quat(q)
-        percent = 100.0 * min(1.0, max(0.0, thrust))
+        percent = 100.0 * clipped_thrust(thrust)
         payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
                                       percent, math.degrees(yaw))
         self._send_frame(self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload))

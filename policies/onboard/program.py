@@ -393,7 +393,7 @@ class OnboardProgram:
         return min(self._next_heartbeat_s, self._mocap_due_s())
 
     def _act(self, now_s: float) -> None:
-        if self.finished:
+        if self.phase in FINAL_PHASES:  # (`finished` without the property's calls, here and below: per tick)
             return
         if self._started_s is None:
             self._started_s = self._phase_since_s = now_s
@@ -405,11 +405,11 @@ class OnboardProgram:
             self.link.send_heartbeat()
             self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
         self._transitions(now_s)
-        if self.finished or self._next_control_s is None:
+        if self.phase in FINAL_PHASES or self._next_control_s is None:
             return
         period = self._period_s
         steps = 0
-        while self._next_control_s <= now_s and not self.finished:
+        while self._next_control_s <= now_s and self.phase not in FINAL_PHASES:
             if steps >= self.config.max_catch_up_steps:
                 missed = math.floor((now_s - self._next_control_s) / period) + 1
                 self.skipped_steps += missed
@@ -742,10 +742,11 @@ class OnboardProgram:
         """Read the links and process every TIMESYNC tick that has arrived, one after the other
         (non-blocking; bytes arriving meanwhile wait for the next call); returns them."""
         done: list[float] = []
-        while not self.finished:
+        link = self.link
+        while self.phase not in FINAL_PHASES:  # (`finished`, without the property's call: per tick)
             try:
-                self.link.read()  # in lockstep: the messages up to the next tick
-                ticks = self.link.take_ticks()
+                link.read()  # in lockstep: the messages up to the next tick
+                ticks = link.take_ticks()
                 # the mocap link is read at the ticks only: bytes read between ticks would be stamped
                 # with the previous tick's time, and how many there are depends on process scheduling
             except LinkError as exc:
@@ -763,14 +764,14 @@ class OnboardProgram:
                     except LinkError as exc:
                         self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
                         break
-                    self.link.answer_tick(tick)
+                    link.answer_tick(tick)
                     continue
                 self._last_tick_s = tick
                 self.lockstep_tick(tick)
                 done.append(tick)
-                if self.finished:
+                if self.phase in FINAL_PHASES:
                     break
-            if not self.link.backlogged:
+            if not link.backlogged:
                 # all read is acted on: what arrives next, a caller waits for (`run_lockstep` on the
                 # link's descriptor) instead of a read per tick that finds nothing
                 break
