@@ -141,26 +141,28 @@ class FastStepper:
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
+        v = self.vehicle
+        fc = v.fc
+        native = self.native
         while n_steps > 0:
-            n = self._offboard_steps(n_steps) or self._hold_steps(n_steps)
+            n = 0
+            if native:
+                tg = fc.held_target()
+                if tg is not None:  # an offboard attitude target: flown in batches
+                    n = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
+                    if n > 0:
+                        x, aux, p = self._arrays
+                        gains, mix_inv, out = self._loop
+                        _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, gains,
+                                   mix_inv, out, n)
+                        self._after_batch(n)
+                if n == 0:
+                    n = self._hold_steps(n_steps)
             if n == 0:
-                self.vehicle.step(1)
+                v.step(1)
                 self.single_steps += 1
                 n = 1
             n_steps -= n
-
-    def _offboard_steps(self, n_steps: int) -> int:
-        """Up to ``n_steps`` batched steps of an offboard attitude target; returns the steps taken (0:
-        take another path)."""
-        v = self.vehicle
-        fc = v.fc
-        tg = fc.held_target()
-        if not self.native or tg is None:
-            return 0
-        n = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
-        if n > 0:
-            self._fly(n, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n)
-        return n
 
     def _hold_steps(self, n_steps: int) -> int:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
@@ -183,11 +185,6 @@ class FastStepper:
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
             self._after_batch(n, detect_landed=False)
         return n
-
-    def _fly(self, n: int, roll: float, pitch: float, yaw: float, thrust_n: float) -> None:
-        x, aux, p = self._arrays
-        _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, *self._loop, n)
-        self._after_batch(n)
 
     def _after_batch(self, n: int, detect_landed: bool = True) -> None:
         v = self.vehicle

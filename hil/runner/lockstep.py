@@ -186,11 +186,12 @@ def run_lockstep(
             note_divergence(rep, emu)
             break
         rep.ticks += 1
-        if pending and process_fault_due(onboard, faults, t):
-            while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
-                tick = pending.popleft()
-                _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
-        apply_process_faults(rep, onboard, faults, t)
+        if faults.acts_on_process:
+            if pending and process_fault_due(onboard, faults, t):
+                while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
+                    tick = pending.popleft()
+                    _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
+            apply_process_faults(rep, onboard, faults, t)
         if not first:  # the first tick's mocap waits for a program that has opened its ports
             mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
