@@ -121,6 +121,7 @@ class FastStepper:
         self.batched_steps = 0
         self.single_steps = 0
         self._hold = np.zeros(4)
+        self._dt_s = vehicle.dt_s  # (the backend's step, fixed for its life)
         # the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner loop's), taken
         # once: they stay the same objects for the backend's life, and a tick batches several times
         if native:
@@ -149,13 +150,13 @@ class FastStepper:
             if native:
                 tg = fc.held_target()
                 if tg is not None:  # an offboard attitude target: flown in batches
-                    n = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
+                    n = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
                     if n > 0:
                         x, aux, p = self._arrays
                         gains, mix_inv, out = self._loop
                         _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, gains,
                                    mix_inv, out, n)
-                        self._after_batch(n)
+                        self._after_batch(n, x)
                 if n == 0:
                     n = self._hold_steps(n_steps)
             if n == 0:
@@ -173,7 +174,7 @@ class FastStepper:
             return 0
         if fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(v.time_s):
             return 0
-        n_steps = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
+        n_steps = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
         if n_steps <= 0:
             return 0
         x, aux, p = self._arrays
@@ -183,17 +184,17 @@ class FastStepper:
         h[2], h[3] = fc.rest_height_m, fc.config.landed_margin_m
         n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
-            self._after_batch(n, detect_landed=False)
+            self._after_batch(n, x, detect_landed=False)
         return n
 
-    def _after_batch(self, n: int, detect_landed: bool = True) -> None:
+    def _after_batch(self, n: int, x: np.ndarray, detect_landed: bool = True) -> None:
+        """The counts and the FC's bookkeeping after ``n`` steps flown on state row ``x``."""
         v = self.vehicle
         be = v.backend
         be.advance_clock(n)  # type: ignore[attr-defined]
         v.steps += n
         self.batched_steps += n
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
-        x = self._arrays[0]
         # the FC's bookkeeping as its own per-step update would have left it (plain floats: the same
         # comparisons)
-        v.fc.stepped_outside(be.time_s - be.dt_s, x.item(2), x.item(5), detect_landed)
+        v.fc.stepped_outside(be.time_s - self._dt_s, x.item(2), x.item(5), detect_landed)

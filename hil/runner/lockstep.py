@@ -163,7 +163,7 @@ def run_lockstep(
     wire = emu.wire
     tick_frames = wire.framing.tick_frames  # (the command link's protocol)
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
-    wire.spin_s = spin_s
+    wire.spin_s = 0.0  # (until the first answer: a new process takes milliseconds to start, asleep)
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
     mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
     pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first
@@ -206,6 +206,7 @@ def run_lockstep(
                 if first:  # wait for the new process, then the loop proper starts
                     startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
                     _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
+                    wire.spin_s = spin_s
                     loop0, t_loop0 = time.perf_counter(), t
                     first = False
                 else:

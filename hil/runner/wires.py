@@ -229,7 +229,8 @@ class CommandWire(Transport):
 
     def answered_later_than(self, tick_ns: int) -> bool:
         """Whether the onboard program has answered a tick after ``tick_ns`` (so it never saw that one)."""
-        return any(k > tick_ns for k in self._answered_later)
+        later = self._answered_later
+        return bool(later) and any(k > tick_ns for k in later)
 
     def _queue_for_fc(self, frame: bytes, handed_s: float) -> None:
         if self._is_setpoint(frame):
