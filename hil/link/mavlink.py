@@ -114,8 +114,12 @@ class FrameSplitter:
 
     def feed(self, data: bytes) -> list[bytes]:
         """The complete frames (and runs of other bytes) of what has come so far, in order."""
-        buf = self._buf
-        buf += data
+        held = self._buf
+        if held:
+            held += data
+            buf = held
+        else:  # (the usual case: cut ``data`` itself, keep only what is left of it)
+            buf = data
         out: list[bytes] = []
         i, n = 0, len(buf)
         size_of, starts = self._size_of, self._starts
@@ -132,7 +136,10 @@ class FrameSplitter:
                 break
             out.append(bytes(buf[i : i + size]))
             i += size
-        del buf[:i]
+        if buf is held:
+            del held[:i]
+        elif i < n:
+            held += buf[i:]
         return out
 
 
