@@ -415,22 +415,25 @@ def frame_ok(frame: bytes) -> bool:
     return crc == rev[frame[crc_at]] << 8 | rev[frame[crc_at + 1]]
 
 
-_V2_HEADER = struct.Struct("<BBBBBBBHB")
+#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags, sequence,
+#: system, component, message id (24 bits: low 16, high 8)
+_V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
+_V2_START = bytes((MAVLINK_V2_MAGIC,))
 
 
 def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, component_id: int) -> bytes:
     """An unsigned MAVLink 2 frame of ``payload`` (full length; trailing zeros are trimmed to one byte
     at least, as MAVLink 2 does), byte for byte what pymavlink makes of the same message."""
     body = payload.rstrip(b"\x00") or payload[:1]
-    head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
-                           msg_id & 0xFFFF, msg_id >> 16)
+    covered = _V2_HEADER_TAIL.pack(len(body), 0, 0, seq, system_id, component_id, msg_id & 0xFFFF,
+                                   msg_id >> 16) + body
     # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
     # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
     # init 0xFFFF is its own mirror image); sent low byte first
     rev = _BIT_REVERSED
-    crc = binascii.crc_hqx((head[1:] + body).translate(rev), 0xFFFF)
+    crc = binascii.crc_hqx(covered.translate(rev), 0xFFFF)
     crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
-    return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
+    return _V2_START + covered + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
 #: pymavlink's parser, for its public `decode` of single frames
