@@ -195,22 +195,22 @@ def run_lockstep(
         if not first:  # the first tick's mocap waits for a program that has opened its ports
             mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
-            if onboard.exited():
-                _note_exit(rep, onboard, t)
+            # (no look at whether the program has exited here: one that answered its last tick and is
+            # closing may or may not be gone yet, depending on the host's load; the tick goes out and its
+            # missing answer says so, at this tick's time, on every run alike)
+            if first:  # dropped by the program's port as it opens, always: whether it is open yet
+                wire.discard_held()  # depends on how fast it started (warm or cold)
+            wire.send_sync(tick_frames(t, mocap_total))
+            onboard.service()
+            emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
+            if first:  # wait for the new process, then the loop proper starts
+                startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
+                _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
+                wire.spin_s = spin_s
+                loop0, t_loop0 = time.perf_counter(), t
+                first = False
             else:
-                if first:  # dropped by the program's port as it opens, always: whether it is open yet
-                    wire.discard_held()  # depends on how fast it started (warm or cold)
-                wire.send_sync(tick_frames(t, mocap_total))
-                onboard.service()
-                emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
-                if first:  # wait for the new process, then the loop proper starts
-                    startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
-                    _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
-                    wire.spin_s = spin_s
-                    loop0, t_loop0 = time.perf_counter(), t
-                    first = False
-                else:
-                    pending.append(t)
+                pending.append(t)
         wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)
