@@ -21,7 +21,7 @@ from hil.link.linktrack import (
     MAX_BODIES,
     ROLE_ANCHOR,
     ROLE_TAG,
-    encode_mocap_rows,
+    encode_mocap_values,
     encode_node_frame,
 )
 from hil.link.transport import Transport
@@ -102,8 +102,10 @@ class MocapLinkServer:
 
     def _forward(self, now: float, frames: list[FrameRows]) -> int:
         radio, uart = self.radio, self.uart
-        for frame_no, _, ready_s, rows in frames:
-            radio.send(ready_s, encode_mocap_rows(frame_no & 0xFFFFFFFF, rows[:MAX_BODIES]))
+        for frame_no, stamp_s, ready_s, body_ids, values in frames:
+            n = min(len(body_ids), MAX_BODIES)
+            radio.send(ready_s, encode_mocap_values(frame_no & 0xFFFFFFFF, body_ids[:n], (stamp_s,) * n,
+                                                    values[: 8 * n].tolist()))
         for arrival_s, data in radio.update_data(now):
             uart.write(arrival_s, encode_node_frame(
                 data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))
