@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from emulator.mocap import FrameRows, MocapConfig, MocapStats, MocapSystem
+from emulator.mocap import VALUES_PER_BODY, FrameRows, MocapConfig, MocapStats, MocapSystem
 from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
@@ -103,9 +103,11 @@ class MocapLinkServer:
     def _forward(self, now: float, frames: list[FrameRows]) -> int:
         radio, uart = self.radio, self.uart
         for frame_no, stamp_s, ready_s, body_ids, values in frames:
-            n = min(len(body_ids), MAX_BODIES)
-            radio.send(ready_s, encode_mocap_values(frame_no & 0xFFFFFFFF, body_ids[:n], (stamp_s,) * n,
-                                                    values[: 8 * n].tolist()))
+            if len(body_ids) > MAX_BODIES:  # (the payload holds the first ones)
+                body_ids, values = body_ids[:MAX_BODIES], values[: VALUES_PER_BODY * MAX_BODIES]
+            payload = encode_mocap_values(frame_no & 0xFFFFFFFF, body_ids, (stamp_s,) * len(body_ids),
+                                          values.tolist())
+            radio.send(ready_s, payload)
         for arrival_s, data in radio.update_data(now):
             uart.write(arrival_s, encode_node_frame(
                 data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))

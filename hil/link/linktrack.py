@@ -374,16 +374,17 @@ def encode_mocap_values(frame_no: int, body_ids: Sequence[int], stamps_s: Sequen
         raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
     fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, n]
     finite = math.isfinite(sum(values))  # a finite sum means every value is finite (inf and NaN propagate)
-    for b, body_id in enumerate(body_ids):
-        v = values[8 * b : 8 * b + 8]
-        if not (finite or all(math.isfinite(x) for x in v[:7])):
+    r = 0
+    for body_id, stamp_s in zip(body_ids, stamps_s, strict=True):
+        if not (finite or all(math.isfinite(x) for x in values[r : r + 7])):
             raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
-        stamp_s = stamps_s[b]
         if not 0 <= stamp_s < 1.8e13:
             raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
         if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
             _u8("body id", body_id)
-        fields += (body_id, FLAG_VALID if v[7] else 0, round(stamp_s * 1e6), *v[:7])
+        fields += (body_id, FLAG_VALID if values[r + 7] else 0, round(stamp_s * 1e6))
+        fields += values[r : r + 7]
+        r += 8
     out = _PAYLOAD_BODIES[n].pack(*fields)
     return out + _CRC.pack(crc16_ccitt(out))
 
