@@ -122,7 +122,7 @@ class FrameRows(NamedTuple):
     stamp_s: float
     ready_s: float
     body_ids: list[int]
-    values: np.ndarray
+    values: list[float]
 
 
 def frame_of(rows: FrameRows) -> MocapFrame:
@@ -132,7 +132,7 @@ def frame_of(rows: FrameRows) -> MocapFrame:
         frame_no=rows.frame_no,
         stamp_s=rows.stamp_s,
         ready_s=rows.ready_s,
-        bodies=tuple(TrackedBody(body_id, v[8 * b : 8 * b + 3].copy(), v[8 * b + 3 : 8 * b + 7].copy(),
+        bodies=tuple(TrackedBody(body_id, np.array(v[8 * b : 8 * b + 3]), np.array(v[8 * b + 3 : 8 * b + 7]),
                                  bool(v[8 * b + 7]))
                      for b, body_id in enumerate(rows.body_ids)),
     )
@@ -188,6 +188,7 @@ class MocapSystem:
         self._exp_next = 0
         self._poses_buf = bytearray(2 * _POSE_LEN)  # the true poses of an exposure, `_POSE` each
         self._poses = np.frombuffer(self._poses_buf, np.float64)
+        self._values = np.empty(2 * VALUES_PER_BODY)  # the measured values of an exposure (kernel's)
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
         # compiled (or loaded from numba's cache) now, not at the first exposure
         _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, np.empty(0))
@@ -264,7 +265,9 @@ class MocapSystem:
             else:
                 pos, quat = _pose_arrays(obj)
                 put(buf, i * _POSE_LEN, *pos.tolist(), *quat.tolist())
-        values = np.empty(VALUES_PER_BODY * n)
+        values = self._values
+        if len(values) != VALUES_PER_BODY * n:
+            values = self._values = np.empty(VALUES_PER_BODY * n)
         if occlusion > 0:
             # the draws keep the order of one body after the other (occlusion, position noise, attitude
             # noise): taken here, the noise handed to the kernel in that order
@@ -285,7 +288,7 @@ class MocapSystem:
         stats = self.stats
         stats.bodies_occluded += n_invalid
         stats.frames += 1
-        return FrameRows(k, t_s, t_s + self._latency_s + extra, body_ids, values)
+        return FrameRows(k, t_s, t_s + self._latency_s + extra, body_ids, values.tolist())
 
     def _occlusions(self, t_s: float, body_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Which bodies an occlusion hides at ``t_s`` (1) and the noise of the others, drawn one body
