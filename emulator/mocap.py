@@ -21,7 +21,6 @@ _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
 _POSE = struct.Struct("<7d")  # a true pose as the exposure kernel reads it: x, y, z (m), qw, qx, qy, qz
 _POSE_LEN = _POSE.size
-VALUES_PER_BODY = 8  # a measured body in `FrameRows.values`: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0)
 _NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
 
 
@@ -114,27 +113,23 @@ class MocapFrame:
 
 
 class FrameRows(NamedTuple):
-    """A frame as plain values, what the mocap link encodes: the body ids (sorted) and, flat,
-    `VALUES_PER_BODY` values per body (pos_m (3), quat_wxyz (4), valid 1.0 or 0.0); an occluded body has
-    zeros and the identity. Every body's stamp is ``stamp_s``."""
+    """A frame as plain values, what the mocap link encodes: per body (body id, valid, stamp_s, the 7
+    values pos_m (3) then quat_wxyz (4)); an occluded body has zeros and the identity."""
 
     frame_no: int
     stamp_s: float
     ready_s: float
-    body_ids: list[int]
-    values: list[float]
+    rows: list[tuple[int, bool, float, list[float]]]
 
 
 def frame_of(rows: FrameRows) -> MocapFrame:
     """The `MocapFrame` of ``rows``."""
-    v = rows.values
     return MocapFrame(
         frame_no=rows.frame_no,
         stamp_s=rows.stamp_s,
         ready_s=rows.ready_s,
-        bodies=tuple(TrackedBody(body_id, np.array(v[8 * b : 8 * b + 3]), np.array(v[8 * b + 3 : 8 * b + 7]),
-                                 bool(v[8 * b + 7]))
-                     for b, body_id in enumerate(rows.body_ids)),
+        bodies=tuple(TrackedBody(body_id, np.array(v[:3]), np.array(v[3:]), valid)
+                     for body_id, valid, _, v in rows.rows),
     )
 
 
@@ -188,10 +183,12 @@ class MocapSystem:
         self._exp_next = 0
         self._poses_buf = bytearray(2 * _POSE_LEN)  # the true poses of an exposure, `_POSE` each
         self._poses = np.frombuffer(self._poses_buf, np.float64)
-        self._values = np.empty(2 * VALUES_PER_BODY)  # the measured values of an exposure (kernel's)
+        #: an exposure's measured values (n, 7) and validity (n,), as the kernel writes them
+        self._values, self._valid = np.empty((2, 7)), np.empty(2, np.bool_)
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
         # compiled (or loaded from numba's cache) now, not at the first exposure
-        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, np.empty(0))
+        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values,
+                       self._valid)
 
     def _exponential(self, mean: float) -> float:
         """One exponential draw of ``mean``, from a block of standard ones drawn ahead."""
@@ -265,30 +262,31 @@ class MocapSystem:
             else:
                 pos, quat = _pose_arrays(obj)
                 put(buf, i * _POSE_LEN, *pos.tolist(), *quat.tolist())
-        values = self._values
-        if len(values) != VALUES_PER_BODY * n:
-            values = self._values = np.empty(VALUES_PER_BODY * n)
+        values, valid = self._values, self._valid
+        if len(valid) != n:
+            values, valid = self._values, self._valid = np.empty((n, 7)), np.empty(n, np.bool_)
         if occlusion > 0:
             # the draws keep the order of one body after the other (occlusion, position noise, attitude
             # noise): taken here, the noise handed to the kernel in that order
             occluded, noise = self._occlusions(t_s, body_ids)
-            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
+            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values, valid)[0]
             extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         else:
             # without occlusion the noise of the whole frame comes from the block drawn ahead; a block
             # that cannot give it all is drawn anew (the kernel says how many draws the frame takes)
             n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                            self._normal_block, self._normal_next, values)
+                                            self._normal_block, self._normal_next, values, valid)
             if n_invalid < 0:
                 self._normal_block = rng.standard_normal(max(_BLOCK, nxt))
                 n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                                self._normal_block, 0, values)
+                                                self._normal_block, 0, values, valid)
             self._normal_next = nxt
             extra = self._exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         stats = self.stats
         stats.bodies_occluded += n_invalid
         stats.frames += 1
-        return FrameRows(k, t_s, t_s + self._latency_s + extra, body_ids, values.tolist())
+        rows = list(zip(body_ids, valid.tolist(), (t_s,) * n, values.tolist(), strict=False))  # (n each)
+        return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
 
     def _occlusions(self, t_s: float, body_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Which bodies an occlusion hides at ``t_s`` (1) and the noise of the others, drawn one body
@@ -360,9 +358,9 @@ _measured_pose = njit(cache=True)(measured_pose)
 
 @njit(cache=True)
 def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
-                   noise: np.ndarray, k: int, values: np.ndarray) -> tuple[int, int]:
+                   noise: np.ndarray, k: int, values: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
     """One exposure of ``n`` bodies: their true poses ``poses`` (7 each, `_POSE`) as the tracker
-    measures them, into ``values`` (`VALUES_PER_BODY` each): `trackable` and not ``occluded`` (1 per
+    measures them, into ``values`` (n, 7) and ``valid`` (n,): `trackable` and not ``occluded`` (1 per
     body; empty: none), then `measured_pose` with the standard normal draws ``noise[k:]``, 3 for the
     position when ``pos_sd`` > 0 (m), then 3 for the attitude when ``att_sd`` > 0 (rad), body after
     body; an invalid body gets zeros and the identity. Returns (bodies invalid, the next draw's index),
@@ -370,22 +368,22 @@ def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occl
     n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
     seen = 0
     for b in range(n):
-        o, r = 7 * b, VALUES_PER_BODY * b
+        o = 7 * b
         qw, qx, qy, qz = poses[o + 3], poses[o + 4], poses[o + 5], poses[o + 6]
         ok = _trackable(poses[o], poses[o + 1], poses[o + 2], qw * qw + qx * qx + qy * qy + qz * qz)
         if occluded.size and occluded[b]:
             ok = False
-        values[r + 7] = 1.0 if ok else 0.0
+        valid[b] = ok
         seen += ok
     if k + seen * n_noise > noise.size:
         return -1, seen * n_noise
     invalid = 0
     for b in range(n):
-        o, r = 7 * b, VALUES_PER_BODY * b
-        if values[r + 7] == 0.0:
+        o = 7 * b
+        if not valid[b]:
             invalid += 1
-            values[r : r + 7] = 0.0
-            values[r + 3] = 1.0
+            values[b, :] = 0.0
+            values[b, 3] = 1.0
             continue
         z0 = z1 = z2 = z3 = z4 = z5 = 0.0
         if pos_sd > 0:
@@ -398,5 +396,5 @@ def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occl
         m = _measured_pose(poses[o], poses[o + 1], poses[o + 2], qw, qx, qy, qz,
                            qw * qw + qx * qx + qy * qy + qz * qz, pos_sd, att_sd, z0, z1, z2, z3, z4, z5)
         for j in range(7):
-            values[r + j] = m[j]
+            values[b, j] = m[j]
     return invalid, k

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from emulator.mocap import VALUES_PER_BODY, FrameRows, MocapConfig, MocapStats, MocapSystem
+from emulator.mocap import FrameRows, MocapConfig, MocapStats, MocapSystem
 from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
@@ -21,7 +21,7 @@ from hil.link.linktrack import (
     MAX_BODIES,
     ROLE_ANCHOR,
     ROLE_TAG,
-    encode_mocap_values,
+    encode_mocap_rows,
     encode_node_frame,
 )
 from hil.link.transport import Transport
@@ -101,11 +101,8 @@ class MocapLinkServer:
 
     def _forward(self, now: float, frames: list[FrameRows]) -> int:
         radio, uart = self.radio, self.uart
-        for frame_no, stamp_s, ready_s, body_ids, values in frames:
-            if len(body_ids) > MAX_BODIES:  # (the payload holds the first ones)
-                body_ids, values = body_ids[:MAX_BODIES], values[: VALUES_PER_BODY * MAX_BODIES]
-            payload = encode_mocap_values(frame_no & 0xFFFFFFFF, body_ids, (stamp_s,) * len(body_ids), values)
-            radio.send(ready_s, payload)
+        for frame_no, _, ready_s, rows in frames:
+            radio.send(ready_s, encode_mocap_rows(frame_no & 0xFFFFFFFF, rows[:MAX_BODIES]))
         for arrival_s, data in radio.update_data(now):
             uart.write(arrival_s, encode_node_frame(
                 data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))

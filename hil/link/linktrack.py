@@ -353,39 +353,22 @@ _CRC = struct.Struct("<H")
 
 def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
     """`encode_mocap_payload` of rows (body id, valid, stamp_s, 7 values: pos (m) then quat (w, x, y,
-    z)), without building the packet: `encode_mocap_values` of their columns."""
-    values: list[float] = []
-    for body_id, valid, _, v in rows:
-        if len(v) != 7:
-            raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
-        values += (*v, 1.0 if valid else 0.0)
-    return encode_mocap_values(frame_no, [r[0] for r in rows], [r[2] for r in rows], values)
-
-
-def encode_mocap_values(frame_no: int, body_ids: Sequence[int], stamps_s: Sequence[float],
-                        values: Sequence[float]) -> bytes:
-    """The mocap payload of the bodies ``body_ids`` seen at ``stamps_s`` (s, one per body), with
-    ``values`` flat, 8 per body: pos (3, m), quat (4, w, x, y, z), valid (nonzero: valid). Timestamps
-    are sent in whole us. Raises FrameError when a field does not fit."""
-    n = len(body_ids)
-    if n > MAX_BODIES:
-        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {n}")
+    z)), without building the packet: the same bytes and the same FrameErrors."""
+    if len(rows) > MAX_BODIES:
+        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {len(rows)}")
     if not 0 <= frame_no <= 0xFFFFFFFF:
         raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
-    fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, n]
-    finite = math.isfinite(sum(values))  # a finite sum means every value is finite (inf and NaN propagate)
-    r = 0
-    for body_id, stamp_s in zip(body_ids, stamps_s, strict=True):
-        if not (finite or all(math.isfinite(x) for x in values[r : r + 7])):
+    fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, len(rows)]
+    for body_id, valid, stamp_s, values in rows:
+        # a finite sum means every value is finite (inf and NaN propagate); else look closer
+        if len(values) != 7 or not (math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)):
             raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
         if not 0 <= stamp_s < 1.8e13:
             raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
         if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
             _u8("body id", body_id)
-        fields += (body_id, FLAG_VALID if values[r + 7] else 0, round(stamp_s * 1e6))
-        fields += values[r : r + 7]
-        r += 8
-    out = _PAYLOAD_BODIES[n].pack(*fields)
+        fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
+    out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
     return out + _CRC.pack(crc16_ccitt(out))
 
 
