@@ -19,8 +19,8 @@ MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not repl
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
 _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
-_POSE = struct.Struct("<7d")  # a true pose as the exposure kernel reads it: x, y, z (m), qw, qx, qy, qz
-_POSE_LEN = _POSE.size
+#: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0)
+_VALUES_PER_BODY = 8
 _NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
 
 
@@ -181,14 +181,22 @@ class MocapSystem:
         self._normal_next = 0
         self._exp_block: list[float] = []
         self._exp_next = 0
-        self._poses_buf = bytearray(2 * _POSE_LEN)  # the true poses of an exposure, `_POSE` each
-        self._poses = np.frombuffer(self._poses_buf, np.float64)
-        #: an exposure's measured values (n, 7) and validity (n,), as the kernel writes them
-        self._values, self._valid = np.empty((2, 7)), np.empty(2, np.bool_)
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
+        self._buffers_for(2)
         # compiled (or loaded from numba's cache) now, not at the first exposure
-        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values,
-                       self._valid)
+        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values)
+
+    def _buffers_for(self, n: int) -> None:
+        """The kernel's buffers for exposures of ``n`` bodies, and their structs: the true poses in (7
+        doubles each) and the measured values out (`_VALUES_PER_BODY` doubles each), each read and
+        written by Python in one call."""
+        self._n_bodies = n
+        self._poses_buf = bytearray(7 * 8 * n)
+        self._poses = np.frombuffer(self._poses_buf, np.float64)
+        self._put_poses = struct.Struct(f"<{7 * n}d").pack_into
+        self._values_buf = bytearray(_VALUES_PER_BODY * 8 * n)
+        self._values = np.frombuffer(self._values_buf, np.float64)
+        self._get_values = struct.Struct(f"<{_VALUES_PER_BODY * n}d").unpack_from
 
     def _exponential(self, mean: float) -> float:
         """One exponential draw of ``mean``, from a block of standard ones drawn ahead."""
@@ -248,54 +256,55 @@ class MocapSystem:
         pos_sd, att_sd, occlusion = self._pos_sd, self._att_sd, cfg.occlusion_prob
         body_ids = sorted(truth)
         n = len(body_ids)
-        buf = self._poses_buf
-        if n * _POSE_LEN > len(buf):
-            buf = self._poses_buf = bytearray(n * _POSE_LEN)
-            self._poses = np.frombuffer(buf, np.float64)
-        put = _POSE.pack_into
-        for i, body_id in enumerate(body_ids):
+        poses: list[float] = []
+        for body_id in body_ids:
             obj = truth[body_id]
             if obj.__class__ is tuple:  # plain values: (x, y, z (m), qw, qx, qy, qz)
                 if len(obj) != 7:
                     raise ValueError(f"body {body_id}: a pose of plain values is 7 numbers, got {len(obj)}")
-                put(buf, i * _POSE_LEN, *obj)
+                poses += obj
             else:
                 pos, quat = _pose_arrays(obj)
-                put(buf, i * _POSE_LEN, *pos.tolist(), *quat.tolist())
-        values, valid = self._values, self._valid
-        if len(valid) != n:
-            values, valid = self._values, self._valid = np.empty((n, 7)), np.empty(n, np.bool_)
+                poses += pos.tolist()
+                poses += quat.tolist()
+        if n != self._n_bodies:
+            self._buffers_for(n)
+        self._put_poses(self._poses_buf, 0, *poses)
+        values = self._values
         if occlusion > 0:
             # the draws keep the order of one body after the other (occlusion, position noise, attitude
             # noise): taken here, the noise handed to the kernel in that order
-            occluded, noise = self._occlusions(t_s, body_ids)
-            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values, valid)[0]
+            occluded, noise = self._occlusions(t_s, body_ids, poses)
+            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
             extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         else:
             # without occlusion the noise of the whole frame comes from the block drawn ahead; a block
             # that cannot give it all is drawn anew (the kernel says how many draws the frame takes)
             n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                            self._normal_block, self._normal_next, values, valid)
+                                            self._normal_block, self._normal_next, values)
             if n_invalid < 0:
                 self._normal_block = rng.standard_normal(max(_BLOCK, nxt))
                 n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                                self._normal_block, 0, values, valid)
+                                                self._normal_block, 0, values)
             self._normal_next = nxt
             extra = self._exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         stats = self.stats
         stats.bodies_occluded += n_invalid
         stats.frames += 1
-        rows = list(zip(body_ids, valid.tolist(), (t_s,) * n, values.tolist(), strict=False))  # (n each)
+        v = self._get_values(self._values_buf)
+        at = range(0, _VALUES_PER_BODY * n, _VALUES_PER_BODY)
+        rows = [(body_id, v[r + 7] != 0.0, t_s, v[r : r + 7])
+                for body_id, r in zip(body_ids, at, strict=False)]
         return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
 
-    def _occlusions(self, t_s: float, body_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    def _occlusions(self, t_s: float, body_ids: list[int], poses: list[float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
         """Which bodies an occlusion hides at ``t_s`` (1) and the noise of the others, drawn one body
         after the other: occlusion, then position noise, then attitude noise."""
         cfg, rng = self.config, self._rng
         n_noise = (3 if cfg.pos_noise_m > 0 else 0) + (3 if cfg.att_noise_rad > 0 else 0)
         occluded = np.zeros(len(body_ids), np.uint8)
         noise: list[float] = []
-        poses = self._poses.tolist()
         for i, body_id in enumerate(body_ids):
             px, py, pz, qw, qx, qy, qz = poses[7 * i : 7 * i + 7]
             valid = trackable(px, py, pz, qw * qw + qx * qx + qy * qy + qz * qz)
@@ -358,13 +367,14 @@ _measured_pose = njit(cache=True)(measured_pose)
 
 @njit(cache=True)
 def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
-                   noise: np.ndarray, k: int, values: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
-    """One exposure of ``n`` bodies: their true poses ``poses`` (7 each, `_POSE`) as the tracker
-    measures them, into ``values`` (n, 7) and ``valid`` (n,): `trackable` and not ``occluded`` (1 per
-    body; empty: none), then `measured_pose` with the standard normal draws ``noise[k:]``, 3 for the
-    position when ``pos_sd`` > 0 (m), then 3 for the attitude when ``att_sd`` > 0 (rad), body after
-    body; an invalid body gets zeros and the identity. Returns (bodies invalid, the next draw's index),
-    or (-1, draws the frame takes) with nothing measured when ``noise`` does not hold them after ``k``."""
+                   noise: np.ndarray, k: int, values: np.ndarray) -> tuple[int, int]:
+    """One exposure of ``n`` bodies: their true poses ``poses`` (7 each: x, y, z, qw, qx, qy, qz) as the
+    tracker measures them, into ``values`` (`_VALUES_PER_BODY` each: the 7, then 1.0 if valid else
+    0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then `measured_pose` with the
+    standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0 (m), then 3 for the
+    attitude when ``att_sd`` > 0 (rad), body after body; an invalid body gets zeros and the identity.
+    Returns (bodies invalid, the next draw's index), or (-1, draws the frame takes) with nothing
+    measured when ``noise`` does not hold them after ``k``."""
     n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
     seen = 0
     for b in range(n):
@@ -373,17 +383,17 @@ def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occl
         ok = _trackable(poses[o], poses[o + 1], poses[o + 2], qw * qw + qx * qx + qy * qy + qz * qz)
         if occluded.size and occluded[b]:
             ok = False
-        valid[b] = ok
+        values[_VALUES_PER_BODY * b + 7] = 1.0 if ok else 0.0
         seen += ok
     if k + seen * n_noise > noise.size:
         return -1, seen * n_noise
     invalid = 0
     for b in range(n):
-        o = 7 * b
-        if not valid[b]:
+        o, r = 7 * b, _VALUES_PER_BODY * b
+        if values[r + 7] == 0.0:
             invalid += 1
-            values[b, :] = 0.0
-            values[b, 3] = 1.0
+            values[r : r + 7] = 0.0
+            values[r + 3] = 1.0
             continue
         z0 = z1 = z2 = z3 = z4 = z5 = 0.0
         if pos_sd > 0:
@@ -396,5 +406,5 @@ def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occl
         m = _measured_pose(poses[o], poses[o + 1], poses[o + 2], qw, qx, qy, qz,
                            qw * qw + qx * qx + qy * qy + qz * qz, pos_sd, att_sd, z0, z1, z2, z3, z4, z5)
         for j in range(7):
-            values[b, j] = m[j]
+            values[r + j] = m[j]
     return invalid, k
