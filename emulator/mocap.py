@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import heapq
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
@@ -17,7 +19,9 @@ MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not repl
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
 _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
-_NO_NOISE = [0.0, 0.0, 0.0]  # the draws of a noiseless position or attitude
+#: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0)
+_VALUES_PER_BODY = 8
+_NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -171,20 +175,28 @@ class MocapSystem:
         self.stats = MocapStats()
         self._period_s = config.period_s
         self._latency_s = config.camera_latency_s
-        self._normal_block: list[float] = []
+        #: standard normal draws taken ahead (without occlusion the noise is the generator's only use
+        #: besides `_exponential`: one call per block, not per frame), and the next one to use
+        self._normal_block = np.zeros(0)
         self._normal_next = 0
         self._exp_block: list[float] = []
         self._exp_next = 0
+        self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
+        self._buffers_for(2)
+        # compiled (or loaded from numba's cache) now, not at the first exposure
+        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values)
 
-    def _normals(self, n: int) -> list[float]:
-        """``n`` standard normal draws, taken from blocks drawn ahead (without occlusion the noise is
-        the generator's only use besides `_exponential`: one call per block, not per frame)."""
-        k, block = self._normal_next, self._normal_block
-        if k + n > len(block):
-            block = self._normal_block = self._rng.standard_normal(max(_BLOCK, n)).tolist()
-            k = 0
-        self._normal_next = k + n
-        return block[k : k + n]
+    def _buffers_for(self, n: int) -> None:
+        """The kernel's buffers for exposures of ``n`` bodies, and their structs: the true poses in (7
+        doubles each) and the measured values out (`_VALUES_PER_BODY` doubles each), each read and
+        written by Python in one call."""
+        self._n_bodies = n
+        self._poses_buf = bytearray(7 * 8 * n)
+        self._poses = np.frombuffer(self._poses_buf, np.float64)
+        self._put_poses = struct.Struct(f"<{7 * n}d").pack_into
+        self._values_buf = bytearray(_VALUES_PER_BODY * 8 * n)
+        self._values = np.frombuffer(self._values_buf, np.float64)
+        self._get_values = struct.Struct(f"<{_VALUES_PER_BODY * n}d").unpack_from
 
     def _exponential(self, mean: float) -> float:
         """One exponential draw of ``mean``, from a block of standard ones drawn ahead."""
@@ -241,60 +253,70 @@ class MocapSystem:
 
     def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> FrameRows:
         cfg, rng = self.config, self._rng
-        pos_sd, att_sd, occlusion = cfg.pos_noise_m, cfg.att_noise_rad, cfg.occlusion_prob
-        n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)  # normal draws per body seen
-        # the draws keep the order of one body after the other (occlusion, position noise, attitude
-        # noise); without occlusion the noise of the whole frame comes from one call
-        seen = []
-        noise: list[float] = []
-        for body_id in sorted(truth):
+        pos_sd, att_sd, occlusion = self._pos_sd, self._att_sd, cfg.occlusion_prob
+        body_ids = sorted(truth)
+        n = len(body_ids)
+        poses: list[float] = []
+        for body_id in body_ids:
             obj = truth[body_id]
             if obj.__class__ is tuple:  # plain values: (x, y, z (m), qw, qx, qy, qz)
-                px, py, pz, qw, qx, qy, qz = obj
+                if len(obj) != 7:
+                    raise ValueError(f"body {body_id}: a pose of plain values is 7 numbers, got {len(obj)}")
+                poses += obj
             else:
                 pos, quat = _pose_arrays(obj)
-                px, py, pz = pos.tolist()
-                qw, qx, qy, qz = quat.tolist()
-            sq = qw * qw + qx * qx + qy * qy + qz * qz  # NaN or inf when not finite
-            # seen only inside the tracked volume (NaN fails every comparison): a body that left it, or
-            # a diverged simulation, is reported invalid, as an occluded body is
-            valid = trackable(px, py, pz, sq)
-            if occlusion > 0:
-                until = self._occluded_until.get(body_id, -1.0)
-                if t_s >= until and rng.random() < occlusion:
-                    until = self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
-                if t_s < until:
-                    valid = False
-                if valid and n_noise:
-                    noise += rng.standard_normal(n_noise).tolist()
-            seen.append((body_id, valid, px, py, pz, qw, qx, qy, qz, sq))
-        if occlusion <= 0 and n_noise:
-            n_valid = sum(1 for b in seen if b[1])
-            if n_valid:
-                noise = self._normals(n_valid * n_noise)
-        rows = []
-        i = 0
-        for body_id, valid, px, py, pz, qw, qx, qy, qz, sq in seen:
-            if valid:
-                z = noise[i:i + n_noise]
-                i += n_noise
-                if n_noise == 3:  # one of the two noiseless: only the other's draws were taken
-                    z = z + _NO_NOISE if pos_sd > 0 else _NO_NOISE + z
-                elif n_noise == 0:
-                    z = _NO_NOISE + _NO_NOISE
-                px, py, pz, aw, ax, ay, az = measured_pose(px, py, pz, qw, qx, qy, qz, sq, pos_sd, att_sd, *z)
-                rows.append((body_id, True, t_s, [px, py, pz, aw, ax, ay, az]))
-            else:
-                self.stats.bodies_occluded += 1
-                rows.append((body_id, False, t_s, [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
-        if cfg.processing_s <= 0:
-            extra = 0.0
-        elif occlusion > 0:
-            extra = rng.exponential(cfg.processing_s)
+                poses += pos.tolist()
+                poses += quat.tolist()
+        if n != self._n_bodies:
+            self._buffers_for(n)
+        self._put_poses(self._poses_buf, 0, *poses)
+        values = self._values
+        if occlusion > 0:
+            # the draws keep the order of one body after the other (occlusion, position noise, attitude
+            # noise): taken here, the noise handed to the kernel in that order
+            occluded, noise = self._occlusions(t_s, body_ids, poses)
+            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
+            extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
         else:
-            extra = self._exponential(cfg.processing_s)
-        self.stats.frames += 1
+            # without occlusion the noise of the whole frame comes from the block drawn ahead; a block
+            # that cannot give it all is drawn anew (the kernel says how many draws the frame takes)
+            n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
+                                            self._normal_block, self._normal_next, values)
+            if n_invalid < 0:
+                self._normal_block = rng.standard_normal(max(_BLOCK, nxt))
+                n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
+                                                self._normal_block, 0, values)
+            self._normal_next = nxt
+            extra = self._exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
+        stats = self.stats
+        stats.bodies_occluded += n_invalid
+        stats.frames += 1
+        v = self._get_values(self._values_buf)
+        at = range(0, _VALUES_PER_BODY * n, _VALUES_PER_BODY)
+        rows = [(body_id, v[r + 7] != 0.0, t_s, v[r : r + 7])
+                for body_id, r in zip(body_ids, at, strict=False)]
         return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
+
+    def _occlusions(self, t_s: float, body_ids: list[int], poses: list[float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Which bodies an occlusion hides at ``t_s`` (1) and the noise of the others, drawn one body
+        after the other: occlusion, then position noise, then attitude noise."""
+        cfg, rng = self.config, self._rng
+        n_noise = (3 if cfg.pos_noise_m > 0 else 0) + (3 if cfg.att_noise_rad > 0 else 0)
+        occluded = np.zeros(len(body_ids), np.uint8)
+        noise: list[float] = []
+        for i, body_id in enumerate(body_ids):
+            px, py, pz, qw, qx, qy, qz = poses[7 * i : 7 * i + 7]
+            valid = trackable(px, py, pz, qw * qw + qx * qx + qy * qy + qz * qz)
+            until = self._occluded_until.get(body_id, -1.0)
+            if t_s >= until and rng.random() < cfg.occlusion_prob:
+                until = self._occluded_until[body_id] = t_s + rng.exponential(cfg.occlusion_mean_s)
+            if t_s < until:
+                valid = False
+                occluded[i] = 1
+            if valid and n_noise:
+                noise += rng.standard_normal(n_noise).tolist()
+        return occluded, np.array(noise, dtype=np.float64)
 
 
 def trackable(px: float, py: float, pz: float, sq: float) -> bool:
@@ -312,7 +334,8 @@ def measured_pose(px: float, py: float, pz: float, qw: float, qx: float, qy: flo
     """A body's pose as the tracker measures it: the position (m) plus ``pos_sd`` (m) x the standard
     normal draws ``z0..z2``, the attitude (w, x, y, z; ``sq`` its squared norm) normalised and turned by
     the small rotation whose vector is ``att_sd`` (rad) x ``z3..z5``, with w >= 0. Plain arithmetic on
-    floats: the tracker runs it per body and frame, the RL environment compiled over its rows."""
+    floats, compiled: the tracker's exposure kernel runs it per body and frame, the RL environment over
+    its rows."""
     if pos_sd > 0:  # as normal(0, sd) makes them from the same draws: 0 + sd * z
         px += 0.0 + pos_sd * z0
         py += 0.0 + pos_sd * z1
@@ -336,3 +359,52 @@ def measured_pose(px: float, py: float, pz: float, qw: float, qx: float, qy: flo
     if aw < 0:
         aw, ax, ay, az = -aw, -ax, -ay, -az
     return px, py, pz, aw, ax, ay, az
+
+
+_trackable = njit(cache=True)(trackable)
+_measured_pose = njit(cache=True)(measured_pose)
+
+
+@njit(cache=True)
+def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
+                   noise: np.ndarray, k: int, values: np.ndarray) -> tuple[int, int]:
+    """One exposure of ``n`` bodies: their true poses ``poses`` (7 each: x, y, z, qw, qx, qy, qz) as the
+    tracker measures them, into ``values`` (`_VALUES_PER_BODY` each: the 7, then 1.0 if valid else
+    0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then `measured_pose` with the
+    standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0 (m), then 3 for the
+    attitude when ``att_sd`` > 0 (rad), body after body; an invalid body gets zeros and the identity.
+    Returns (bodies invalid, the next draw's index), or (-1, draws the frame takes) with nothing
+    measured when ``noise`` does not hold them after ``k``."""
+    n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
+    seen = 0
+    for b in range(n):
+        o = 7 * b
+        qw, qx, qy, qz = poses[o + 3], poses[o + 4], poses[o + 5], poses[o + 6]
+        ok = _trackable(poses[o], poses[o + 1], poses[o + 2], qw * qw + qx * qx + qy * qy + qz * qz)
+        if occluded.size and occluded[b]:
+            ok = False
+        values[_VALUES_PER_BODY * b + 7] = 1.0 if ok else 0.0
+        seen += ok
+    if k + seen * n_noise > noise.size:
+        return -1, seen * n_noise
+    invalid = 0
+    for b in range(n):
+        o, r = 7 * b, _VALUES_PER_BODY * b
+        if values[r + 7] == 0.0:
+            invalid += 1
+            values[r : r + 7] = 0.0
+            values[r + 3] = 1.0
+            continue
+        z0 = z1 = z2 = z3 = z4 = z5 = 0.0
+        if pos_sd > 0:
+            z0, z1, z2 = noise[k], noise[k + 1], noise[k + 2]
+            k += 3
+        if att_sd > 0:
+            z3, z4, z5 = noise[k], noise[k + 1], noise[k + 2]
+            k += 3
+        qw, qx, qy, qz = poses[o + 3], poses[o + 4], poses[o + 5], poses[o + 6]
+        m = _measured_pose(poses[o], poses[o + 1], poses[o + 2], qw, qx, qy, qz,
+                           qw * qw + qx * qx + qy * qy + qz * qz, pos_sd, att_sd, z0, z1, z2, z3, z4, z5)
+        for j in range(7):
+            values[r + j] = m[j]
+    return invalid, k

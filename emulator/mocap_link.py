@@ -70,6 +70,8 @@ class MocapLinkServer:
         self._frames_written = 0
         self._bytes_written = 0
         self._bytes_refused = 0
+        #: when the tracker, the radio and the wire next have something: asked at every `deliver`
+        self._next_events = (self.mocap.next_release_s, self.radio.next_event_s, self.uart.next_event_s)
 
     def update(
         self,
@@ -92,11 +94,8 @@ class MocapLinkServer:
         """Advance the radio and the wire to ``now_s`` without taking an exposure (none may be due
         before ``now_s``: see `next_exposure_s`); returns bytes written."""
         limit = now_s + 1e-12
-        if (
-            self.mocap.next_release_s() > limit
-            and self.radio.next_event_s() > limit
-            and self.uart.next_event_s() > limit
-        ):
+        next_release, next_arrival, next_off_wire = self._next_events
+        if next_release() > limit and next_arrival() > limit and next_off_wire() > limit:
             return 0  # nothing leaves the tracker, the radio or the wire by then (most calls)
         return self._forward(now_s, self.mocap.release_rows(now_s))
 

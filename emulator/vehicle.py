@@ -58,6 +58,9 @@ class EmulatedVehicle:
         #: steps the vehicle instead of `step`'s own loop when set (the motors behind an ESC bus,
         #: `emulator.esc.bus.EscBusStepper`); it counts ``steps`` itself
         self.motor_path: MotorPath | None = None
+        # the backend's own flat readers, where it has them (read per stop of a run's loop)
+        self._pose_values = getattr(self.backend, "pose_values", None)
+        self._state_vector = getattr(self.backend, "state_vector", None)
 
     @property
     def state(self) -> VehicleState:
@@ -72,7 +75,7 @@ class EmulatedVehicle:
         a state when none is built yet."""
         st = self._state
         if st is None:
-            fast = getattr(self.backend, "pose_values", None)
+            fast = self._pose_values
             if fast is not None:
                 return fast()
             st = self.state
@@ -83,7 +86,7 @@ class EmulatedVehicle:
         ``state`` when none is built yet."""
         st = self._state
         if st is None:
-            fast = getattr(self.backend, "state_vector", None)
+            fast = self._state_vector
             if fast is not None:
                 return fast()
             st = self.state

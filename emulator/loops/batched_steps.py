@@ -121,6 +121,7 @@ class FastStepper:
         self.batched_steps = 0
         self.single_steps = 0
         self._hold = np.zeros(4)
+        self._dt_s = vehicle.dt_s  # (the backend's step, fixed for its life)
         # the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner loop's), taken
         # once: they stay the same objects for the backend's life, and a tick batches several times
         if native:
@@ -141,26 +142,28 @@ class FastStepper:
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
+        v = self.vehicle
+        fc = v.fc
+        native = self.native
         while n_steps > 0:
-            n = self._offboard_steps(n_steps) or self._hold_steps(n_steps)
+            n = 0
+            if native:
+                tg = fc.held_target()
+                if tg is not None:  # an offboard attitude target: flown in batches
+                    n = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
+                    if n > 0:
+                        x, aux, p = self._arrays
+                        gains, mix_inv, out = self._loop
+                        _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, gains,
+                                   mix_inv, out, n)
+                        self._after_batch(n, x)
+                if n == 0:
+                    n = self._hold_steps(n_steps)
             if n == 0:
-                self.vehicle.step(1)
+                v.step(1)
                 self.single_steps += 1
                 n = 1
             n_steps -= n
-
-    def _offboard_steps(self, n_steps: int) -> int:
-        """Up to ``n_steps`` batched steps of an offboard attitude target; returns the steps taken (0:
-        take another path)."""
-        v = self.vehicle
-        fc = v.fc
-        tg = fc.held_target()
-        if not self.native or tg is None:
-            return 0
-        n = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
-        if n > 0:
-            self._fly(n, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n)
-        return n
 
     def _hold_steps(self, n_steps: int) -> int:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
@@ -171,7 +174,7 @@ class FastStepper:
             return 0
         if fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(v.time_s):
             return 0
-        n_steps = fc.quiet_steps(v.time_s, v.dt_s, n_steps)
+        n_steps = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
         if n_steps <= 0:
             return 0
         x, aux, p = self._arrays
@@ -181,22 +184,17 @@ class FastStepper:
         h[2], h[3] = fc.rest_height_m, fc.config.landed_margin_m
         n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
-            self._after_batch(n, detect_landed=False)
+            self._after_batch(n, x, detect_landed=False)
         return n
 
-    def _fly(self, n: int, roll: float, pitch: float, yaw: float, thrust_n: float) -> None:
-        x, aux, p = self._arrays
-        _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, *self._loop, n)
-        self._after_batch(n)
-
-    def _after_batch(self, n: int, detect_landed: bool = True) -> None:
+    def _after_batch(self, n: int, x: np.ndarray, detect_landed: bool = True) -> None:
+        """The counts and the FC's bookkeeping after ``n`` steps flown on state row ``x``."""
         v = self.vehicle
         be = v.backend
         be.advance_clock(n)  # type: ignore[attr-defined]
         v.steps += n
         self.batched_steps += n
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
-        x = self._arrays[0]
         # the FC's bookkeeping as its own per-step update would have left it (plain floats: the same
         # comparisons)
-        v.fc.stepped_outside(be.time_s - be.dt_s, x.item(2), x.item(5), detect_landed)
+        v.fc.stepped_outside(be.time_s - self._dt_s, x.item(2), x.item(5), detect_landed)

@@ -22,6 +22,7 @@ from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import SetpointRejected
 from emulator.params import Parameters
 from emulator.servers import dji_telemetry
+from emulator.servers.arrivals import input_due
 from emulator.servers.dji_subscription import Subscriptions
 from emulator.servers.link_budget import LinkBudget
 from emulator.servers.telemetry import Home, TelemetryEncoder
@@ -100,6 +101,9 @@ class DjiServerStats:
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
+#: a setpoint's command set and id, as its frame's data starts
+_SETPOINT_COMMAND = bytes((dj.SET_CONTROL, dj.CMD_SETPOINT))
+
 
 class DjiOpenServer:
     """Serves one vehicle's FC over one OPEN-protocol codec."""
@@ -108,7 +112,10 @@ class DjiOpenServer:
                  ) -> None:
         self.vehicle = vehicle
         self.fc = vehicle.fc
+        self._fc_events = vehicle.fc.events  # (the FC's list of events, appended to)
         self.codec = codec
+        self._timed_transport: object | None = None  # the transport `_input_due` is of
+        self._input_due: Callable[[], bool] = input_due(None)
         #: the FC's parameters (`emulator.params`), set from files and scenarios: the OPEN protocol
         #: has no parameter messages, and no MAVLink telemetry whose rates they would set
         self.params = Parameters(self.fc, streams=None)
@@ -162,16 +169,20 @@ class DjiOpenServer:
     # --- the loop ------------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
         """Parse and act on what arrived, then push what is due at ``now_s``."""
-        transport = self.codec.transport
-        if _input_due(transport):
-            for f in self.codec.receive():
+        codec = self.codec
+        if codec.transport is not self._timed_transport:  # (looked up once per transport)
+            self._timed_transport = codec.transport
+            self._input_due = input_due(codec.transport)
+        if self._input_due():
+            for f in codec.receive():
                 self.handle(f, now_s)
-        if self._events_seen != len(self.fc.events):
+        if self._events_seen != len(self._fc_events):
             self._on_events(now_s)
         self.telemetry.track_battery(now_s)
         if self.activated and now_s >= self._next_push_s:
             self._push(now_s)
-        if self.subscriptions.packages and now_s >= self.subscriptions.next_due_s() - 1e-9:
+        subscriptions = self.subscriptions
+        if subscriptions.packages and now_s >= subscriptions.next_due_s() - 1e-9:
             self._push_packages(now_s)
 
     def handle(self, f: dj.Frame, now_s: float) -> None:
@@ -188,7 +199,7 @@ class DjiOpenServer:
             self.stats.encrypted_refused += 1
             self._ack(f, dj.ack_code(dj.ACK_KEY_ERROR))
             return
-        if f.cmd_set == dj.SET_CONTROL and f.cmd_id == dj.CMD_SETPOINT:  # (the per-tick case first)
+        if f.data[:2] == _SETPOINT_COMMAND:  # (the per-tick case first)
             self._on_setpoint(f, now_s)
             return
         if f.session in dj.RELIABLE_SESSIONS:
@@ -504,12 +515,4 @@ class DjiOpenServer:
         codec.transport.send(codec.pack_command(dj.SET_BROADCAST, cmd_id, payload))
         return True
 
-
-def _input_due(transport: object) -> bool:
-    """False only when a transport that models arrival times says nothing can be read now."""
-    nxt = getattr(transport, "next_arrival_s", None)
-    clock = getattr(transport, "clock", None)
-    if nxt is None or clock is None or transport.closed:  # type: ignore[attr-defined]
-        return True
-    return nxt() <= clock.now_s() + 1e-12
 

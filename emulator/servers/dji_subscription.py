@@ -6,6 +6,7 @@ Codes and rules: docs/dji-open-link.md; topics and their layouts: `hil.link.dji_
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -100,4 +101,9 @@ class Subscriptions:
         return out
 
     def next_due_s(self) -> float:
-        return min((p.next_due_s for p in self.packages.values()), default=float("inf"))
+        """When the next package is due (s; infinite without packages)."""
+        nxt = math.inf
+        for p in self.packages.values():
+            if p.next_due_s < nxt:
+                nxt = p.next_due_s
+        return nxt

@@ -10,6 +10,7 @@ north-east-up where DJI says so) on the wire.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -266,6 +267,13 @@ def package_data(server: DjiOpenServer, package_id: int, uids: tuple[int, ...], 
     if timestamp:
         ms, ns, *_ = _time(server, x, now_s)
         parts.append(ms.to_bytes(4, "little") + ns.to_bytes(4, "little"))
-    for uid in uids:
-        parts.append(dj.TOPIC_STRUCTS[uid].pack(*TOPIC_VALUES[dj.TOPICS[uid][0]](server, x)))
+    for pack, values in _topic_packers(uids):
+        parts.append(pack(*values(server, x)))
     return b"".join(parts)
+
+
+@functools.cache
+def _topic_packers(uids: tuple[int, ...]) -> tuple[tuple[Callable[..., bytes], Values], ...]:
+    """(its struct's ``pack``, its value function) of each topic of ``uids`` (known UIDs), in order:
+    looked up once per package's topics."""
+    return tuple((dj.TOPIC_STRUCTS[uid].pack, TOPIC_VALUES[dj.TOPICS[uid][0]]) for uid in uids)

@@ -14,11 +14,14 @@ import struct
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
+from math import isfinite
+from operator import mul
 from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
 from emulator.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
+from emulator.servers.arrivals import input_due
 from emulator.servers.link_budget import LinkBudget
 from emulator.servers.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
 from emulator.vehicle import EmulatedVehicle
@@ -98,9 +101,13 @@ class MavlinkServer:
     ) -> None:
         self.vehicle = vehicle
         self.fc = vehicle.fc
+        self._fc_events = vehicle.fc.events  # (the FC's list of events, appended to)
         self.codec = codec
         self.config = config or ServerConfig()
         self.stats = ServerStats()
+        #: the target ids this server answers to: 0 (broadcast) or the codec's own (fixed for its life)
+        self._systems = (0, codec.system_id)
+        self._components = (0, codec.component_id)
         self.telemetry = TelemetryEncoder(vehicle, codec.mav, self.config.home)
         self._requested = dict(self.config.stream_intervals_s)  # intervals asked for (s)
         self._now_s = 0.0  # the last poll's time (s)
@@ -114,9 +121,8 @@ class MavlinkServer:
         self._events_seen = 0
         self._backlog: list[Any] = []  # received, to be acted on in the next passes
         self._param_list: deque[int] = deque()  # parameter indices still to send (a budgeted link)
-        self._timed_transport: object | None = None  # what `_input_due` last looked up
-        self._arrival: Callable[[], float] | None = None
-        self._arrival_clock: Any = None
+        self._timed_transport: object | None = None  # the transport `_input_due` is of
+        self._input_due: Callable[[], bool] = input_due(None)
         self._last_text_s: dict[str, float] = {}
         #: never called: whatever this server has to say goes to the peer in a STATUSTEXT
         #: (`emulator.servers.registry.FcServer.on_untold`)
@@ -175,43 +181,37 @@ class MavlinkServer:
         """Parse and act on what arrived (at most `MAX_MESSAGES_PER_POLL`), then send what is due at
         ``now_s``.
 
-        A transport that models arrival times (``next_arrival_s()``, s on its ``clock``: the runner's
-        command wire) is read only when something has arrived."""
+        A transport that models arrival times is read only when something has arrived
+        (`emulator.servers.arrivals`)."""
         self._now_s = now_s
+        codec = self.codec
+        if codec.transport is not self._timed_transport:  # (looked up once per transport)
+            self._timed_transport = codec.transport
+            self._input_due = input_due(codec.transport)
         if self._backlog or self._input_due():
-            msgs = self._backlog or self.codec.receive()
-            self._backlog = msgs[MAX_MESSAGES_PER_POLL:]
-            if self._backlog:
+            backlog = self._backlog
+            msgs = backlog or codec.receive()
+            if len(msgs) > MAX_MESSAGES_PER_POLL:
+                self._backlog = msgs[MAX_MESSAGES_PER_POLL:]
                 self.stats.intake_deferred += len(self._backlog)
                 msgs = msgs[:MAX_MESSAGES_PER_POLL]
+            elif backlog:
+                self._backlog = []
             for msg in msgs:
                 self.handle(msg, now_s)
         if self._param_list:
             self._send_param_list()
-        if self._events_seen != len(self.fc.events):
+        if self._events_seen != len(self._fc_events):
             self._report_events(now_s)
         self.telemetry.track_battery(now_s)
         if now_s >= self._streams_due_s:
             self._send_streams(now_s)
-        recorder = self.codec.recorder
+        recorder = codec.recorder
         if recorder is not self._recorder:  # (looked up once per recorder)
             self._recorder = recorder
             self._recorder_tick = getattr(recorder, "tick", None) if recorder is not None else None
         if self._recorder_tick is not None:
             self._recorder_tick()
-
-    def _input_due(self) -> bool:
-        """False only when the transport says nothing can be read now (see `poll`)."""
-        transport = self.codec.transport
-        if transport is not self._timed_transport:  # (looked up once per transport)
-            self._timed_transport = transport
-            clock = getattr(transport, "clock", None)
-            self._arrival = getattr(transport, "next_arrival_s", None) if clock is not None else None
-            self._arrival_clock = clock
-        next_arrival = self._arrival
-        if next_arrival is None or transport.closed:
-            return True
-        return next_arrival() <= self._arrival_clock.now_s() + 1e-12
 
     def handle(self, msg: MAVLinkMessage | bytes, now_s: float) -> None:
         """Act on one received message, or on the frame of one a codec hands over undecoded
@@ -298,8 +298,8 @@ class MavlinkServer:
 
     # --- setpoints -------------------------------------------------------------------------
     def _for_me(self, target_system: int, target_component: int | None) -> bool:
-        mine = target_system in (0, self.codec.system_id) and (
-            target_component is None or target_component in (0, self.codec.component_id)
+        mine = target_system in self._systems and (
+            target_component is None or target_component in self._components
         )
         if not mine:
             self.stats.foreign_target += 1
@@ -323,7 +323,7 @@ class MavlinkServer:
         _, q0, q1, q2, q3, _, _, yaw_rate, thrust, target_system, target_component, type_mask = values
         if not self._for_me(target_system, target_component):
             return
-        applied = self._apply_attitude_target(type_mask, [q0, q1, q2, q3], thrust, yaw_rate, now_s)
+        applied = self._apply_attitude_target(type_mask, (q0, q1, q2, q3), thrust, yaw_rate, now_s)
         if applied and self.on_setpoint is not None:
             self.on_setpoint(decode_frame(frame), now_s)
 
@@ -669,25 +669,24 @@ def attitude_target_values(
         raise SetpointRejected("attitude ignored: N3 flies roll/pitch angles")
     if mask & _THROTTLE_IGNORE:
         raise SetpointRejected("thrust ignored: N3 needs vertical thrust")
-    qs = [float(v) for v in q]
+    qs = list(map(float, q))
     thrust = float(thrust)
     # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
-    if not (math.isfinite(sum(qs)) or all(math.isfinite(v) for v in qs)):
+    if not (isfinite(sum(qs)) or all(map(isfinite, qs))):
         raise SetpointRejected("non-finite attitude quaternion")
-    if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+    if not isfinite(thrust) or not 0.0 <= thrust <= 1.0:
         raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    norm = math.sqrt(sum(v * v for v in qs))
+    norm = math.sqrt(sum(map(mul, qs, qs)))  # (summed in order, from 0)
     if abs(norm - 1.0) > 0.1:
         raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
     roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
+    degrees = math.degrees
     if mask & _YAW_RATE_IGNORE:
-        return ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch), 100.0 * thrust, \
-            math.degrees(yaw)
+        return ATTITUDE_THRUST_YAW_ANGLE, degrees(roll), degrees(pitch), 100.0 * thrust, degrees(yaw)
     rate = float(body_yaw_rate)
-    if not math.isfinite(rate):
+    if not isfinite(rate):
         raise SetpointRejected("non-finite yaw rate")
-    roll_deg, pitch_deg = math.degrees(roll), math.degrees(pitch)
-    return ATTITUDE_THRUST_YAW_RATE, roll_deg, pitch_deg, 100.0 * thrust, math.degrees(rate)
+    return ATTITUDE_THRUST_YAW_RATE, degrees(roll), degrees(pitch), 100.0 * thrust, degrees(rate)
 
 
 _INT_BYTES, _INT_AS_FLOAT = struct.Struct("<i"), struct.Struct("<f")  # PX4's bytewise int32 encoding

@@ -83,10 +83,11 @@ class TelemetryEncoder:
         self.home = home
         self.armed_time_s = 0.0
         self._last_t: float | None = None
+        self._fc = vehicle.fc
 
     def track_battery(self, now_s: float) -> None:
         """Count armed time for the battery model."""
-        if self._last_t is not None and self.vehicle.fc.state is not FcState.DISARMED:
+        if self._last_t is not None and self._fc.state is not FcState.DISARMED:
             self.armed_time_s += max(0.0, now_s - self._last_t)
         self._last_t = now_s
 

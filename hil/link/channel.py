@@ -94,23 +94,23 @@ class Channel:
 
     def arrival_s(self, ready_s: float) -> float:
         """When a message whose last byte is out at ``ready_s`` arrives: after the latency with its
-        jitter, never before the one before it (s)."""
+        jitter, a draw of N(0, jitter_s) (in blocks when nothing else draws: the same numbers), never
+        before the one before it (s)."""
         m = self.model
-        jitter = self._jitter(m.jitter_s) if m.jitter_s > 0 else 0.0
+        jitter_s = m.jitter_s
+        if jitter_s <= 0:
+            jitter = 0.0
+        elif self.can_lose:
+            jitter = self.rng.normal(0.0, jitter_s)
+        else:
+            k, block = self._jitter_next, self._jitter_block
+            if k >= len(block):
+                block = self._jitter_block = self.rng.standard_normal(JITTER_BLOCK).tolist()
+                k = 0
+            self._jitter_next = k + 1
+            jitter = 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
         arrival = self._last_arrival_s = delivery_s(ready_s, m.latency_s, jitter, self._last_arrival_s)
         return arrival
-
-    def _jitter(self, jitter_s: float) -> float:
-        """One draw of N(0, jitter_s) (s); in blocks when nothing else draws (the same numbers)."""
-        if self.can_lose:
-            return self.rng.normal(0.0, jitter_s)
-        k = self._jitter_next
-        block = self._jitter_block
-        if k >= len(block):
-            block = self._jitter_block = self.rng.standard_normal(JITTER_BLOCK).tolist()
-            k = 0
-        self._jitter_next = k + 1
-        return 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
 
 
 class UartWire:

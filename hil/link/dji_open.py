@@ -412,8 +412,12 @@ class FrameParser:
 
     def feed(self, data: bytes) -> list[bytes]:
         """The good frames (as bytes) of what has come so far, in order."""
-        buf = self._buf
-        buf += data
+        held = self._buf
+        if held:
+            held += data
+            buf = held
+        else:  # (the usual case: read from ``data`` itself, keep only what is left of it)
+            buf = data
         out: list[bytes] = []
         st = self.stats
         i, n = 0, len(buf)
@@ -444,7 +448,10 @@ class FrameParser:
                 continue
             out.append(frame)
             i += size
-        del buf[:i]
+        if buf is held:
+            del held[:i]
+        elif i < n:
+            held += buf[i:]
         return out
 
     @property
@@ -460,14 +467,10 @@ def FrameSplitter() -> _Splitter:
 
 def decode(frame: bytes) -> Frame:
     """The fields of one good frame (as `FrameParser` hands them over)."""
-    return Frame(
-        session=frame[3] & 0x1F,
-        is_ack=bool(frame[3] & 0x20),
-        seq=frame[8] | frame[9] << 8,
-        data=frame[HEADER_BYTES:-CRC32_BYTES],
-        enc=frame[4] >> 5,
-        padding=frame[4] & 0x1F,
-    )
+    flags, coding = frame[3], frame[4]
+    # (fields in order: session, is_ack, seq, data, enc, padding)
+    return Frame(flags & 0x1F, bool(flags & 0x20), frame[8] | frame[9] << 8, frame[HEADER_BYTES:-CRC32_BYTES],
+                 coding >> 5, coding & 0x1F)
 
 
 @dataclass

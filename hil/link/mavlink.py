@@ -114,8 +114,12 @@ class FrameSplitter:
 
     def feed(self, data: bytes) -> list[bytes]:
         """The complete frames (and runs of other bytes) of what has come so far, in order."""
-        buf = self._buf
-        buf += data
+        held = self._buf
+        if held:
+            held += data
+            buf = held
+        else:  # (the usual case: cut ``data`` itself, keep only what is left of it)
+            buf = data
         out: list[bytes] = []
         i, n = 0, len(buf)
         size_of, starts = self._size_of, self._starts
@@ -132,7 +136,10 @@ class FrameSplitter:
                 break
             out.append(bytes(buf[i : i + size]))
             i += size
-        del buf[:i]
+        if buf is held:
+            del held[:i]
+        elif i < n:
+            held += buf[i:]
         return out
 
 
@@ -187,12 +194,14 @@ class MavlinkCodec:
         #: packs (and signs) what the codec does not frame itself; its signing state is the parser's
         self._mav = mavlink2.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._parser = self._new_parser()
+        self._parser_empty = True  # whether ``_parser`` holds no bytes (kept by `_parse_slow`)
         self._unsigned_ok = frozenset(unsigned_ok)
         #: the last timestamp taken of each signed stream (link id, system, component)
         self._stream_stamps: dict[tuple[int, int, int], int] = {}
         self._signing_epoch_unix_s = signing_epoch_unix_s
         self._accept = None if accept_ids is None else frozenset(accept_ids)
         self._raw = frozenset(raw_ids)
+        self._signing = signing_key is not None  # (fixed for the codec's life)
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
@@ -219,7 +228,8 @@ class MavlinkCodec:
 
     @property
     def signing(self) -> bool:
-        return self._mav.signing.secret_key is not None
+        """Whether the codec signs and judges signatures (set by its ``signing_key``)."""
+        return self._signing
 
     @property
     def mav(self) -> mavlink2.MAVLink:
@@ -234,7 +244,7 @@ class MavlinkCodec:
 
     def pack(self, msg: MAVLinkMessage) -> bytes:
         """Pack, sign (if configured) and record ``msg`` as if sent; the caller writes the frame."""
-        if self.signing:
+        if self._signing:
             self._refresh_signing_time()
         return self._sent(bytes(msg.pack(self._mav)))
 
@@ -242,7 +252,7 @@ class MavlinkCodec:
         """`pack` for a message given as its full payload (fields in wire order, as the message's
         ``unpacker`` packs them): the same frame pymavlink would make, without building the message
         (signed links go through pymavlink)."""
-        if self.signing:
+        if self._signing:
             return self.pack(message_from_payload(msg_id, payload))
         m = self._mav
         return self._sent(encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent))
@@ -265,7 +275,7 @@ class MavlinkCodec:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
         as bytes for ``raw_ids``, see `__init__`)."""
         good: list[Any] = []
-        if self._parser.buf_len() == 0:
+        if self._parser_empty:
             data = self._take_leading(data, good)
             if not data:
                 return good
@@ -279,9 +289,11 @@ class MavlinkCodec:
         except Exception:  # pymavlink raising on input it should have flagged: drop what it holds
             self.stats.malformed += 1
             self._parser = self._new_parser()
+            self._parser_empty = True
             return
+        self._parser_empty = self._parser.buf_len() == 0
         now_s = self.clock.now_s()
-        signing = self.signing
+        signing = self._signing
         for m in msgs:
             if isinstance(m, mavlink2.MAVLink_bad_data):
                 self._count_bad(m)
@@ -300,38 +312,41 @@ class MavlinkCodec:
         not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded, all
         in stream order (a signed link refuses those that must be signed). Returns the rest (from the
         first byte that is not such a frame on: signed frames too), for pymavlink's parser."""
-        accept, raw, n, i = self._accept, self._raw, len(data), 0
-        signing = self.signing
-        recorder = self.recorder
+        n = len(data)
+        if n < 12 or data[0] != MAVLINK_V2_MAGIC or data[2]:  # (no such frame first: at once)
+            return data
+        accept, raw, stats, recorder = self._accept, self._raw, self.stats, self.recorder
+        signing = self._signing
         extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
-        mirrored = b""  # ``data`` bit-reversed byte by byte (see `encode_frame`), made for the first frame
-        while i + 12 <= n and data[i] == MAVLINK_V2_MAGIC and data[i + 2] == 0:
-            end = i + frame_size(data, i)
+        mirrored = bytes(data).translate(_BIT_REVERSED)  # ``data`` bit-reversed byte by byte (`encode_frame`)
+        i = 0
+        while True:
+            end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
             if end > n:
                 break
             msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
             extra = extras.get(msg_id)
             if extra is None:
                 break  # an unknown id: pymavlink counts it
-            if not mirrored:
-                mirrored = bytes(data).translate(_BIT_REVERSED)
             # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
             if signing and msg_id not in self._unsigned_ok:
-                self.stats.unsigned_refused += 1
+                stats.unsigned_refused += 1
             elif accept is not None and msg_id not in accept:
-                self.stats.frames_ignored += 1
+                stats.frames_ignored += 1
                 if recorder is not None:
                     recorder.record(bytes(data[i:end]), self.clock.now_s())
             else:
                 frame = bytes(data[i:end])
                 good.append(frame if msg_id in raw else decode_frame(frame))
-                self.stats.frames_received += 1
+                stats.frames_received += 1
                 if recorder is not None:
                     recorder.record(frame, self.clock.now_s())
             i = end
+            if i + 12 > n or data[i] != MAVLINK_V2_MAGIC or data[i + 2]:
+                break
         return data[i:] if i else data
 
     def _count_bad(self, m: Any) -> None:
@@ -400,22 +415,25 @@ def frame_ok(frame: bytes) -> bool:
     return crc == rev[frame[crc_at]] << 8 | rev[frame[crc_at + 1]]
 
 
-_V2_HEADER = struct.Struct("<BBBBBBBHB")
+#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags, sequence,
+#: system, component, message id (24 bits: low 16, high 8)
+_V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
+_V2_START = bytes((MAVLINK_V2_MAGIC,))
 
 
 def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, component_id: int) -> bytes:
     """An unsigned MAVLink 2 frame of ``payload`` (full length; trailing zeros are trimmed to one byte
     at least, as MAVLink 2 does), byte for byte what pymavlink makes of the same message."""
     body = payload.rstrip(b"\x00") or payload[:1]
-    head = _V2_HEADER.pack(MAVLINK_V2_MAGIC, len(body), 0, 0, seq, system_id, component_id,
-                           msg_id & 0xFFFF, msg_id >> 16)
+    covered = _V2_HEADER_TAIL.pack(len(body), 0, 0, seq, system_id, component_id, msg_id & 0xFFFF,
+                                   msg_id >> 16) + body
     # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
     # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
     # init 0xFFFF is its own mirror image); sent low byte first
     rev = _BIT_REVERSED
-    crc = binascii.crc_hqx((head[1:] + body).translate(rev), 0xFFFF)
+    crc = binascii.crc_hqx(covered.translate(rev), 0xFFFF)
     crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
-    return head + body + bytes((rev[crc >> 8], rev[crc & 0xFF]))
+    return _V2_START + covered + bytes((rev[crc >> 8], rev[crc & 0xFF]))
 
 
 #: pymavlink's parser, for its public `decode` of single frames

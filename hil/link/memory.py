@@ -46,11 +46,16 @@ class _Channel:
 
     def take(self, max_bytes: int) -> bytes:
         with self.lock:
-            if not self.buf:
+            buf = self.buf
+            if not buf:
                 return b""
-            out = bytes(self.buf[:max_bytes])
-            del self.buf[:max_bytes]
-            if not self.buf and self._signalled and self.fds_open:
+            if len(buf) <= max_bytes:  # (all of it, one copy)
+                out = bytes(buf)
+                buf.clear()
+            else:
+                out = bytes(buf[:max_bytes])
+                del buf[:max_bytes]
+            if not buf and self._signalled and self.fds_open:
                 os.read(self.wake_r, 1)
                 self._signalled = False
             return out

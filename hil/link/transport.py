@@ -49,9 +49,10 @@ class Transport(ABC):
         if not data:
             return 0
         n = self._send_internal(bytes(data))
-        self.stats.send_calls += 1
-        self.stats.bytes_sent += n
-        self.stats.bytes_dropped += len(data) - n
+        stats = self.stats
+        stats.send_calls += 1
+        stats.bytes_sent += n
+        stats.bytes_dropped += len(data) - n
         return n
 
     def recv(self, timeout_s: float | None = 0.0, max_bytes: int = 65536) -> bytes:
@@ -149,9 +150,17 @@ def write_nonblocking(fd: int, data: bytes, what: str) -> int:
 
     Raises LinkError naming ``what`` when the device is gone.
     """
-    sent = 0
+    size = len(data)
+    try:  # (the whole of it, almost always: a view and a loop only for the rest of a partial write)
+        sent = os.write(fd, data)
+    except (BlockingIOError, InterruptedError):
+        return 0
+    except OSError as e:
+        raise LinkError(f"{what}: write failed: {e}") from e
+    if sent >= size or sent <= 0:
+        return max(sent, 0)
     view = memoryview(data)
-    while sent < len(data):
+    while sent < size:
         try:
             n = os.write(fd, view[sent:])
         except (BlockingIOError, InterruptedError):

@@ -263,23 +263,27 @@ class EmulatorSide:
         exact = self.faults.has_mocap_faults
         next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
         next_arrival = wire.next_arrival_s
-        server, clock, fast = self.server, self.clock, self.fast
+        server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
         dt = vehicle.dt_s
-        while t < t_end_s - 1e-12:
+        floor = math.floor
+        boundary = self._next_boundary_s  # (changed only where a fault switches, below)
+        t_stop = t_end_s - 1e-12
+        while t < t_stop:
             m_next = next_mocap()
             arrival = next_arrival()
-            t_next = min(t_end_s, m_next, arrival, rec.next_sample_s, self._next_boundary_s)
+            t_next = min(t_end_s, m_next, arrival, rec.next_sample_s, boundary)
             if t_next < t + 1e-9:
                 t_next = t + 1e-9
-            n = math.floor((t_next - vehicle.time_s) / dt + 1e-6)  # physics steps up to t_next
+            n = floor((t_next - vehicle.time_s) / dt + 1e-6)  # physics steps up to t_next
             if n > 0:
-                fast.step(n)
-            clock.advance_to(t_next)
+                step(n)
+            advance_clock(t_next)
             t = t_next
-            if t >= self._next_boundary_s - 1e-12:
+            if t >= boundary - 1e-12:
                 # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
                 # fault ending there would still read as active and never be switched off
-                self._switch_faults(max(t, self._next_boundary_s))
+                self._switch_faults(max(t, boundary))
+                boundary = self._next_boundary_s
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
                 truth = self._frozen_truth if self._frozen_truth is not None else vehicle.pose_values()

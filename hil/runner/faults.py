@@ -37,7 +37,16 @@ class FaultSchedule:
         #: schedule when none does)
         self.has_mocap_faults = bool(self._link_kinds["mocap"])
         self.has_command_faults = bool(self._link_kinds["command"])
+        self._timed()
+
+    def _timed(self) -> None:
+        """Note what the faults as timed now do to the onboard program (after each retiming)."""
+        #: when the onboard program is killed (`killed_at_s`), or None
         self.kill_s = self.killed_at_s()
+        self._stalls = tuple(f for f in self.faults if self.kinds[f.kind].onboard_effect == "stall")
+        #: whether any fault kills or stalls the onboard program (a loop skips `stalled` and `kill_s`
+        #: when none does)
+        self.acts_on_process = self.kill_s is not None or bool(self._stalls)
 
     def count_from(self, name: str) -> None:
         """Make every fault given in sim seconds count from the event ``name`` instead (real time: from
@@ -50,7 +59,7 @@ class FaultSchedule:
                                     duration_s=duration)
                 self.waiting.setdefault(name, []).append(i)
         self.faults = tuple(faults)
-        self.kill_s = self.killed_at_s()
+        self._timed()
 
     def at_event(self, name: str, event_s: float, now_s: float) -> bool:
         """The mission event ``name`` happened at ``event_s`` (sim s), seen at ``now_s``: time the faults
@@ -62,7 +71,7 @@ class FaultSchedule:
         for i in waiting:
             faults[i] = faults[i].at_event(event_s, now_s)
         self.faults = tuple(faults)
-        self.kill_s = self.killed_at_s()
+        self._timed()
         return True
 
     def of_kind(self, kind: FaultKind) -> list[Fault]:
@@ -109,7 +118,7 @@ class FaultSchedule:
 
     def stalled(self, time_s: float) -> bool:
         """Whether a fault holds the onboard program stalled at ``time_s``."""
-        return any(self.kinds[f.kind].onboard_effect == "stall" and f.active(time_s) for f in self.faults)
+        return any(f.active(time_s) for f in self._stalls)
 
     def events(self) -> list[dict[str, object]]:
         """The schedule as report events (start and end of each fault)."""

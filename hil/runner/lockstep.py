@@ -163,7 +163,7 @@ def run_lockstep(
     wire = emu.wire
     tick_frames = wire.framing.tick_frames  # (the command link's protocol)
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
-    wire.spin_s = spin_s
+    wire.spin_s = 0.0  # (until the first answer: a new process takes milliseconds to start, asleep)
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
     mocap_total = 0  # mocap bytes written in all (mod 2^31): each tick says, the onboard reads up to it
     pending: deque[float] = deque()  # ticks sent whose answers are not read yet, oldest first
@@ -186,29 +186,31 @@ def run_lockstep(
             note_divergence(rep, emu)
             break
         rep.ticks += 1
-        if pending and process_fault_due(onboard, faults, t):
-            while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
-                tick = pending.popleft()
-                _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
-        apply_process_faults(rep, onboard, faults, t)
+        if faults.acts_on_process:
+            if pending and process_fault_due(onboard, faults, t):
+                while pending:  # killed or stalled at t: what it wrote for the ticks before still counts
+                    tick = pending.popleft()
+                    _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
+            apply_process_faults(rep, onboard, faults, t)
         if not first:  # the first tick's mocap waits for a program that has opened its ports
             mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
-            if onboard.exited():
-                _note_exit(rep, onboard, t)
+            # (no look at whether the program has exited here: one that answered its last tick and is
+            # closing may or may not be gone yet, depending on the host's load; the tick goes out and its
+            # missing answer says so, at this tick's time, on every run alike)
+            if first:  # dropped by the program's port as it opens, always: whether it is open yet
+                wire.discard_held()  # depends on how fast it started (warm or cold)
+            wire.send_sync(tick_frames(t, mocap_total))
+            onboard.service()
+            emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
+            if first:  # wait for the new process, then the loop proper starts
+                startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
+                _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
+                wire.spin_s = spin_s
+                loop0, t_loop0 = time.perf_counter(), t
+                first = False
             else:
-                if first:  # dropped by the program's port as it opens, always: whether it is open yet
-                    wire.discard_held()  # depends on how fast it started (warm or cold)
-                wire.send_sync(tick_frames(t, mocap_total))
-                onboard.service()
-                emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
-                if first:  # wait for the new process, then the loop proper starts
-                    startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
-                    _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
-                    loop0, t_loop0 = time.perf_counter(), t
-                    first = False
-                else:
-                    pending.append(t)
+                pending.append(t)
         wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)

@@ -54,12 +54,11 @@ COLUMNS = (
     "setpoint_age_s",
 )
 #: what `Recorder.sample` keeps for `Recorder.flush`: t, state, offset along the gap normal (m), FC
-#: target, FC state, setpoints applied, mocap frames written, command frames lost, mocap packets lost,
-#: the heading the FC steers to (rad, NED; NaN: none), the four motor commands (0..1), when the FC
-#: last took a setpoint (s)
-_Sample = tuple[
-    float, np.ndarray, float, AttitudeThrustTarget | None, str, int, int, int, int, float, list[float], float
-]
+#: target, FC state (the `FcState` member), setpoints applied, mocap frames written, command frames
+#: lost, mocap packets lost, the heading the FC steers to (rad, NED; NaN: none), the four motor
+#: commands (0..1), when the FC last took a setpoint (s)
+_Sample = tuple[float, np.ndarray, float, AttitudeThrustTarget | None, FcState, int, int, int, int, float,
+                list[float], float]
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 #: the `fc_state` column's code of each FC state: its place in `FcState`
@@ -169,8 +168,8 @@ class Recorder:
         self._gap_axes = world.gap.axes()
         self._lab_min = np.asarray(world.lab.min_m)
         self._lab_max = np.asarray(world.lab.max_m)
-        self._gap_centre_t = tuple(float(v) for v in world.gap.centre_m)
-        self._gap_e1_t = tuple(float(v) for v in self._gap_axes[1])
+        #: the gap's centre (m) and normal, as plain floats: c_x, c_y, c_z, e1_x, e1_y, e1_z
+        self._gap_plane = (*(float(v) for v in world.gap.centre_m), *(float(v) for v in self._gap_axes[1]))
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
 
@@ -219,11 +218,11 @@ class Recorder:
         the row itself wait for `flush` (the lockstep loop calls it while the onboard program works on
         a tick; results and `columns` call it first)."""
         px, py, pz = x[POS].tolist()
-        c, e1 = self._gap_centre_t, self._gap_e1_t
-        n_wall = (px - c[0]) * e1[0] + (py - c[1]) * e1[1] + (pz - c[2]) * e1[2]
+        cx, cy, cz, ex, ey, ez = self._gap_plane
+        n_wall = (px - cx) * ex + (py - cy) * ey + (pz - cz) * ez
         self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
         to_fc = server.codec.transport.to_fc
-        self._pending.append((t, x, n_wall, fc.target, fc.state.value, server.stats.setpoints_applied,
+        self._pending.append((t, x, n_wall, fc.target, fc.state, server.stats.setpoints_applied,
                               mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
                               mocap.radio.stats.lost, fc.heading_setpoint_rad(), fc.motor_cmd.tolist(),
                               fc.last_setpoint_s))
@@ -297,7 +296,12 @@ class Recorder:
         col = _COL
         block[:, col["command_rate_hz"]], block[:, col["mocap_rate_hz"]] = cmd_rate, mocap_rate
         block[:, col["command_lost"]], block[:, col["mocap_lost"]] = cmd_lost[:m], mocap_lost[:m]
-        block[:, col["fc_state"]] = [FC_STATE_CODES.get(st, -1) for st in fc_states[:m]]
+        last_st, code, codes = None, -1, []
+        for st in fc_states[:m]:  # (the same state for long stretches: its code looked up on a change)
+            if st is not last_st:
+                last_st, code = st, FC_STATE_CODES.get(st.value, -1)
+            codes.append(code)
+        block[:, col["fc_state"]] = codes
         block[:, col["yaw_sp_deg"]] = np.degrees(yaw_sp[:m])
         block[:, col["motor_max_pct"]] = 100.0 * np.max(motors[:m], axis=1)
         block[:, col["setpoint_age_s"]] = t - np.array(sp_s[:m])  # inf before the first setpoint

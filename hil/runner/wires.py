@@ -143,9 +143,11 @@ class CommandWire(Transport):
     def send_sync(self, frame: bytes) -> None:
         """Write a lockstep tick straight to the real link (no model, no faults, not seen by the FC),
         after the held FC frames, in one write."""
-        if self._held:
-            frame = bytes(self._held) + frame
-            self._held.clear()
+        held = self._held
+        if held:
+            held += frame
+            frame = bytes(held)
+            held.clear()
         if not self.raw.closed:
             self.raw.send(frame)
 
@@ -227,7 +229,8 @@ class CommandWire(Transport):
 
     def answered_later_than(self, tick_ns: int) -> bool:
         """Whether the onboard program has answered a tick after ``tick_ns`` (so it never saw that one)."""
-        return any(k > tick_ns for k in self._answered_later)
+        later = self._answered_later
+        return bool(later) and any(k > tick_ns for k in later)
 
     def _queue_for_fc(self, frame: bytes, handed_s: float) -> None:
         if self._is_setpoint(frame):
@@ -249,9 +252,11 @@ class CommandWire(Transport):
 
     def _drain(self, q: list, st: DirectionStats) -> bytes:
         """The frames of queue ``q`` that have arrived by now, with the link's faults applied."""
-        now = self.clock.now_s()
+        due = self.clock.now_s() + 1e-12
+        if not q or q[0][0] > due:
+            return b""
         chunks = []
-        while q and q[0][0] <= now + 1e-12:
+        while q and q[0][0] <= due:
             t, _, frame = heapq.heappop(q)
             frame = self._apply_faults(frame, t, st)
             if frame is not None:

@@ -298,10 +298,15 @@ class ForkedProcess:
         self.cpu_s: float | None = None  # its CPU time in all (user + system, s), once it has exited
         self._pidfd: int | None = pidfd
         self._chan = chan
+        # asked once a tick in a run whether a message has come: a poll object answers without the
+        # exception a non-blocking read raises when none has
+        self._poller = select.poll()
+        self._poller.register(chan, select.POLLIN)
 
     def poll(self) -> int | None:
-        """The exit code once the server has reaped the program, else None (one non-blocking read)."""
-        if self.returncode is None:
+        """The exit code once the server has reaped the program, else None (no read while nothing
+        waits on the channel)."""
+        if self.returncode is None and self._poller.poll(0):
             try:
                 data = self._chan.recv(CHANNEL_MESSAGE_BYTES, socket.MSG_DONTWAIT)
             except BlockingIOError:
@@ -356,6 +361,8 @@ class ForkedProcess:
         if self._pidfd is not None:
             os.close(self._pidfd)
             self._pidfd = None
+        with contextlib.suppress(KeyError, ValueError):
+            self._poller.unregister(self._chan)
         self._chan.close()
 
     def __del__(self) -> None:
