@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from emulator.fc import FcConfig
-from emulator.mocap import MocapConfig
+from emulator.mocap import MocapConfig, MocapSystem
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
@@ -39,9 +39,11 @@ class Emulator:
 
 def warm_up(profile: VehicleProfile) -> None:
     """Compile (or load from numba's cache) the kernels an emulator of ``profile`` runs (the vehicle's
-    own steps, the world's checks), so that a wall clock started afterwards does not pay for them."""
+    own steps, the world's checks, the mocap exposure), so that a wall clock started afterwards does not
+    pay for them."""
     EmulatedVehicle(profile).compile_kernels()
     World.for_profile(Gap(), LabVolume(), profile).compile_kernels()
+    MocapSystem(MocapConfig(), np.random.default_rng(0))  # (its exposure kernel, built with the tracker)
 
 
 def assemble(
