@@ -96,6 +96,15 @@ def test_bad_input_gives_errors_or_invalid_bodies_not_crashes():
     assert not frames[0].bodies[0].valid
     with pytest.raises(TypeError, match="no pose"):
         system.update(1.0, {1: object()})
+    # the plain-values form (x, y, z, qw, qx, qy, qz) the runner hands over: a short one is refused by
+    # body, non-finite numbers make the body invalid, never a frame of NaN
+    with pytest.raises(ValueError, match="body 1: a pose of plain values is 7 numbers, got 3"):
+        system.update(2.0, {1: (0.0, 0.0, 1.0)})
+    for bad in ((0.0, 0.0, 1.0, np.nan, 0.0, 0.0, 0.0), (np.inf, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0)):
+        fresh = MocapSystem(MocapConfig(latency_s=0.0, processing_s=0.0), np.random.default_rng(0))
+        (frame,) = fresh.update(0.0, {1: bad, 2: (1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0)})
+        assert [b.valid for b in frame.bodies] == [False, True]
+        assert all(np.isfinite(b.pos_m).all() for b in frame.bodies)
 
 
 def test_a_late_first_update_does_not_replay_the_past():
