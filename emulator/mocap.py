@@ -170,7 +170,9 @@ class MocapSystem:
         self.config = config
         self._rng = rng
         self._next_exposure_k = 0
-        self._pending: list[tuple[float, int, FrameRows]] = []
+        #: the frames exposed and not yet released: (ready_s, frame number, rows), a heap (its head the
+        #: next release; read, never changed, by the mocap link)
+        self.pending: list[tuple[float, int, list[tuple[int, bool, float, list[float]]]]] = []
         self._occluded_until: dict[int, float] = {}
         self.stats = MocapStats()
         self._period_s = config.period_s
@@ -210,7 +212,7 @@ class MocapSystem:
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
         t = self._next_exposure_k * self._period_s
-        return min(t, self._pending[0][0]) if self._pending else t
+        return min(t, self.pending[0][0]) if self.pending else t
 
     def next_exposure_s(self) -> float:
         """When the next exposure is taken (s): the only event that needs the true poses."""
@@ -218,16 +220,24 @@ class MocapSystem:
 
     def next_release_s(self) -> float:
         """When the next frame already exposed is ready (s; inf when none is waiting)."""
-        return self._pending[0][0] if self._pending else math.inf
+        return self.pending[0][0] if self.pending else math.inf
 
     def release_rows(self, now_s: float) -> list[FrameRows]:
         """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
-        pending = self._pending
-        if not pending or pending[0][0] > now_s + 1e-12:
+        period = self._period_s
+        return [FrameRows(k, k * period, ready_s, rows) for ready_s, k, rows in self.released(now_s)]
+
+    def released(self, now_s: float) -> list[tuple[float, int, list[tuple[int, bool, float, list[float]]]]]:
+        """`release_rows` as (ready_s, frame number, rows) (the frame's stamp is its number x the
+        period): what the mocap link encodes, without a `FrameRows` per frame."""
+        pending = self.pending
+        limit = now_s + 1e-12
+        if not pending or pending[0][0] > limit:
             return []  # nothing ready yet (most calls)
-        out = []
-        while pending and pending[0][0] <= now_s + 1e-12:
-            out.append(heapq.heappop(pending)[2])
+        pop = heapq.heappop
+        out = [pop(pending)]
+        while pending and pending[0][0] <= limit:
+            out.append(pop(pending))
         return out
 
     def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
@@ -237,21 +247,26 @@ class MocapSystem:
         return [frame_of(r) for r in self.update_rows(now_s, truth)]
 
     def update_rows(self, now_s: float, truth: Mapping[int, object]) -> list[FrameRows]:
-        """`update` as plain values (no objects per body): what the mocap link encodes."""
-        period = self._period_s
-        if now_s - self._next_exposure_k * period > MAX_CATCH_UP_S:
-            # called after a long gap (or first at a late time): do not replay frames nobody could see
-            skip_to = math.floor(now_s / period)
-            self.stats.frames_skipped += skip_to - self._next_exposure_k
-            self._next_exposure_k = skip_to
-        while self._next_exposure_k * period <= now_s + 1e-12:
-            k = self._next_exposure_k
-            self._next_exposure_k += 1
-            frame = self._expose(k, k * period, truth)
-            heapq.heappush(self._pending, (frame.ready_s, k, frame))
+        """`update` as plain values (no objects per body)."""
+        self.expose(now_s, truth)
         return self.release_rows(now_s)
 
-    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> FrameRows:
+    def expose(self, now_s: float, truth: Mapping[int, object]) -> None:
+        """Take the exposures due by ``now_s`` from ``truth`` (as `update`), releasing none."""
+        period = self._period_s
+        k = self._next_exposure_k
+        if now_s - k * period > MAX_CATCH_UP_S:
+            # called after a long gap (or first at a late time): do not replay frames nobody could see
+            skip_to = math.floor(now_s / period)
+            self.stats.frames_skipped += skip_to - k
+            k = self._next_exposure_k = skip_to
+        while k * period <= now_s + 1e-12:
+            self._next_exposure_k = k + 1
+            self._expose(k, k * period, truth)
+            k += 1
+
+    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> None:
+        """Expose frame ``k`` at ``t_s`` (s) and queue it for its ready time."""
         cfg, rng = self.config, self._rng
         pos_sd, att_sd, occlusion = self._pos_sd, self._att_sd, cfg.occlusion_prob
         body_ids = sorted(truth)
@@ -295,7 +310,7 @@ class MocapSystem:
         at = range(0, _VALUES_PER_BODY * n, _VALUES_PER_BODY)
         rows = [(body_id, v[r + 7] != 0.0, t_s, v[r : r + 7])
                 for body_id, r in zip(body_ids, at, strict=False)]
-        return FrameRows(k, t_s, t_s + self._latency_s + extra, rows)
+        heapq.heappush(self.pending, (t_s + self._latency_s + extra, k, rows))
 
     def _occlusions(self, t_s: float, body_ids: list[int], poses: list[float]
                     ) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from emulator.mocap import FrameRows, MocapConfig, MocapStats, MocapSystem
+from emulator.mocap import MocapConfig, MocapStats, MocapSystem
 from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
@@ -70,8 +70,9 @@ class MocapLinkServer:
         self._frames_written = 0
         self._bytes_written = 0
         self._bytes_refused = 0
-        #: when the tracker, the radio and the wire next have something: asked at every `deliver`
-        self._next_events = (self.mocap.next_release_s, self.radio.next_event_s, self.uart.next_event_s)
+        #: what the tracker, the radio and the wire hold, each ordered by time at its head (``[0][0]``):
+        #: frames exposed (ready time), packets in flight (arrival), chunks on the line (done)
+        self._queues = (self.mocap.pending, self.radio.in_flight, self.uart.queue)
 
     def update(
         self,
@@ -83,35 +84,44 @@ class MocapLinkServer:
         now = self.clock.now_s() if now_s is None else float(now_s)
         if not math.isfinite(now):
             raise ValueError(f"now_s must be finite, got {now_s}")
-        truth: dict[int, object] = {}
-        if vehicle_state is not None:
-            truth[_VEHICLE_ID] = vehicle_state
-        if gap_pose is not None:
-            truth[_GAP_ID] = gap_pose
-        return self._forward(now, self.mocap.update_rows(now, truth))
+        if vehicle_state is not None and gap_pose is not None:
+            self.mocap.expose(now, {_VEHICLE_ID: vehicle_state, _GAP_ID: gap_pose})
+        else:
+            truth: dict[int, object] = {}
+            if vehicle_state is not None:
+                truth[_VEHICLE_ID] = vehicle_state
+            if gap_pose is not None:
+                truth[_GAP_ID] = gap_pose
+            self.mocap.expose(now, truth)
+        return self._forward(now)
 
     def deliver(self, now_s: float) -> int:
         """Advance the radio and the wire to ``now_s`` without taking an exposure (none may be due
         before ``now_s``: see `next_exposure_s`); returns bytes written."""
         limit = now_s + 1e-12
-        next_release, next_arrival, next_off_wire = self._next_events
-        if next_release() > limit and next_arrival() > limit and next_off_wire() > limit:
-            return 0  # nothing leaves the tracker, the radio or the wire by then (most calls)
-        return self._forward(now_s, self.mocap.release_rows(now_s))
+        frames, packets, chunks = self._queues
+        if (frames and frames[0][0] <= limit) or (packets and packets[0][0] <= limit) or (
+                chunks and chunks[0][0] <= limit):
+            return self._forward(now_s)
+        return 0  # nothing leaves the tracker, the radio or the wire by then (most calls)
 
-    def _forward(self, now: float, frames: list[FrameRows]) -> int:
+    def _forward(self, now: float) -> int:
+        """The frames ready by ``now`` through the radio, those arrived onto the wire, those off the
+        wire to the transport; returns bytes written."""
         radio, uart = self.radio, self.uart
-        for frame_no, _, ready_s, rows in frames:
+        for ready_s, frame_no, rows in self.mocap.released(now):
             radio.send(ready_s, encode_mocap_rows(frame_no & 0xFFFFFFFF, rows[:MAX_BODIES]))
-        for arrival_s, data in radio.update_data(now):
-            uart.write(arrival_s, encode_node_frame(
-                data, ROLE_TAG, self.module_id, ROLE_ANCHOR, self.station_node_id))
-        chunks = uart.update(now)
-        if not chunks:
+        _, packets, chunks = self._queues
+        limit = now + 1e-12
+        if packets and packets[0][0] <= limit:
+            module_id, station_id = self.module_id, self.station_node_id
+            for arrival_s, data, _ in radio.arrived(now):
+                uart.write(arrival_s, encode_node_frame(data, ROLE_TAG, module_id, ROLE_ANCHOR, station_id))
+        if not chunks or chunks[0][0] > limit:
             return 0  # nothing off the wire yet (most calls)
         written = 0
         transport = self.transport
-        for _, chunk in chunks:
+        for _, chunk in uart.update(now):
             if transport.closed:
                 self._bytes_refused += len(chunk)
                 continue

@@ -86,30 +86,38 @@ class UwbRadio:
         self.channel = Channel(config, rng)
         self._air_busy_until_s = -math.inf
         self._air_ends: list[float] = []  # when the packets queued or on the air will have left
-        #: (arrival_s, sequence number, data, sent_s) of the packets on their way, a heap
-        self._in_flight: list[tuple[float, int, bytes, float]] = []
+        #: (arrival_s, sequence number, data, sent_s) of the packets on their way, a heap (its head the
+        #: next arrival; read, never changed, by the mocap link)
+        self.in_flight: list[tuple[float, int, bytes, float]] = []
         self._seq = 0
         self.stats = UwbStats()
+        # the settings a packet reads, looked up once (the config is frozen)
+        self._max_packet_bytes, self._queue_packets = config.max_packet_bytes, config.queue_packets
+        self._air_overhead_bytes, self._air_rate_bps = config.air_overhead_bytes, config.air_rate_bps
+        self._late_after_s = config.late_after_s
+        self._arrival_s = self.channel.arrival_s
 
     def send(self, now_s: float, data: bytes) -> bool:
         """Hand a packet to the radio at ``now_s``; False when it is refused (size, full queue).
         A packet the channel will lose is accepted (True) and simply never arrives."""
-        cfg, stats, channel = self.config, self.stats, self.channel
+        stats = self.stats
         stats.sent += 1
         n_bytes = len(data)
-        if n_bytes > cfg.max_packet_bytes:
+        if n_bytes > self._max_packet_bytes:
             stats.oversize += 1
             return False
         ends = self._air_ends  # increasing: the packets leave the air in order
         while ends and ends[0] <= now_s:
             del ends[0]
-        if len(ends) >= cfg.queue_packets:
+        if len(ends) >= self._queue_packets:
             stats.overflow += 1
             return False
         busy = self._air_busy_until_s
-        busy = (now_s if now_s > busy else busy) + (n_bytes + cfg.air_overhead_bytes) * 8.0 / cfg.air_rate_bps
+        air_s = (n_bytes + self._air_overhead_bytes) * 8.0 / self._air_rate_bps
+        busy = (now_s if now_s > busy else busy) + air_s
         self._air_busy_until_s = busy
         ends.append(busy)
+        channel = self.channel
         if channel.can_lose:
             lost = channel.drop()
             if lost is not None:
@@ -117,33 +125,32 @@ class UwbRadio:
                 stats.burst_lost += lost == "burst"
                 return True
         self._seq += 1
-        heapq.heappush(self._in_flight, (channel.arrival_s(busy), self._seq,
+        heapq.heappush(self.in_flight, (self._arrival_s(busy), self._seq,
                                          data if data.__class__ is bytes else bytes(data), now_s))
         return True
 
     def next_event_s(self) -> float:
-        return self._in_flight[0][0] if self._in_flight else math.inf
+        return self.in_flight[0][0] if self.in_flight else math.inf
 
     def update(self, now_s: float) -> list[Delivery]:
         """Packets that have arrived by ``now_s``."""
-        return [Delivery(data, sent_s, arrival_s) for arrival_s, data, sent_s in self._arrived(now_s)]
+        return [Delivery(data, sent_s, arrival_s) for arrival_s, data, sent_s in self.arrived(now_s)]
 
     def update_data(self, now_s: float) -> list[tuple[float, bytes]]:
-        """`update` as (arrival_s, data) pairs, without a Delivery per packet (the mocap link's)."""
-        q = self._in_flight
-        if not q or q[0][0] > now_s + 1e-12:
-            return []  # nothing arrived yet (most calls)
-        return [(arrival_s, data) for arrival_s, data, _ in self._arrived(now_s)]
+        """`update` as (arrival_s, data) pairs, without a Delivery per packet."""
+        return [(arrival_s, data) for arrival_s, data, _ in self.arrived(now_s)]
 
-    def _arrived(self, now_s: float) -> list[tuple[float, bytes, float]]:
-        """(arrival_s, data, sent_s) of the packets that have arrived by ``now_s``, counted."""
-        q = self._in_flight
-        if not q or q[0][0] > now_s + 1e-12:
+    def arrived(self, now_s: float) -> list[tuple[float, bytes, float]]:
+        """`update` as (arrival_s, data, sent_s) of the packets that have arrived by ``now_s``, counted
+        (the mocap link's: no object per packet)."""
+        q = self.in_flight
+        limit = now_s + 1e-12
+        if not q or q[0][0] > limit:
             return []  # nothing arrived yet (most calls)
         out = []
-        stats, late_after = self.stats, self.config.late_after_s
+        stats, late_after = self.stats, self._late_after_s
         pop = heapq.heappop
-        while q and q[0][0] <= now_s + 1e-12:
+        while q and q[0][0] <= limit:
             arrival_s, _, data, sent_s = pop(q)
             stats.delivered += 1
             if arrival_s - sent_s > late_after:

@@ -126,7 +126,8 @@ class UartWire:
         self.baud = baud
         self.bits_per_byte = bits_per_byte
         self._busy_until_s = -math.inf
-        self._queue: list[tuple[float, bytes]] = []
+        #: (done_s, bytes) of the chunks on the line, in order
+        self.queue: list[tuple[float, bytes]] = []
         self.bytes_written = 0
 
     def wire_time_s(self, n_bytes: int) -> float:
@@ -144,25 +145,22 @@ class UartWire:
     def write(self, now_s: float, data: bytes) -> float:
         """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
         done = self.finish_s(now_s, len(data))
-        self._queue.append((done, data if data.__class__ is bytes else bytes(data)))
+        self.queue.append((done, data if data.__class__ is bytes else bytes(data)))
         return done
 
     def next_event_s(self) -> float:
-        return self._queue[0][0] if self._queue else math.inf
+        return self.queue[0][0] if self.queue else math.inf
 
     def update(self, now_s: float) -> list[tuple[float, bytes]]:
         """(done_s, bytes) of the chunks whose wire time has passed by ``now_s``."""
-        q = self._queue
+        q = self.queue  # (the same list for the wire's life: a reader may look at its head)
         limit = now_s + 1e-12
         if not q or q[0][0] > limit:
             return []  # nothing done yet (most calls)
-        if len(q) == 1:  # one chunk, done: the queue empties
-            self._queue = []
-            self.bytes_written += len(q[0][1])
-            return q
         n = 1
         while n < len(q) and q[n][0] <= limit:
             n += 1
-        out, self._queue = q[:n], q[n:]
-        self.bytes_written += sum(len(d) for _, d in out)
+        out = q[:n]
+        del q[:n]
+        self.bytes_written += len(out[0][1]) if n == 1 else sum(len(d) for _, d in out)
         return out

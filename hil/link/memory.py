@@ -32,11 +32,13 @@ class _Channel:
         os.set_blocking(self.wake_w, False)
         self._signalled = False
         self.fds_open = True
+        self.reader_open = True  # False once the end that reads this direction is closed
 
     def put(self, data: bytes) -> int:
+        """Buffer what fits of ``data``; returns the bytes taken (0 once the reading end is closed)."""
         with self.lock:
             n = min(len(data), self.capacity_bytes - len(self.buf))
-            if n <= 0 or not self.fds_open:
+            if n <= 0 or not self.reader_open or not self.fds_open:
                 return 0
             self.buf += data[:n]
             if not self._signalled:
@@ -91,6 +93,9 @@ class MemoryTransport(Transport):
         self._tx = state.channels[1 - side]
         self.endpoint = f"{name}:{'ab'[side]}"
         self.peer: MemoryTransport | None = None
+        # each call goes straight to the channel (no method of this class in between)
+        self._send_internal = self._tx.put
+        self._recv_internal = self._rx.take
 
     @classmethod
     def pair(
@@ -115,9 +120,7 @@ class MemoryTransport(Transport):
         return self._rx.wake_r
 
     def _send_internal(self, data: bytes) -> int:
-        if self.peer_closed:
-            return 0
-        return self._tx.put(data)
+        return self._tx.put(data)  # (0 once the peer is closed: nobody reads)
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         return self._rx.take(max_bytes)
@@ -125,6 +128,7 @@ class MemoryTransport(Transport):
     def _close_internal(self) -> None:
         with self._state.lock:
             self._state.open_ends[self._side] = False
+            self._rx.reader_open = False
             if not any(self._state.open_ends):
                 for ch in self._state.channels:
                     ch.release()

@@ -13,6 +13,7 @@ from typing import BinaryIO
 from hil.link.protocols import frame_at
 
 FLUSH_INTERVAL_S = 0.1  # a killed process loses at most this much wall time of recording
+_STAMP = struct.Struct(">Q").pack  # a record's stamp: microseconds, big-endian
 
 
 class TlogWriter:
@@ -31,27 +32,28 @@ class TlogWriter:
             self._file: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         except OSError as exc:
             raise OSError(f"cannot write tlog {self.path}: {exc.strerror}") from exc
-        self._last_flush = time.monotonic()
+        self._flush_at = time.monotonic() + flush_interval_s  # (monotonic s) the next flush due
         self.frames = 0
 
     def record(self, frame: bytes, time_s: float) -> None:
         """Append one frame received or sent at ``time_s`` (clock seconds)."""
-        if self._file is None:
+        file = self._file
+        if file is None:
             return
-        stamp_us = max(0, round((self.epoch_unix_s + time_s) * 1e6))
-        self._file.write(struct.pack(">Q", stamp_us) + frame)
+        file.write(_STAMP(max(0, round((self.epoch_unix_s + time_s) * 1e6))) + frame)
         self.frames += 1
-        self.tick()
+        if time.monotonic() >= self._flush_at:
+            self.flush()
 
     def tick(self) -> None:
         """Flush if the last flush is older than the flush interval (call it from the main loop too)."""
-        if self._file is not None and time.monotonic() - self._last_flush >= self.flush_interval_s:
+        if self._file is not None and time.monotonic() >= self._flush_at:
             self.flush()
 
     def flush(self) -> None:
         if self._file is not None:
             self._file.flush()
-            self._last_flush = time.monotonic()
+            self._flush_at = time.monotonic() + self.flush_interval_s
 
     def close(self) -> None:
         """Flush and close; idempotent."""

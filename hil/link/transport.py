@@ -48,7 +48,7 @@ class Transport(ABC):
             raise LinkError(f"{self.endpoint or type(self).__name__}: send on a closed link")
         if not data:
             return 0
-        n = self._send_internal(bytes(data))
+        n = self._send_internal(data if data.__class__ is bytes else bytes(data))
         stats = self.stats
         stats.send_calls += 1
         stats.bytes_sent += n
@@ -66,8 +66,9 @@ class Transport(ABC):
             data = self._recv_internal(max_bytes)
             if not data:
                 return b""
-            self.stats.recv_calls += 1
-            self.stats.bytes_received += len(data)
+            stats = self.stats
+            stats.recv_calls += 1
+            stats.bytes_received += len(data)
             return data
         deadline = None if timeout_s is None else time.monotonic() + max(0.0, timeout_s)
         while True:

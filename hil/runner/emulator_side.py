@@ -264,14 +264,17 @@ class EmulatorSide:
         next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
         next_arrival = wire.next_arrival_s
         server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
+        update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
+        fc, gap_pose = vehicle.fc, self._gap_pose
         dt = vehicle.dt_s
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
         t_stop = t_end_s - 1e-12
+        # the next mocap event, command frame's arrival and sample change only where the loop acts on
+        # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
+        m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
         while t < t_stop:
-            m_next = next_mocap()
-            arrival = next_arrival()
-            t_next = min(t_end_s, m_next, arrival, rec.next_sample_s, boundary)
+            t_next = min(t_end_s, m_next, arrival, next_sample, boundary)
             if t_next < t + 1e-9:
                 t_next = t + 1e-9
             n = floor((t_next - vehicle.time_s) / dt + 1e-6)  # physics steps up to t_next
@@ -284,18 +287,24 @@ class EmulatorSide:
                 # fault ending there would still read as active and never be switched off
                 self._switch_faults(max(t, boundary))
                 boundary = self._next_boundary_s
+                m_next, arrival = next_mocap(), next_arrival()
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
-                truth = self._frozen_truth if self._frozen_truth is not None else vehicle.pose_values()
-                mocap.update(t, truth, self._gap_pose)
+                frozen = self._frozen_truth
+                update(t, vehicle.pose_values() if frozen is None else frozen, gap_pose)
+                m_next = next_mocap()
             if t >= arrival - 1e-12:
-                server.poll(t)
-            if t >= rec.next_sample_s - 1e-12:
+                poll(t)
+                arrival = next_arrival()
+            if t >= next_sample - 1e-12:
                 if not mocap_due:
-                    mocap.deliver(t)
-                rec.sample(t, vehicle.state_vector(), vehicle.fc, server, mocap)
-        mocap.deliver(t_end_s)
-        server.poll(t_end_s)
+                    deliver(t)
+                    if exact:
+                        m_next = next_mocap()
+                sample(t, vehicle.state_vector(), fc, server, mocap)
+                next_sample = rec.next_sample_s
+        deliver(t_end_s)
+        poll(t_end_s)
         if not self.hold_mocap:
             self.mocap_link.flush()
         wire.pump()

@@ -255,27 +255,22 @@ class CommandWire(Transport):
         due = self.clock.now_s() + 1e-12
         if not q or q[0][0] > due:
             return b""
+        faults = self.faults
+        on_frame = faults.on_frame if faults.has_command_faults else None
         chunks = []
+        pop = heapq.heappop
         while q and q[0][0] <= due:
-            t, _, frame = heapq.heappop(q)
-            frame = self._apply_faults(frame, t, st)
-            if frame is not None:
-                chunks.append(frame)
-        return b"".join(chunks)
-
-    def _apply_faults(self, frame: bytes, time_s: float, st: DirectionStats) -> bytes | None:
-        if not self.faults.has_command_faults:
+            t, _, frame = pop(q)
+            if on_frame is not None:
+                frame, flipped = on_frame("command", frame, t, self._corrupt_rng)
+                st.bytes_corrupted += flipped
+                if frame is None:
+                    st.frames_dropped_fault += 1
+                    continue
             st.frames_delivered += 1
             st.bytes_delivered += len(frame)
-            return frame
-        out, flipped = self.faults.on_frame("command", frame, time_s, self._corrupt_rng)
-        st.bytes_corrupted += flipped
-        if out is None:
-            st.frames_dropped_fault += 1
-            return None
-        st.frames_delivered += 1
-        st.bytes_delivered += len(out)
-        return out
+            chunks.append(frame)
+        return b"".join(chunks)
 
     def fileno(self) -> int:
         return self.raw.fileno()
