@@ -178,7 +178,7 @@ class MocapSystem:
         self._period_s = config.period_s
         self._latency_s = config.camera_latency_s
         #: standard normal draws taken ahead (without occlusion the noise is the generator's only use
-        #: besides `_exponential`: one call per block, not per frame), and the next one to use
+        #: besides the processing latency's: one call per block, not per frame), and the next one to use
         self._normal_block = np.zeros(0)
         self._normal_next = 0
         self._exp_block: list[float] = []
@@ -199,15 +199,6 @@ class MocapSystem:
         self._values_buf = bytearray(_VALUES_PER_BODY * 8 * n)
         self._values = np.frombuffer(self._values_buf, np.float64)
         self._get_values = struct.Struct(f"<{_VALUES_PER_BODY * n}d").unpack_from
-
-    def _exponential(self, mean: float) -> float:
-        """One exponential draw of ``mean``, from a block of standard ones drawn ahead."""
-        k, block = self._exp_next, self._exp_block
-        if k >= len(block):
-            block = self._exp_block = self._rng.standard_exponential(_BLOCK).tolist()
-            k = 0
-        self._exp_next = k + 1
-        return mean * block[k]
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
@@ -302,7 +293,14 @@ class MocapSystem:
                 n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
                                                 self._normal_block, 0, values)
             self._normal_next = nxt
-            extra = self._exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
+            extra = 0.0
+            if cfg.processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
+                j, block = self._exp_next, self._exp_block
+                if j >= len(block):
+                    block = self._exp_block = rng.standard_exponential(_BLOCK).tolist()
+                    j = 0
+                self._exp_next = j + 1
+                extra = cfg.processing_s * block[j]
         stats = self.stats
         stats.bodies_occluded += n_invalid
         stats.frames += 1

@@ -67,7 +67,8 @@ class MocapLinkServer:
         self.uart = UartWire(self.radio.config.uart_baud, self.radio.config.uart_bits_per_byte)
         self.module_id = module_id
         self.station_node_id = station_node_id
-        self._frames_written = 0
+        #: LinkTrack frames handed to the transport so far
+        self.frames_written = 0
         self._bytes_written = 0
         self._bytes_refused = 0
         #: what the tracker, the radio and the wire hold, each ordered by time at its head (``[0][0]``):
@@ -128,7 +129,7 @@ class MocapLinkServer:
             n = transport.send(chunk)
             written += n
             self._bytes_refused += len(chunk) - n
-            self._frames_written += 1
+            self.frames_written += 1
         self._bytes_written += written
         return written
 
@@ -142,16 +143,11 @@ class MocapLinkServer:
         return self.mocap.next_exposure_s()
 
     @property
-    def frames_written(self) -> int:
-        """LinkTrack frames handed to the transport so far."""
-        return self._frames_written
-
-    @property
     def stats(self) -> MocapLinkStats:
         return MocapLinkStats(
             mocap=MocapStats(**vars(self.mocap.stats)),
             radio=UwbStats(**vars(self.radio.stats)),
-            frames_written=self._frames_written,
+            frames_written=self.frames_written,
             bytes_written=self._bytes_written,
             bytes_refused=self._bytes_refused,
         )

@@ -75,6 +75,7 @@ class Channel:
         self.model = model
         self.rng = rng
         self.can_lose = model.can_lose
+        self._latency_s, self._jitter_s = model.latency_s, model.jitter_s  # (the model is frozen)
         self._bad = False
         self._last_arrival_s = -math.inf
         self._jitter_block: list[float] = []
@@ -96,8 +97,7 @@ class Channel:
         """When a message whose last byte is out at ``ready_s`` arrives: after the latency with its
         jitter, a draw of N(0, jitter_s) (in blocks when nothing else draws: the same numbers), never
         before the one before it (s)."""
-        m = self.model
-        jitter_s = m.jitter_s
+        jitter_s = self._jitter_s
         if jitter_s <= 0:
             jitter = 0.0
         elif self.can_lose:
@@ -109,7 +109,7 @@ class Channel:
                 k = 0
             self._jitter_next = k + 1
             jitter = 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
-        arrival = self._last_arrival_s = delivery_s(ready_s, m.latency_s, jitter, self._last_arrival_s)
+        arrival = self._last_arrival_s = delivery_s(ready_s, self._latency_s, jitter, self._last_arrival_s)
         return arrival
 
 

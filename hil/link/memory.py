@@ -3,7 +3,8 @@
 Used by fast tests and by the in-process runner. Each direction holds at most ``capacity_bytes``;
 what does not fit is dropped and counted in the sender's `stats.bytes_dropped`, as a full UART
 FIFO would lose it. Each end has a real file descriptor (the read end of an os.pipe carrying one
-wake-up byte while data is waiting), so `select` works on it like on a socket or a pty.
+wake-up byte while data is waiting, made when `fileno` is first called), so `select` works on it like
+on a socket or a pty.
 
 When one end is closed, the other keeps reading what was already in flight; after that its
 `recv` returns b"" on timeout, and its sends are dropped and counted (nobody is listening).
@@ -21,18 +22,32 @@ DEFAULT_CAPACITY_BYTES = 65536
 
 
 class _Channel:
-    """One direction: a bounded buffer plus a pipe that is readable exactly while data waits."""
+    """One direction: a bounded buffer plus a pipe that is readable exactly while data waits (made when
+    the reading end's descriptor is first asked for: a link nobody selects on makes no system calls)."""
 
     def __init__(self, capacity_bytes: int) -> None:
         self.capacity_bytes = capacity_bytes
         self.buf = bytearray()
         self.lock = threading.Lock()
-        self.wake_r, self.wake_w = os.pipe()
-        os.set_blocking(self.wake_r, False)
-        os.set_blocking(self.wake_w, False)
+        self.wake_r: int | None = None
+        self.wake_w: int | None = None
         self._signalled = False
         self.fds_open = True
         self.reader_open = True  # False once the end that reads this direction is closed
+
+    def wake_fd(self) -> int:
+        """The pipe's read end (made now if it is not yet, readable if data waits)."""
+        with self.lock:
+            if self.wake_r is None:
+                if not self.fds_open:
+                    raise ValueError("fileno on a released memory channel")
+                self.wake_r, self.wake_w = os.pipe()
+                os.set_blocking(self.wake_r, False)
+                os.set_blocking(self.wake_w, False)
+                if self.buf:
+                    os.write(self.wake_w, b"\x01")
+                    self._signalled = True
+            return self.wake_r
 
     def put(self, data: bytes) -> int:
         """Buffer what fits of ``data``; returns the bytes taken (0 once the reading end is closed)."""
@@ -41,7 +56,7 @@ class _Channel:
             if n <= 0 or not self.reader_open or not self.fds_open:
                 return 0
             self.buf += data[:n]
-            if not self._signalled:
+            if not self._signalled and self.wake_w is not None:
                 os.write(self.wake_w, b"\x01")
                 self._signalled = True
             return n
@@ -66,8 +81,9 @@ class _Channel:
         with self.lock:
             if self.fds_open:
                 self.fds_open = False
-                os.close(self.wake_r)
-                os.close(self.wake_w)
+                if self.wake_r is not None:
+                    os.close(self.wake_r)
+                    os.close(self.wake_w)
 
 
 class _PairState:
@@ -117,7 +133,7 @@ class MemoryTransport(Transport):
     def fileno(self) -> int:
         if self._closed:
             raise ValueError(f"{self.endpoint}: fileno on a closed link")
-        return self._rx.wake_r
+        return self._rx.wake_fd()
 
     def _send_internal(self, data: bytes) -> int:
         return self._tx.put(data)  # (0 once the peer is closed: nobody reads)

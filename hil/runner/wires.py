@@ -60,13 +60,14 @@ class _Direction:
     def __init__(self, model: ChannelModel, baud: int, rng: np.random.Generator) -> None:
         self.channel = Channel(model, rng)
         self.uart = UartWire(baud)
+        self._can_lose, self._drop = self.channel.can_lose, self.channel.drop
+        self._arrival_s, self._finish_s = self.channel.arrival_s, self.uart.finish_s
 
     def arrival_s(self, now_s: float, n_bytes: int) -> float | None:
         """When a frame of ``n_bytes`` handed over at ``now_s`` arrives, or None if the link loses it."""
-        channel = self.channel
-        if channel.can_lose and channel.drop() is not None:
+        if self._can_lose and self._drop() is not None:
             return None
-        return channel.arrival_s(self.uart.finish_s(now_s, n_bytes))
+        return self._arrival_s(self._finish_s(now_s, n_bytes))
 
 
 class CommandWire(Transport):
