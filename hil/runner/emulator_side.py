@@ -273,13 +273,15 @@ class EmulatorSide:
         # the next mocap event, command frame's arrival and sample change only where the loop acts on
         # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
         m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
+        t_vehicle = vehicle.time_s  # (moved by the steps only)
         while t < t_stop:
             t_next = min(t_end_s, m_next, arrival, next_sample, boundary)
             if t_next < t + 1e-9:
                 t_next = t + 1e-9
-            n = floor((t_next - vehicle.time_s) / dt + 1e-6)  # physics steps up to t_next
+            n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
             if n > 0:
                 step(n)
+                t_vehicle = vehicle.time_s
             advance_clock(t_next)
             t = t_next
             if t >= boundary - 1e-12:
@@ -287,7 +289,7 @@ class EmulatorSide:
                 # fault ending there would still read as active and never be switched off
                 self._switch_faults(max(t, boundary))
                 boundary = self._next_boundary_s
-                m_next, arrival = next_mocap(), next_arrival()
+                m_next, arrival, t_vehicle = next_mocap(), next_arrival(), vehicle.time_s
             mocap_due = t >= m_next - 1e-12
             if mocap_due:
                 frozen = self._frozen_truth
