@@ -226,6 +226,18 @@ def test_memory_full_buffer_drops_and_counts() -> None:
         assert a.send(b"room again") == 10
 
 
+def test_memory_descriptor_asked_for_after_the_data_came_is_readable_until_it_is_read() -> None:
+    a, b = MemoryTransport.pair()
+    with a, b:
+        a.send(b"early")  # before anyone asked for b's descriptor
+        fd = b.fileno()
+        assert select.select([fd], [], [], 0.0)[0] == [fd]
+        assert b.recv(0.0) == b"early"
+        assert select.select([fd], [], [], 0.0)[0] == []
+        a.send(b"later")
+        assert select.select([fd], [], [], 1.0)[0] == [fd] and b.fileno() == fd
+
+
 def test_memory_rejects_a_nonpositive_capacity() -> None:
     with pytest.raises(ValueError, match="capacity"):
         MemoryTransport.pair(capacity_bytes=0)
