@@ -562,11 +562,8 @@ class MissionPlan:
         traverse (`Traverse.packed`), the hover point (m)."""
         k = np.zeros(PLAN_FLOATS)
         k[:4] = self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s, self.yaw_rad
-        for at, traj in ((_PLAN_APPROACH, self.approach), (_PLAN_RECOVERY, self.recovery.trajectory)):
-            coeffs = traj._coefficients()
-            k[at] = len(coeffs)
-            for j, c in enumerate(coeffs):
-                k[at + 1 + j:at + 1 + 24:8] = c
+        k[_PLAN_APPROACH:_PLAN_RECOVERY] = poly_packed(self.approach)
+        k[_PLAN_RECOVERY:_PLAN_TRAVERSE] = poly_packed(self.recovery.trajectory)
         k[_PLAN_TRAVERSE:_PLAN_HOVER] = self.traverse.packed()
         k[_PLAN_HOVER:] = self.hover_m
         k.flags.writeable = False
@@ -583,6 +580,16 @@ _PLAN_TRAVERSE = _PLAN_RECOVERY + PLAN_POLY_FLOATS
 _PLAN_HOVER = _PLAN_TRAVERSE + 11
 PLAN_FLOATS = _PLAN_HOVER + 3
 _SEGMENTS = (_APPROACH, _TRAVERSE, _RECOVERY, _HOVER)
+
+
+def poly_packed(traj: Trajectory) -> np.ndarray:
+    """A single trajectory (batch shape ()) as `_poly_axes` reads it (`PLAN_POLY_FLOATS`)."""
+    k = np.zeros(PLAN_POLY_FLOATS)
+    coeffs = traj._coefficients()
+    k[0] = len(coeffs)
+    for j, c in enumerate(coeffs):
+        k[1 + j:25:8] = c
+    return k
 
 
 @functools.cache

@@ -19,6 +19,7 @@ compiles or loads them all (the fork server calls it before it forks, so no run 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 import types
@@ -102,9 +103,14 @@ take_pose = _compiled(estimator.take_pose, filter_update=_filter_update, predict
 predicted_state = _compiled(estimator.predicted_state, prediction_horizon_s=_prediction_horizon_s,
                             predicted=_predicted)
 
+#: the expert law on a packed trajectory: `policies.onboard.pilots.traditional.tracking_command`
+tracking_command = _compiled(traditional.tracking_command, _poly_axes=_poly_axes, expert_law=expert_law)
 
+
+@functools.cache
 def warm() -> None:
-    """Compile (or load from the cache) every kernel for the argument types the program passes."""
+    """Compile (or load from the cache) every kernel for the argument types the program passes; once a
+    process (a process forked after it has them)."""
     g = controller.gains_array(controller.ExpertGains())
     expert_law(*(0.0,) * 16, 0.9, g)
     one = np.zeros((1, 3))
@@ -115,6 +121,8 @@ def warm() -> None:
     for t in (-1.0, 0.0, 1.0):
         plan_reference(plan, t)
         traditional_command(plan, t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, g)
+        tracking_command(plan[gap_planning._PLAN_APPROACH:gap_planning._PLAN_RECOVERY].copy(), t, 0.0, 0.0,
+                         0.0, 0.0, 0.0, 0.0, 0.0, 0.9, g)
     est = estimator.PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)

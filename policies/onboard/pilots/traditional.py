@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains, _new_command, expert_law
-from policies.gap_planning import plan_reference
+from policies.gap_planning import _poly_axes, plan_reference
 from policies.onboard.pilots import Observation, PilotContext, flown_by
 
 
@@ -46,6 +46,17 @@ def traditional_command(plan: np.ndarray, t_s: float, px: float, py: float, pz: 
     roll, pitch, thrust = expert_law(prx, pry, prz, vrx, vry, vrz, arx, ary, arz, px, py, pz, vx, vy, vz, yaw,
                                      mass_kg, gains)
     return roll, pitch, yaw, thrust
+
+
+def tracking_command(poly: np.ndarray, t_s: float, yaw: float, px: float, py: float, pz: float, vx: float,
+                     vy: float, vz: float, mass_kg: float, gains: np.ndarray) -> tuple[float, float, float]:
+    """`expert_law` on the reference of the trajectory packed in ``poly`` (`gap_planning.poly_packed`) at
+    ``t_s`` (s) with the yaw ``yaw`` (rad), for the state ``p`` (m), ``v`` (m/s): roll, pitch (rad) and
+    thrust (N) (the onboard program's take-off). Compiled by numba (`policies.kernels`), which is how it
+    runs."""
+    prx, pry, prz, vrx, vry, vrz, arx, ary, arz = _poly_axes(poly, 0, t_s)
+    return expert_law(prx, pry, prz, vrx, vry, vrz, arx, ary, arz, px, py, pz, vx, vy, vz, yaw, mass_kg,
+                      gains)
 
 
 def make_pilot(context: PilotContext) -> TraditionalPilot:
