@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -53,14 +52,28 @@ def expert_command_batch(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The expert law over a batch: arrays (..., 3) and yaw (...); returns roll, pitch, yaw (rad) and
     thrust (N), each of shape (...). Non-finite inputs give NaN outputs for that sample (callers
-    holding a vehicle must not send them; ``ExpertController.command`` raises instead)."""
+    holding a vehicle must not send them; ``ExpertController.command`` raises instead). The same
+    numbers as ``ExpertController.command`` sample by sample (`expert_law`, compiled, row by row)."""
+    from policies.kernels import expert_law_rows  # (imported here: the kernels import this module)
+
     if not (math.isfinite(mass_kg) and mass_kg > 0):
         raise ValueError("mass_kg must be positive")
-    axes = [tuple(np.asarray(x, float)[..., k] for k in range(3))
-            for x in (pos_ref_m, vel_ref_m_s, acc_ref_m_s2, pos_m, vel_m_s)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        roll, pitch, thrust = _expert_law(*axes, np.asarray(yaw_ref_rad, float), mass_kg, gains, _ARRAYS)
-    return roll, pitch, np.array(np.broadcast_to(np.asarray(yaw_ref_rad, float), thrust.shape)), thrust
+    vecs = [np.asarray(x, float) for x in (pos_ref_m, vel_ref_m_s, acc_ref_m_s2, pos_m, vel_m_s)]
+    yaw = np.asarray(yaw_ref_rad, float)
+    shape = np.broadcast_shapes(yaw.shape, *(v.shape[:-1] for v in vecs))
+    rows = [np.ascontiguousarray(np.broadcast_to(v, (*shape, 3))).reshape(-1, 3) for v in vecs]
+    yaws = np.ascontiguousarray(np.broadcast_to(yaw, shape)).reshape(-1)
+    out = np.empty((yaws.size, 3))
+    expert_law_rows(*rows, yaws, mass_kg, gains_array(gains), out)
+    return (out[:, 0].reshape(shape), out[:, 1].reshape(shape), yaws.reshape(shape).copy(),
+            out[:, 2].reshape(shape))
+
+
+def gains_array(gains: ExpertGains) -> np.ndarray:
+    """``gains`` as `expert_law` reads them: kp (3, 1/s), kv (3, 1/s), ka, the position (m) and velocity
+    (m/s) error limits, tan of the tilt limit, the floor (m/s^2) on F_z / m."""
+    return np.array([*gains.kp, *gains.kv, gains.ka, gains.max_pos_err_m, gains.max_vel_err_m_s,
+                     math.tan(gains.tilt_max_rad), gains.min_thrust_frac * GRAVITY_M_S2])
 
 
 class ExpertController:
@@ -71,6 +84,10 @@ class ExpertController:
             raise ValueError("mass_kg must be positive")
         self.mass_kg = mass_kg
         self.gains = gains or ExpertGains()
+        self.gains_array = gains_array(self.gains)  # (`expert_law`'s form, made once)
+        from policies.kernels import expert_law  # (imported here: the kernels import this module)
+
+        self._law = expert_law
 
     def command(self, pos_ref_m: object, vel_ref_m_s: object, acc_ref_m_s2: object, yaw_ref_rad: float,
                 pos_m: object, vel_m_s: object) -> AttitudeThrustCommand:
@@ -97,10 +114,12 @@ class ExpertController:
                     raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
                 checked.append((x, y, z))
             vals = tuple(checked)
+            (a, b, c), (d, e, f), (g, h, i), (j, k, m), (n, o, q) = vals
         if not math.isfinite(yaw_ref_rad):
             raise ValueError("yaw_ref_rad must be finite")
         yaw = float(yaw_ref_rad)
-        return _new_command(*_expert_law(*vals, yaw, self.mass_kg, self.gains, _FLOATS), yaw)
+        return _new_command(*self._law(a, b, c, d, e, f, g, h, i, j, k, m, n, o, q, yaw, self.mass_kg,
+                                       self.gains_array), yaw)
 
 
 def _floats3(value: object) -> tuple[float, float, float]:
@@ -109,60 +128,50 @@ def _floats3(value: object) -> tuple[float, float, float]:
     return float(x), float(y), float(z)
 
 
-class _Floats:
-    """The operations of `_expert_law` on plain floats (one sample, the per-step path)."""
-
-    sqrt, sin, cos, asin, atan2, maximum = math.sqrt, math.sin, math.cos, math.asin, math.atan2, max
-
-    @staticmethod
-    def clip(x: float, limit: float) -> float:
-        return limit if x > limit else (-limit if x < -limit else x)
-
-    @staticmethod
-    def scale(norm: float, limit: float) -> float:
-        return limit / norm if norm > limit else 1.0
+def _clip(x: float, limit: float) -> float:
+    """``x`` within [-limit, limit] (NaN passes)."""
+    return limit if x > limit else (-limit if x < -limit else x)
 
 
-class _Arrays:
-    """The operations of `_expert_law` on arrays (a batch)."""
-
-    sqrt, sin, cos, asin, atan2, maximum = np.sqrt, np.sin, np.cos, np.arcsin, np.arctan2, np.maximum
-
-    @staticmethod
-    def clip(x: np.ndarray, limit: float) -> np.ndarray:
-        return np.clip(x, -limit, limit)
-
-    @staticmethod
-    def scale(norm: np.ndarray, limit: np.ndarray) -> np.ndarray:
-        return np.where(norm > limit, limit / norm, 1.0)
-
-
-_FLOATS, _ARRAYS = _Floats(), _Arrays()
-_Vec = tuple[Any, Any, Any]  # x, y, z components: floats, or arrays of the batch shape
-
-
-def _expert_law(p_ref: _Vec, v_ref: _Vec, a_ref: _Vec, p: _Vec, v: _Vec, yaw: Any, mass_kg: float,
-                gains: ExpertGains, ops: _Floats | _Arrays) -> tuple[Any, Any, Any]:
-    """The expert law (module docstring) on x, y, z components: roll, pitch (rad) and thrust (N)."""
-    mp, mv = gains.max_pos_err_m, gains.max_vel_err_m_s
-    (kpx, kpy, kpz), (kvx, kvy, kvz), ka = gains.kp, gains.kv, gains.ka
-    clip = ops.clip
-    ex, ey, ez = clip(p_ref[0] - p[0], mp), clip(p_ref[1] - p[1], mp), clip(p_ref[2] - p[2], mp)
-    fx, fy, fz = clip(v_ref[0] - v[0], mv), clip(v_ref[1] - v[1], mv), clip(v_ref[2] - v[2], mv)
-    hx = kvx * (fx + kpx * ex) + ka * a_ref[0] + 0.0
-    hy = kvy * (fy + kpy * ey) + ka * a_ref[1] + 0.0
-    f_z = ops.maximum(kvz * (fz + kpz * ez) + ka * a_ref[2] + GRAVITY_M_S2,
-                      gains.min_thrust_frac * GRAVITY_M_S2)
+def expert_law(prx: float, pry: float, prz: float, vrx: float, vry: float, vrz: float, arx: float,
+               ary: float, arz: float, px: float, py: float, pz: float, vx: float, vy: float, vz: float,
+               yaw: float, mass_kg: float, g: np.ndarray) -> tuple[float, float, float]:
+    """The expert law (module docstring) on x, y, z components of the reference position (m), velocity
+    (m/s) and acceleration (m/s^2), the position (m) and velocity (m/s), with the desired yaw (rad), the
+    mass (kg) and the gains ``g`` (`gains_array`): roll, pitch (rad) and thrust (N). Compiled by numba
+    (`policies.kernels`), which is how it runs; non-finite inputs give NaN."""
+    mp, mv = g[7], g[8]
+    ex, ey, ez = _clip(prx - px, mp), _clip(pry - py, mp), _clip(prz - pz, mp)
+    fx, fy, fz = _clip(vrx - vx, mv), _clip(vry - vy, mv), _clip(vrz - vz, mv)
+    ka = g[6]
+    hx = g[3] * (fx + g[0] * ex) + ka * arx + 0.0
+    hy = g[4] * (fy + g[1] * ey) + ka * ary + 0.0
+    f_z = g[5] * (fz + g[2] * ez) + ka * arz + GRAVITY_M_S2
+    floor = g[10]
+    f_z = floor if floor > f_z else f_z  # (max(f_z, floor), NaN passing as through it)
     # F's horizontal part scaled down to the tilt limit, F_z kept
-    scale = ops.scale(ops.sqrt(hx * hx + hy * hy), f_z * math.tan(gains.tilt_max_rad))
+    norm, limit = math.sqrt(hx * hx + hy * hy), f_z * g[9]
+    scale = limit / norm if norm > limit else 1.0
     fx, fy, fz = mass_kg * (hx * scale), mass_kg * (hy * scale), mass_kg * f_z
-    thrust = ops.sqrt(fx * fx + fy * fy + fz * fz)
+    thrust = math.sqrt(fx * fx + fy * fy + fz * fz)
     zx_w, zy_w, zz = fx / thrust, fy / thrust, fz / thrust
     # R_d = Rz(yaw) Ry(pitch) Rx(roll): rotate z_b back by -yaw, then z' = (cr sp, -sr, cr cp)
-    cy, sy = ops.cos(yaw), ops.sin(yaw)
+    cy, sy = math.cos(yaw), math.sin(yaw)
     zx = cy * zx_w + sy * zy_w
     zy = -sy * zx_w + cy * zy_w
-    return ops.asin(clip(-zy, 1.0)), ops.atan2(zx, zz), thrust
+    return math.asin(_clip(-zy, 1.0)), math.atan2(zx, zz), thrust
+
+
+def expert_law_rows(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref_m_s2: np.ndarray,
+                    pos_m: np.ndarray, vel_m_s: np.ndarray, yaw_rad: np.ndarray, mass_kg: float,
+                    g: np.ndarray, out: np.ndarray) -> None:
+    """`expert_law` of each row of the (N, 3) arrays and ``yaw_rad`` (N,) into ``out`` (N, 3: roll,
+    pitch, thrust); compiled by numba (`policies.kernels`)."""
+    for i in range(yaw_rad.shape[0]):
+        pr, vr, ar, p, v = pos_ref_m[i], vel_ref_m_s[i], acc_ref_m_s2[i], pos_m[i], vel_m_s[i]
+        out[i, 0], out[i, 1], out[i, 2] = expert_law(pr[0], pr[1], pr[2], vr[0], vr[1], vr[2], ar[0], ar[1],
+                                                     ar[2], p[0], p[1], p[2], v[0], v[1], v[2], yaw_rad[i],
+                                                     mass_kg, g)
 
 
 def _new_command(roll_rad: float, pitch_rad: float, thrust_n: float, yaw_rad: float) -> AttitudeThrustCommand:

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
-from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, solve_floats
+from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, _poly_state, solve_floats
 
 Vec3 = tuple[float, float, float]
 
@@ -299,13 +299,14 @@ class Traverse:
 
     def state_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3]:
         """`state` as (x, y, z) tuples of plain floats (the per-step path)."""
-        tau = float(t) - self.t_c_s
-        s = self.crossing_speed_m_s
         (cx, cy, cz), (ux, uy, uz), (ax, ay, az) = self.gap_centre_m, self.direction, self.acc_m_s2
-        vx, vy, vz = s * ux, s * uy, s * uz
-        return ((cx + vx * tau + ax * tau * tau / 2, cy + vy * tau + ay * tau * tau / 2,
-                 cz + vz * tau + az * tau * tau / 2),
-                (vx + ax * tau, vy + ay * tau, vz + az * tau), (ax, ay, az))
+        px, py, pz, vx, vy, vz = ballistic_state(float(t) - self.t_c_s, self.crossing_speed_m_s, cx, cy, cz,
+                                                 ux, uy, uz, ax, ay, az)
+        return (px, py, pz), (vx, vy, vz), (ax, ay, az)
+
+    def packed(self) -> tuple[float, ...]:
+        """`ballistic_state`'s constants after the time: t_c_s, the speed, the centre, u, a_tr."""
+        return (self.t_c_s, self.crossing_speed_m_s, *self.gap_centre_m, *self.direction, *self.acc_m_s2)
 
     @property
     def start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,6 +322,15 @@ class Traverse:
     @property
     def end_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.state(self.duration_s)
+
+
+def ballistic_state(tau: float, s: float, cx: float, cy: float, cz: float, ux: float, uy: float, uz: float,
+                    ax: float, ay: float, az: float) -> tuple[float, float, float, float, float, float]:
+    """Position (m) and velocity (m/s) on the ballistic arc ``tau`` (s) after the centre ``c`` (m) is
+    passed at speed ``s`` (m/s) along ``u`` under the acceleration ``a`` (m/s^2): (px, py, pz, vx, vy, vz)."""
+    vx, vy, vz = s * ux, s * uy, s * uz
+    return (cx + vx * tau + ax * tau * tau / 2, cy + vy * tau + ay * tau * tau / 2,
+            cz + vz * tau + az * tau * tau / 2, vx + ax * tau, vy + ay * tau, vz + az * tau)
 
 
 @functools.lru_cache(maxsize=8)
@@ -528,37 +538,113 @@ class MissionPlan:
         return self.t_traverse_start_s + self.traverse.t_c_s
 
     def segment_at(self, t: float) -> Segment:
-        if t < self.t_traverse_start_s:
-            return _APPROACH
-        if t < self.t_recovery_start_s:
-            return _TRAVERSE
-        if t < self.t_hover_start_s:
-            return _RECOVERY
-        return _HOVER
+        i = segment_index(t, self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s)
+        return _SEGMENTS[i]
 
     def reference(self, t: float) -> Reference:
         """The reference at mission time ``t`` (s); before 0 the start state, after the end hover."""
-        seg = self.segment_at(t)
-        p, v, a = self._state_tuples(seg, t)
+        p, v, a, yaw = self.reference_tuples(t)
         ref = object.__new__(Reference)  # a frozen dataclass, filled without its per-field __setattr__
         ref.__dict__.update(pos_m=np.array(p), vel_m_s=np.array(v), acc_m_s2=np.array(a),
-                            yaw_rad=self.yaw_rad, segment=seg)
+                            yaw_rad=yaw, segment=self.segment_at(t))
         return ref
 
     def reference_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3, float]:
         """`reference` in plain floats: position (m), velocity (m/s), acceleration (m/s^2) as (x, y, z)
-        tuples and the yaw (rad); the same numbers, for the per-step paths."""
-        p, v, a = self._state_tuples(self.segment_at(t), t)
-        return p, v, a, self.yaw_rad
+        tuples and the yaw (rad); the same numbers, for the per-step paths (`plan_reference`)."""
+        r = _compiled_reference()(self.packed, float(t))
+        return (r[0], r[1], r[2]), (r[3], r[4], r[5]), (r[6], r[7], r[8]), r[9]
 
-    def _state_tuples(self, seg: Segment, t: float) -> tuple[Vec3, Vec3, Vec3]:
-        if seg is _APPROACH:  # (t below 0 as max(t, 0.0) takes it, without the call)
-            return self.approach.state_tuples(0.0 if t < 0.0 else t)  # type: ignore[return-value]
-        if seg is _TRAVERSE:
-            return self.traverse.state_tuples(t - self.t_traverse_start_s)
-        if seg is _RECOVERY:
-            return self.recovery.trajectory.state_tuples(t - self.t_recovery_start_s)  # type: ignore[return-value]
-        return self.hover_m, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    @functools.cached_property
+    def packed(self) -> np.ndarray:
+        """The plan as `plan_reference` reads it (made once; read-only): the segments' start times (s),
+        the yaw (rad), the approach's and the recovery's polynomials (`PLAN_POLY_FLOATS` each), the
+        traverse (`Traverse.packed`), the hover point (m)."""
+        k = np.zeros(PLAN_FLOATS)
+        k[:4] = self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s, self.yaw_rad
+        k[_PLAN_APPROACH:_PLAN_RECOVERY] = poly_packed(self.approach)
+        k[_PLAN_RECOVERY:_PLAN_TRAVERSE] = poly_packed(self.recovery.trajectory)
+        k[_PLAN_TRAVERSE:_PLAN_HOVER] = self.traverse.packed()
+        k[_PLAN_HOVER:] = self.hover_m
+        k.flags.writeable = False
+        return k
+
+
+#: `MissionPlan.packed`: where each part starts; a polynomial is its coefficient count (6: quintic, 8:
+#: degree 7), then per axis x, y, z the 8 coefficients in `_poly_state`'s order (p0, v0, a0, alpha, beta,
+#: gamma, delta, epsilon; zeros past the count)
+PLAN_POLY_FLOATS = 25
+_PLAN_APPROACH = 4
+_PLAN_RECOVERY = _PLAN_APPROACH + PLAN_POLY_FLOATS
+_PLAN_TRAVERSE = _PLAN_RECOVERY + PLAN_POLY_FLOATS
+_PLAN_HOVER = _PLAN_TRAVERSE + 11
+PLAN_FLOATS = _PLAN_HOVER + 3
+_SEGMENTS = (_APPROACH, _TRAVERSE, _RECOVERY, _HOVER)
+
+
+def poly_packed(traj: Trajectory) -> np.ndarray:
+    """A single trajectory (batch shape ()) as `_poly_axes` reads it (`PLAN_POLY_FLOATS`)."""
+    k = np.zeros(PLAN_POLY_FLOATS)
+    coeffs = traj._coefficients()
+    k[0] = len(coeffs)
+    for j, c in enumerate(coeffs):
+        k[1 + j:25:8] = c
+    return k
+
+
+@functools.cache
+def _compiled_reference() -> Any:
+    """`plan_reference` compiled (imported on first use: the kernels import this module)."""
+    from policies.kernels import plan_reference
+
+    return plan_reference
+
+
+def segment_index(t: float, t_traverse_s: float, t_recovery_s: float, t_hover_s: float) -> int:
+    """Which segment mission time ``t`` (s) is in, given their start times (s): 0 the approach (also
+    before 0), 1 the traverse, 2 the recovery, 3 the hover."""
+    if t < t_traverse_s:
+        return 0
+    if t < t_recovery_s:
+        return 1
+    if t < t_hover_s:
+        return 2
+    return 3
+
+
+def _poly_axes(k: np.ndarray, at: int, t: float) -> tuple[float, ...]:
+    """Position (m), velocity (m/s), acceleration (m/s^2) of the polynomial packed at ``k[at]`` at ``t`` (s):
+    (px, py, pz, vx, vy, vz, ax, ay, az)."""
+    c = k[at + 1:at + 25]
+    if k[at] == 6.0:
+        x = _poly_state(t, c[0], c[1], c[2], c[3], c[4], c[5])
+        y = _poly_state(t, c[8], c[9], c[10], c[11], c[12], c[13])
+        z = _poly_state(t, c[16], c[17], c[18], c[19], c[20], c[21])
+    else:
+        x = _poly_state(t, c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7])
+        y = _poly_state(t, c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15])
+        z = _poly_state(t, c[16], c[17], c[18], c[19], c[20], c[21], c[22], c[23])
+    return x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2]
+
+
+def plan_reference(k: np.ndarray, t: float) -> tuple[float, ...]:
+    """The reference of the plan packed in ``k`` (`MissionPlan.packed`) at mission time ``t`` (s):
+    position (m), velocity (m/s), acceleration (m/s^2) as x, y, z each, then the yaw (rad). Before 0 the
+    start state, after the end the hover. Compiled by numba (`policies.kernels`), which is how it runs."""
+    seg = segment_index(t, k[0], k[1], k[2])
+    if seg == 0:
+        px, py, pz, vx, vy, vz, ax, ay, az = _poly_axes(k, _PLAN_APPROACH, 0.0 if t < 0.0 else t)
+    elif seg == 1:
+        tr = k[_PLAN_TRAVERSE:_PLAN_HOVER]
+        px, py, pz, vx, vy, vz = ballistic_state(t - k[0] - tr[0], tr[1], tr[2], tr[3], tr[4], tr[5], tr[6],
+                                                 tr[7], tr[8], tr[9], tr[10])
+        ax, ay, az = tr[8], tr[9], tr[10]
+    elif seg == 2:
+        px, py, pz, vx, vy, vz, ax, ay, az = _poly_axes(k, _PLAN_RECOVERY, t - k[1])
+    else:
+        px, py, pz = k[_PLAN_HOVER], k[_PLAN_HOVER + 1], k[_PLAN_HOVER + 2]
+        vx = vy = vz = ax = ay = az = 0.0
+    return px, py, pz, vx, vy, vz, ax, ay, az, k[3]
 
 
 #: approach durations (s) the search tries after the one asked for, nearest to it first (the recovery's step)

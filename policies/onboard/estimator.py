@@ -71,8 +71,9 @@ class PoseEstimator:
     """Feed poses with `update(stamp_s, pos_m, quat_wxyz, received_s)`; read `estimate(now_s)`.
 
     The per-axis filters share one covariance (the same model and measurements on every axis), kept as
-    the six scalars of the symmetric 3x3 matrix; the products with F and Q are written out (plain floats:
-    this runs once per pose and once per control step).
+    the six scalars of the symmetric 3x3 matrix; the products with F and Q are written out. A pose goes in
+    through `take_pose` and the state comes out through `predicted_state`, each one compiled call
+    (`policies.kernels`) on the state kept in one array.
 
     Given the vehicle's acceleration limit ``max_accel_m_s2`` (thrust / mass + g), a pose the vehicle
     cannot have reached from the filter's state is refused (`plausible_jump_m`; counted in ``rejected``
@@ -85,12 +86,14 @@ class PoseEstimator:
             raise ValueError(f"max_accel_m_s2 must be a positive number, got {max_accel_m_s2!r}")
         self.max_accel_m_s2 = max_accel_m_s2
         self._ready = False
-        self._x = (0.0,) * 9  # p, v, a of x, then of y, then of z (m, m/s, m/s^2)
-        self._P = (0.0,) * 6  # shared covariance: p00, p01, p02, p11, p12, p22
-        self._stamp_s = -math.inf
-        self._received_s = -math.inf
-        self._delay_s = 0.0  # arrival - stamp of the latest pose (s; includes any clock offset)
-        self._mean_delay_s = 0.0  # its running mean over delay_window_s
+        self._received_s = -math.inf  # arrival of the latest accepted pose (s; also in the state array)
+        #: the filter's state as `take_pose` and `predicted_state` keep it (`STATE_FLOATS`)
+        self._state = np.zeros(STATE_FLOATS)
+        self._state[_STAMP] = self._state[_RECEIVED] = -math.inf
+        cfg = self.config
+        self._settings = np.array([cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s, cfg.reset_after_s,
+                                   cfg.latency_s, max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas])
+        self._settings.flags.writeable = False
         self._quat = (1.0, 0.0, 0.0, 0.0)
         self._euler: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
         self.updates = 0
@@ -98,9 +101,9 @@ class PoseEstimator:
         self.implausible = 0  # poses further from the prediction than the vehicle can move
         self.implausible_run = 0  # of those, how many in a row since the latest pose taken
         self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
-        cfg = self.config  # (frozen: its numbers read once, not per pose)
-        self._reset_after_s = cfg.reset_after_s
-        self._filter_settings = (cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s)
+        from policies.kernels import predicted_state, take_pose  # (here: the kernels import this module)
+
+        self._take, self._predict = take_pose, predicted_state
 
     @property
     def ready(self) -> bool:
@@ -127,35 +130,19 @@ class PoseEstimator:
         the mocap reader hands them over (the per-frame path, without the conversions)."""
         px, py, pz = pos_m
         qw, qx, qy, qz = quat_wxyz
-        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        reset_after_s = self._reset_after_s
-        if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
-                stamp_s <= self._stamp_s and received_s - self._received_s <= reset_after_s):
+        verdict, jump, qw, qx, qy, qz = self._take(self._state, self._settings, stamp_s, received_s, px, py,
+                                                   pz, qw, qx, qy, qz)
+        if verdict != TAKEN:
             self.rejected += 1
-            return False
-        dt = stamp_s - self._stamp_s
-        delay = received_s - stamp_s
-        restart = not self._ready or not 0.0 < dt <= reset_after_s
-        x = self._x
-        if not restart and self.max_accel_m_s2 < math.inf:
-            ex, ey, ez, _, _, _ = predicted(x, dt)
-            jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
-            cfg = self.config
-            if jump > plausible_jump_m(dt, self.max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas,
-                                       cfg.pos_noise_m):
-                self.rejected += 1
+            if verdict == IMPLAUSIBLE:
                 self.implausible += 1
                 self.implausible_run += 1
                 self.latest_jump_m = jump
-                return False
+            return False
         self.implausible_run = 0
-        self._x, self._P, self._mean_delay_s = filter_update(
-            x, self._P, self._mean_delay_s, restart, dt, delay, px, py, pz, *self._filter_settings)
         self._ready = True
-        self._stamp_s = stamp_s
         self._received_s = received_s
-        self._delay_s = delay
-        self._quat = (qw / qn, qx / qn, qy / qn, qz / qn)
+        self._quat = (qw, qx, qy, qz)
         self._euler = None  # from the quaternion when first asked for
         self.updates += 1
         return True
@@ -164,10 +151,11 @@ class PoseEstimator:
         """The mocap clock jumped (the reader followed it): read the pose of exposure ``stamp_s``,
         arriving at ``received_s``, as one that came as late as the latest pose; the state is kept."""
         if self._ready:
-            shift = (stamp_s - received_s) - (self._stamp_s - self._received_s)  # new clock - old clock (s)
-            self._stamp_s += shift
-            self._delay_s -= shift
-            self._mean_delay_s -= shift
+            st = self._state
+            shift = (stamp_s - received_s) - (st[_STAMP] - st[_RECEIVED])  # new clock - old clock (s)
+            st[_STAMP] += shift
+            st[_DELAY] -= shift
+            st[_MEAN_DELAY] -= shift
 
     def state_tuples(self, now_s: float) -> tuple[tuple[float, float, float], tuple[float, float, float],
                                                   tuple[float, float, float]]:
@@ -175,12 +163,8 @@ class PoseEstimator:
         tuples of plain floats (the per-step path); ValueError if no pose has come yet."""
         if not self._ready:
             raise ValueError("no pose received yet")
-        cfg = self.config
-        h = prediction_horizon_s(now_s - self._received_s, cfg.latency_s, self._delay_s, self._mean_delay_s,
-                                 cfg.reset_after_s)
-        x = self._x
-        px, py, pz, vx, vy, vz = predicted(x, h)
-        return (px, py, pz), (vx, vy, vz), (x[2], x[5], x[8])
+        px, py, pz, vx, vy, vz, ax, ay, az = self._predict(self._state, self._settings, now_s)
+        return (px, py, pz), (vx, vy, vz), (ax, ay, az)
 
     @property
     def quat_wxyz(self) -> tuple[float, float, float, float]:
@@ -264,8 +248,9 @@ def _new_estimate(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, 
     return est
 
 
-# --- the filter's arithmetic, on plain floats and tuples: `PoseEstimator` runs it once per pose and
-# control step, and the RL environment compiles the same functions over its rows (`hil.rl.link_observe`)
+# --- the filter's arithmetic, on plain floats and tuples: `PoseEstimator` runs it compiled once per pose
+# and control step (`take_pose`, `predicted_state`, `policies.kernels`), and the RL environment compiles
+# the same functions over its rows (`hil.rl.link_observe`)
 
 
 def filter_update(x: tuple, P: tuple, mean_delay_s: float, restart: bool, dt: float, delay: float,
@@ -302,6 +287,61 @@ def filter_update(x: tuple, P: tuple, mean_delay_s: float, restart: bool, dt: fl
     return ((xp + k0 * ex, xv + dt * xa + k1 * ex, xa + k2 * ex,
              yp + k0 * ey, yv + dt * ya + k1 * ey, ya + k2 * ey,
              zp + k0 * ez, zv + dt * za + k1 * ez, za + k2 * ez), P, mean_delay_s)
+
+
+#: `take_pose`'s verdicts
+TAKEN, REJECTED, IMPLAUSIBLE = 0, 1, 2
+#: the state array of `take_pose`: the filter's state x (p, v, a of x, y, z), its shared covariance (p00,
+#: p01, p02, p11, p12, p22), the latest pose's stamp and arrival (s), its arrival - stamp and the running
+#: mean of that (s), 1.0 once a pose is taken
+_X, _P, _STAMP, _RECEIVED, _DELAY, _MEAN_DELAY, _READY = 0, 9, 15, 16, 17, 18, 19
+STATE_FLOATS = 20
+
+
+def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: float, px: float, py: float,
+              pz: float, qw: float, qx: float, qy: float, qz: float) -> tuple[int, float, float, float, float,
+                                                                           float]:
+    """One pose (exposure ``stamp_s``, arrival ``received_s``, s; position m; quaternion w, x, y, z) into
+    the state ``st`` (`STATE_FLOATS`) under ``settings`` (pos_noise_m, jerk_psd, delay_window_s,
+    reset_after_s, latency_s, max_accel_m_s2, max_speed_change_m_s, jump_sigmas): the verdict (`TAKEN`;
+    `REJECTED`: out of order, repeated or not finite; `IMPLAUSIBLE`: a jump the vehicle cannot make),
+    the implausible jump (m, else 0) and the unit quaternion. `PoseEstimator.take` runs it compiled by
+    numba (`policies.kernels`)."""
+    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    reset_after_s = settings[3]
+    if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
+            stamp_s <= st[_STAMP] and received_s - st[_RECEIVED] <= reset_after_s):
+        return REJECTED, 0.0, qw, qx, qy, qz
+    dt = stamp_s - st[_STAMP]
+    delay = received_s - stamp_s
+    restart = st[_READY] == 0.0 or not 0.0 < dt <= reset_after_s
+    x = (st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7], st[8])
+    max_accel = settings[5]
+    if not restart and max_accel < math.inf:
+        ex, ey, ez, _, _, _ = predicted(x, dt)
+        jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
+        if jump > plausible_jump_m(dt, max_accel, settings[6], settings[7], settings[0]):
+            return IMPLAUSIBLE, jump, qw, qx, qy, qz
+    P = (st[_P], st[_P + 1], st[_P + 2], st[_P + 3], st[_P + 4], st[_P + 5])
+    x, P, mean_delay_s = filter_update(x, P, st[_MEAN_DELAY], restart, dt, delay, px, py, pz, settings[0],
+                                       settings[1], settings[2])
+    for k in range(9):
+        st[_X + k] = x[k]
+    for k in range(6):
+        st[_P + k] = P[k]
+    st[_STAMP], st[_RECEIVED], st[_DELAY], st[_READY] = stamp_s, received_s, delay, 1.0
+    st[_MEAN_DELAY] = mean_delay_s
+    return TAKEN, 0.0, qw / qn, qx / qn, qy / qn, qz / qn
+
+
+def predicted_state(st: np.ndarray, settings: np.ndarray, now_s: float) -> tuple[float, ...]:
+    """`PoseEstimator.state_tuples`'s numbers from the state ``st`` (`take_pose`'s): position (m), velocity
+    (m/s) and acceleration (m/s^2) predicted to ``now_s`` (s, reader clock), x, y, z each. Run compiled by
+    numba (`policies.kernels`)."""
+    h = prediction_horizon_s(now_s - st[_RECEIVED], settings[4], st[_DELAY], st[_MEAN_DELAY], settings[3])
+    x = (st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7], st[8])
+    px, py, pz, vx, vy, vz = predicted(x, h)
+    return px, py, pz, vx, vy, vz, x[2], x[5], x[8]
 
 
 def plausible_jump_m(dt_s: float, accel_m_s2: float, speed_change_m_s: float, sigmas: float,

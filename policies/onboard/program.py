@@ -48,7 +48,13 @@ from hil.link.clock import WallClock
 from hil.link.linktrack import BODY_IDS
 from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
-from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains, limit_tilt_step
+from policies.controller import (
+    AttitudeThrustCommand,
+    ExpertController,
+    ExpertGains,
+    _new_command,
+    limit_tilt_step,
+)
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import (
     BodyClearance,
@@ -59,6 +65,7 @@ from policies.gap_planning import (
     PlanningError,
     Segment,
     VehicleLimits,
+    poly_packed,
     start_height,
 )
 from policies.mocap_reader import MocapReader
@@ -305,6 +312,11 @@ class OnboardProgram:
                  config: ProgramConfig | None = None, *, pilot: Pilot | None = None,
                  events: EventLog | None = None) -> None:
         self.config = cfg = config or ProgramConfig()
+        # (imported here: the kernels import this package) once a process, so that no control step waits
+        # for a kernel's compilation or cache load
+        from policies.kernels import tracking_command, warm
+
+        warm()
         self.clock = ProgramClock()
         self.link: OnboardLink = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
@@ -335,7 +347,9 @@ class OnboardProgram:
         self._clock_zero_monotonic_s: float | None = None  # on the wall clock only (`run_realtime`)
         self._request: _Request | None = None
         self._mission_start_s = 0.0
-        self._takeoff: tuple[Any, float, float, float] | None = None  # trajectory, yaw0, yaw1, start
+        #: trajectory, its `poly_packed` form, yaw0, yaw1, start
+        self._takeoff: tuple[Any, np.ndarray, float, float, float] | None = None
+        self._track = tracking_command
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
         # the most the commanded roll and pitch move in a control step from the traverse on (rad; the
         # vehicle's body rate times the period), so that the pull-out asks no faster turn than the FC makes:
@@ -565,7 +579,7 @@ class OnboardProgram:
         # as the start of the turn and swing on past it
         yaw0 = self._abort_yaw
         yaw1 = yaw0 + _wrap(self._mission_yaw(est.pos_m, gap) - yaw0)
-        self._takeoff = (traj, yaw0, yaw1, now_s)
+        self._takeoff = (traj, poly_packed(traj), yaw0, yaw1, now_s)
         self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1),
                          duration_s=cfg.takeoff_duration_s)
         self._go(Phase.TAKEOFF, now_s)
@@ -684,11 +698,17 @@ class OnboardProgram:
             self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, thrust))
         elif ph is _TAKEOFF:
             assert self._takeoff is not None
-            traj, yaw0, yaw1, t0 = self._takeoff
+            traj, poly, yaw0, yaw1, t0 = self._takeoff
             tau = min(max(t_s - t0, 0.0), self.config.takeoff_duration_s)
-            p, v, a = traj.state_tuples(tau)
             yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
-            self._send(self.expert.command(p, v, a, yaw, pos, vel))
+            (px, py, pz), (vx, vy, vz) = pos, vel
+            roll, pitch, thrust = self._track(poly, tau, yaw, px, py, pz, vx, vy, vz, self.expert.mass_kg,
+                                              self.expert.gains_array)
+            if math.isfinite(roll + pitch + thrust):
+                self._send(_new_command(roll, pitch, thrust, yaw))
+            else:  # a bad input: the controller's checks name it
+                p, v, a = traj.state_tuples(tau)
+                self._send(self.expert.command(p, v, a, yaw, pos, vel))
         elif ph in _PILOTED:
             assert self.plan is not None and self.gap is not None
             cmd = self.pilot.command(FloatObservation.of_floats(
