@@ -10,6 +10,7 @@ from types import FrameType
 
 from hil.link.endpoint import open_link
 from hil.link.transport import LinkError
+from policies import kernels
 from policies.onboard.command_links import COMMAND_LINKS
 from policies.onboard.estimator import EstimatorConfig
 from policies.onboard.pilots import PILOTS
@@ -123,6 +124,9 @@ def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
     except ValueError as exc:
         print(f"{prog_name}: {exc}", file=sys.stderr)
         return 2
+    # the compiled kernels loaded (or compiled, on a cold cache: many seconds) before the links open, so
+    # that no mocap stream piles up unread on a port meanwhile
+    kernels.warm()
     try:
         command = open_link(args.command_link, "onboard")
     except (ValueError, OSError) as exc:
