@@ -181,8 +181,7 @@ class DjiOpenServer:
         self.telemetry.track_battery(now_s)
         if self.activated and now_s >= self._next_push_s:
             self._push(now_s)
-        subscriptions = self.subscriptions
-        if subscriptions.packages and now_s >= subscriptions.next_due_s() - 1e-9:
+        if now_s >= self.subscriptions.next_s - 1e-9:  # (never without packages: inf)
             self._push_packages(now_s)
 
     def handle(self, f: dj.Frame, now_s: float) -> None:
