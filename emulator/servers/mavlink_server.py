@@ -176,6 +176,7 @@ class MavlinkServer:
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
+        attitude_fields(0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # compiled (or loaded) now, not at a setpoint
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
