@@ -199,17 +199,6 @@ def attitude_thrust_values(flag: int, roll_deg: float, pitch_deg: float, thrust_
 _new = object.__new__
 
 
-def attitude_target(roll_rad: float, pitch_rad: float, yaw_rad: float, yaw_rate_rad_s: float | None,
-                    thrust_n: float) -> AttitudeThrustTarget:
-    """``AttitudeThrustTarget(roll_rad, ...)``, its fields put in place directly (a frozen dataclass's
-    own ``__init__`` sets each through ``object.__setattr__``: twice the cost, once a setpoint)."""
-    tg = _new(AttitudeThrustTarget)
-    d = tg.__dict__
-    d["roll_rad"], d["pitch_rad"], d["yaw_rad"] = roll_rad, pitch_rad, yaw_rad
-    d["yaw_rate_rad_s"], d["thrust_n"] = yaw_rate_rad_s, thrust_n
-    return tg
-
-
 def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget | MotionTarget:
     """Validate ``sp`` against the flag semantics and the profile's limits; clamp tilt and yaw rate.
 
@@ -226,31 +215,29 @@ def target_from_values(
     """`to_target` of the setpoint with these fields (degrees, percent, see `N3Setpoint`; m/s and m in
     the velocity and position modes), its ``flag`` already accepted by `check_flag`: no setpoint object
     on the per-tick path (an attitude-thrust setpoint's plain floats go to `attitude_thrust_values`
-    as they are)."""
-    if flag & 0xC0 == HORIZONTAL_ANGLE and (
-        roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
-    ):
-        return _attitude_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, thrust_percent, profile)
-    values = (roll_deg, pitch_deg, thrust_percent, yaw)
-    if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
-        raise SetpointRejected(rejection(NON_FINITE, *values))
-    if flag & 0xC0 != HORIZONTAL_ANGLE:
-        return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
-    return _attitude_target(flag, *map(float, values), thrust_percent, profile)
-
-
-def _attitude_target(flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float,
-                     thrust_field: float, profile: VehicleProfile) -> AttitudeThrustTarget:
-    """The attitude-thrust target of these float fields (`attitude_thrust_values`), its thrust (N) that
-    of the thrust field as given (``thrust_field``: its type kept); raises SetpointRejected with the
-    reason."""
+    as they are; its thrust (N) is that of the thrust field as given, its type kept)."""
+    thrust_field = thrust_percent
+    floats = roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
+    if not (floats and flag & 0xC0 == HORIZONTAL_ANGLE):
+        values = (roll_deg, pitch_deg, thrust_percent, yaw)
+        if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+            raise SetpointRejected(rejection(NON_FINITE, *values))
+        if flag & 0xC0 != HORIZONTAL_ANGLE:
+            return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
+        roll_deg, pitch_deg, thrust_percent, yaw = map(float, values)
     verdict, roll, pitch, heading, rate = attitude_thrust_values(
         flag, roll_deg, pitch_deg, thrust_percent, yaw, float(profile.max_tilt_deg),
         float(profile.max_yaw_rate_deg_s))
     if verdict != ACCEPTED_FIELDS:
         raise SetpointRejected(rejection(verdict, roll_deg, pitch_deg, thrust_percent, yaw))
-    return attitude_target(roll, pitch, heading, rate if flag & YAW_RATE else None,
-                           profile.thrust_percent_to_force_n(thrust_field))
+    # AttitudeThrustTarget(roll, ...) with its fields put in place directly (a frozen dataclass's own
+    # __init__ sets each through object.__setattr__: twice the cost, once a setpoint)
+    tg = _new(AttitudeThrustTarget)
+    d = tg.__dict__
+    d["roll_rad"], d["pitch_rad"], d["yaw_rad"] = roll, pitch, heading
+    d["yaw_rate_rad_s"] = rate if flag & YAW_RATE else None
+    d["thrust_n"] = profile.thrust_percent_to_force_n(thrust_field)
+    return tg
 
 
 def _motion_target(flag: int, x: float, y: float, z: float, yaw: float, profile: VehicleProfile
