@@ -102,11 +102,13 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(x, aux, p, hold, hold_params, gains, mix_inv, out, n_steps):  # pragma: no cover
-    """Velocity-hold steps (`FlightController._velocity_hold` per step) until ``n_steps`` or the body
-    would count as landed (`FlightController.detect_landed`); returns the steps taken. ``hold``: climb
-    rate (m/s, up), yaw (NED, rad), rest height (m), landed margin (m)."""
-    climb, yaw, rest_z, margin = hold[0], hold[1], hold[2], hold[3]
+def _hold_batch(x, aux, p, climb, yaw, landed_test, hold_params, gains, mix_inv, out, n_steps
+                ):  # pragma: no cover
+    """Velocity-hold steps (`FlightController._velocity_hold` per step) at climb rate ``climb`` (m/s,
+    up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as landed
+    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`); returns
+    the steps taken."""
+    rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
             return k  # the FC would see the landing at this step: its own step takes over
@@ -124,7 +126,6 @@ class FastStepper:
         self.native = native
         self.batched_steps = 0
         self.single_steps = 0
-        self._hold = np.zeros(4)
         self._dt_s = vehicle.dt_s  # (the backend's step, fixed for its life)
         # what a batch reads, bound once (a tick batches about three times): the vehicle's FC and
         # backend, and the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner
@@ -146,7 +147,7 @@ class FastStepper:
             _fly_batch(x, aux, p, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, inner.motor_cmd, 0,
                        fc.landed_test)
             gains, mix_inv, out = inner.params, inner.mix_inv, inner.motor_cmd
-            _hold_batch(x, aux, p, stepper._hold, fc.hold_params, gains, mix_inv, out, 0)
+            _hold_batch(x, aux, p, 0.0, 0.0, fc.landed_test, fc.hold_params, gains, mix_inv, out, 0)
         return stepper
 
     def step(self, n_steps: int) -> None:
@@ -186,11 +187,9 @@ class FastStepper:
         if n_steps <= 0:
             return 0
         x, aux, p = self._arrays
-        h = self._hold
-        h[0] = fc.hold_climb_m_s()
-        h[1] = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        h[2], h[3] = fc.rest_height_m, fc.config.landed_margin_m
-        n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
+        yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
+        n = _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params, *self._loop,
+                        n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
             self._after_batch(n, None)
         return n
