@@ -11,7 +11,7 @@ from emulator.fc.flight_controller import FcConfig, FlightController
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import control
 from emulator.fc.landed import body_landed
-from emulator.fc.n3 import limit_tilt
+from emulator.fc.n3 import attitude_thrust_values, limit_tilt, yaw_fields
 from emulator.physics import DEFAULT_DT_S, PhysicsBackend, make_backend
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import VehicleState
@@ -116,6 +116,8 @@ class EmulatedVehicle:
         hold_command(0.0, 0.0, 0.0, 0.0, 0.0, fc.hold_params, 0.0, 0.0)
         body_landed(0.0, 0.0, 0.0, 0.0)
         limit_tilt(0.0, 0.0, 1.0)
+        attitude_thrust_values(0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)  # (a setpoint's intake)
+        yaw_fields(0, 0.0, 1.0)
         if isinstance(self.backend, NativeBackend):
             self.backend.step(np.zeros(4), 0)  # (no step: the state stays as it is)
 

@@ -82,6 +82,8 @@ def _ref_to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTar
 
 
 def _ref_setpoint(msg: MAVLinkMessage) -> N3Setpoint:
+    if len(msg.q) != 4:  # (added since: a quaternion of another count refused first, by its count)
+        raise SetpointRejected(f"attitude quaternion of {len(msg.q)} numbers, expected 4")
     mask = msg.type_mask
     if mask & mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
         raise SetpointRejected("attitude ignored: N3 flies roll/pitch angles")
@@ -93,17 +95,11 @@ def _ref_setpoint(msg: MAVLinkMessage) -> N3Setpoint:
         raise SetpointRejected("non-finite attitude quaternion")
     if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
         raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    if len(q) == 4:
-        w, x, y, z = q
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat((w / norm, x / norm, y / norm, z / norm))
-    else:
-        norm = math.sqrt(sum(x * x for x in q))
-        if abs(norm - 1.0) > 0.1:
-            raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-        roll, pitch, yaw = euler_from_quat([x / norm for x in q])
+    w, x, y, z = q
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if abs(norm - 1.0) > 0.1:
+        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
+    roll, pitch, yaw = euler_from_quat((w / norm, x / norm, y / norm, z / norm))
     if mask & mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE:
         flag, yaw_value = ATTITUDE_THRUST_YAW_ANGLE, math.degrees(yaw)
     else:

@@ -122,6 +122,9 @@ class FlightController:
         self.rest_height_m = self.config.ground_z_m + 0.5 * profile.body_box_m[2]
         self._landed_since_s: float | None = 0.0
         self.landed = True
+        #: the landed test's resting height and margin (m) as a compiled stepper reads them
+        #: (`emulator.fc.landed.body_landed`); kept in place by `reconfigure`
+        self.landed_test = np.array([self.rest_height_m, self.config.landed_margin_m])
         self._off = np.zeros(4)
         self._idle = np.full(4, self.gains.inner.idle_throttle)
         self.motor_cmd = self._off
@@ -137,7 +140,8 @@ class FlightController:
             if name in ("gains", "ground_z_m"):
                 raise ValueError(f"FcConfig.{name} cannot change in flight")
         self.config = replace(self.config, **changes)
-        self.hold_params[:] = self._pack_hold()  # in place: a batched stepper holds the array
+        self.hold_params[:] = self._pack_hold()  # in place: a batched stepper holds these arrays
+        self.landed_test[1] = self.config.landed_margin_m
 
     def set_limits(self, **changes: float) -> None:
         """Change the setpoint limits taken from the profile (``max_tilt_deg``, ``max_yaw_rate_deg_s``,
@@ -368,9 +372,16 @@ class FlightController:
         stepper): the last step began at ``last_step_s`` (s); with ``detect_landed``, the body's height
         ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) after it update ``landed``; the throttles flown are
         the inner loop's ``motor_cmd``."""
-        self._last_t = last_step_s
         if detect_landed:
             self.detect_landed(z_m, vz_m_s, last_step_s)
+        self.flew_outside(last_step_s, None)
+
+    def flew_outside(self, last_step_s: float, landed: bool | None) -> None:
+        """`stepped_outside` for a stepper that ran the landed test itself (`body_landed` of the body
+        after the last step, with `landed_test`): ``landed`` its answer, None when not run."""
+        self._last_t = last_step_s
+        if landed is not None:
+            self._take_landed(landed, last_step_s)
         self.motor_cmd = self.inner.motor_cmd
 
     def _check_transitions(self, t: float) -> None:
@@ -396,7 +407,10 @@ class FlightController:
 
     def detect_landed(self, z_m: float, vz_m_s: float, t: float) -> None:
         """Update ``landed`` from the body height ``z_m`` (m) and climb rate ``vz_m_s`` (m/s) at ``t``."""
-        landed = bool(body_landed(z_m, vz_m_s, self.rest_height_m, self.config.landed_margin_m))
+        self._take_landed(bool(body_landed(z_m, vz_m_s, self.rest_height_m, self.config.landed_margin_m)), t)
+
+    def _take_landed(self, landed: bool, t: float) -> None:
+        """``landed``, the landed test's answer at ``t`` (s): the flag and since when it holds."""
         if landed and not self.landed:
             self._landed_since_s = t
         elif not landed:

@@ -150,6 +150,55 @@ def wrap_pi(angle_rad: float) -> float:
     return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
 
+_wrap_pi = njit(cache=True)(wrap_pi)  # (the same function, for the kernels below)
+
+#: what `attitude_thrust_values` says of a setpoint's fields: flown, or why not (`rejection`)
+ACCEPTED_FIELDS, NON_FINITE, THRUST_OUTSIDE, TILT_BEYOND_90 = 0, 1, 2, 3
+
+
+def rejection(verdict: int, roll_deg: object, pitch_deg: object, thrust_percent: object, yaw: object) -> str:
+    """The reason a setpoint with these fields is refused (`attitude_thrust_values`'s ``verdict``)."""
+    if verdict == NON_FINITE:
+        return f"non-finite setpoint {(roll_deg, pitch_deg, thrust_percent, yaw)}"
+    if verdict == THRUST_OUTSIDE:
+        return f"thrust {thrust_percent:.1f} % outside 0..100 %"
+    return f"roll/pitch {roll_deg:.0f}/{pitch_deg:.0f} deg beyond 90"
+
+
+@njit(cache=True)
+def yaw_fields(flag: int, yaw: float, max_yaw_rate_deg_s: float) -> tuple[float, float]:
+    """(heading (rad), yaw rate (rad/s)) of a setpoint's yaw field (deg, or deg/s with `YAW_RATE` in
+    ``flag``): the heading wrapped to [-pi, pi) and the rate NaN, or the heading 0 and the rate within
+    ``max_yaw_rate_deg_s``."""
+    if flag & YAW_RATE:
+        limit = math.radians(max_yaw_rate_deg_s)
+        return 0.0, max(-limit, min(limit, math.radians(yaw)))
+    return _wrap_pi(math.radians(yaw)), math.nan
+
+
+@njit(cache=True)
+def attitude_thrust_values(flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float,
+                           max_tilt_deg: float, max_yaw_rate_deg_s: float
+                           ) -> tuple[int, float, float, float, float]:
+    """An attitude-thrust setpoint's fields (degrees, percent, see `N3Setpoint`) checked and in SI
+    units, the tilt and yaw rate within the profile's limits: (verdict, roll, pitch (rad), heading (rad),
+    yaw rate (rad/s, NaN without `YAW_RATE`)); a verdict other than `ACCEPTED_FIELDS` says why the
+    setpoint is refused (`rejection`), the rest then 0."""
+    if not (math.isfinite(roll_deg) and math.isfinite(pitch_deg) and math.isfinite(thrust_percent)
+            and math.isfinite(yaw)):
+        return NON_FINITE, 0.0, 0.0, 0.0, 0.0
+    if not 0.0 <= thrust_percent <= 100.0:
+        return THRUST_OUTSIDE, 0.0, 0.0, 0.0, 0.0
+    if abs(roll_deg) > 90.0 or abs(pitch_deg) > 90.0:
+        return TILT_BEYOND_90, 0.0, 0.0, 0.0, 0.0
+    roll, pitch = limit_tilt(math.radians(roll_deg), math.radians(pitch_deg), math.radians(max_tilt_deg))
+    heading, rate = yaw_fields(flag, yaw, max_yaw_rate_deg_s)
+    return ACCEPTED_FIELDS, roll, pitch, heading, rate
+
+
+_new = object.__new__
+
+
 def to_target(sp: N3Setpoint, profile: VehicleProfile) -> AttitudeThrustTarget | MotionTarget:
     """Validate ``sp`` against the flag semantics and the profile's limits; clamp tilt and yaw rate.
 
@@ -165,34 +214,30 @@ def target_from_values(
 ) -> AttitudeThrustTarget | MotionTarget:
     """`to_target` of the setpoint with these fields (degrees, percent, see `N3Setpoint`; m/s and m in
     the velocity and position modes), its ``flag`` already accepted by `check_flag`: no setpoint object
-    on the per-tick path."""
-    # plain floats with a finite sum are finite (inf and NaN propagate); anything else: look closer
-    if not (
-        roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
-        and math.isfinite(roll_deg + pitch_deg + thrust_percent + yaw)
-    ) and not all(
-        isinstance(v, int | float) and math.isfinite(v) for v in (roll_deg, pitch_deg, thrust_percent, yaw)
-    ):
-        raise SetpointRejected(f"non-finite setpoint {(roll_deg, pitch_deg, thrust_percent, yaw)}")
-    if flag & 0xC0 != HORIZONTAL_ANGLE:
-        return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
-    if not 0.0 <= thrust_percent <= 100.0:
-        raise SetpointRejected(f"thrust {thrust_percent:.1f} % outside 0..100 %")
-    if abs(roll_deg) > 90.0 or abs(pitch_deg) > 90.0:
-        raise SetpointRejected(f"roll/pitch {roll_deg:.0f}/{pitch_deg:.0f} deg beyond 90")
-    max_tilt = math.radians(profile.max_tilt_deg)
-    roll, pitch = limit_tilt(math.radians(roll_deg), math.radians(pitch_deg), max_tilt)
-    thrust_n = profile.thrust_percent_to_force_n(thrust_percent)
-    heading, rate = _yaw(flag, yaw, profile)
-    return AttitudeThrustTarget(roll, pitch, heading, rate, thrust_n)
-
-
-def _yaw(flag: int, yaw: float, profile: VehicleProfile) -> tuple[float, float | None]:
-    """(heading (rad), yaw rate (rad/s) or None) of a setpoint's yaw field (deg or deg/s)."""
-    if flag & YAW_RATE:
-        limit = math.radians(profile.max_yaw_rate_deg_s)
-        return 0.0, max(-limit, min(limit, math.radians(yaw)))
-    return wrap_pi(math.radians(yaw)), None
+    on the per-tick path (an attitude-thrust setpoint's plain floats go to `attitude_thrust_values`
+    as they are; its thrust (N) is that of the thrust field as given, its type kept)."""
+    thrust_field = thrust_percent
+    floats = roll_deg.__class__ is pitch_deg.__class__ is thrust_percent.__class__ is yaw.__class__ is float
+    if not (floats and flag & 0xC0 == HORIZONTAL_ANGLE):
+        values = (roll_deg, pitch_deg, thrust_percent, yaw)
+        if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+            raise SetpointRejected(rejection(NON_FINITE, *values))
+        if flag & 0xC0 != HORIZONTAL_ANGLE:
+            return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
+        roll_deg, pitch_deg, thrust_percent, yaw = map(float, values)
+    verdict, roll, pitch, heading, rate = attitude_thrust_values(
+        flag, roll_deg, pitch_deg, thrust_percent, yaw, float(profile.max_tilt_deg),
+        float(profile.max_yaw_rate_deg_s))
+    if verdict != ACCEPTED_FIELDS:
+        raise SetpointRejected(rejection(verdict, roll_deg, pitch_deg, thrust_percent, yaw))
+    # AttitudeThrustTarget(roll, ...) with its fields put in place directly (a frozen dataclass's own
+    # __init__ sets each through object.__setattr__: twice the cost, once a setpoint)
+    tg = _new(AttitudeThrustTarget)
+    d = tg.__dict__
+    d["roll_rad"], d["pitch_rad"], d["yaw_rad"] = roll, pitch, heading
+    d["yaw_rate_rad_s"] = rate if flag & YAW_RATE else None
+    d["thrust_n"] = profile.thrust_percent_to_force_n(thrust_field)
+    return tg
 
 
 def _motion_target(flag: int, x: float, y: float, z: float, yaw: float, profile: VehicleProfile
@@ -208,6 +253,6 @@ def _motion_target(flag: int, x: float, y: float, z: float, yaw: float, profile:
         z = max(0.0, min(MAX_HEIGHT_M, z))
     else:
         z = max(-MAX_CLIMB_M_S, min(MAX_CLIMB_M_S, z))
-    heading, rate = _yaw(flag, yaw, profile)
+    heading, rate = yaw_fields(flag, float(yaw), float(profile.max_yaw_rate_deg_s))
     return MotionTarget(x, y, z, position, flag & 0x30 == VERTICAL_POSITION, bool(flag & FRAME_BODY),
-                        heading, rate)
+                        heading, rate if flag & YAW_RATE else None)

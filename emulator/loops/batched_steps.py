@@ -4,7 +4,7 @@ together in one numba call for a whole batch of 1 kHz steps (the lockstep runner
 
 It steps through the public contract of its parts: the backend's `NativeBackend.kernel_arrays` and
 `advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd``,
-the FC's `hold_command` parameters, `quiet_steps` and `stepped_outside`. Same arithmetic as
+the FC's `hold_command` parameters, `landed_test`, `quiet_steps` and `flew_outside`. Same arithmetic as
 `EmulatedVehicle.step` (the FC's controller, then one physics step, each millisecond); a batch stops
 before anything the FC's own step would act on: the setpoint-loss timeout, the failsafe hover's end,
 the body reaching the ground. Anything else (other FC states, other backends, yaw-rate targets) takes
@@ -33,11 +33,15 @@ from emulator.world.box_kernel import check_packed, quat_to_rot_into
 
 
 @njit(cache=True, nogil=True)
-def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_steps):  # pragma: no cover
+def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_steps, landed_test
+               ):  # pragma: no cover
+    """``n_steps`` steps of a held attitude target; returns the FC's landed test of the body after them
+    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`)."""
     d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
     for _ in range(n_steps):
         control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
+    return body_landed(x[2], x[5], landed_test[0], landed_test[1])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -98,11 +102,13 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(x, aux, p, hold, hold_params, gains, mix_inv, out, n_steps):  # pragma: no cover
-    """Velocity-hold steps (`FlightController._velocity_hold` per step) until ``n_steps`` or the body
-    would count as landed (`FlightController.detect_landed`); returns the steps taken. ``hold``: climb
-    rate (m/s, up), yaw (NED, rad), rest height (m), landed margin (m)."""
-    climb, yaw, rest_z, margin = hold[0], hold[1], hold[2], hold[3]
+def _hold_batch(x, aux, p, climb, yaw, landed_test, hold_params, gains, mix_inv, out, n_steps
+                ):  # pragma: no cover
+    """Velocity-hold steps (`FlightController._velocity_hold` per step) at climb rate ``climb`` (m/s,
+    up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as landed
+    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`); returns
+    the steps taken."""
+    rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
             return k  # the FC would see the landing at this step: its own step takes over
@@ -120,14 +126,17 @@ class FastStepper:
         self.native = native
         self.batched_steps = 0
         self.single_steps = 0
-        self._hold = np.zeros(4)
         self._dt_s = vehicle.dt_s  # (the backend's step, fixed for its life)
-        # the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner loop's), taken
-        # once: they stay the same objects for the backend's life, and a tick batches several times
+        # what a batch reads, bound once (a tick batches about three times): the vehicle's FC and
+        # backend, and the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner
+        # loop's, the FC's landed test), the same objects for the backend's life
+        self._fc = vehicle.fc
+        self._backend = vehicle.backend
         if native:
             inner = vehicle.fc.inner
             self._arrays = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
             self._loop = (inner.params, inner.mix_inv, inner.motor_cmd)
+            self._landed_test = vehicle.fc.landed_test
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -135,32 +144,32 @@ class FastStepper:
         if stepper.native:  # compile (or load from the cache) now, not inside the timed loop
             x, aux, p = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
             fc, inner = vehicle.fc, vehicle.fc.inner
-            _fly_batch(x, aux, p, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, inner.motor_cmd, 0)
+            _fly_batch(x, aux, p, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, inner.motor_cmd, 0,
+                       fc.landed_test)
             gains, mix_inv, out = inner.params, inner.mix_inv, inner.motor_cmd
-            _hold_batch(x, aux, p, stepper._hold, fc.hold_params, gains, mix_inv, out, 0)
+            _hold_batch(x, aux, p, 0.0, 0.0, fc.landed_test, fc.hold_params, gains, mix_inv, out, 0)
         return stepper
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps."""
-        v = self.vehicle
-        fc = v.fc
+        fc = self._fc
         native = self.native
         while n_steps > 0:
             n = 0
             if native:
                 tg = fc.held_target()
                 if tg is not None:  # an offboard attitude target: flown in batches
-                    n = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
+                    n = fc.quiet_steps(self._backend.time_s, self._dt_s, n_steps)
                     if n > 0:
                         x, aux, p = self._arrays
                         gains, mix_inv, out = self._loop
-                        _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, gains,
-                                   mix_inv, out, n)
-                        self._after_batch(n, x)
+                        landed = _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n,
+                                            gains, mix_inv, out, n, self._landed_test)
+                        self._after_batch(n, landed)
                 if n == 0:
                     n = self._hold_steps(n_steps)
             if n == 0:
-                v.step(1)
+                self.vehicle.step(1)
                 self.single_steps += 1
                 n = 1
             n_steps -= n
@@ -168,33 +177,30 @@ class FastStepper:
     def _hold_steps(self, n_steps: int) -> int:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
         returns the steps taken (0: take the per-step path)."""
-        v = self.vehicle
-        fc = v.fc
+        fc = self._fc
         if not self.native or fc.state not in HOLD_STATES or fc.landed:
             return 0
-        if fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(v.time_s):
+        time_s = self._backend.time_s
+        if fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(time_s):
             return 0
-        n_steps = fc.quiet_steps(v.time_s, self._dt_s, n_steps)
+        n_steps = fc.quiet_steps(time_s, self._dt_s, n_steps)
         if n_steps <= 0:
             return 0
         x, aux, p = self._arrays
-        h = self._hold
-        h[0] = fc.hold_climb_m_s()
-        h[1] = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        h[2], h[3] = fc.rest_height_m, fc.config.landed_margin_m
-        n = _hold_batch(x, aux, p, h, fc.hold_params, *self._loop, n_steps)
+        yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
+        n = _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params, *self._loop,
+                        n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
-            self._after_batch(n, x, detect_landed=False)
+            self._after_batch(n, None)
         return n
 
-    def _after_batch(self, n: int, x: np.ndarray, detect_landed: bool = True) -> None:
-        """The counts and the FC's bookkeeping after ``n`` steps flown on state row ``x``."""
+    def _after_batch(self, n: int, landed: bool | None) -> None:
+        """The counts and the FC's bookkeeping after ``n`` steps flown, the FC's landed test after them
+        ``landed`` (None: not taken)."""
         v = self.vehicle
-        be = v.backend
-        be.advance_clock(n)  # type: ignore[attr-defined]
+        time_s = self._backend.advance_clock(n)  # type: ignore[attr-defined]
         v.steps += n
         self.batched_steps += n
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
-        # the FC's bookkeeping as its own per-step update would have left it (plain floats: the same
-        # comparisons)
-        v.fc.stepped_outside(be.time_s - self._dt_s, x.item(2), x.item(5), detect_landed)
+        # the FC's bookkeeping as its own per-step update would have left it
+        self._fc.flew_outside(time_s - self._dt_s, landed)

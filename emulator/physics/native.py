@@ -137,9 +137,10 @@ class NativeBackend:
         of the steps it takes through `kernel_arrays`."""
         return self._t0_s, self._steps
 
-    def advance_clock(self, n_steps: int) -> None:
-        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
+    def advance_clock(self, n_steps: int) -> float:
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``."""
         self._steps += n_steps
+        return self.time_s
 
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""

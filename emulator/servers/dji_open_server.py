@@ -181,8 +181,7 @@ class DjiOpenServer:
         self.telemetry.track_battery(now_s)
         if self.activated and now_s >= self._next_push_s:
             self._push(now_s)
-        subscriptions = self.subscriptions
-        if subscriptions.packages and now_s >= subscriptions.next_due_s() - 1e-9:
+        if now_s >= self.subscriptions.next_s - 1e-9:  # (never without packages: inf)
             self._push_packages(now_s)
 
     def handle(self, f: dj.Frame, now_s: float) -> None:
@@ -464,7 +463,7 @@ class DjiOpenServer:
         fc = self.fc
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
-        elif fc.state in _TAKEOVER_STATES or (fc.state is FcState.DISARMED and not fc.offboard_selected):
+        elif (st := fc.state) in _TAKEOVER_STATES or (st is FcState.DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)

@@ -41,6 +41,9 @@ class Subscriptions:
     def __init__(self, served: frozenset[str]) -> None:
         self.served = served
         self.packages: dict[int, Package] = {}
+        #: when the next package is due (s; infinite without packages): kept by every change here, so
+        #: that a poll asks it with one comparison
+        self.next_s = math.inf
 
     def add(self, payload: bytes, now_s: float) -> int:
         """Add the package a 0x0B 0x01 payload describes; its code (`dj.SUB_*`)."""
@@ -63,6 +66,7 @@ class Subscriptions:
         code = self._check_topics(uids, hz, bool(config & 1))
         if code == dj.SUB_SUCCESS:
             self.packages[pkg] = Package(uids, hz, bool(config & 1), now_s, float(hz))
+            self._reschedule()
         return code
 
     def _check_topics(self, uids: tuple[int, ...], hz: int, timestamp: bool) -> int:
@@ -84,10 +88,12 @@ class Subscriptions:
             return dj.SUB_PACKAGE_OUT_OF_RANGE
         if self.packages.pop(payload[0], None) is None:
             return dj.SUB_PACKAGE_MISSING
+        self._reschedule()
         return dj.SUB_SUCCESS
 
     def reset(self) -> int:
         self.packages.clear()
+        self._reschedule()
         return dj.SUB_SUCCESS
 
     def due(self, now_s: float) -> list[tuple[int, Package]]:
@@ -98,12 +104,9 @@ class Subscriptions:
                 nxt = p.next_due_s + 1.0 / p.granted_hz
                 p.next_due_s = nxt if nxt > now_s else now_s + 1.0 / p.granted_hz
                 out.append((pkg, p))
+        if out:
+            self._reschedule()
         return out
 
-    def next_due_s(self) -> float:
-        """When the next package is due (s; infinite without packages)."""
-        nxt = math.inf
-        for p in self.packages.values():
-            if p.next_due_s < nxt:
-                nxt = p.next_due_s
-        return nxt
+    def _reschedule(self) -> None:
+        self.next_s = min((p.next_due_s for p in self.packages.values()), default=math.inf)

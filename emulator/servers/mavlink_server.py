@@ -14,9 +14,10 @@ import struct
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from math import isfinite
-from operator import mul
+from operator import index
 from typing import Any
+
+from numba import njit
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
@@ -175,6 +176,7 @@ class MavlinkServer:
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
+        attitude_fields(0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # compiled (or loaded) now, not at a setpoint
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -308,8 +310,12 @@ class MavlinkServer:
     def _on_set_attitude_target(self, msg: MAVLinkMessage, now_s: float) -> None:
         if not self._for_me(msg.target_system, msg.target_component):
             return
-        applied = self._apply_attitude_target(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate, now_s)
-        if applied and self.on_setpoint is not None:
+        try:
+            values = attitude_target_values(msg.type_mask, msg.q, msg.thrust, msg.body_yaw_rate)
+        except SetpointRejected as exc:
+            self._setpoint_rejected(exc.reason, now_s)
+            return
+        if self._take_setpoint(*values, now_s) and self.on_setpoint is not None:
             self.on_setpoint(msg, now_s)
 
     def _on_set_attitude_target_frame(self, frame: bytes, now_s: float) -> None:
@@ -323,24 +329,30 @@ class MavlinkServer:
         _, q0, q1, q2, q3, _, _, yaw_rate, thrust, target_system, target_component, type_mask = values
         if not self._for_me(target_system, target_component):
             return
-        applied = self._apply_attitude_target(type_mask, (q0, q1, q2, q3), thrust, yaw_rate, now_s)
-        if applied and self.on_setpoint is not None:
+        verdict, flag, roll, pitch, thrust_percent, yaw, norm = attitude_fields(
+            type_mask, q0, q1, q2, q3, thrust, yaw_rate)
+        if verdict != ATTITUDE_TAKEN:
+            self._setpoint_rejected(attitude_rejection(verdict, thrust, norm), now_s)
+            return
+        taken = self._take_setpoint(flag, roll, pitch, thrust_percent, yaw, now_s)
+        if taken and self.on_setpoint is not None:
             self.on_setpoint(decode_frame(frame), now_s)
 
-    def _apply_attitude_target(
-        self, type_mask: int, q: Any, thrust: Any, body_yaw_rate: Any, now_s: float
-    ) -> bool:
-        """Hand a SET_ATTITUDE_TARGET's setpoint to the FC; False (counted, told) when rejected."""
+    def _take_setpoint(self, flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float,
+                       now_s: float) -> bool:
+        """Hand a SET_ATTITUDE_TARGET's setpoint (`attitude_target_values`) to the FC; False (counted,
+        told) when the FC refuses it."""
         try:
-            self.fc.set_setpoint_values(*attitude_target_values(type_mask, q, thrust, body_yaw_rate), now_s)
+            self.fc.set_setpoint_values(flag, roll_deg, pitch_deg, thrust_percent, yaw, now_s)
         except SetpointRejected as exc:
-            self.stats.setpoints_rejected += 1
-            self.statustext(
-                mav.MAV_SEVERITY_WARNING, f"Setpoint rejected: {exc.reason}", now_s, key="setpoint"
-            )
+            self._setpoint_rejected(exc.reason, now_s)
             return False
         self.stats.setpoints_applied += 1
         return True
+
+    def _setpoint_rejected(self, reason: str, now_s: float) -> None:
+        self.stats.setpoints_rejected += 1
+        self.statustext(mav.MAV_SEVERITY_WARNING, f"Setpoint rejected: {reason}", now_s, key="setpoint")
 
     # --- commands --------------------------------------------------------------------------
     def _on_command_long(self, msg: MAVLinkMessage, now_s: float) -> None:
@@ -658,35 +670,81 @@ def _mav_result(res: CommandResult) -> int:
     return mav.MAV_RESULT_ACCEPTED if res.accepted else mav.MAV_RESULT_DENIED
 
 
+_ATTITUDE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
+_THROTTLE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
+_YAW_RATE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
+_euler_from_quat = njit(cache=True)(euler_from_quat)  # (the link's own, compiled for `attitude_fields`)
+
+#: what `attitude_fields` says of a SET_ATTITUDE_TARGET: taken, or why not (`attitude_rejection`)
+(ATTITUDE_TAKEN, ATTITUDE_IGNORED, THROTTLE_IGNORED, QUATERNION_NON_FINITE, THRUST_OUTSIDE_0_1, NORM_OFF,
+ YAW_RATE_NON_FINITE) = range(7)
+
+
+@njit(cache=True)
+def attitude_fields(type_mask: int, q0: float, q1: float, q2: float, q3: float, thrust: float,
+                    body_yaw_rate: float) -> tuple[int, int, float, float, float, float, float]:
+    """The N3Setpoint fields of a SET_ATTITUDE_TARGET with these fields (quaternion NED -> FRD, thrust
+    0..1, yaw rate rad/s, read only without the mask's yaw-rate bit): (verdict, flag, roll, pitch (deg),
+    thrust (%), yaw (deg or deg/s), the quaternion's norm); a verdict other than `ATTITUDE_TAKEN` says
+    why it is refused (`attitude_rejection`), the fields then 0."""
+    if type_mask & _ATTITUDE_IGNORE:
+        return ATTITUDE_IGNORED, 0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if type_mask & _THROTTLE_IGNORE:
+        return THROTTLE_IGNORED, 0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if not (math.isfinite(q0) and math.isfinite(q1) and math.isfinite(q2) and math.isfinite(q3)):
+        return QUATERNION_NON_FINITE, 0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+        return THRUST_OUTSIDE_0_1, 0, 0.0, 0.0, 0.0, 0.0, 0.0
+    norm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)  # (summed in order)
+    if abs(norm - 1.0) > 0.1:
+        return NORM_OFF, 0, 0.0, 0.0, 0.0, 0.0, norm
+    roll, pitch, yaw = _euler_from_quat((q0 / norm, q1 / norm, q2 / norm, q3 / norm))
+    if type_mask & _YAW_RATE_IGNORE:
+        return (ATTITUDE_TAKEN, ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
+                100.0 * thrust, math.degrees(yaw), norm)
+    if not math.isfinite(body_yaw_rate):
+        return YAW_RATE_NON_FINITE, 0, 0.0, 0.0, 0.0, 0.0, norm
+    return (ATTITUDE_TAKEN, ATTITUDE_THRUST_YAW_RATE, math.degrees(roll), math.degrees(pitch),
+            100.0 * thrust, math.degrees(body_yaw_rate), norm)
+
+
+def attitude_rejection(verdict: int, thrust: float, norm: float) -> str:
+    """The reason a SET_ATTITUDE_TARGET is refused (`attitude_fields`'s ``verdict``, its ``thrust``
+    and its quaternion's ``norm``)."""
+    return _ATTITUDE_REASONS[verdict].format(thrust=thrust, norm=norm)
+
+
+_ATTITUDE_REASONS = {
+    ATTITUDE_IGNORED: "attitude ignored: N3 flies roll/pitch angles",
+    THROTTLE_IGNORED: "thrust ignored: N3 needs vertical thrust",
+    QUATERNION_NON_FINITE: "non-finite attitude quaternion",
+    THRUST_OUTSIDE_0_1: "thrust {thrust:.3g} outside 0..1",
+    NORM_OFF: "quaternion norm {norm:.3g}, expected 1",
+    YAW_RATE_NON_FINITE: "non-finite yaw rate",
+}
+
+
 def attitude_target_values(
     type_mask: int, q: Any, thrust: Any, body_yaw_rate: Any
 ) -> tuple[int, float, float, float, float]:
     """The N3Setpoint fields (flag, roll, pitch (deg), thrust (%), yaw (deg or deg/s)) of a
-    SET_ATTITUDE_TARGET with these fields (quaternion NED -> FRD, thrust 0..1, yaw rate rad/s);
-    raises SetpointRejected with the reason."""
-    mask = type_mask
-    if mask & _ATTITUDE_IGNORE:
-        raise SetpointRejected("attitude ignored: N3 flies roll/pitch angles")
-    if mask & _THROTTLE_IGNORE:
-        raise SetpointRejected("thrust ignored: N3 needs vertical thrust")
-    qs = list(map(float, q))
+    SET_ATTITUDE_TARGET with these fields (quaternion NED -> FRD, four numbers; thrust 0..1; yaw rate
+    rad/s): `attitude_fields` of them as floats; raises SetpointRejected with the reason."""
+    q0, q1, q2, q3 = _four_floats(q)
     thrust = float(thrust)
-    # a finite sum means finite terms (inf and NaN propagate); an infinite one: look closer
-    if not (isfinite(sum(qs)) or all(map(isfinite, qs))):
-        raise SetpointRejected("non-finite attitude quaternion")
-    if not isfinite(thrust) or not 0.0 <= thrust <= 1.0:
-        raise SetpointRejected(f"thrust {thrust:.3g} outside 0..1")
-    norm = math.sqrt(sum(map(mul, qs, qs)))  # (summed in order, from 0)
-    if abs(norm - 1.0) > 0.1:
-        raise SetpointRejected(f"quaternion norm {norm:.3g}, expected 1")
-    roll, pitch, yaw = euler_from_quat([v / norm for v in qs])
-    degrees = math.degrees
-    if mask & _YAW_RATE_IGNORE:
-        return ATTITUDE_THRUST_YAW_ANGLE, degrees(roll), degrees(pitch), 100.0 * thrust, degrees(yaw)
-    rate = float(body_yaw_rate)
-    if not isfinite(rate):
-        raise SetpointRejected("non-finite yaw rate")
-    return ATTITUDE_THRUST_YAW_RATE, degrees(roll), degrees(pitch), 100.0 * thrust, degrees(rate)
+    rate = 0.0 if type_mask & _YAW_RATE_IGNORE else float(body_yaw_rate)
+    verdict, *values, norm = attitude_fields(index(type_mask), q0, q1, q2, q3, thrust, rate)
+    if verdict != ATTITUDE_TAKEN:
+        raise SetpointRejected(attitude_rejection(verdict, thrust, norm))
+    return tuple(values)  # type: ignore[return-value]
+
+
+def _four_floats(q: Any) -> tuple[float, float, float, float]:
+    """An attitude quaternion's four numbers as floats; SetpointRejected when it has another count."""
+    qs = tuple(map(float, q))
+    if len(qs) != 4:
+        raise SetpointRejected(f"attitude quaternion of {len(qs)} numbers, expected 4")
+    return qs  # type: ignore[return-value]
 
 
 _INT_BYTES, _INT_AS_FLOAT = struct.Struct("<i"), struct.Struct("<f")  # PX4's bytewise int32 encoding
@@ -712,7 +770,3 @@ def _param_name(param_id: str | bytes) -> str:
         param_id = param_id.decode("ascii", "replace")
     return param_id.split("\x00", 1)[0]
 
-
-_ATTITUDE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
-_THROTTLE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
-_YAW_RATE_IGNORE = mav.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE

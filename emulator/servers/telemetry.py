@@ -83,12 +83,13 @@ class TelemetryEncoder:
         self.home = home
         self.armed_time_s = 0.0
         self._last_t: float | None = None
-        self._fc = vehicle.fc
+        self._machine = vehicle.fc.machine  # (the FC's state machine: its state read per poll)
 
     def track_battery(self, now_s: float) -> None:
         """Count armed time for the battery model."""
-        if self._last_t is not None and self._fc.state is not FcState.DISARMED:
-            self.armed_time_s += max(0.0, now_s - self._last_t)
+        last = self._last_t
+        if last is not None and self._machine.state is not FcState.DISARMED:
+            self.armed_time_s += max(0.0, now_s - last)
         self._last_t = now_s
 
     # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
