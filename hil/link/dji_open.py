@@ -572,7 +572,9 @@ class OpenCodec:
     def service(self, now_s: float) -> list[bytes]:
         """Resend the reliable commands whose ACK is overdue (same SESSION, SEQ, bytes); those out of
         tries are dropped (``stats.timeouts``). Returns the frames to write (the caller writes them)."""
-        out = []
+        out: list[bytes] = []
+        if not self._pending:  # (the usual case: nothing waits)
+            return out
         for s, p in list(self._pending.items()):
             if now_s < p.next_try_s:
                 continue
