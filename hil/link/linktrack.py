@@ -240,7 +240,7 @@ class FrameDecoder:
             held += data
             buf = held
         else:  # (the usual case: read from ``data`` itself, keep only what is left of it)
-            buf = data
+            buf = data if data.__class__ is bytes else bytes(data)  # (a view has no `find`)
         out: list[_Parsed] = []
         n = len(buf)
         start = 0
@@ -306,19 +306,21 @@ class FrameDecoder:
         """'ok', 'wait' (need more bytes), 'structure' or 'checksum' for the frame at ``start``."""
         length = buf[start + 2] | (buf[start + 3] << 8)
         n_nodes = buf[start + 10]
-        if length < FIXED_LEN + 1 or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
+        if length <= FIXED_LEN or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
             return "structure"
         # walk the node headers as far as they are buffered: their lengths must add up to the frame's
-        pos, end = start + FIXED_LEN, start + length - 1
-        for _ in range(n_nodes):
-            if pos + NODE_HEADER_LEN > end:
+        pos, end, have = start + FIXED_LEN, start + length - 1, start + avail
+        while n_nodes:
+            data_at = pos + NODE_HEADER_LEN
+            if data_at > end:
                 return "structure"
-            if pos + NODE_HEADER_LEN > start + avail:
+            if data_at > have:
                 return "wait"
             dlen = buf[pos + 2] | (buf[pos + 3] << 8)
             if dlen > MAX_NODE_DATA:
                 return "structure"
-            pos += NODE_HEADER_LEN + dlen
+            pos = data_at + dlen
+            n_nodes -= 1
         if pos != end:
             return "structure"
         if avail < length:

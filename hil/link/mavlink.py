@@ -134,7 +134,8 @@ class FrameSplitter:
                 continue
             if size == 0 or i + size > n:
                 break
-            out.append(bytes(buf[i : i + size]))
+            frame = buf[i : i + size]
+            out.append(frame if frame.__class__ is bytes else bytes(frame))
             i += size
         if buf is held:
             del held[:i]
@@ -557,9 +558,12 @@ frd_to_flu = flu_to_frd
 def euler_from_quat(q_wxyz: np.ndarray) -> tuple[float, float, float]:
     """Roll, pitch, yaw (rad; aerospace Z-Y-X) of a (w, x, y, z) attitude in its own frames."""
     w, x, y, z = q_wxyz
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    sin_pitch = 2.0 * (w * y - z * x)
+    # (clamped to -1..1 as max(-1.0, min(1.0, sin_pitch)) does, a NaN to 1.0, without the two calls)
+    sin_pitch = sin_pitch if sin_pitch < 1.0 else 1.0
+    pitch = math.asin(sin_pitch if sin_pitch > -1.0 else -1.0)
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, yaw
 
 
