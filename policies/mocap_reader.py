@@ -138,6 +138,7 @@ class MocapReader:
         self.on_sample = on_sample
         self.on_pose = on_pose
         self._decoder = FrameDecoder()
+        self._feed_node_data = self._decoder.feed_node_data  # (bound once: per read)
         self._bad_payload = 0
         self._bytes_bad_payload = 0
         self._frames_ok = 0
@@ -202,7 +203,7 @@ class MocapReader:
         """Decode bytes read from the link; returns the mocap frames accepted."""
         accepted = 0
         now = self.clock.now_s()
-        for nodes in self._decoder.feed_node_data(data):
+        for nodes in self._feed_node_data(data):
             taken = 0
             for node_data in nodes:
                 taken += self._take(node_data, now)

@@ -283,3 +283,24 @@ def test_signed_codec_judges_every_frame_and_counts_refusals_by_kind():
     s = rx.stats
     assert (s.unsigned_refused, s.bad_signature, s.replayed, s.stale_timestamp) == (1, 2, 1, 1)
     assert s.signing_refused == 5
+
+
+def test_fast_path_reads_the_whole_24_bit_id_and_takes_bytearrays_as_bytes():
+    """An id pymavlink does not know, whose low byte is a used id's (TIMESYNC 111 + 2^16), is left to
+    pymavlink's parser (counted unknown), never read as the used one; a bytearray chunk gives the same
+    frames (as bytes) and counts as the same bytes."""
+    clock = SimClock()
+    fc = mav.MAVLink(None, srcSystem=1, srcComponent=mav.MAV_COMP_ID_AUTOPILOT1)
+    tick = bytes(fc.timesync_encode(0, 10_000_000).pack(fc))
+    payload = mav.MAVLink_timesync_message.unpacker.pack(0, 20_000_000)
+    alien = encode_frame(mav.MAVLINK_MSG_ID_TIMESYNC, payload, 1, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    alien = bytearray(alien)
+    alien[9] = 1  # the id's upper byte: 0x01006F, not TIMESYNC
+    stream = bytes(alien) + tick
+    for chunk in (stream, bytearray(stream)):
+        codec = MavlinkCodec(MemoryTransport.pair()[0], clock, 1, 191, raw_ids={mav.MAVLINK_MSG_ID_TIMESYNC})
+        got = codec.feed(chunk)
+        assert [decode_frame(m).ts1 if m.__class__ is bytes else m.ts1 for m in got] == [10_000_000]
+        assert codec.stats.frames_received == 1 and codec.stats.errors == 1
+        fast = MavlinkCodec(MemoryTransport.pair()[0], clock, 1, 191, raw_ids={mav.MAVLINK_MSG_ID_TIMESYNC})
+        assert fast.feed(bytearray(tick)) == [tick] and fast.feed(bytearray(tick))[0].__class__ is bytes

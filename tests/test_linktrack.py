@@ -323,3 +323,23 @@ def test_reader_poses_without_samples_are_the_samples():
     assert c.bodies_stamp_backwards and len(samples) > 100  # (a body id twice in a frame: its second)
     for body in range(6):
         assert repr(lazy.latest(body)) == repr(eager.latest(body))
+
+
+@pytest.mark.parametrize("kind", [bytes, bytearray, memoryview])
+def test_decoder_keeps_its_own_copy_of_a_partial_frame_whatever_the_chunks_type(kind):
+    """A chunk is read where it lies: the part of a frame it ends with is copied, so a caller reusing
+    its buffer (a bytearray or a view of one) for the next read changes nothing already given."""
+    stream = b"\x00junk" + encode_mocap_frame(_packet(1)) + encode_mocap_frame(_packet(2))
+    dec = FrameDecoder()
+    got = []
+    scratch = bytearray(64)
+    for i in range(0, len(stream), 64):
+        piece = stream[i:i + 64]
+        scratch[: len(piece)] = piece
+        chunk = kind(scratch[: len(piece)]) if kind is not memoryview else memoryview(scratch)[: len(piece)]
+        got += dec.feed_node_data(chunk)
+        if kind is memoryview:
+            chunk.release()
+        scratch[:] = bytes(64)  # the caller's buffer reused
+    assert [decode_mocap_payload(d[0]).frame_no for d in got] == [1, 2]
+    assert dec.stats.bytes_skipped == 5 and dec.buffered == 0

@@ -441,7 +441,9 @@ class FrameParser:
                 continue
             if i + size > n:
                 break
-            frame = bytes(buf[i : i + size])
+            frame = buf[i : i + size]
+            if frame.__class__ is not bytes:
+                frame = bytes(frame)
             if crc32(frame) != 0:  # (the CRC over the frame including its own CRC field is 0)
                 st.bad_crc += 1
                 i += 1
@@ -572,7 +574,9 @@ class OpenCodec:
     def service(self, now_s: float) -> list[bytes]:
         """Resend the reliable commands whose ACK is overdue (same SESSION, SEQ, bytes); those out of
         tries are dropped (``stats.timeouts``). Returns the frames to write (the caller writes them)."""
-        out = []
+        out: list[bytes] = []
+        if not self._pending:  # (the usual case: nothing waits)
+            return out
         for s, p in list(self._pending.items()):
             if now_s < p.next_try_s:
                 continue
@@ -602,16 +606,16 @@ class OpenCodec:
         keep_acks = self.keep_acks
         out = []
         now = self.clock.now_s()
-        rec = self.recorder
+        rec, stats = self.recorder, self.stats
         for raw in self.parser.feed(data):
-            self.stats.frames_received += 1
+            stats.frames_received += 1
             if rec is not None:
                 rec.record(raw, now)  # type: ignore[attr-defined]
             f = decode(raw)
             if f.enc != ENC_NONE:
-                self.stats.encrypted += 1
+                stats.encrypted += 1
             if f.is_ack:
-                self.stats.acks_received += 1
+                stats.acks_received += 1
                 if not keep_acks:
                     self.match_ack(f, now)
                     continue

@@ -42,6 +42,8 @@ ROLE_CONSOLE = 3
 PAYLOAD_TYPE_MOCAP = 0x4D  # 'M'
 PAYLOAD_VERSION = 1
 _PAYLOAD_HEAD = struct.Struct("<BBIB")  # type, version, frame_no, body_count
+_PAYLOAD_HEAD_LEN = _PAYLOAD_HEAD.size
+_PAYLOAD_COUNT_AT = _PAYLOAD_HEAD_LEN - 1  # (body_count: the head's last byte)
 _BODY = struct.Struct("<BBQ3f4f")  # body_id, flags, stamp_us, pos, quat
 BODY_LEN = _BODY.size  # 38 bytes
 MAX_BODIES = (MAX_NODE_DATA - _PAYLOAD_HEAD.size - 2) // BODY_LEN  # 5 bodies in one node
@@ -70,9 +72,13 @@ def sum8(data: bytes) -> int:
     return sum(data) & 0xFF
 
 
-def crc16_ccitt(data: bytes, crc: int = 0xFFFF) -> int:
+CRC16_INIT = 0xFFFF
+_crc_hqx = binascii.crc_hqx  # (CRC-16/CCITT-FALSE's poly and no reflection: `crc16_ccitt`)
+
+
+def crc16_ccitt(data: bytes, crc: int = CRC16_INIT) -> int:
     """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection) of ``data``."""
-    return binascii.crc_hqx(data, crc)
+    return _crc_hqx(data, crc)
 
 
 # --- frames --------------------------------------------------------------------------------------
@@ -225,27 +231,32 @@ class FrameDecoder:
         building the frame objects; the same counters."""
         return self._decode(data, _node_data)
 
-    def _decode(self, data: bytes, parse: Callable[[memoryview], _Parsed]) -> list[_Parsed]:
-        """Add ``data``; return ``parse`` of each frame completed by it (a view of its bytes), in order."""
+    def _decode(self, data: bytes, parse: Callable[[bytes | bytearray], _Parsed]) -> list[_Parsed]:
+        """Add ``data``; return ``parse`` of each frame completed by it (its bytes), in order."""
         stats = self.stats
         stats.bytes_in += len(data)
-        buf = self._buf
-        buf += data
+        held = self._buf
+        if held:
+            held += data
+            buf = held
+        else:  # (the usual case: read from ``data`` itself, keep only what is left of it)
+            buf = data if data.__class__ is bytes else bytes(data)  # (a view has no `find`)
         out: list[_Parsed] = []
         n = len(buf)
         start = 0
+        check = self._check
         while start < n:  # (at n: nothing left to look at, no header to hunt for)
             if not (start + 1 < n and buf[start] == HEADER and buf[start + 1] == FUNCTION_NODE_FRAME0):
                 start = self._find_header(buf, start)  # (a frame starting right here skips nothing)
             avail = n - start
             if avail < FIXED_LEN:
                 break
-            verdict = self._check(buf, start, avail)
+            verdict = check(buf, start, avail)
             if verdict == "wait":
                 break
             if verdict == "ok":
                 length = buf[start + 2] | (buf[start + 3] << 8)
-                out.append(parse(memoryview(buf)[start:start + length]))
+                out.append(parse(buf[start:start + length]))  # (all of ``data``: no copy)
                 stats.frames_ok += 1
                 stats.bytes_ok += length
                 self._hunting = False
@@ -257,7 +268,10 @@ class FrameDecoder:
                 stats.bad_structure += 1
             self._skip(1)
             start += 1
-        del buf[:start]
+        if buf is held:
+            del held[:start]
+        elif start < n:
+            held += buf[start:]
         return out
 
     def _skip(self, n: int) -> None:
@@ -266,7 +280,7 @@ class FrameDecoder:
             self._hunting = True
         self.stats.bytes_skipped += n
 
-    def _find_header(self, buf: bytearray, start: int) -> int:
+    def _find_header(self, buf: bytes | bytearray, start: int) -> int:
         """Index of the next possible frame start at or after ``start`` (skipped bytes counted)."""
         n = len(buf)
         i = start
@@ -288,28 +302,30 @@ class FrameDecoder:
             self._skip(n)
 
     @staticmethod
-    def _check(buf: bytearray, start: int, avail: int) -> str:
+    def _check(buf: bytes | bytearray, start: int, avail: int) -> str:
         """'ok', 'wait' (need more bytes), 'structure' or 'checksum' for the frame at ``start``."""
         length = buf[start + 2] | (buf[start + 3] << 8)
         n_nodes = buf[start + 10]
-        if length < FIXED_LEN + 1 or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
+        if length <= FIXED_LEN or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
             return "structure"
         # walk the node headers as far as they are buffered: their lengths must add up to the frame's
-        pos, end = start + FIXED_LEN, start + length - 1
-        for _ in range(n_nodes):
-            if pos + NODE_HEADER_LEN > end:
+        pos, end, have = start + FIXED_LEN, start + length - 1, start + avail
+        while n_nodes:
+            data_at = pos + NODE_HEADER_LEN
+            if data_at > end:
                 return "structure"
-            if pos + NODE_HEADER_LEN > start + avail:
+            if data_at > have:
                 return "wait"
             dlen = buf[pos + 2] | (buf[pos + 3] << 8)
             if dlen > MAX_NODE_DATA:
                 return "structure"
-            pos += NODE_HEADER_LEN + dlen
+            pos = data_at + dlen
+            n_nodes -= 1
         if pos != end:
             return "structure"
         if avail < length:
             return "wait"
-        if sum8(memoryview(buf)[start:end]) != buf[end]:
+        if sum8(buf[start:end]) != buf[end]:  # (a slice's copy is cheaper than a view of it)
             return "checksum"
         return "ok"
 
@@ -369,7 +385,7 @@ def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequ
             _u8("body id", body_id)
         fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
     out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
-    return out + _CRC.pack(crc16_ccitt(out))
+    return out + _CRC.pack(_crc_hqx(out, CRC16_INIT))
 
 
 #: values `unpack_mocap_payload` gives per body: id, flags, stamp (us), position (3), quaternion (4)
@@ -381,20 +397,20 @@ def unpack_mocap_payload(data: bytes) -> tuple[Any, ...]:
     body count, then `BODY_VALUES` per body (body_id, flags, stamp_us, x, y, z, qw, qx, qy, qz), for
     readers that need numbers only. Raises FrameError as `decode_mocap_payload` does."""
     size = len(data)
-    if size < _PAYLOAD_HEAD.size + 2:
+    if size < _PAYLOAD_HEAD_LEN + 2:
         raise FrameError(f"mocap payload too short ({size} bytes)")
-    kind, version, frame_no, count = _PAYLOAD_HEAD.unpack_from(data, 0)
+    kind, version, count = data[0], data[1], data[_PAYLOAD_COUNT_AT]  # (`_PAYLOAD_HEAD`'s fields)
     if kind != PAYLOAD_TYPE_MOCAP:
         raise FrameError(f"not a mocap payload (type 0x{kind:02X})")
     if version != PAYLOAD_VERSION:
         raise FrameError(f"mocap payload version {version} not supported (want {PAYLOAD_VERSION})")
-    if size != _PAYLOAD_HEAD.size + count * BODY_LEN + 2:
+    if size != _PAYLOAD_HEAD_LEN + count * BODY_LEN + 2:
         raise FrameError(f"mocap payload of {size} bytes does not hold {count} bodies")
-    if crc16_ccitt(memoryview(data)[:-2]) != data[-2] | data[-1] << 8:
+    if _crc_hqx(data[:-2], CRC16_INIT) != data[-2] | data[-1] << 8:
         raise FrameError("mocap payload CRC mismatch")
     if count <= MAX_BODIES:
         return _PAYLOAD_BODIES[count].unpack_from(data)
-    values = [kind, version, frame_no, count]
+    values = list(_PAYLOAD_HEAD.unpack_from(data))
     for k in range(count):
         values += _BODY.unpack_from(data, _PAYLOAD_HEAD.size + k * BODY_LEN)
     return tuple(values)

@@ -41,6 +41,8 @@ RESEND_S = 0.1
 #: the same until the first answer (a new process opening its port drops what came before)
 STARTUP_RESEND_S = 0.002
 _MOCAP_COUNT_RAW = MOCAP_COUNT_NAME.encode("ascii")
+_MOCAP_COUNT_NUL = _MOCAP_COUNT_RAW + b"\x00"
+_MOCAP_COUNT_NUL_LEN = len(_MOCAP_COUNT_NUL)
 
 
 def tick_request_s(tc1: int, ts1: int) -> float | None:
@@ -58,8 +60,9 @@ def mocap_count(name: str | bytes, value: int) -> int | None:
     name as text, or as the wire's bytes up to the first NUL)."""
     if value < 0:
         return None
-    if name.__class__ is bytes:
-        return int(value) if name.split(b"\x00", 1)[0] == _MOCAP_COUNT_RAW else None
+    if name.__class__ is bytes:  # (the name up to its first NUL: all of it, or a prefix and a NUL)
+        return int(value) if name[:_MOCAP_COUNT_NUL_LEN] == _MOCAP_COUNT_NUL or name == _MOCAP_COUNT_RAW \
+            else None
     return int(value) if name == MOCAP_COUNT_NAME else None
 
 
@@ -91,26 +94,30 @@ def answer_payload(tick_s: float) -> bytes:
     return _TIMESYNC.pack(ns, ns)
 
 
-def _payload(frame: bytes, size: int) -> bytes:
-    """The full payload of a MAVLink 2 frame (zero-padded: MAVLink 2 trims trailing zeros)."""
-    payload = frame[10 : 10 + frame[1]]
-    return payload if len(payload) == size else bytes(payload[:size]).ljust(size, b"\x00")
+#: zeros after a frame's payload to its message's full size (MAVLink 2 trims trailing zeros), so the
+#: message's ``unpacker`` reads it from offset 0: ``unpack_from(payload + pad)``
+_TIMESYNC_PAD = bytes(_TIMESYNC.size)
+_NAMED_INT_PAD = bytes(_NAMED_INT.size)
+_TIMESYNC_ID_BYTES = TIMESYNC_ID.to_bytes(3, "little")  # (a MAVLink 2 header's message id, at 7..9)
 
 
 def answered_ns(frame: bytes) -> int | None:
     """The tick time (ns) a frame answers (a MAVLink 2 TIMESYNC answer), else None. No CRC check: the
     harness reads the program's frames before they enter the modelled link."""
-    if len(frame) < 12 or frame[0] != 0xFD or frame[7] | frame[8] << 8 | frame[9] << 16 != TIMESYNC_ID:
+    if len(frame) < 12 or frame[0] != 0xFD or frame[7:10] != _TIMESYNC_ID_BYTES:
         return None
-    return tick_answer_ns(*_TIMESYNC.unpack(_payload(frame, _TIMESYNC.size)))
+    tc1, ts1 = _TIMESYNC.unpack_from(frame[10 : 10 + frame[1]] + _TIMESYNC_PAD)
+    return tick_answer_ns(tc1, ts1)
 
 
 def read_tick_frame(frame: bytes) -> tuple[float | None, int | None]:
     """(tick request time (s), mocap count) of a good MAVLink 2 frame of `TICK_MSG_IDS`, None where it
     says none."""
+    payload = frame[10 : 10 + frame[1]]
     if frame[7] == TIMESYNC_ID:  # both ids < 256: the id's upper bytes are 0
-        return tick_request_s(*_TIMESYNC.unpack(_payload(frame, _TIMESYNC.size))), None
-    _, value, name = _NAMED_INT.unpack(_payload(frame, _NAMED_INT.size))
+        tc1, ts1 = _TIMESYNC.unpack_from(payload + _TIMESYNC_PAD)
+        return tick_request_s(tc1, ts1), None
+    _, value, name = _NAMED_INT.unpack_from(payload + _NAMED_INT_PAD)
     return None, mocap_count(name, value)
 
 

@@ -134,7 +134,8 @@ class FrameSplitter:
                 continue
             if size == 0 or i + size > n:
                 break
-            out.append(bytes(buf[i : i + size]))
+            frame = buf[i : i + size]
+            out.append(frame if frame.__class__ is bytes else bytes(frame))
             i += size
         if buf is held:
             del held[:i]
@@ -202,6 +203,12 @@ class MavlinkCodec:
         self._accept = None if accept_ids is None else frozenset(accept_ids)
         self._raw = frozenset(raw_ids)
         self._signing = signing_key is not None  # (fixed for the codec's life)
+        #: what `_take_leading` does with a good unsigned frame, by the id's three bytes on the wire: each
+        #: id pymavlink knows -> (its CRC_EXTRA mirrored, `_REFUSE`, `_IGNORE`, `_RAW` or `_DECODE`)
+        self._leading: dict[bytes, tuple[bytes, int]] = {
+            msg_id.to_bytes(3, "little"): (extra, self._leading_kind(msg_id))
+            for msg_id, extra in _CRC_EXTRA_MIRRORED.items()
+        }
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
@@ -307,6 +314,15 @@ class MavlinkCodec:
                     self.recorder.record(bytes(m.get_msgbuf()), now_s)
                 good.append(m)
 
+    def _leading_kind(self, msg_id: int) -> int:
+        """What `_take_leading` does with a good unsigned frame of ``msg_id``: refuse it (a signed link and
+        an id that must be signed), drop it undecoded (not accepted), hand it over as bytes, or decode it."""
+        if self._signing and msg_id not in self._unsigned_ok:
+            return _REFUSE
+        if self._accept is not None and msg_id not in self._accept:
+            return _IGNORE
+        return _RAW if msg_id in self._raw else _DECODE
+
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
         not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded, all
@@ -315,33 +331,32 @@ class MavlinkCodec:
         n = len(data)
         if n < 12 or data[0] != MAVLINK_V2_MAGIC or data[2]:  # (no such frame first: at once)
             return data
-        accept, raw, stats, recorder = self._accept, self._raw, self.stats, self.recorder
-        signing = self._signing
-        extras, crc_hqx = _CRC_EXTRA_MIRRORED, binascii.crc_hqx
-        mirrored = bytes(data).translate(_BIT_REVERSED)  # ``data`` bit-reversed byte by byte (`encode_frame`)
+        if data.__class__ is not bytes:
+            data = bytes(data)  # (its slices are the frames handed on)
+        leading, stats, recorder, crc_hqx = self._leading, self.stats, self.recorder, binascii.crc_hqx
+        mirrored = data.translate(_BIT_REVERSED)  # ``data`` bit-reversed byte by byte (`encode_frame`)
         i = 0
         while True:
             end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
             if end > n:
                 break
-            msg_id = data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
-            extra = extras.get(msg_id)
-            if extra is None:
+            known = leading.get(data[i + 7 : i + 10])  # (the message id, 24 bits little-endian)
+            if known is None:
                 break  # an unknown id: pymavlink counts it
+            extra, kind = known
             # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
             if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
                     mirrored[end - 2] << 8 | mirrored[end - 1]:
                 break  # a bad frame: pymavlink counts it
-            if signing and msg_id not in self._unsigned_ok:
+            if kind == _REFUSE:
                 stats.unsigned_refused += 1
-            elif accept is not None and msg_id not in accept:
-                stats.frames_ignored += 1
-                if recorder is not None:
-                    recorder.record(bytes(data[i:end]), self.clock.now_s())
             else:
-                frame = bytes(data[i:end])
-                good.append(frame if msg_id in raw else decode_frame(frame))
-                stats.frames_received += 1
+                frame = data[i:end]
+                if kind == _IGNORE:
+                    stats.frames_ignored += 1
+                else:
+                    good.append(frame if kind == _RAW else decode_frame(frame))
+                    stats.frames_received += 1
                 if recorder is not None:
                     recorder.record(frame, self.clock.now_s())
             i = end
@@ -391,6 +406,8 @@ class MavlinkCodec:
         self._mav.signing.timestamp = max(self._mav.signing.timestamp, stamp, 0)
 
 
+#: what `MavlinkCodec._take_leading` does with a good unsigned frame (`MavlinkCodec._leading_kind`)
+_REFUSE, _IGNORE, _RAW, _DECODE = range(4)
 _BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 #: message id -> its CRC_EXTRA byte bit-reversed (the ids pymavlink knows)
 _CRC_EXTRA_MIRRORED: dict[int, bytes] = {
@@ -419,6 +436,9 @@ def frame_ok(frame: bytes) -> bool:
 #: system, component, message id (24 bits: low 16, high 8)
 _V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
 _V2_START = bytes((MAVLINK_V2_MAGIC,))
+#: a mirrored CRC high byte first: its two bytes mirrored are the wire's CRC, low byte first
+_U16_BE = struct.Struct(">H")
+_crc_hqx = binascii.crc_hqx
 
 
 def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, component_id: int) -> bytes:
@@ -430,10 +450,8 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
     # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
     # init 0xFFFF is its own mirror image); sent low byte first
-    rev = _BIT_REVERSED
-    crc = binascii.crc_hqx(covered.translate(rev), 0xFFFF)
-    crc = binascii.crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], crc)
-    return _V2_START + covered + bytes((rev[crc >> 8], rev[crc & 0xFF]))
+    crc = _crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], _crc_hqx(covered.translate(_BIT_REVERSED), 0xFFFF))
+    return _V2_START + covered + _U16_BE.pack(crc).translate(_BIT_REVERSED)
 
 
 #: pymavlink's parser, for its public `decode` of single frames
@@ -513,7 +531,8 @@ def quat_enu_flu_to_ned_frd_tuple(
 ) -> tuple[float, float, float, float]:
     """`quat_enu_flu_to_ned_frd` in plain floats, for the per-tick paths (unit, w >= 0)."""
     s = _SQRT_HALF
-    qw, qx, qy, qz = -(s * w + s * z), -(s * x) - s * y, s * y - s * x, -(s * w - s * z)
+    sw, sx, sy, sz = s * w, s * x, s * y, s * z
+    qw, qx, qy, qz = -(sw + sz), -sx - sy, sy - sx, -(sw - sz)
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     if qw < 0:
         n = -n
@@ -539,9 +558,12 @@ frd_to_flu = flu_to_frd
 def euler_from_quat(q_wxyz: np.ndarray) -> tuple[float, float, float]:
     """Roll, pitch, yaw (rad; aerospace Z-Y-X) of a (w, x, y, z) attitude in its own frames."""
     w, x, y, z = q_wxyz
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    sin_pitch = 2.0 * (w * y - z * x)
+    # (clamped to -1..1 as max(-1.0, min(1.0, sin_pitch)) does, a NaN to 1.0, without the two calls)
+    sin_pitch = sin_pitch if sin_pitch < 1.0 else 1.0
+    pitch = math.asin(sin_pitch if sin_pitch > -1.0 else -1.0)
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, yaw
 
 
@@ -554,15 +576,24 @@ def quat_from_euler_tuple(
     roll_rad: float, pitch_rad: float, yaw_rad: float
 ) -> tuple[float, float, float, float]:
     """`quat_from_euler` as plain floats."""
-    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
-    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
-    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
-    return (
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    )
+    half = roll_rad / 2
+    cr, sr = math.cos(half), math.sin(half)
+    half = pitch_rad / 2
+    cp, sp = math.cos(half), math.sin(half)
+    half = yaw_rad / 2
+    cy, sy = math.cos(half), math.sin(half)
+    # (cr * cp * cy is (cr * cp) * cy: each pair's product made once)
+    crcp, srsp, srcp, crsp = cr * cp, sr * sp, sr * cp, cr * sp
+    return crcp * cy + srsp * sy, srcp * cy - crsp * sy, crsp * cy + srcp * sy, crcp * sy - srsp * cy
+
+
+def quat_ned_frd_from_euler(
+    roll_rad: float, pitch_rad: float, yaw_rad: float
+) -> tuple[float, float, float, float]:
+    """The attitude of aerospace Z-Y-X Euler angles of body FLU -> world ENU (rad) as body FRD -> world NED
+    (w, x, y, z; unit, w >= 0): `quat_enu_flu_to_ned_frd_tuple` of `quat_from_euler_tuple`."""
+    w, x, y, z = quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad)
+    return quat_enu_flu_to_ned_frd_tuple(w, x, y, z)
 
 
 # --- PX4 custom modes (HEARTBEAT.custom_mode) ------------------------------------------------

@@ -35,8 +35,7 @@ from hil.link.mavlink import (
     decode_frame,
     mav,
     px4_mode_parts,
-    quat_enu_flu_to_ned_frd_tuple,
-    quat_from_euler_tuple,
+    quat_ned_frd_from_euler,
 )
 from hil.link.transport import Transport
 
@@ -116,6 +115,8 @@ class CommandLink:
                                            accept_ids=USED_MSG_IDS, raw_ids=RAW_MSG_IDS)
         self.clock = clock
         self.target_system = target_system
+        #: whether a read shorter than `SHORT_READ_BYTES` took all there was (the transport's kind)
+        self._short_read_is_all = getattr(self.codec.transport, "short_read_is_all", False)
         self.status: FcStatus | None = None
         self.acks: dict[int, CommandAck] = {}
         self.status_texts: list[str] = []
@@ -162,8 +163,7 @@ class CommandLink:
         data = transport.recv(timeout_s, READ_BYTES)
         msgs = codec.feed(data) if data else []
         # drain what is waiting; on a stream whose short read took it all, no second (empty) read
-        all_read = getattr(transport, "short_read_is_all", False)
-        while data and not (all_read and len(data) < SHORT_READ_BYTES):
+        while data and not (self._short_read_is_all and len(data) < SHORT_READ_BYTES):
             data = transport.recv(0.0, READ_BYTES)
             if data:
                 msgs.extend(codec.feed(data))
@@ -196,7 +196,8 @@ class CommandLink:
         if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
             self.foreign["ticks"] += 1
             return
-        self._on_tick(*read_tick_frame(frame))
+        tick_s, mocap_total = read_tick_frame(frame)
+        self._on_tick(tick_s, mocap_total)
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
         """A lockstep tick request at ``tick_s`` (s), or the harness's mocap byte total (None: not)."""
@@ -280,7 +281,7 @@ class CommandLink:
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
+        q = quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad)
         thrust = clipped_thrust(thrust)
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
         payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from hil.link import dji_open as dj
 from hil.link.clock import Clock
 from hil.link.lockstep import dji_answer_payload, dji_read_tick
-from hil.link.mavlink import euler_from_quat, mav, quat_enu_flu_to_ned_frd_tuple, quat_from_euler_tuple
+from hil.link.mavlink import euler_from_quat, mav, quat_ned_frd_from_euler
 from hil.link.transport import Transport
 from policies.onboard.command_link import CommandAck, CommandLink, clipped_thrust
 
@@ -49,6 +49,10 @@ _ACTIVATE = (dj.SET_ACTIVATION, dj.CMD_ACTIVATE)
 _RATES = (dj.SET_ACTIVATION, dj.CMD_BROADCAST_FREQ)
 _SUB_VERSION = (dj.SET_SUBSCRIBE, dj.CMD_SUB_VERSION)
 _SUB_ADD = (dj.SET_SUBSCRIBE, dj.CMD_SUB_ADD)
+#: the FC's commands the program acts on, as their first two data bytes (command set, command id)
+_TICK = bytes((dj.SET_HIL, dj.CMD_HIL_TICK))
+_PACKAGE_DATA = bytes((dj.SET_BROADCAST, dj.CMD_SUBSCRIPTION_DATA))
+_CONTROL_LOST = bytes((dj.SET_BROADCAST, dj.CMD_CONTROL_LOST))
 #: the setup after activation, in order: each step's command and payload
 _SETUP = ((_RATES, BROADCAST_RATES), (_SUB_VERSION, struct.pack("<I", dj.SUB_DB_VERSION)),
           (_SUB_ADD, _PACKAGE))
@@ -106,19 +110,20 @@ class DjiCommandLink(CommandLink):
         return out
 
     def _handle(self, f: dj.Frame) -> None:  # type: ignore[override]
-        now = self.clock.now_s()
         if f.is_ack:
+            now = self.clock.now_s()
             if self.codec.match_ack(f, now) is not None:
                 self._take_acks(now)
             return
-        key = (f.cmd_set, f.cmd_id)
-        if key == (dj.SET_HIL, dj.CMD_HIL_TICK):
-            tick_s, mocap_total = dji_read_tick(f.payload)
+        data = f.data
+        command = data[:2]  # (`Frame.cmd_set` and `cmd_id` as they stand in the data)
+        if command == _TICK:
+            tick_s, mocap_total = dji_read_tick(data[2:])
             self._on_tick(None, mocap_total)
             self._on_tick(tick_s, None)
-        elif key == (dj.SET_BROADCAST, dj.CMD_SUBSCRIPTION_DATA):
-            self._on_package(f.payload, now)
-        elif key == (dj.SET_BROADCAST, dj.CMD_CONTROL_LOST):
+        elif command == _PACKAGE_DATA:
+            self._on_package(data[2:], self.clock.now_s())
+        elif command == _CONTROL_LOST:
             self.control_lost += 1
             self._device = dj.DEVICE_RC
             self.status_texts.append("control authority lost")
@@ -224,7 +229,7 @@ class DjiCommandLink(CommandLink):
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        q = quat_enu_flu_to_ned_frd_tuple(*quat_from_euler_tuple(roll_rad, pitch_rad, yaw_rad))
+        q = quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad)
         roll, pitch, yaw = euler_from_quat(q)
         percent = 100.0 * clipped_thrust(thrust)
         payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
