@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from policies.compiling import Kernel
 from policies.frames import GRAVITY_M_S2
 
 
@@ -54,8 +55,6 @@ def expert_command_batch(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref
     thrust (N), each of shape (...). Non-finite inputs give NaN outputs for that sample (callers
     holding a vehicle must not send them; ``ExpertController.command`` raises instead). The same
     numbers as ``ExpertController.command`` sample by sample (`expert_law`, compiled, row by row)."""
-    from policies.kernels import expert_law_rows  # (imported here: the kernels import this module)
-
     if not (math.isfinite(mass_kg) and mass_kg > 0):
         raise ValueError("mass_kg must be positive")
     vecs = [np.asarray(x, float) for x in (pos_ref_m, vel_ref_m_s, acc_ref_m_s2, pos_m, vel_m_s)]
@@ -64,7 +63,7 @@ def expert_command_batch(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref
     rows = [np.ascontiguousarray(np.broadcast_to(v, (*shape, 3))).reshape(-1, 3) for v in vecs]
     yaws = np.ascontiguousarray(np.broadcast_to(yaw, shape)).reshape(-1)
     out = np.empty((yaws.size, 3))
-    expert_law_rows(*rows, yaws, mass_kg, gains_array(gains), out)
+    EXPERT_LAW_ROWS.get()(*rows, yaws, mass_kg, gains_array(gains), out)
     return (out[:, 0].reshape(shape), out[:, 1].reshape(shape), yaws.reshape(shape).copy(),
             out[:, 2].reshape(shape))
 
@@ -85,9 +84,8 @@ class ExpertController:
         self.mass_kg = mass_kg
         self.gains = gains or ExpertGains()
         self.gains_array = gains_array(self.gains)  # (`expert_law`'s form, made once)
-        from policies.kernels import expert_law  # (imported here: the kernels import this module)
 
-        self._law = expert_law
+        self._law = EXPERT_LAW.get()
 
     def command(self, pos_ref_m: object, vel_ref_m_s: object, acc_ref_m_s2: object, yaw_ref_rad: float,
                 pos_m: object, vel_m_s: object) -> AttitudeThrustCommand:
@@ -139,7 +137,7 @@ def expert_law(prx: float, pry: float, prz: float, vrx: float, vry: float, vrz: 
     """The expert law (module docstring) on x, y, z components of the reference position (m), velocity
     (m/s) and acceleration (m/s^2), the position (m) and velocity (m/s), with the desired yaw (rad), the
     mass (kg) and the gains ``g`` (`gains_array`): roll, pitch (rad) and thrust (N). Compiled by numba
-    (`policies.kernels`), which is how it runs; non-finite inputs give NaN."""
+    (`policies.compiling`), which is how it runs; non-finite inputs give NaN."""
     mp, mv = g[7], g[8]
     ex, ey, ez = _clip(prx - px, mp), _clip(pry - py, mp), _clip(prz - pz, mp)
     fx, fy, fz = _clip(vrx - vx, mv), _clip(vry - vy, mv), _clip(vrz - vz, mv)
@@ -166,7 +164,7 @@ def expert_law_rows(pos_ref_m: np.ndarray, vel_ref_m_s: np.ndarray, acc_ref_m_s2
                     pos_m: np.ndarray, vel_m_s: np.ndarray, yaw_rad: np.ndarray, mass_kg: float,
                     g: np.ndarray, out: np.ndarray) -> None:
     """`expert_law` of each row of the (N, 3) arrays and ``yaw_rad`` (N,) into ``out`` (N, 3: roll,
-    pitch, thrust); compiled by numba (`policies.kernels`)."""
+    pitch, thrust); compiled by numba (`policies.compiling`)."""
     for i in range(yaw_rad.shape[0]):
         pr, vr, ar, p, v = pos_ref_m[i], vel_ref_m_s[i], acc_ref_m_s2[i], pos_m[i], vel_m_s[i]
         out[i, 0], out[i, 1], out[i, 2] = expert_law(pr[0], pr[1], pr[2], vr[0], vr[1], vr[2], ar[0], ar[1],
@@ -193,3 +191,10 @@ def limit_tilt_step(cmd: AttitudeThrustCommand, last: AttitudeThrustCommand,
     if r2 == r and p2 == p:
         return cmd
     return _new_command(r2, p2, cmd.thrust_n, cmd.yaw_rad)
+
+
+_CLIP = Kernel(_clip)
+#: roll, pitch (rad), thrust (N) of the expert law, compiled: `expert_law`
+EXPERT_LAW = Kernel(expert_law, _clip=_CLIP)
+#: `expert_law` row by row, compiled: `expert_law_rows`
+EXPERT_LAW_ROWS = Kernel(expert_law_rows, expert_law=EXPERT_LAW)

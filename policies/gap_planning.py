@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from policies.compiling import Kernel
 from policies.frames import GRAVITY_VEC_M_S2, euler_to_matrix, quat_to_matrix
 from policies.primitives import Feasibility, FloatTrajectory, Plane, Trajectory, _poly_state, solve_floats
 
@@ -552,7 +553,7 @@ class MissionPlan:
     def reference_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3, float]:
         """`reference` in plain floats: position (m), velocity (m/s), acceleration (m/s^2) as (x, y, z)
         tuples and the yaw (rad); the same numbers, for the per-step paths (`plan_reference`)."""
-        r = _compiled_reference()(self.packed, float(t))
+        r = PLAN_REFERENCE.get()(self.packed, float(t))
         return (r[0], r[1], r[2]), (r[3], r[4], r[5]), (r[6], r[7], r[8]), r[9]
 
     @functools.cached_property
@@ -592,14 +593,6 @@ def poly_packed(traj: Trajectory) -> np.ndarray:
     return k
 
 
-@functools.cache
-def _compiled_reference() -> Any:
-    """`plan_reference` compiled (imported on first use: the kernels import this module)."""
-    from policies.kernels import plan_reference
-
-    return plan_reference
-
-
 def segment_index(t: float, t_traverse_s: float, t_recovery_s: float, t_hover_s: float) -> int:
     """Which segment mission time ``t`` (s) is in, given their start times (s): 0 the approach (also
     before 0), 1 the traverse, 2 the recovery, 3 the hover."""
@@ -630,7 +623,7 @@ def _poly_axes(k: np.ndarray, at: int, t: float) -> tuple[float, ...]:
 def plan_reference(k: np.ndarray, t: float) -> tuple[float, ...]:
     """The reference of the plan packed in ``k`` (`MissionPlan.packed`) at mission time ``t`` (s):
     position (m), velocity (m/s), acceleration (m/s^2) as x, y, z each, then the yaw (rad). Before 0 the
-    start state, after the end the hover. Compiled by numba (`policies.kernels`), which is how it runs."""
+    start state, after the end the hover. Compiled by numba (`policies.compiling`), which is how it runs."""
     seg = segment_index(t, k[0], k[1], k[2])
     if seg == 0:
         px, py, pz, vx, vy, vz, ax, ay, az = _poly_axes(k, _PLAN_APPROACH, 0.0 if t < 0.0 else t)
@@ -645,6 +638,14 @@ def plan_reference(k: np.ndarray, t: float) -> tuple[float, ...]:
         px, py, pz = k[_PLAN_HOVER], k[_PLAN_HOVER + 1], k[_PLAN_HOVER + 2]
         vx = vy = vz = ax = ay = az = 0.0
     return px, py, pz, vx, vy, vz, ax, ay, az, k[3]
+
+
+_POLY_STATE = Kernel(_poly_state)
+#: `_poly_axes` compiled (the take-off's command reads its polynomial with it too)
+POLY_AXES = Kernel(_poly_axes, _poly_state=_POLY_STATE)
+#: `plan_reference` compiled
+PLAN_REFERENCE = Kernel(plan_reference, segment_index=Kernel(segment_index), _poly_axes=POLY_AXES,
+                        ballistic_state=Kernel(ballistic_state))
 
 
 #: approach durations (s) the search tries after the one asked for, nearest to it first (the recovery's step)

@@ -1,4 +1,4 @@
-"""The onboard computer's compiled chains (`policies.kernels`): where they are cached, and the plan's
+"""The onboard computer's compiled chains (`policies.compiling`): where they are cached, and the plan's
 reference they compute segment by segment."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from policies.compiling import cache_folder
 from policies.gap_planning import BodyClearance, GapPose, LabVolume, MissionRequest
-from policies.kernels import cache_folder
 
 
 def test_the_cache_folder_changes_with_any_source_the_kernels_compile(tmp_path: Path, monkeypatch) -> None:

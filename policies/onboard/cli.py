@@ -10,11 +10,17 @@ from types import FrameType
 
 from hil.link.endpoint import open_link
 from hil.link.transport import LinkError
-from policies import kernels
 from policies.onboard.command_links import COMMAND_LINKS
 from policies.onboard.estimator import EstimatorConfig
 from policies.onboard.pilots import PILOTS
-from policies.onboard.program import EXIT_ERROR, MIN_RATE_HZ, EventLog, OnboardProgram, ProgramConfig
+from policies.onboard.program import (
+    EXIT_ERROR,
+    MIN_RATE_HZ,
+    EventLog,
+    OnboardProgram,
+    ProgramConfig,
+    warm_kernels,
+)
 from policies.vehicle import DEFAULT_VEHICLE, load_vehicle, vehicle_names
 
 
@@ -126,7 +132,7 @@ def run(args: argparse.Namespace, prog_name: str = "onboard") -> int:
         return 2
     # the compiled kernels loaded (or compiled, on a cold cache: many seconds) before the links open, so
     # that no mocap stream piles up unread on a port meanwhile
-    kernels.warm()
+    warm_kernels()
     try:
         command = open_link(args.command_link, "onboard")
     except (ValueError, OSError) as exc:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.link.mavlink import euler_from_quat
+from policies.compiling import Kernel
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,7 @@ class PoseEstimator:
     The per-axis filters share one covariance (the same model and measurements on every axis), kept as
     the six scalars of the symmetric 3x3 matrix; the products with F and Q are written out. A pose goes in
     through `take_pose` and the state comes out through `predicted_state`, each one compiled call
-    (`policies.kernels`) on the state kept in one array.
+    (`policies.compiling`) on the state kept in one array.
 
     Given the vehicle's acceleration limit ``max_accel_m_s2`` (thrust / mass + g), a pose the vehicle
     cannot have reached from the filter's state is refused (`plausible_jump_m`; counted in ``rejected``
@@ -101,9 +102,7 @@ class PoseEstimator:
         self.implausible = 0  # poses further from the prediction than the vehicle can move
         self.implausible_run = 0  # of those, how many in a row since the latest pose taken
         self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
-        from policies.kernels import predicted_state, take_pose  # (here: the kernels import this module)
-
-        self._take, self._predict = take_pose, predicted_state
+        self._take, self._predict = TAKE_POSE.get(), PREDICTED_STATE.get()
 
     @property
     def ready(self) -> bool:
@@ -249,7 +248,7 @@ def _new_estimate(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, 
 
 
 # --- the filter's arithmetic, on plain floats and tuples: `PoseEstimator` runs it compiled once per pose
-# and control step (`take_pose`, `predicted_state`, `policies.kernels`), and the RL environment compiles
+# and control step (`take_pose`, `predicted_state`, `policies.compiling`), and the RL environment compiles
 # the same functions over its rows (`hil.rl.link_observe`)
 
 
@@ -306,7 +305,7 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
     reset_after_s, latency_s, max_accel_m_s2, max_speed_change_m_s, jump_sigmas): the verdict (`TAKEN`;
     `REJECTED`: out of order, repeated or not finite; `IMPLAUSIBLE`: a jump the vehicle cannot make),
     the implausible jump (m, else 0) and the unit quaternion. `PoseEstimator.take` runs it compiled by
-    numba (`policies.kernels`)."""
+    numba (`policies.compiling`)."""
     qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     reset_after_s = settings[3]
     if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
@@ -337,7 +336,7 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
 def predicted_state(st: np.ndarray, settings: np.ndarray, now_s: float) -> tuple[float, ...]:
     """`PoseEstimator.state_tuples`'s numbers from the state ``st`` (`take_pose`'s): position (m), velocity
     (m/s) and acceleration (m/s^2) predicted to ``now_s`` (s, reader clock), x, y, z each. Run compiled by
-    numba (`policies.kernels`)."""
+    numba (`policies.compiling`)."""
     h = prediction_horizon_s(now_s - st[_RECEIVED], settings[4], st[_DELAY], st[_MEAN_DELAY], settings[3])
     x = (st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7], st[8])
     px, py, pz, vx, vy, vz = predicted(x, h)
@@ -368,3 +367,12 @@ def predicted(x: tuple, h: float) -> tuple:
     hh = h * h / 2
     return (px + vx * h + ax * hh, py + vy * h + ay * hh, pz + vz * h + az * hh,
             vx + ax * h, vy + ay * h, vz + az * h)
+
+
+_PREDICTED = Kernel(predicted)
+#: one pose into the estimator's state, compiled: `take_pose`
+TAKE_POSE = Kernel(take_pose, filter_update=Kernel(filter_update), predicted=_PREDICTED,
+                   plausible_jump_m=Kernel(plausible_jump_m))
+#: the estimator's state predicted, compiled: `predicted_state`
+PREDICTED_STATE = Kernel(predicted_state, prediction_horizon_s=Kernel(prediction_horizon_s),
+                         predicted=_PREDICTED)

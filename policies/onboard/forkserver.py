@@ -53,7 +53,7 @@ from policies.vehicle import DEFAULT_VEHICLE, load_vehicle
 #: the program the children run (as ``python -m MODULE``)
 MODULE = "policies.onboard"
 #: the modules the server imports before it forks (the pilots: see `_preload`)
-PRELOAD = ("numpy", "serial", "policies.onboard.cli", "policies.kernels")
+PRELOAD = ("numpy", "serial", "policies.onboard.cli")
 MAX_MESSAGE_BYTES = 1 << 16
 #: the server's messages on a run's channel ({"pid": N}, {"exit": code}) are far shorter (polled each tick)
 CHANNEL_MESSAGE_BYTES = 256
@@ -81,7 +81,7 @@ def _preload(pilot: str | None) -> None:
     if not key:  # what the program loads on its first use of them: its options, vehicle files, kernels
         add_arguments(argparse.ArgumentParser())
         load_vehicle(DEFAULT_VEHICLE)
-        importlib.import_module("policies.kernels").warm()
+        importlib.import_module("policies.onboard.program").warm_kernels()
     if pilot:
         with contextlib.suppress(Exception):  # an unknown pilot is the program's to refuse, cold or warm
             PILOTS.load(pilot)

@@ -33,6 +33,7 @@ when the FC gets there.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import select
@@ -49,14 +50,21 @@ from hil.link.linktrack import BODY_IDS
 from hil.link.mavlink import mav
 from hil.link.transport import LinkError, Transport, wait_readable
 from policies.controller import (
+    EXPERT_LAW,
+    EXPERT_LAW_ROWS,
     AttitudeThrustCommand,
     ExpertController,
     ExpertGains,
     _new_command,
+    gains_array,
     limit_tilt_step,
 )
 from policies.frames import GRAVITY_M_S2
 from policies.gap_planning import (
+    _PLAN_APPROACH,
+    _PLAN_RECOVERY,
+    PLAN_FLOATS,
+    PLAN_REFERENCE,
     BodyClearance,
     GapPose,
     LabVolume,
@@ -77,6 +85,7 @@ from policies.onboard.estimator import (
     plausible_jump_m,
 )
 from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
+from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
@@ -305,6 +314,28 @@ class _Request:
         return None
 
 
+@functools.cache
+def warm_kernels() -> None:
+    """Compile (or load from the cache) every kernel the program calls (`policies.compiling`), for the
+    argument types it passes; once a process (a process forked after it has them)."""
+    g = gains_array(ExpertGains())
+    EXPERT_LAW.get()(*(0.0,) * 16, 0.9, g)
+    one = np.zeros((1, 3))
+    EXPERT_LAW_ROWS.get()(one, one, one, one, one, np.zeros(1), 0.9, g, np.empty((1, 3)))
+    plan = np.zeros(PLAN_FLOATS)
+    plan[[_PLAN_APPROACH, _PLAN_RECOVERY]] = 6.0
+    plan.flags.writeable = False  # (as `MissionPlan.packed`: numba compiles a read-only array apart)
+    for t in (-1.0, 0.0, 1.0):
+        PLAN_REFERENCE.get()(plan, t)
+        TRADITIONAL_COMMAND.get()(plan, t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, g)
+        TRACKING_COMMAND.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                               0.0, 0.9, g)
+    est = PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)
+    for k in range(3):
+        est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
+    est.state_tuples(0.05)
+
+
 class OnboardProgram:
     """The onboard program on a command link (MAVLink to the FC) and a mocap link (LinkTrack frames)."""
 
@@ -312,11 +343,7 @@ class OnboardProgram:
                  config: ProgramConfig | None = None, *, pilot: Pilot | None = None,
                  events: EventLog | None = None) -> None:
         self.config = cfg = config or ProgramConfig()
-        # (imported here: the kernels import this package) once a process, so that no control step waits
-        # for a kernel's compilation or cache load
-        from policies.kernels import tracking_command, warm
-
-        warm()
+        warm_kernels()  # (once a process: no control step waits for a kernel's compilation or cache load)
         self.clock = ProgramClock()
         self.link: OnboardLink = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
         self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
@@ -349,7 +376,7 @@ class OnboardProgram:
         self._mission_start_s = 0.0
         #: trajectory, its `poly_packed` form, yaw0, yaw1, start
         self._takeoff: tuple[Any, np.ndarray, float, float, float] | None = None
-        self._track = tracking_command
+        self._track = TRACKING_COMMAND.get()
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
         # the most the commanded roll and pitch move in a control step from the traverse on (rad; the
         # vehicle's body rate times the period), so that the pull-out asks no faster turn than the FC makes:

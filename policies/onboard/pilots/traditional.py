@@ -7,8 +7,16 @@ import math
 
 import numpy as np
 
-from policies.controller import AttitudeThrustCommand, ExpertController, ExpertGains, _new_command, expert_law
-from policies.gap_planning import _poly_axes, plan_reference
+from policies.compiling import Kernel
+from policies.controller import (
+    EXPERT_LAW,
+    AttitudeThrustCommand,
+    ExpertController,
+    ExpertGains,
+    _new_command,
+    expert_law,
+)
+from policies.gap_planning import PLAN_REFERENCE, POLY_AXES, _poly_axes, plan_reference
 from policies.onboard.pilots import Observation, PilotContext, flown_by
 
 
@@ -17,11 +25,9 @@ class TraditionalPilot:
     compiled call a step: `traditional_command`)."""
 
     def __init__(self, mass_kg: float = 0.9, max_tilt_deg: float = 75.0) -> None:
-        from policies.kernels import traditional_command  # (here: the kernels import this module)
-
         self.controller = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
         self.flies = flown_by()
-        self._step = traditional_command
+        self._step = TRADITIONAL_COMMAND.get()
         self._mass_kg, self._gains = self.controller.mass_kg, self.controller.gains_array
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
@@ -41,7 +47,7 @@ def traditional_command(plan: np.ndarray, t_s: float, px: float, py: float, pz: 
                         vz: float, mass_kg: float, gains: np.ndarray) -> tuple[float, float, float, float]:
     """The pilot's command at mission time ``t_s`` (s) for the plan packed in ``plan`` (`MissionPlan.packed`)
     and the state ``p`` (m), ``v`` (m/s): `expert_law` on `plan_reference`, roll, pitch, yaw (rad) and
-    thrust (N). Compiled by numba (`policies.kernels`), which is how it runs."""
+    thrust (N). Compiled by numba (`policies.compiling`), which is how it runs."""
     prx, pry, prz, vrx, vry, vrz, arx, ary, arz, yaw = plan_reference(plan, t_s)
     roll, pitch, thrust = expert_law(prx, pry, prz, vrx, vry, vrz, arx, ary, arz, px, py, pz, vx, vy, vz, yaw,
                                      mass_kg, gains)
@@ -52,7 +58,7 @@ def tracking_command(poly: np.ndarray, t_s: float, yaw: float, px: float, py: fl
                      vy: float, vz: float, mass_kg: float, gains: np.ndarray) -> tuple[float, float, float]:
     """`expert_law` on the reference of the trajectory packed in ``poly`` (`gap_planning.poly_packed`) at
     ``t_s`` (s) with the yaw ``yaw`` (rad), for the state ``p`` (m), ``v`` (m/s): roll, pitch (rad) and
-    thrust (N) (the onboard program's take-off). Compiled by numba (`policies.kernels`), which is how it
+    thrust (N) (the onboard program's take-off). Compiled by numba (`policies.compiling`), which is how it
     runs."""
     prx, pry, prz, vrx, vry, vrz, arx, ary, arz = _poly_axes(poly, 0, t_s)
     return expert_law(prx, pry, prz, vrx, vry, vrz, arx, ary, arz, px, py, pz, vx, vy, vz, yaw, mass_kg,
@@ -61,3 +67,9 @@ def tracking_command(poly: np.ndarray, t_s: float, yaw: float, px: float, py: fl
 
 def make_pilot(context: PilotContext) -> TraditionalPilot:
     return TraditionalPilot(context.mass_kg, context.max_tilt_deg)
+
+
+#: the pilot's command, compiled: `traditional_command`
+TRADITIONAL_COMMAND = Kernel(traditional_command, plan_reference=PLAN_REFERENCE, expert_law=EXPERT_LAW)
+#: the take-off's command, compiled: `tracking_command`
+TRACKING_COMMAND = Kernel(tracking_command, _poly_axes=POLY_AXES, expert_law=EXPERT_LAW)
