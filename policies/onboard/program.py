@@ -362,6 +362,7 @@ class OnboardProgram:
         self._stale_mocap_s, self._full_thrust_n = cfg.stale_mocap_s, cfg.full_thrust_n
         self._heartbeat_period_s, self._max_catch_up_steps = cfg.heartbeat_period_s, cfg.max_catch_up_steps
         self._send_attitude_target = self.link.send_attitude_target
+        self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
@@ -734,8 +735,8 @@ class OnboardProgram:
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
         # (the reader's numbers are plain floats: the estimator takes them without converting)
         if body_id == GAP_BODY_ID:
-            self.gap_check.update(pos_m, quat_wxyz, received_s)
-        elif body_id == VEHICLE_BODY_ID and not self.estimator.take(stamp_s, pos_m, quat_wxyz, received_s):
+            self._gap_update(pos_m, quat_wxyz, received_s)
+        elif body_id == VEHICLE_BODY_ID and not self._estimator_take(stamp_s, pos_m, quat_wxyz, received_s):
             jumps = self.mocap.clock_jumps
             if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
                 self._clock_jumps = jumps
