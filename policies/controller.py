@@ -186,8 +186,10 @@ def limit_tilt_step(cmd: AttitudeThrustCommand, last: AttitudeThrustCommand,
     command that turns no faster than the FC can (its body rate times the control period); yaw and
     thrust as they are."""
     r, p, lr, lp = cmd.roll_rad, cmd.pitch_rad, last.roll_rad, last.pitch_rad
-    r2 = lr + max_step_rad if r > lr + max_step_rad else (lr - max_step_rad if r < lr - max_step_rad else r)
-    p2 = lp + max_step_rad if p > lp + max_step_rad else (lp - max_step_rad if p < lp - max_step_rad else p)
+    hi, lo = lr + max_step_rad, lr - max_step_rad
+    r2 = hi if r > hi else (lo if r < lo else r)
+    hi, lo = lp + max_step_rad, lp - max_step_rad
+    p2 = hi if p > hi else (lo if p < lo else p)
     if r2 == r and p2 == p:
         return cmd
     return _new_command(r2, p2, cmd.thrust_n, cmd.yaw_rad)

@@ -383,7 +383,13 @@ class OnboardProgram:
         # a command swinging across from its tilt limit in 0.1 s is one the f450's FC trails by 20 deg, and
         # at 70 deg the n3's command swung 10-20 deg a tick while the body was still turning through level
         self._tilt_step_rad = cfg.max_body_rate_rad_s * cfg.period_s
+        self._lead_s = cfg.control_lead_s
         self._period_s = cfg.period_s  # (the control period, s: a property of the frozen config, read once)
+        # (the frozen config's and the link's per-tick numbers and method, bound once)
+        self._stale_mocap_s, self._full_thrust_n = cfg.stale_mocap_s, cfg.full_thrust_n
+        self._heartbeat_period_s, self._max_catch_up_steps = cfg.heartbeat_period_s, cfg.max_catch_up_steps
+        self._send_attitude_target = self.link.send_attitude_target
+        self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
@@ -444,14 +450,14 @@ class OnboardProgram:
                              clock_zero_monotonic_s=self._clock_zero_monotonic_s)
         if now_s >= self._next_heartbeat_s:
             self.link.send_heartbeat()
-            self._next_heartbeat_s = now_s + self.config.heartbeat_period_s
+            self._next_heartbeat_s = now_s + self._heartbeat_period_s
         self._transitions(now_s)
         if self.phase in FINAL_PHASES or self._next_control_s is None:
             return
         period = self._period_s
         steps = 0
         while self._next_control_s <= now_s and self.phase not in FINAL_PHASES:
-            if steps >= self.config.max_catch_up_steps:
+            if steps >= self._max_catch_up_steps:
                 missed = math.floor((now_s - self._next_control_s) / period) + 1
                 self.skipped_steps += missed
                 self._next_control_s += missed * period
@@ -472,7 +478,7 @@ class OnboardProgram:
 
     def _mocap_fresh(self, now_s: float) -> bool:
         """Whether the estimator has taken a vehicle pose within ``stale_mocap_s`` of ``now_s``."""
-        return self.estimator.age_s(now_s) <= self.config.stale_mocap_s
+        return self.estimator.age_s(now_s) <= self._stale_mocap_s
 
     def _transitions(self, now_s: float) -> None:
         cfg, ph = self.config, self.phase
@@ -480,8 +486,9 @@ class OnboardProgram:
             self._finish(Phase.FAILED, EXIT_ERROR, "fc_lost", phase=str(ph),
                          silence_s=round(self.link.heartbeat_age_s(now_s), 3))
             return
-        if ph in _FRESH_STATE and not self._mocap_fresh(now_s):
-            est = self.estimator
+        est = self.estimator
+        # (`_mocap_fresh`, its call folded in: per tick)
+        if ph in _FRESH_STATE and not est.age_s(now_s) <= self._stale_mocap_s:
             if est.implausible_run:  # the poses came, but none the vehicle could have flown to
                 self._abort(now_s, "implausible_mocap", age_s=round(est.age_s(now_s), 4),
                             refused=est.implausible_run, jump_m=round(est.latest_jump_m, 3))
@@ -637,15 +644,16 @@ class OnboardProgram:
         self._go(Phase.MISSION, now_s)
 
     def _mission_progress(self, now_s: float) -> None:
-        assert self.plan is not None
+        plan = self.plan
+        assert plan is not None
         t = now_s - self._mission_start_s
-        seg = self.plan.segment_at(t)
+        seg = plan.segment_at(t)
         if seg is not self.segment:
             self.segment = seg
             est = self.estimator.estimate(now_s)
             self.events.emit("segment", now_s, segment=str(seg), mission_t_s=round(t, 3), pos_m=est.pos_m,
                              vel_m_s=est.vel_m_s)
-        if t >= self.plan.t_hover_start_s + self.config.hover_s:
+        if t >= plan.t_hover_start_s + self.config.hover_s:
             est = self.estimator.estimate(now_s)
             err = float(np.linalg.norm(est.pos_m - np.array(self.plan.hover_m)))
             self.events.emit("mission_done", now_s, pos_m=est.pos_m, hover_error_m=round(err, 3))
@@ -696,8 +704,8 @@ class OnboardProgram:
         """Send ``cmd``; one that is not finite is refused (counted in ``commands_refused``) and, unless
         the program is aborting already, aborts to the safe hover."""
         try:
-            self.link.send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
-                                           cmd.thrust_n / self.config.full_thrust_n)
+            self._send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
+                                       cmd.thrust_n / self._full_thrust_n)
         except ValueError as exc:
             self.commands_refused += 1
             if self.phase is not _ABORTING:
@@ -716,7 +724,7 @@ class OnboardProgram:
         if ph is _ABORTING:
             self._send_safe_hover()
             return
-        lead = self.config.control_lead_s
+        lead = self._lead_s
         pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         t_s += lead
         if ph in _LEVEL:
@@ -737,26 +745,25 @@ class OnboardProgram:
                 p, v, a = traj.state_tuples(tau)
                 self._send(self.expert.command(p, v, a, yaw, pos, vel))
         elif ph in _PILOTED:
-            assert self.plan is not None and self.gap is not None
+            plan = self.plan
+            assert plan is not None and self.gap is not None
+            t_mission = t_s - self._mission_start_s
             cmd = self.pilot.command(FloatObservation.of_floats(
-                t_s - self._mission_start_s, pos, vel, acc, self.estimator.quat_wxyz, self.gap, self.plan))
-            if self._last_cmd is not None and self._turns_limited(t_s):
-                cmd = limit_tilt_step(cmd, self._last_cmd, self._tilt_step_rad)
+                t_mission, pos, vel, acc, self.estimator.quat_wxyz, self.gap, plan))
+            # the command turns at most at the FC's body rate from the traverse on (the traverse, the
+            # pull-out, the hover), not in the approach, which rolls the body into the gap's tilt before
+            # the wall (the planner lets it ask up to twice the rate there)
+            last = self._last_cmd
+            if last is not None and plan.segment_at(t_mission) is not _APPROACH:
+                cmd = limit_tilt_step(cmd, last, self._tilt_step_rad)
             self._send(cmd)
-
-    def _turns_limited(self, t_s: float) -> bool:
-        """Whether the command at ``t_s`` (s, the program's clock) turns at most at the FC's body rate:
-        from the traverse on (the traverse, the pull-out, the hover), not in the approach, which rolls the
-        body into the gap's tilt before the wall (the planner lets it ask up to twice the rate there)."""
-        assert self.plan is not None
-        return self.plan.segment_at(t_s - self._mission_start_s) is not _APPROACH
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
         # (the reader's numbers are plain floats: the estimator takes them without converting)
         if body_id == GAP_BODY_ID:
-            self.gap_check.update(pos_m, quat_wxyz, received_s)
-        elif body_id == VEHICLE_BODY_ID and not self.estimator.take(stamp_s, pos_m, quat_wxyz, received_s):
+            self._gap_update(pos_m, quat_wxyz, received_s)
+        elif body_id == VEHICLE_BODY_ID and not self._estimator_take(stamp_s, pos_m, quat_wxyz, received_s):
             jumps = self.mocap.clock_jumps
             if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
                 self._clock_jumps = jumps
