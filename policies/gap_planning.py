@@ -553,8 +553,13 @@ class MissionPlan:
     def reference_tuples(self, t: float) -> tuple[Vec3, Vec3, Vec3, float]:
         """`reference` in plain floats: position (m), velocity (m/s), acceleration (m/s^2) as (x, y, z)
         tuples and the yaw (rad); the same numbers, for the per-step paths (`plan_reference`)."""
-        r = PLAN_REFERENCE.get()(self.packed, float(t))
+        r = self._reference(self.packed, float(t))
         return (r[0], r[1], r[2]), (r[3], r[4], r[5]), (r[6], r[7], r[8]), r[9]
+
+    @functools.cached_property
+    def _reference(self) -> Any:
+        """`plan_reference` compiled, looked up once a plan (a run's checks ask for a reference a sample)."""
+        return PLAN_REFERENCE.get()
 
     @functools.cached_property
     def packed(self) -> np.ndarray:
