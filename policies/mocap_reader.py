@@ -200,58 +200,57 @@ class MocapReader:
         return accepted
 
     def _feed(self, data: bytes) -> int:
-        """Decode bytes read from the link; returns the mocap frames accepted."""
+        """Decode bytes read from the link and take the valid poses of each good mocap payload; returns
+        the mocap frames accepted."""
         accepted = 0
-        now = self.clock.now_s()
+        now_s = self.clock.now_s()
+        latest, last_stamps = self._latest, self._last_stamp_s
+        on_sample, on_pose = self.on_sample, self.on_pose
+        lo, hi, never, sqrt = _NORM2_LO, _NORM2_HI, _NEVER, math.sqrt  # (locals: read per body)
         for nodes in self._feed_node_data(data):
             taken = 0
-            for node_data in nodes:
-                taken += self._take(node_data, now)
+            for payload in nodes:
+                try:
+                    values = unpack_mocap_payload(payload)
+                except FrameError:
+                    self._bad_payload += 1
+                    continue
+                taken += 1
+                self._frames_ok += 1
+                frame_no = values[2]
+                # a later stamp is from the future or lowers the reference
+                newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
+                for k in range(4, len(values), BODY_VALUES):
+                    body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
+                    pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
+                    norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
+                    stamp_s = stamp_us * 1e-6
+                    last = last_stamps.get(body_id, never)
+                    if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and lo <= norm2 <= hi
+                            and last < stamp_s <= newest_s):
+                        if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
+                            continue
+                        newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
+                    last_stamps[body_id] = stamp_s
+                    norm = sqrt(norm2)
+                    pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
+                    if on_sample is None:
+                        latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)
+                    else:
+                        sample = _new_sample(_body_name(body_id), body_id, np.array(pos), np.array(quat),
+                                             stamp_s, now_s, frame_no)
+                        latest[body_id] = sample
+                        on_sample(sample)
+                    if on_pose is not None:
+                        on_pose(body_id, stamp_s, pos, quat, now_s)
             if not taken:
                 self._bytes_bad_payload += FIXED_LEN + 1 + sum(NODE_HEADER_LEN + len(d) for d in nodes)
             accepted += taken
         return accepted
 
-    def _take(self, payload: bytes, now_s: float) -> int:
-        try:
-            values = unpack_mocap_payload(payload)
-        except FrameError:
-            self._bad_payload += 1
-            return 0
-        self._frames_ok += 1
-        latest, on_sample, on_pose, frame_no = self._latest, self.on_sample, self.on_pose, values[2]
-        last_stamps = self._last_stamp_s
-        # a later stamp is from the future or lowers the reference
-        newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
-        lo, hi, never, sqrt = _NORM2_LO, _NORM2_HI, _NEVER, math.sqrt  # (locals: read per body)
-        for k in range(4, len(values), BODY_VALUES):
-            body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
-            pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
-            norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
-            stamp_s = stamp_us * 1e-6
-            last = last_stamps.get(body_id, never)
-            if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and lo <= norm2 <= hi
-                    and last < stamp_s <= newest_s):
-                if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
-                    continue
-                newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
-            last_stamps[body_id] = stamp_s
-            norm = sqrt(norm2)
-            pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
-            if on_sample is None:
-                latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)
-            else:
-                sample = _new_sample(_body_name(body_id), body_id, np.array(pos), np.array(quat), stamp_s,
-                                     now_s, frame_no)
-                latest[body_id] = sample
-                on_sample(sample)
-            if on_pose is not None:
-                on_pose(body_id, stamp_s, pos, quat, now_s)
-        return 1
-
     def _refuse(self, body_id: int, flags: int, pos_sum: float, norm2: float, stamp_s: float, now_s: float,
                 last: float) -> bool:
-        """Whether a body record that failed the quick checks of `_take` is refused (counted by kind), or
+        """Whether a body record that failed the quick checks of `_feed` is refused (counted by kind), or
         taken after all: a new lowest arrival-minus-stamp, or the frame that confirms a clock jump."""
         refused = self._refused
         if not flags & FLAG_VALID:

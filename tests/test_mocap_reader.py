@@ -19,7 +19,7 @@ from emulator.physics.state import VehicleState
 from emulator.uwb import UwbConfig
 from emulator.world.geometry import Gap
 from hil.link.clock import SimClock, WallClock
-from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame, encode_mocap_payload
+from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
 from hil.link.memory import MemoryTransport
 from hil.link.pty import PtyTransport
 from policies.mocap_reader import CLOCK_JUMP_FRAMES, MocapReader, PoseSample, main
@@ -171,12 +171,12 @@ def test_a_bad_first_stamp_or_a_new_mocap_clock_is_followed_once_frames_agree_on
 def test_reader_samples_are_ordinary_pose_samples():
     a, _b = MemoryTransport.pair()
     got: list[PoseSample] = []
-    reader = MocapReader(a, on_sample=got.append)
+    reader = MocapReader(a, clock=SimClock(2.0), on_sample=got.append)
     packet = MocapPacket(42, (BodySample(1, 1.5, (1.0, 2.0, 3.0), (1.004, 0.0, 0.0, 0.0)),
                               BodySample(7, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
                               BodySample(2, 1.5, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), valid=False),
                               BodySample(3, 1.5, (0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0))))
-    assert reader._take(encode_mocap_payload(packet), 2.0) == 1
+    assert reader._feed(encode_mocap_frame(packet)) == 1
     assert [s.name for s in got] == ["vehicle", "body7"]
     want = PoseSample("vehicle", 1, np.array([1.0, 2.0, 3.0]), np.array([1.0, 0.0, 0.0, 0.0]), 1.5, 2.0, 42)
     s = got[0]

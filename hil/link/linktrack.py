@@ -155,28 +155,33 @@ def encode_node_frame(
     return b"".join((head[0], data, _BYTE[(head[1] + sum8(data)) & 0xFF]))
 
 
-def _node_spans(buf: bytes | bytearray | memoryview) -> list[tuple[int, int]]:
-    """(offset of the node header, data length) of each node of a complete, checked frame."""
-    pos, out = FIXED_LEN, []
-    for _ in range(buf[10]):
+def _node_spans(buf: bytes | bytearray | memoryview, start: int = 0) -> list[tuple[int, int]]:
+    """(offset of the node header, data length) of each node of the complete, checked frame at ``start``."""
+    pos, out = start + FIXED_LEN, []
+    for _ in range(buf[start + 10]):
         dlen = buf[pos + 2] | buf[pos + 3] << 8
         out.append((pos, dlen))
         pos += NODE_HEADER_LEN + dlen
     return out
 
 
-def _node_data(buf: bytes | bytearray | memoryview) -> tuple[bytes, ...]:
-    """The data of each node of a complete, checked frame: `_parse_frame` without the objects."""
-    if buf[10] == 1:  # header at 11 (role, id, data length at 13), data from 15
-        return (bytes(buf[15 : 15 + (buf[13] | buf[14] << 8)]),)
-    return tuple(bytes(buf[p + NODE_HEADER_LEN : p + NODE_HEADER_LEN + n]) for p, n in _node_spans(buf))
+def _node_data(buf: bytes | bytearray | memoryview, start: int = 0) -> tuple[bytes, ...]:
+    """The data of each node of the complete, checked frame at ``start``: `_parse_frame` without the
+    objects."""
+    if buf[start + 10] == 1:  # header at 11 (role, id, data length at 13), data from 15
+        at = start + 15
+        data = buf[at : at + (buf[start + 13] | buf[start + 14] << 8)]
+        return (data if data.__class__ is bytes else bytes(data),)
+    return tuple(bytes(buf[p + NODE_HEADER_LEN : p + NODE_HEADER_LEN + n])
+                 for p, n in _node_spans(buf, start))
 
 
-def _parse_frame(buf: bytes | bytearray | memoryview) -> NodeFrame:
-    """Split a complete, checksum-verified frame into nodes (structure already checked)."""
-    data = _node_data(buf)
-    nodes = tuple(Node(buf[p], buf[p + 1], d) for (p, _), d in zip(_node_spans(buf), data, strict=True))
-    return NodeFrame(role=buf[4], module_id=buf[5], nodes=nodes)
+def _parse_frame(buf: bytes | bytearray | memoryview, start: int = 0) -> NodeFrame:
+    """Split the complete, checksum-verified frame at ``start`` into nodes (structure already checked)."""
+    data = _node_data(buf, start)
+    spans = _node_spans(buf, start)
+    nodes = tuple(Node(buf[p], buf[p + 1], d) for (p, _), d in zip(spans, data, strict=True))
+    return NodeFrame(role=buf[start + 4], module_id=buf[start + 5], nodes=nodes)
 
 
 def decode_frame(data: bytes) -> NodeFrame:
@@ -231,8 +236,9 @@ class FrameDecoder:
         building the frame objects; the same counters."""
         return self._decode(data, _node_data)
 
-    def _decode(self, data: bytes, parse: Callable[[bytes | bytearray], _Parsed]) -> list[_Parsed]:
-        """Add ``data``; return ``parse`` of each frame completed by it (its bytes), in order."""
+    def _decode(self, data: bytes, parse: Callable[[bytes | bytearray, int], _Parsed]) -> list[_Parsed]:
+        """Add ``data``; return ``parse`` of each frame completed by it (the bytes and the frame's offset
+        in them), in order."""
         stats = self.stats
         stats.bytes_in += len(data)
         held = self._buf
@@ -256,7 +262,7 @@ class FrameDecoder:
                 break
             if verdict == "ok":
                 length = buf[start + 2] | (buf[start + 3] << 8)
-                out.append(parse(buf[start:start + length]))  # (all of ``data``: no copy)
+                out.append(parse(buf, start))  # (no copy of the frame)
                 stats.frames_ok += 1
                 stats.bytes_ok += length
                 self._hunting = False

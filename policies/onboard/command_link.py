@@ -200,11 +200,12 @@ class CommandLink:
         self._on_tick(tick_s, mocap_total)
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
-        """A lockstep tick request at ``tick_s`` (s), or the harness's mocap byte total (None: not)."""
+        """The harness's mocap byte total, then a lockstep tick request at ``tick_s`` (s) (None: not
+        said)."""
+        if mocap_total is not None:
+            self.mocap_announced = mocap_total
         if tick_s is not None:
             self._ticks.append(tick_s)
-        elif mocap_total is not None:
-            self.mocap_announced = mocap_total
 
     def _handle(self, m: MAVLinkMessage) -> None:
         kind = m.get_type()

@@ -119,8 +119,7 @@ class DjiCommandLink(CommandLink):
         command = data[:2]  # (`Frame.cmd_set` and `cmd_id` as they stand in the data)
         if command == _TICK:
             tick_s, mocap_total = dji_read_tick(data[2:])
-            self._on_tick(None, mocap_total)
-            self._on_tick(tick_s, None)
+            self._on_tick(tick_s, mocap_total)
         elif command == _PACKAGE_DATA:
             self._on_package(data[2:], self.clock.now_s())
         elif command == _CONTROL_LOST:
