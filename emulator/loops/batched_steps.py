@@ -150,10 +150,12 @@ class FastStepper:
             _hold_batch(x, aux, p, 0.0, 0.0, fc.landed_test, fc.hold_params, gains, mix_inv, out, 0)
         return stepper
 
-    def step(self, n_steps: int) -> None:
-        """Advance ``n_steps`` physics steps."""
+    def step(self, n_steps: int) -> float | None:
+        """Advance ``n_steps`` physics steps; returns the vehicle's time (s) after them on the native
+        backend (None on another: ask the vehicle)."""
         fc = self._fc
         native = self.native
+        time_s = 0.0
         if native:  # (bound once a call: about one batch a call)
             batch_target, dt = fc.batch_target, self._dt_s
             x, aux, p = self._arrays
@@ -179,6 +181,7 @@ class FastStepper:
                 if native:
                     time_s = self._backend.time_s
             n_steps -= n
+        return time_s if native else None
 
     def _hold_steps(self, n_steps: int, time_s: float) -> tuple[int, float]:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air) from
