@@ -41,6 +41,15 @@ LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
 HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
 
 
+def _steps_before(room_s: float, dt_s: float, n_max: int) -> int:
+    """How many of the next ``n_max`` steps of ``dt_s`` (s) begin within ``room_s`` (s) from now (each
+    checked at its start time; inf: all)."""
+    if room_s == math.inf:
+        return n_max
+    n_ok = int(room_s / dt_s) if room_s > 0 else 0
+    return n_max if n_max < n_ok else n_ok
+
+
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
     """Heading (NED yaw, rad) of a body FLU -> world ENU attitude: yaw_ned = pi/2 - yaw_enu."""
     w, x, y, z = quat_wxyz.tolist() if isinstance(quat_wxyz, np.ndarray) else quat_wxyz
@@ -340,21 +349,26 @@ class FlightController:
     def held_target(self) -> AttitudeThrustTarget | None:
         """The offboard attitude target a stepper outside `update` may fly with the inner loop alone (in
         OFFBOARD, a held heading, no yaw rate to integrate), else None; with `quiet_steps` for how long."""
+        return None if self.batch_target(0.0, 1.0, 0) is None else self.target  # type: ignore[return-value]
+
+    def batch_target(self, time_s: float, dt_s: float, n_max: int
+                     ) -> tuple[float, float, float, float, int] | None:
+        """`held_target` and its `quiet_steps` in one call, for a batched stepper: (roll, pitch, yaw (NED,
+        rad), thrust (N), steps (of the next ``n_max`` of ``dt_s`` (s) from ``time_s`` (s))), or None
+        when no target may be flown outside `update`."""
         tg = self.target
-        if (self.machine.state is not FcState.OFFBOARD or not isinstance(tg, AttitudeThrustTarget)
-                or tg.yaw_rate_rad_s is not None):
+        if (self.machine.state is not FcState.OFFBOARD or tg.__class__ is not AttitudeThrustTarget
+                or tg.yaw_rate_rad_s is not None):  # type: ignore[union-attr]
             return None
-        return tg
+        # the setpoint-loss failsafe's time (`quiet_until_s` in OFFBOARD)
+        n = _steps_before(self.last_setpoint_s + self.config.failsafe_timeout_s - time_s, dt_s, n_max)
+        return tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, n  # type: ignore[union-attr]
 
     def quiet_steps(self, time_s: float, dt_s: float, n_max: int) -> int:
         """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed
         change of state (the setpoint-loss failsafe, the failsafe hover's end): steps that a batched
         stepper may fly without `update`'s checks. Landing and arming are not timed here."""
-        room = self.quiet_until_s() - time_s  # (checked before each step, at the step's start time)
-        if room == math.inf:
-            return n_max
-        n_ok = int(room / dt_s) if room > 0 else 0
-        return n_max if n_max < n_ok else n_ok
+        return _steps_before(self.quiet_until_s() - time_s, dt_s, n_max)
 
     def quiet_until_s(self) -> float:
         """When the next timed change of state is due (s; inf: none): the setpoint-loss failsafe in

@@ -4,11 +4,11 @@ together in one numba call for a whole batch of 1 kHz steps (the lockstep runner
 
 It steps through the public contract of its parts: the backend's `NativeBackend.kernel_arrays` and
 `advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd``,
-the FC's `hold_command` parameters, `landed_test`, `quiet_steps` and `flew_outside`. Same arithmetic as
-`EmulatedVehicle.step` (the FC's controller, then one physics step, each millisecond); a batch stops
-before anything the FC's own step would act on: the setpoint-loss timeout, the failsafe hover's end,
-the body reaching the ground. Anything else (other FC states, other backends, yaw-rate targets) takes
-the vehicle's own per-step path.
+the FC's `hold_command` parameters, `landed_test`, `batch_target`, `quiet_steps` and `flew_outside`.
+Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
+millisecond); a batch stops before anything the FC's own step would act on: the setpoint-loss timeout,
+the failsafe hover's end, the body reaching the ground. Anything else (other FC states, other backends,
+yaw-rate targets) takes the vehicle's own per-step path.
 
 numba caches these kernels in a folder per digest of the emulator's sources (`emulator.kernel_cache`):
 a change to a kernel they call from another module (the inner loop with its mixer, the physics step)
@@ -150,53 +150,63 @@ class FastStepper:
             _hold_batch(x, aux, p, 0.0, 0.0, fc.landed_test, fc.hold_params, gains, mix_inv, out, 0)
         return stepper
 
-    def step(self, n_steps: int) -> None:
-        """Advance ``n_steps`` physics steps."""
+    def step(self, n_steps: int) -> float | None:
+        """Advance ``n_steps`` physics steps; returns the vehicle's time (s) after them on the native
+        backend (None on another: ask the vehicle)."""
         fc = self._fc
         native = self.native
+        time_s = 0.0
+        if native:  # (bound once a call: about one batch a call)
+            batch_target, dt = fc.batch_target, self._dt_s
+            x, aux, p = self._arrays
+            gains, mix_inv, out = self._loop
+            landed_test, after_batch = self._landed_test, self._after_batch
+            time_s = self._backend.time_s
         while n_steps > 0:
             n = 0
             if native:
-                tg = fc.held_target()
-                if tg is not None:  # an offboard attitude target: flown in batches
-                    n = fc.quiet_steps(self._backend.time_s, self._dt_s, n_steps)
+                plan = batch_target(time_s, dt, n_steps)
+                if plan is not None:  # an offboard attitude target: flown in batches
+                    roll, pitch, yaw, thrust_n, n = plan
                     if n > 0:
-                        x, aux, p = self._arrays
-                        gains, mix_inv, out = self._loop
-                        landed = _fly_batch(x, aux, p, tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n,
-                                            gains, mix_inv, out, n, self._landed_test)
-                        self._after_batch(n, landed)
+                        landed = _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
+                                            landed_test)
+                        time_s = after_batch(n, landed)
                 if n == 0:
-                    n = self._hold_steps(n_steps)
+                    n, time_s = self._hold_steps(n_steps, time_s)
             if n == 0:
                 self.vehicle.step(1)
                 self.single_steps += 1
                 n = 1
+                if native:
+                    time_s = self._backend.time_s
             n_steps -= n
+        return time_s if native else None
 
-    def _hold_steps(self, n_steps: int) -> int:
-        """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air);
-        returns the steps taken (0: take the per-step path)."""
+    def _hold_steps(self, n_steps: int, time_s: float) -> tuple[int, float]:
+        """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air) from
+        the backend's time ``time_s`` (s); returns the steps taken (0: take the per-step path) and the
+        backend's time after them."""
         fc = self._fc
-        if not self.native or fc.state not in HOLD_STATES or fc.landed:
-            return 0
-        time_s = self._backend.time_s
-        if fc.state is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(time_s):
-            return 0
+        st = fc.machine.state
+        if st not in HOLD_STATES or fc.landed:
+            return 0, time_s
+        if st is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(time_s):
+            return 0, time_s
         n_steps = fc.quiet_steps(time_s, self._dt_s, n_steps)
         if n_steps <= 0:
-            return 0
+            return 0, time_s
         x, aux, p = self._arrays
         yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
         n = _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params, *self._loop,
                         n_steps)
         if n > 0:  # every step began in the air: the FC's landed flag stays as it was
-            self._after_batch(n, None)
-        return n
+            time_s = self._after_batch(n, None)
+        return n, time_s
 
-    def _after_batch(self, n: int, landed: bool | None) -> None:
+    def _after_batch(self, n: int, landed: bool | None) -> float:
         """The counts and the FC's bookkeeping after ``n`` steps flown, the FC's landed test after them
-        ``landed`` (None: not taken)."""
+        ``landed`` (None: not taken); returns the backend's time (s) after them."""
         v = self.vehicle
         time_s = self._backend.advance_clock(n)  # type: ignore[attr-defined]
         v.steps += n
@@ -204,3 +214,4 @@ class FastStepper:
         v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
         # the FC's bookkeeping as its own per-step update would have left it
         self._fc.flew_outside(time_s - self._dt_s, landed)
+        return time_s

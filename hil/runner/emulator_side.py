@@ -280,8 +280,9 @@ class EmulatorSide:
                 t_next = t + 1e-9
             n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
             if n > 0:
-                step(n)
-                t_vehicle = vehicle.time_s
+                t_vehicle = step(n)  # (the stepper's time, or None: the vehicle's)
+                if t_vehicle is None:
+                    t_vehicle = vehicle.time_s
             advance_clock(t_next)
             t = t_next
             if t >= boundary - 1e-12:
