@@ -74,6 +74,7 @@ def sum8(data: bytes) -> int:
 
 CRC16_INIT = 0xFFFF
 _crc_hqx = binascii.crc_hqx  # (CRC-16/CCITT-FALSE's poly and no reflection: `crc16_ccitt`)
+_isfinite = math.isfinite
 
 
 def crc16_ccitt(data: bytes, crc: int = CRC16_INIT) -> int:
@@ -392,12 +393,12 @@ class MocapFrameEncoder:
     module (``role``, ``module_id``) and one sending node (``node_role``, ``node_id``): what
     `encode_node_frame` makes of `encode_mocap_rows`, in one call. Raises FrameError as they do."""
 
-    __slots__ = ("_heads",)
+    __slots__ = ("_forms",)
 
     def __init__(self, role: int = ROLE_TAG, module_id: int = 0, node_role: int = ROLE_ANCHOR,
                  node_id: int = 0) -> None:
-        # the bytes before the data, and their sum, by body count
-        self._heads = tuple(_one_node_head(s.size + _CRC.size, role, module_id, node_role, node_id)
+        # by body count: the payload's packer, the bytes before it in the frame and their sum
+        self._forms = tuple((s.pack, *_one_node_head(s.size + _CRC.size, role, module_id, node_role, node_id))
                             for s in _PAYLOAD_BODIES)
 
     def encode(self, frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
@@ -411,16 +412,17 @@ class MocapFrameEncoder:
         fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, n]
         for body_id, valid, stamp_s, values in rows:
             # a finite sum means every value is finite (inf and NaN propagate); else look closer
-            if len(values) != 7 or not (math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)):
+            if len(values) != 7 or not (_isfinite(sum(values)) or all(_isfinite(v) for v in values)):
                 raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
             if not 0 <= stamp_s < 1.8e13:
                 raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
             if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
                 _u8("body id", body_id)
-            fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
-        payload = _PAYLOAD_BODIES[n].pack(*fields)
+            fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6))
+            fields += values
+        pack, head, head_sum = self._forms[n]
+        payload = pack(*fields)
         crc = _crc_hqx(payload, CRC16_INIT)
-        head, head_sum = self._heads[n]
         # the frame's checksum: the sum of the head, the payload and the CRC's two bytes
         return b"".join((head, payload, _CRC.pack(crc),
                          _BYTE[(head_sum + sum8(payload) + (crc & 0xFF) + (crc >> 8)) & 0xFF]))
