@@ -49,6 +49,7 @@ ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VER
 #: setpoints over as bytes, and `handle` reads them without a message object
 RAW_MSG_IDS: frozenset[int] = frozenset({mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET})
 _SET_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker  # its payload, in wire order
+_SET_ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 #: streamed messages read from the vehicle's state (`TelemetryEncoder.state_values`, read once per send)
 _STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
 #: streams the link budget keeps at their rate up to 1 Hz (a ground station counts a link lost without it)
@@ -225,7 +226,7 @@ class MavlinkServer:
         (`RAW_MSG_IDS`); never raises."""
         if msg.__class__ is bytes:
             frame: bytes = msg  # type: ignore[assignment]
-            if frame[7] | frame[8] << 8 | frame[9] << 16 == mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET:
+            if frame[7] | frame[8] << 8 | frame[9] << 16 == _SET_ATTITUDE_TARGET_ID:
                 handler = self._on_set_attitude_target_frame
             else:
                 msg = decode_frame(frame)

@@ -208,7 +208,7 @@ class CommandWire(Transport):
         the tick at ``tick_ns`` (the frames before its answer); True once that answer has come. Frames
         answered for a later tick (this one's TIMESYNC was lost to corrupt bytes and sent again) wait
         for their own tick; what follows the last answer (the next tick's outputs) stays."""
-        stashed = self._answered_later.pop(tick_ns, None)
+        stashed = self._answered_later.pop(tick_ns, None) if self._answered_later else None
         if stashed is not None:
             for frame in stashed:
                 self._queue_for_fc(frame, stamp_s)
