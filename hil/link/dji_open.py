@@ -325,12 +325,12 @@ def encode(session: int, seq: int, data: bytes, *, is_ack: bool = False, enc: in
     """One frame of ``data``; ValueError for a field out of range."""
     if not 0 <= session <= 31:
         raise ValueError(f"session must be 0..31, got {session}")
-    if len(data) > MAX_DATA_BYTES:
-        raise ValueError(f"data of {len(data)} bytes: at most {MAX_DATA_BYTES} fit a frame")
-    if not (0 <= enc <= 7 and 0 <= padding <= 31):
+    size = len(data)
+    if size > MAX_DATA_BYTES:
+        raise ValueError(f"data of {size} bytes: at most {MAX_DATA_BYTES} fit a frame")
+    if (enc or padding) and not (0 <= enc <= 7 and 0 <= padding <= 31):  # (commands: both 0)
         raise ValueError(f"ENC must be 0..7 and PADDING 0..31, got {enc}, {padding}")
-    n = MIN_FRAME_BYTES + len(data)
-    head = _HEAD.pack(SOF, n, session | is_ack << 5, padding | enc << 5, seq & 0xFFFF)
+    head = _HEAD.pack(SOF, MIN_FRAME_BYTES + size, session | is_ack << 5, padding | enc << 5, seq & 0xFFFF)
     body = head + _CRC16.pack(_ARC(head, CRC_INIT)) + data  # (`crc16`, inline)
     return body + _CRC32.pack(_ZLIB_CRC32(body, _CRC32_SEED) ^ 0xFFFFFFFF)  # (`crc32`, inline)
 
