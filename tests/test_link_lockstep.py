@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from emulator.servers.arrivals import input_due
 from hil.link.clock import SimClock
 from hil.link.mavlink import (
     MavlinkCodec,
@@ -183,6 +184,25 @@ def test_the_fc_frames_of_a_lockstep_tick_go_out_with_the_tick():
     assert raw.stats.send_calls == 1
     ob = MavlinkCodec(peer, clock, 1, 191)
     assert [m.get_type() for m in ob.receive()] == ["HEARTBEAT", "TIMESYNC"]
+
+
+def test_the_fc_reads_the_wire_once_a_frame_has_arrived_and_when_it_is_closed():
+    clock = SimClock()
+    raw, peer = MemoryTransport.pair()
+    wire = CommandWire(raw, clock, LinkSpec(latency_ms=5.0), np.random.default_rng(7), FaultSchedule(()))
+    assert input_due(wire)() is False  # nothing on the way: a poll does not read
+    ob = MavlinkCodec(peer, clock, 1, 191)
+    ob.send(ob.mav.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+    assert wire.read_onboard()
+    arrival = wire.next_arrival_s()
+    assert arrival >= 0.005 and wire.input_due() is False  # on its way over the link
+    clock.advance_to(arrival)
+    assert wire.input_due() is True
+    fc = MavlinkCodec(wire, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    assert [m.get_type() for m in fc.receive()] == ["HEARTBEAT"]
+    assert wire.input_due() is False
+    wire.close()
+    assert wire.input_due() is True  # the read then says the link is closed
 
 
 def _lockstep_program() -> tuple[OnboardProgram, MavlinkCodec, MemoryTransport]:

@@ -1,6 +1,6 @@
 """Whether an FC server's command link has anything to read now: a transport that models arrival times
-(the runner's command wire: ``next_arrival_s()``, s on its ``clock``) is read only when something has
-arrived, so a poll that finds nothing due returns without a read."""
+(the runner's command wire) says so itself with ``input_due()``, so a poll that finds nothing due returns
+without a read; any other transport is read at every poll."""
 
 from __future__ import annotations
 
@@ -13,15 +13,7 @@ def _always() -> bool:
 
 
 def input_due(transport: Any) -> Callable[[], bool]:
-    """A function (looked up once per transport) that says whether ``transport`` may be read now:
-    False only when it models arrival times, is open, and its next arrival is still to come."""
-    next_arrival = getattr(transport, "next_arrival_s", None)
-    clock = getattr(transport, "clock", None)
-    if next_arrival is None or clock is None:
-        return _always
-    now_s = clock.now_s
-
-    def due() -> bool:
-        return transport.closed or next_arrival() <= now_s() + 1e-12
-
-    return due
+    """A function (looked up once per transport) that says whether ``transport`` may be read now: its
+    own ``input_due`` when it models arrival times (False only while it is open and its next arrival is
+    still to come), else one that always says yes."""
+    return getattr(transport, "input_due", None) or _always

@@ -44,8 +44,9 @@ PACKAGE_STREAMS = tuple(f"package {pkg}" for pkg in range(dj.SUB_MAX_PACKAGES))
 BROADCAST_FRAME_BYTES = dj.COMMAND_FRAME_BYTES + dj.BROADCAST_FLAG_BYTES
 PACKAGE_FRAME_BYTES = dj.COMMAND_FRAME_BYTES + 1  # (the package id)
 #: the FC states whose flight the onboard device's setpoints take over (with authority): the FC's hover
-#: and the setpoint-loss hover (a failsafe landing, of any cause, is not interrupted)
-_TAKEOVER_STATES = frozenset({FcState.HOLD, FcState.FAILSAFE_HOVER})
+#: and the setpoint-loss hover (a failsafe landing, of any cause, is not interrupted). (A tuple: its
+#: members are found by identity, where a set would call the enum's Python ``__hash__``.)
+_TAKEOVER_STATES = (FcState.HOLD, FcState.FAILSAFE_HOVER)
 
 
 @dataclass(frozen=True)
@@ -187,39 +188,37 @@ class DjiOpenServer:
     def handle(self, f: dj.Frame, now_s: float) -> None:
         """Act on one good command frame; never raises."""
         try:
-            self._handle(f, now_s)
+            if f.is_ack:  # (the codec keeps ACKs apart; the FC waits for none)
+                return
+            if f.enc != dj.ENC_NONE:
+                self.stats.encrypted_refused += 1
+                self._ack(f, dj.ack_code(dj.ACK_KEY_ERROR))
+                return
+            data = f.data
+            if data[:2] == _SETPOINT_COMMAND:  # (the per-tick case first)
+                self._on_setpoint(data[2:], now_s)
+                return
+            if f.session in dj.RELIABLE_SESSIONS:
+                last = self._last_ack.get(f.session)
+                if last is not None and last[0] == f.seq:  # sent again: its ACK was lost
+                    self.stats.retries_answered += 1
+                    if self.budget is None or self.budget.admit(len(last[1]), False):
+                        self.codec.transport.send(last[1])
+                    return
+            handler = self._handlers.get((f.cmd_set, f.cmd_id))
+            if handler is None:
+                self.stats.commands_unknown += 1
+                self._ack(f, dj.ack_code(dj.ACK_NO_RIGHTS))
+                return
+            if not self.activated and handler not in (self._on_version, self._on_activate):
+                self.stats.commands_unactivated += 1
+                self._ack(f, dj.ack_code(dj.ACK_NO_AUTHORISATION))
+                return
+            value = handler(f, now_s)
+            if value is not None:
+                self._ack(f, value)
         except Exception:  # a frame the handlers did not foresee: counted, never fatal
             self.stats.handler_errors += 1
-
-    def _handle(self, f: dj.Frame, now_s: float) -> None:
-        if f.is_ack:  # (the codec keeps ACKs apart; the FC waits for none)
-            return
-        if f.enc != dj.ENC_NONE:
-            self.stats.encrypted_refused += 1
-            self._ack(f, dj.ack_code(dj.ACK_KEY_ERROR))
-            return
-        if f.data[:2] == _SETPOINT_COMMAND:  # (the per-tick case first)
-            self._on_setpoint(f, now_s)
-            return
-        if f.session in dj.RELIABLE_SESSIONS:
-            last = self._last_ack.get(f.session)
-            if last is not None and last[0] == f.seq:  # sent again: its ACK was lost
-                self.stats.retries_answered += 1
-                if self.budget is None or self.budget.admit(len(last[1]), False):
-                    self.codec.transport.send(last[1])
-                return
-        handler = self._handlers.get((f.cmd_set, f.cmd_id))
-        if handler is None:
-            self.stats.commands_unknown += 1
-            self._ack(f, dj.ack_code(dj.ACK_NO_RIGHTS))
-            return
-        if not self.activated and handler not in (self._on_version, self._on_activate):
-            self.stats.commands_unactivated += 1
-            self._ack(f, dj.ack_code(dj.ACK_NO_AUTHORISATION))
-            return
-        value = handler(f, now_s)
-        if value is not None:
-            self._ack(f, value)
 
     def _ack(self, f: dj.Frame, value: bytes) -> None:
         if not f.wants_ack:
@@ -444,8 +443,8 @@ class DjiOpenServer:
             self.on_untold(f"link budget: {text} (the OPEN ACK says success: it has no room for a reason)")
 
     # --- setpoints -------------------------------------------------------------------------------
-    def _on_setpoint(self, f: dj.Frame, now_s: float) -> None:
-        values = dj.read_setpoint(f.payload)
+    def _on_setpoint(self, payload: bytes, now_s: float) -> None:
+        values = dj.read_setpoint(payload)
         if values is None:
             self.stats.malformed += 1
             return

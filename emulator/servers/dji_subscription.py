@@ -109,4 +109,8 @@ class Subscriptions:
         return out
 
     def _reschedule(self) -> None:
-        self.next_s = min((p.next_due_s for p in self.packages.values()), default=math.inf)
+        nxt = math.inf  # (the earliest package's next push: a loop, where min() would run a generator)
+        for p in self.packages.values():
+            if p.next_due_s < nxt:
+                nxt = p.next_due_s
+        self.next_s = nxt

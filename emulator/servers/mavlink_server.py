@@ -49,10 +49,13 @@ ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VER
 #: setpoints over as bytes, and `handle` reads them without a message object
 RAW_MSG_IDS: frozenset[int] = frozenset({mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET})
 _SET_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker  # its payload, in wire order
+_SET_ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 #: streamed messages read from the vehicle's state (`TelemetryEncoder.state_values`, read once per send)
 _STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
 #: streams the link budget keeps at their rate up to 1 Hz (a ground station counts a link lost without it)
 FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
+#: the recorder's ``tick`` (its flush check) is called at most this often (s of the poll's clock)
+RECORDER_TICK_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,7 @@ class MavlinkServer:
                 i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
+        self._recorder_tick_s = -math.inf  # when `poll` calls it next (s)
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
@@ -212,7 +216,9 @@ class MavlinkServer:
         if recorder is not self._recorder:  # (looked up once per recorder)
             self._recorder = recorder
             self._recorder_tick = getattr(recorder, "tick", None) if recorder is not None else None
-        if self._recorder_tick is not None:
+            self._recorder_tick_s = -math.inf
+        if now_s >= self._recorder_tick_s and self._recorder_tick is not None:
+            self._recorder_tick_s = now_s + RECORDER_TICK_S
             self._recorder_tick()
 
     def handle(self, msg: MAVLinkMessage | bytes, now_s: float) -> None:
@@ -220,7 +226,7 @@ class MavlinkServer:
         (`RAW_MSG_IDS`); never raises."""
         if msg.__class__ is bytes:
             frame: bytes = msg  # type: ignore[assignment]
-            if frame[7] | frame[8] << 8 | frame[9] << 16 == mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET:
+            if frame[7] | frame[8] << 8 | frame[9] << 16 == _SET_ATTITUDE_TARGET_ID:
                 handler = self._on_set_attitude_target_frame
             else:
                 msg = decode_frame(frame)

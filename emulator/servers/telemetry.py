@@ -86,11 +86,12 @@ class TelemetryEncoder:
         self._machine = vehicle.fc.machine  # (the FC's state machine: its state read per poll)
 
     def track_battery(self, now_s: float) -> None:
-        """Count armed time for the battery model."""
-        last = self._last_t
-        if last is not None and self._machine.state is not FcState.DISARMED:
-            self.armed_time_s += max(0.0, now_s - last)
-        self._last_t = now_s
+        """Count armed time for the battery model (every poll: the time since the last one, if armed)."""
+        last, self._last_t = self._last_t, now_s
+        if last is not None and self._machine.state is not _DISARMED:
+            dt = now_s - last
+            if dt > 0.0:  # (never backwards; adding nothing leaves the sum as it is)
+                self.armed_time_s += dt
 
     # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
     # ``unpacker``, for `MavlinkCodec.pack_payload`), built without message objects
@@ -237,6 +238,7 @@ class TelemetryEncoder:
         return volts, round(100 * frac)
 
 
+_DISARMED = FcState.DISARMED
 _HEARTBEAT = mav.MAVLink_heartbeat_message.unpacker  # wire order: custom_mode first
 _MAVLINK_VERSION = 3  # what ``heartbeat_encode`` puts in
 _ATTITUDE = mav.MAVLink_attitude_message.unpacker

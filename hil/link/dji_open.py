@@ -12,12 +12,13 @@ over everything before it. Both CRCs are DJI's: reflected (CRC-16/ARC's polynomi
 
 from __future__ import annotations
 
+import binascii
 import math
 import struct
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
-import crcmod
+from fastcrc import crc16 as _fastcrc16
 
 from hil.link.clock import Clock
 from hil.link.mavlink import FrameSplitter as _Splitter
@@ -31,10 +32,26 @@ COMMAND_FRAME_BYTES = MIN_FRAME_BYTES + 2  # a command frame with no payload (co
 MAX_FRAME_BYTES = 1023  # LEN is 10 bits (12 header + 1007 data + 4 CRC32)
 MAX_DATA_BYTES = MAX_FRAME_BYTES - MIN_FRAME_BYTES
 CRC_INIT = 0x3AA3
-#: DJI's CRC16 of ``data`` (reflected 0x8005, init 0x3AA3, no final XOR)
-crc16 = crcmod.mkCrcFun(0x18005, initCrc=CRC_INIT, rev=True, xorOut=0)
-#: DJI's CRC32 of ``data`` (reflected 0x04C11DB7, init 0x3AA3, no final XOR)
-crc32 = crcmod.mkCrcFun(0x104C11DB7, initCrc=CRC_INIT, rev=True, xorOut=0)
+#: CRC-16/ARC (reflected 0x8005, no final XOR) of ``data`` continued from ``crc``: fastcrc's
+_ARC = _fastcrc16.arc
+
+
+def crc16(data: bytes) -> int:
+    """DJI's CRC16 of ``data`` (reflected 0x8005, init 0x3AA3, no final XOR): CRC-16/ARC from 0x3AA3."""
+    return _ARC(data, CRC_INIT)
+
+
+#: zlib's CRC-32 is the same reflected polynomial, its register complemented on the way in and out: DJI's
+#: CRC32 is zlib's started from the complement of 0x3AA3, its result complemented back (`crc32`)
+_ZLIB_CRC32 = binascii.crc32
+_CRC32_SEED = CRC_INIT ^ 0xFFFFFFFF
+#: zlib's CRC-32 (from `_CRC32_SEED`) of a frame whose own CRC32 closes it: DJI's CRC32 of it is 0
+_CRC32_CLOSED = 0xFFFFFFFF
+
+
+def crc32(data: bytes) -> int:
+    """DJI's CRC32 of ``data`` (reflected 0x04C11DB7, init 0x3AA3, no final XOR)."""
+    return _ZLIB_CRC32(data, _CRC32_SEED) ^ 0xFFFFFFFF
 
 # sessions: 0 no ACK; 1 ACK wanted, loss tolerated; 2-31 reliable (a retry resends SESSION and SEQ)
 SESSION_NO_ACK = 0
@@ -308,15 +325,14 @@ def encode(session: int, seq: int, data: bytes, *, is_ack: bool = False, enc: in
     """One frame of ``data``; ValueError for a field out of range."""
     if not 0 <= session <= 31:
         raise ValueError(f"session must be 0..31, got {session}")
-    if len(data) > MAX_DATA_BYTES:
-        raise ValueError(f"data of {len(data)} bytes: at most {MAX_DATA_BYTES} fit a frame")
-    if not (0 <= enc <= 7 and 0 <= padding <= 31):
+    size = len(data)
+    if size > MAX_DATA_BYTES:
+        raise ValueError(f"data of {size} bytes: at most {MAX_DATA_BYTES} fit a frame")
+    if (enc or padding) and not (0 <= enc <= 7 and 0 <= padding <= 31):  # (commands: both 0)
         raise ValueError(f"ENC must be 0..7 and PADDING 0..31, got {enc}, {padding}")
-    n = MIN_FRAME_BYTES + len(data)
-    head = _HEAD.pack(SOF, n, session | is_ack << 5, padding | enc << 5, seq & 0xFFFF)
-    head += _CRC16.pack(crc16(head))
-    body = head + data
-    return body + _CRC32.pack(crc32(body))
+    head = _HEAD.pack(SOF, MIN_FRAME_BYTES + size, session | is_ack << 5, padding | enc << 5, seq & 0xFFFF)
+    body = head + _CRC16.pack(_ARC(head, CRC_INIT)) + data  # (`crc16`, inline)
+    return body + _CRC32.pack(_ZLIB_CRC32(body, _CRC32_SEED) ^ 0xFFFFFFFF)  # (`crc32`, inline)
 
 
 def encode_command(cmd_set: int, cmd_id: int, payload: bytes, session: int, seq: int) -> bytes:
@@ -395,7 +411,7 @@ def _header_ok(buf: bytes | bytearray, i: int) -> bool:
         buf[i + 2] >> 2 == 0
         and buf[i + 3] & 0xC0 == 0
         and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
-        and crc16(buf[i : i + HEADER_BYTES]) == 0  # over the header with its own CRC field: 0
+        and _ARC(buf[i : i + HEADER_BYTES], CRC_INIT) == 0  # (`crc16` of the header with its own CRC: 0)
     )
 
 
@@ -444,7 +460,7 @@ class FrameParser:
             frame = buf[i : i + size]
             if frame.__class__ is not bytes:
                 frame = bytes(frame)
-            if crc32(frame) != 0:  # (the CRC over the frame including its own CRC field is 0)
+            if _ZLIB_CRC32(frame, _CRC32_SEED) != _CRC32_CLOSED:  # (`crc32` of the frame with its own CRC: 0)
                 st.bad_crc += 1
                 i += 1
                 continue
@@ -467,12 +483,15 @@ def FrameSplitter() -> _Splitter:
     return _Splitter(frame_size, bytes((SOF,)))
 
 
+_new_tuple = tuple.__new__  # (what a named tuple's own constructor calls, without its Python frame)
+
+
 def decode(frame: bytes) -> Frame:
     """The fields of one good frame (as `FrameParser` hands them over)."""
     flags, coding = frame[3], frame[4]
-    # (fields in order: session, is_ack, seq, data, enc, padding)
-    return Frame(flags & 0x1F, bool(flags & 0x20), frame[8] | frame[9] << 8, frame[HEADER_BYTES:-CRC32_BYTES],
-                 coding >> 5, coding & 0x1F)
+    # Frame(session, is_ack, seq, data, enc, padding)
+    return _new_tuple(Frame, (flags & 0x1F, bool(flags & 0x20), frame[8] | frame[9] << 8,
+                              frame[HEADER_BYTES:-CRC32_BYTES], coding >> 5, coding & 0x1F))
 
 
 @dataclass

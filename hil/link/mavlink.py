@@ -3,7 +3,6 @@ ENU/FLU <-> NED/FRD conversions both sides need at the wire (common dialect, pym
 
 from __future__ import annotations
 
-import binascii
 import functools
 import hashlib
 import math
@@ -13,6 +12,7 @@ from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
 import numpy as np
+from fastcrc import crc16 as _fastcrc16
 from pymavlink.dialects.v20 import common as mavlink2
 
 from hil.link.clock import Clock
@@ -204,10 +204,10 @@ class MavlinkCodec:
         self._raw = frozenset(raw_ids)
         self._signing = signing_key is not None  # (fixed for the codec's life)
         #: what `_take_leading` does with a good unsigned frame, by the id's three bytes on the wire: each
-        #: id pymavlink knows -> (its CRC_EXTRA mirrored, `_REFUSE`, `_IGNORE`, `_RAW` or `_DECODE`)
+        #: id pymavlink knows -> (its CRC_EXTRA byte, `_REFUSE`, `_IGNORE`, `_RAW` or `_DECODE`)
         self._leading: dict[bytes, tuple[bytes, int]] = {
             msg_id.to_bytes(3, "little"): (extra, self._leading_kind(msg_id))
-            for msg_id, extra in _CRC_EXTRA_MIRRORED.items()
+            for msg_id, extra in _CRC_EXTRA.items()
         }
         if signing_key is not None:
             if len(signing_key) != 32:
@@ -333,8 +333,7 @@ class MavlinkCodec:
             return data
         if data.__class__ is not bytes:
             data = bytes(data)  # (its slices are the frames handed on)
-        leading, stats, recorder, crc_hqx = self._leading, self.stats, self.recorder, binascii.crc_hqx
-        mirrored = data.translate(_BIT_REVERSED)  # ``data`` bit-reversed byte by byte (`encode_frame`)
+        leading, stats, recorder, crc = self._leading, self.stats, self.recorder, _mcrf4xx
         i = 0
         while True:
             end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
@@ -344,9 +343,8 @@ class MavlinkCodec:
             if known is None:
                 break  # an unknown id: pymavlink counts it
             extra, kind = known
-            # the CRC of header and payload, then CRC_EXTRA, compared with the frame's CRC, all mirrored
-            if crc_hqx(extra, crc_hqx(mirrored[i + 1 : end - 2], 0xFFFF)) != \
-                    mirrored[end - 2] << 8 | mirrored[end - 1]:
+            # the CRC of header and payload, then CRC_EXTRA, compared with the frame's (low byte first)
+            if crc(extra, crc(data[i + 1 : end - 2], 0xFFFF)) != data[end - 2] | data[end - 1] << 8:
                 break  # a bad frame: pymavlink counts it
             if kind == _REFUSE:
                 stats.unsigned_refused += 1
@@ -408,10 +406,12 @@ class MavlinkCodec:
 
 #: what `MavlinkCodec._take_leading` does with a good unsigned frame (`MavlinkCodec._leading_kind`)
 _REFUSE, _IGNORE, _RAW, _DECODE = range(4)
-_BIT_REVERSED = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
-#: message id -> its CRC_EXTRA byte bit-reversed (the ids pymavlink knows)
-_CRC_EXTRA_MIRRORED: dict[int, bytes] = {
-    msg_id: bytes((_BIT_REVERSED[cls.crc_extra],)) for msg_id, cls in mavlink2.mavlink_map.items()
+#: MAVLink's CRC-16/MCRF4XX of ``data`` continued from ``crc`` (0xFFFF to start): fastcrc's, the one
+#: pymavlink itself computes with
+_mcrf4xx = _fastcrc16.mcrf4xx
+#: message id -> its CRC_EXTRA byte (the ids pymavlink knows), the last byte the frame's CRC covers
+_CRC_EXTRA: dict[int, bytes] = {
+    msg_id: bytes((cls.crc_extra,)) for msg_id, cls in mavlink2.mavlink_map.items()
 }
 
 
@@ -424,21 +424,17 @@ def frame_ok(frame: bytes) -> bool:
         msg_id, crc_at = frame[7] | frame[8] << 8 | frame[9] << 16, 10 + frame[1]
     else:
         msg_id, crc_at = frame[5], 6 + frame[1]
-    extra = _CRC_EXTRA_MIRRORED.get(msg_id)
+    extra = _CRC_EXTRA.get(msg_id)
     if extra is None:
         return False
-    rev = _BIT_REVERSED
-    crc = binascii.crc_hqx(extra, binascii.crc_hqx(frame[1:crc_at].translate(rev), 0xFFFF))
-    return crc == rev[frame[crc_at]] << 8 | rev[frame[crc_at + 1]]
+    return _mcrf4xx(extra, _mcrf4xx(frame[1:crc_at], 0xFFFF)) == frame[crc_at] | frame[crc_at + 1] << 8
 
 
 #: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags, sequence,
 #: system, component, message id (24 bits: low 16, high 8)
 _V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
 _V2_START = bytes((MAVLINK_V2_MAGIC,))
-#: a mirrored CRC high byte first: its two bytes mirrored are the wire's CRC, low byte first
-_U16_BE = struct.Struct(">H")
-_crc_hqx = binascii.crc_hqx
+_CRC_BYTES = struct.Struct("<H")  # the frame's CRC, low byte first
 
 
 def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, component_id: int) -> bytes:
@@ -447,11 +443,8 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     body = payload.rstrip(b"\x00") or payload[:1]
     covered = _V2_HEADER_TAIL.pack(len(body), 0, 0, seq, system_id, component_id, msg_id & 0xFFFF,
                                    msg_id >> 16) + body
-    # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA: the C CRC-CCITT of `binascii` on
-    # the bit-reversed bytes (the reflected CRC is the plain one of the mirrored input, mirrored back;
-    # init 0xFFFF is its own mirror image); sent low byte first
-    crc = _crc_hqx(_CRC_EXTRA_MIRRORED[msg_id], _crc_hqx(covered.translate(_BIT_REVERSED), 0xFFFF))
-    return _V2_START + covered + _U16_BE.pack(crc).translate(_BIT_REVERSED)
+    # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA
+    return _V2_START + covered + _CRC_BYTES.pack(_mcrf4xx(_CRC_EXTRA[msg_id], _mcrf4xx(covered, 0xFFFF)))
 
 
 #: pymavlink's parser, for its public `decode` of single frames

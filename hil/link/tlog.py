@@ -40,7 +40,8 @@ class TlogWriter:
         file = self._file
         if file is None:
             return
-        file.write(_STAMP(max(0, round((self.epoch_unix_s + time_s) * 1e6))) + frame)
+        stamp_us = round((self.epoch_unix_s + time_s) * 1e6)
+        file.write(_STAMP(stamp_us if stamp_us > 0 else 0) + frame)
         self.frames += 1
         if time.monotonic() >= self._flush_at:
             self.flush()

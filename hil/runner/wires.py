@@ -133,7 +133,10 @@ class CommandWire(Transport):
     def pump(self) -> int:
         """Write to the real link the FC frames that have arrived by now; returns bytes written (or
         held: with ``hold_output`` set they wait for the next `send_sync` or `flush`)."""
-        data = self._drain(self._out_queue, self.to_onboard)
+        q = self._out_queue
+        if not q:  # (most ticks: no FC frame on the way)
+            return 0
+        data = self._drain(q, self.to_onboard)
         if not data:
             return 0
         if self.hold_output:
@@ -205,7 +208,7 @@ class CommandWire(Transport):
         the tick at ``tick_ns`` (the frames before its answer); True once that answer has come. Frames
         answered for a later tick (this one's TIMESYNC was lost to corrupt bytes and sent again) wait
         for their own tick; what follows the last answer (the next tick's outputs) stays."""
-        stashed = self._answered_later.pop(tick_ns, None)
+        stashed = self._answered_later.pop(tick_ns, None) if self._answered_later else None
         if stashed is not None:
             for frame in stashed:
                 self._queue_for_fc(frame, stamp_s)
@@ -247,6 +250,12 @@ class CommandWire(Transport):
     def next_arrival_s(self) -> float:
         """When the next onboard frame reaches the FC (s; inf when none is on the way)."""
         return self._in_queue[0][0] if self._in_queue else math.inf
+
+    def input_due(self) -> bool:
+        """Whether the FC's codec has anything to read now: an onboard frame has arrived (or the link is
+        closed, which its read says); a poll asks this before it reads (`emulator.servers.arrivals`)."""
+        q = self._in_queue
+        return self._closed or (bool(q) and q[0][0] <= self.clock.now_s() + 1e-12)
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         return self._drain(self._in_queue, self.to_fc)
