@@ -137,9 +137,11 @@ class Collision:
 
 
 class Recorder:
-    """World checks and time-series rows for one run of at most ``duration_s`` (s)."""
+    """World checks and time-series rows for one run of at most ``duration_s`` (s), of the vehicle
+    that FC ``fc`` flies with ``server`` on its command link and ``mocap`` tracking it."""
 
-    def __init__(self, world: World, profile: VehicleProfile, duration_s: float) -> None:
+    def __init__(self, world: World, profile: VehicleProfile, duration_s: float, fc: FlightController,
+                 server: FcServer, mocap: MocapLinkServer) -> None:
         self.world = world
         self.profile = profile
         self._tracker = CrossingTracker(world)  # (which compiles the world's checks now)
@@ -172,6 +174,10 @@ class Recorder:
         self._gap_plane = (*(float(v) for v in world.gap.centre_m), *(float(v) for v in self._gap_axes[1]))
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
+        # what a sample reads besides the state, the same objects for the run's life
+        self._fc, self._machine, self._mocap = fc, fc.machine, mocap
+        self._server_stats, self._to_fc = server.stats, server.codec.transport.to_fc
+        self._radio_stats = mocap.radio.stats
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -205,27 +211,21 @@ class Recorder:
         return self._attitude_error_deg_at_crossing
 
     # --- sampling -------------------------------------------------------------------------------
-    def sample(
-        self,
-        t: float,
-        x: np.ndarray,
-        fc: FlightController,
-        server: FcServer,
-        mocap: MocapLinkServer,
-    ) -> None:
+    def sample(self, t: float, x: np.ndarray) -> float:
         """Take the sample at sim time ``t`` (s) of the state ``x`` (a flat `VehicleState.to_vector`
-        copy, kept): what the row needs is copied now and ``next_sample_s`` set; the world checks and
-        the row itself wait for `flush` (the lockstep loop calls it while the onboard program works on
-        a tick; results and `columns` call it first)."""
+        copy, kept): what the row needs is copied now and ``next_sample_s`` set (and returned); the
+        world checks and the row itself wait for `flush` (the lockstep loop calls it while the onboard
+        program works on a tick; results and `columns` call it first)."""
         px, py, pz = x[POS].tolist()
         cx, cy, cz, ex, ey, ez = self._gap_plane
         n_wall = (px - cx) * ex + (py - cy) * ey + (pz - cz) * ez
-        self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
-        to_fc = server.codec.transport.to_fc
-        self._pending.append((t, x, n_wall, fc.target, fc.state, server.stats.setpoints_applied,
-                              mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
-                              mocap.radio.stats.lost, fc.heading_setpoint_rad(), fc.motor_cmd.tolist(),
-                              fc.last_setpoint_s))
+        nxt = self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
+        fc, to_fc, mocap = self._fc, self._to_fc, self._mocap
+        self._pending.append((t, x, n_wall, fc.target, self._machine.state,
+                              self._server_stats.setpoints_applied, mocap.frames_written,
+                              to_fc.frames_lost + to_fc.frames_dropped_fault, self._radio_stats.lost,
+                              fc.heading_setpoint_rad(), fc.motor_cmd.tolist(), fc.last_setpoint_s))
+        return nxt
 
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
