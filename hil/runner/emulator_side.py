@@ -266,7 +266,15 @@ class EmulatorSide:
         t_vehicle = vehicle.time_s  # (moved by the steps only)
         try:
             while t < t_stop:
-                t_next = min(t_end_s, m_next, arrival, next_sample, boundary)
+                t_next = t_end_s  # (the earliest of the five, as min() but without a call a stop)
+                if m_next < t_next:
+                    t_next = m_next
+                if arrival < t_next:
+                    t_next = arrival
+                if next_sample < t_next:
+                    t_next = next_sample
+                if boundary < t_next:
+                    t_next = boundary
                 if t_next < t + 1e-9:
                     t_next = t + 1e-9
                 n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
