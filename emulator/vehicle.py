@@ -58,9 +58,14 @@ class EmulatedVehicle:
         #: steps the vehicle instead of `step`'s own loop when set (the motors behind an ESC bus,
         #: `emulator.esc.bus.EscBusStepper`); it counts ``steps`` itself
         self.motor_path: MotorPath | None = None
-        # the backend's own flat readers, where it has them (read per stop of a run's loop)
-        self._pose_values = getattr(self.backend, "pose_values", None)
-        self._state_vector = getattr(self.backend, "state_vector", None)
+        # the backend's own flat readers, where it has them (read per stop of a run's loop): the same
+        # values as the state built from the backend's, without building one, called straight
+        fast_pose = getattr(self.backend, "pose_values", None)
+        if fast_pose is not None:
+            self.pose_values = fast_pose  # type: ignore[method-assign]
+        fast_vector = getattr(self.backend, "state_vector", None)
+        if fast_vector is not None:
+            self.state_vector = fast_vector  # type: ignore[method-assign]
 
     @property
     def state(self) -> VehicleState:
@@ -71,26 +76,15 @@ class EmulatedVehicle:
         return st
 
     def pose_values(self) -> tuple[float, ...]:
-        """(x, y, z (m), qw, qx, qy, qz) now as plain floats: what a tracker needs, without building
-        a state when none is built yet."""
-        st = self._state
-        if st is None:
-            fast = self._pose_values
-            if fast is not None:
-                return fast()
-            st = self.state
+        """(x, y, z (m), qw, qx, qy, qz) now as plain floats: what a tracker needs (the backend's own
+        reader where it has one, see ``__init__``)."""
+        st = self.state
         return (*st.pos_m.tolist(), *st.quat_wxyz.tolist())
 
     def state_vector(self) -> np.ndarray:
-        """The state now as one flat float64 copy (`VehicleState.to_vector` layout), cheaper than
-        ``state`` when none is built yet."""
-        st = self._state
-        if st is None:
-            fast = self._state_vector
-            if fast is not None:
-                return fast()
-            st = self.state
-        return st.to_vector()
+        """The state now as one flat float64 copy (`VehicleState.to_vector` layout; the backend's own
+        reader where it has one, see ``__init__``)."""
+        return self.state.to_vector()
 
     @property
     def time_s(self) -> float:

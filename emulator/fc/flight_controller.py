@@ -41,7 +41,7 @@ LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
 HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
 
 
-def _steps_before(room_s: float, dt_s: float, n_max: int) -> int:
+def steps_before(room_s: float, dt_s: float, n_max: int) -> int:
     """How many of the next ``n_max`` steps of ``dt_s`` (s) begin within ``room_s`` (s) from now (each
     checked at its start time; inf: all)."""
     if room_s == math.inf:
@@ -137,6 +137,10 @@ class FlightController:
         self._off = np.zeros(4)
         self._idle = np.full(4, self.gains.inner.idle_throttle)
         self.motor_cmd = self._off
+        #: the offboard attitude target a batched stepper may fly outside `update`: (roll, pitch, yaw
+        #: (NED, rad), thrust (N), the setpoint-loss failsafe's time (s)), None when none may be; made
+        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`
+        self.batch_plan: tuple[float, float, float, float, float] | None = None
 
     def _pack_hold(self) -> np.ndarray:
         cfg = self.config
@@ -151,6 +155,7 @@ class FlightController:
         self.config = replace(self.config, **changes)
         self.hold_params[:] = self._pack_hold()  # in place: a batched stepper holds these arrays
         self.landed_test[1] = self.config.landed_margin_m
+        self._plan_batch()
 
     def set_limits(self, **changes: float) -> None:
         """Change the setpoint limits taken from the profile (``max_tilt_deg``, ``max_yaw_rate_deg_s``,
@@ -212,6 +217,7 @@ class FlightController:
         self.last_setpoint_s = time_s
         self._arrivals.append(time_s)
         self.setpoints_accepted += 1
+        self._plan_batch()
         return target
 
     def arm(self, time_s: float) -> CommandResult:
@@ -296,6 +302,7 @@ class FlightController:
         if to_state in HEADING_STATES and self.machine.state not in HEADING_STATES:
             self._hold_yaw_rad = None
         self.machine.go(to_state, time_s, reason)
+        self._plan_batch()
 
     def hold_heading_rad(self, quat_wxyz: np.ndarray) -> float:
         """The heading (NED yaw, rad) the FC's own hover/land holds: the one of ``quat_wxyz`` (the body
@@ -355,20 +362,29 @@ class FlightController:
                      ) -> tuple[float, float, float, float, int] | None:
         """`held_target` and its `quiet_steps` in one call, for a batched stepper: (roll, pitch, yaw (NED,
         rad), thrust (N), steps (of the next ``n_max`` of ``dt_s`` (s) from ``time_s`` (s))), or None
-        when no target may be flown outside `update`."""
+        when no target may be flown outside `update` (a view of `batch_plan`)."""
+        plan = self.batch_plan
+        if plan is None:
+            return None
+        roll, pitch, yaw, thrust_n, until_s = plan
+        return roll, pitch, yaw, thrust_n, steps_before(until_s - time_s, dt_s, n_max)
+
+    def _plan_batch(self) -> None:
+        """Make `batch_plan` from the state, the target and the failsafe's timeout now."""
         tg = self.target
         if (self.machine.state is not FcState.OFFBOARD or tg.__class__ is not AttitudeThrustTarget
                 or tg.yaw_rate_rad_s is not None):  # type: ignore[union-attr]
-            return None
+            self.batch_plan = None
+            return
         # the setpoint-loss failsafe's time (`quiet_until_s` in OFFBOARD)
-        n = _steps_before(self.last_setpoint_s + self.config.failsafe_timeout_s - time_s, dt_s, n_max)
-        return tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, n  # type: ignore[union-attr]
+        until_s = self.last_setpoint_s + self.config.failsafe_timeout_s
+        self.batch_plan = (tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, until_s)  # type: ignore[union-attr]
 
     def quiet_steps(self, time_s: float, dt_s: float, n_max: int) -> int:
         """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed
         change of state (the setpoint-loss failsafe, the failsafe hover's end): steps that a batched
         stepper may fly without `update`'s checks. Landing and arming are not timed here."""
-        return _steps_before(self.quiet_until_s() - time_s, dt_s, n_max)
+        return steps_before(self.quiet_until_s() - time_s, dt_s, n_max)
 
     def quiet_until_s(self) -> float:
         """When the next timed change of state is due (s; inf: none): the setpoint-loss failsafe in
@@ -394,7 +410,7 @@ class FlightController:
         """`stepped_outside` for a stepper that ran the landed test itself (`body_landed` of the body
         after the last step, with `landed_test`): ``landed`` its answer, None when not run."""
         self._last_t = last_step_s
-        if landed is not None:
+        if landed is not None and landed is not self.landed:  # (the same answer again changes nothing)
             self._take_landed(landed, last_step_s)
         self.motor_cmd = self.inner.motor_cmd
 
@@ -424,7 +440,8 @@ class FlightController:
         self._take_landed(bool(body_landed(z_m, vz_m_s, self.rest_height_m, self.config.landed_margin_m)), t)
 
     def _take_landed(self, landed: bool, t: float) -> None:
-        """``landed``, the landed test's answer at ``t`` (s): the flag and since when it holds."""
+        """``landed``, the landed test's answer at ``t`` (s): the flag and since when it holds (None
+        while not landed)."""
         if landed and not self.landed:
             self._landed_since_s = t
         elif not landed:

@@ -4,7 +4,7 @@ together in one numba call for a whole batch of 1 kHz steps (the lockstep runner
 
 It steps through the public contract of its parts: the backend's `NativeBackend.kernel_arrays` and
 `advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd``,
-the FC's `hold_command` parameters, `landed_test`, `batch_target`, `quiet_steps` and `flew_outside`.
+the FC's `hold_command` parameters, `landed_test`, `batch_plan`, `quiet_steps` and `flew_outside`.
 Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
 millisecond); a batch stops before anything the FC's own step would act on: the setpoint-loss timeout,
 the failsafe hover's end, the body reaching the ground. Anything else (other FC states, other backends,
@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from emulator.fc import FcState
-from emulator.fc.flight_controller import HOLD_STATES
+from emulator.fc.flight_controller import HOLD_STATES, steps_before
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.fc.landed import body_landed
@@ -137,6 +137,7 @@ class FastStepper:
             self._arrays = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
             self._loop = (inner.params, inner.mix_inv, inner.motor_cmd)
             self._landed_test = vehicle.fc.landed_test
+            self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -153,65 +154,55 @@ class FastStepper:
     def step(self, n_steps: int) -> float | None:
         """Advance ``n_steps`` physics steps; returns the vehicle's time (s) after them on the native
         backend (None on another: ask the vehicle)."""
-        fc = self._fc
-        native = self.native
-        time_s = 0.0
-        if native:  # (bound once a call: about one batch a call)
-            batch_target, dt = fc.batch_target, self._dt_s
-            x, aux, p = self._arrays
-            gains, mix_inv, out = self._loop
-            landed_test, after_batch = self._landed_test, self._after_batch
-            time_s = self._backend.time_s
+        if not self.native:
+            self.vehicle.step(n_steps)
+            self.single_steps += n_steps
+            return None
+        fc, v, dt = self._fc, self.vehicle, self._dt_s
+        advance_clock = self._advance_clock
+        time_s = self._backend.time_s
         while n_steps > 0:
-            n = 0
-            if native:
-                plan = batch_target(time_s, dt, n_steps)
-                if plan is not None:  # an offboard attitude target: flown in batches
-                    roll, pitch, yaw, thrust_n, n = plan
-                    if n > 0:
-                        landed = _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
-                                            landed_test)
-                        time_s = after_batch(n, landed)
-                if n == 0:
-                    n, time_s = self._hold_steps(n_steps, time_s)
+            n, landed = 0, None
+            plan = fc.batch_plan  # (an offboard attitude target: flown in batches, `batch_target`)
+            if plan is not None:
+                roll, pitch, yaw, thrust_n, until_s = plan
+                n = steps_before(until_s - time_s, dt, n_steps)
+                if n > 0:
+                    x, aux, p = self._arrays
+                    gains, mix_inv, out = self._loop
+                    landed = _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
+                                        self._landed_test)
             if n == 0:
-                self.vehicle.step(1)
+                n = self._hold_steps(n_steps, time_s)
+            if n > 0:
+                # the counts and the FC's bookkeeping as its own per-step update would have left them
+                time_s = advance_clock(n)
+                v.steps += n
+                self.batched_steps += n
+                v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
+                fc.flew_outside(time_s - dt, landed)
+            else:
+                v.step(1)
                 self.single_steps += 1
                 n = 1
-                if native:
-                    time_s = self._backend.time_s
+                time_s = self._backend.time_s
             n_steps -= n
-        return time_s if native else None
+        return time_s
 
-    def _hold_steps(self, n_steps: int, time_s: float) -> tuple[int, float]:
+    def _hold_steps(self, n_steps: int, time_s: float) -> int:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air) from
-        the backend's time ``time_s`` (s); returns the steps taken (0: take the per-step path) and the
-        backend's time after them."""
+        the backend's time ``time_s`` (s); returns the steps taken (0: take the per-step path). Every
+        step taken began in the air: the FC's landed flag stays as it was."""
         fc = self._fc
         st = fc.machine.state
         if st not in HOLD_STATES or fc.landed:
-            return 0, time_s
+            return 0
         if st is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(time_s):
-            return 0, time_s
+            return 0
         n_steps = fc.quiet_steps(time_s, self._dt_s, n_steps)
         if n_steps <= 0:
-            return 0, time_s
+            return 0
         x, aux, p = self._arrays
         yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        n = _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params, *self._loop,
-                        n_steps)
-        if n > 0:  # every step began in the air: the FC's landed flag stays as it was
-            time_s = self._after_batch(n, None)
-        return n, time_s
-
-    def _after_batch(self, n: int, landed: bool | None) -> float:
-        """The counts and the FC's bookkeeping after ``n`` steps flown, the FC's landed test after them
-        ``landed`` (None: not taken); returns the backend's time (s) after them."""
-        v = self.vehicle
-        time_s = self._backend.advance_clock(n)  # type: ignore[attr-defined]
-        v.steps += n
-        self.batched_steps += n
-        v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
-        # the FC's bookkeeping as its own per-step update would have left it
-        self._fc.flew_outside(time_s - self._dt_s, landed)
-        return time_s
+        return _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
+                           *self._loop, n_steps)

@@ -39,12 +39,13 @@ class Transport(ABC):
 
     def __init__(self) -> None:
         self.stats = LinkStats()
-        self._closed = False
+        #: True once `close()` has run (read it; a plain attribute: links are asked several times a tick)
+        self.closed = False
 
     # --- public API ----------------------------------------------------------------------
     def send(self, data: bytes) -> int:
         """Send ``data``; returns how many bytes were accepted (the rest counted as dropped)."""
-        if self._closed:
+        if self.closed:
             raise LinkError(f"{self.endpoint or type(self).__name__}: send on a closed link")
         if not data:
             return 0
@@ -60,7 +61,7 @@ class Transport(ABC):
 
         Returns b"" when nothing arrived in time. Raises LinkError when the link is closed.
         """
-        if self._closed:
+        if self.closed:
             raise LinkError(f"{self.endpoint or type(self).__name__}: recv on a closed link")
         if timeout_s is not None and timeout_s <= 0.0:  # one read, no deadline to keep
             data = self._recv_internal(max_bytes)
@@ -88,13 +89,18 @@ class Transport(ABC):
 
     def close(self) -> None:
         """Release the transport; calling it again does nothing."""
-        if not self._closed:
-            self._closed = True
+        if not self.closed:
+            self.closed = True
             self._close_internal()
 
     @property
-    def closed(self) -> bool:
-        return self._closed
+    def _closed(self) -> bool:
+        """`closed`, as implementations read and set it."""
+        return self.closed
+
+    @_closed.setter
+    def _closed(self, value: bool) -> None:
+        self.closed = value
 
     def __enter__(self) -> Transport:
         return self
@@ -105,7 +111,7 @@ class Transport(ABC):
         self.close()
 
     def __repr__(self) -> str:
-        return f"<{type(self).__name__} {self.endpoint!r}{' closed' if self._closed else ''}>"
+        return f"<{type(self).__name__} {self.endpoint!r}{' closed' if self.closed else ''}>"
 
     # --- for implementations -------------------------------------------------------------
     @abstractmethod

@@ -211,7 +211,7 @@ class EmulatorSide:
         self.server.params.set_many(dict(scenario.params))
         if not scenario.initial.on_ground:
             self.vehicle.fc.arm(0.0)  # in the air: armed, holding, waiting for the onboard program
-        self.recorder = Recorder(self.world, profile, duration_s)
+        self.recorder = Recorder(self.world, profile, duration_s, self.vehicle.fc, self.server, self.mocap)
         self.esc: EscBusStepper | None = None
         if scenario.links.esc_bus is not None:  # the motors behind ESCs on a DroneCAN bus
             b = scenario.links.esc_bus
@@ -227,7 +227,7 @@ class EmulatorSide:
         self.hold_mocap = False
         self._next_boundary_s = self.faults.next_boundary_s(-1.0)
         self._overflow_s: float | None = None  # when the state grew past what the wire formats hold
-        self.recorder.sample(0.0, self.vehicle.state_vector(), self.vehicle.fc, self.server, self.mocap)
+        self.recorder.sample(0.0, self.vehicle.state_vector())
 
     @property
     def time_s(self) -> float:
@@ -245,16 +245,6 @@ class EmulatorSide:
         has diverged (`diverged_s`) it does nothing."""
         if self._overflow_s is not None:
             return
-        try:
-            self._advance_to(t_end_s)
-        except OverflowError:
-            # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
-            # the physics diverged, which a run reports as such instead of crashing
-            if all(abs(v) < DIVERGED_LIMIT for v in self.vehicle.pose_values()):
-                raise
-            self._overflow_s = self.clock.now_s()
-
-    def _advance_to(self, t_end_s: float) -> None:
         t = self.clock.now_s()
         rec, mocap, wire, vehicle = self.recorder, self.mocap, self.wire, self.vehicle
         # the loop stops at mocap exposures only (the radio and the UART are caught up at the next
@@ -265,7 +255,7 @@ class EmulatorSide:
         next_arrival = wire.next_arrival_s
         server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
         update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
-        fc, gap_pose = vehicle.fc, self._gap_pose
+        gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
         dt = vehicle.dt_s
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
@@ -274,43 +264,57 @@ class EmulatorSide:
         # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
         m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
         t_vehicle = vehicle.time_s  # (moved by the steps only)
-        while t < t_stop:
-            t_next = min(t_end_s, m_next, arrival, next_sample, boundary)
-            if t_next < t + 1e-9:
-                t_next = t + 1e-9
-            n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
-            if n > 0:
-                t_vehicle = step(n)  # (the stepper's time, or None: the vehicle's)
-                if t_vehicle is None:
-                    t_vehicle = vehicle.time_s
-            advance_clock(t_next)
-            t = t_next
-            if t >= boundary - 1e-12:
-                # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
-                # fault ending there would still read as active and never be switched off
-                self._switch_faults(max(t, boundary))
-                boundary = self._next_boundary_s
-                m_next, arrival, t_vehicle = next_mocap(), next_arrival(), vehicle.time_s
-            mocap_due = t >= m_next - 1e-12
-            if mocap_due:
-                frozen = self._frozen_truth
-                update(t, vehicle.pose_values() if frozen is None else frozen, gap_pose)
-                m_next = next_mocap()
-            if t >= arrival - 1e-12:
-                poll(t)
-                arrival = next_arrival()
-            if t >= next_sample - 1e-12:
-                if not mocap_due:
-                    deliver(t)
-                    if exact:
-                        m_next = next_mocap()
-                sample(t, vehicle.state_vector(), fc, server, mocap)
-                next_sample = rec.next_sample_s
-        deliver(t_end_s)
-        poll(t_end_s)
-        if not self.hold_mocap:
-            self.mocap_link.flush()
-        wire.pump()
+        try:
+            while t < t_stop:
+                t_next = t_end_s  # (the earliest of the five, as min() but without a call a stop)
+                if m_next < t_next:
+                    t_next = m_next
+                if arrival < t_next:
+                    t_next = arrival
+                if next_sample < t_next:
+                    t_next = next_sample
+                if boundary < t_next:
+                    t_next = boundary
+                if t_next < t + 1e-9:
+                    t_next = t + 1e-9
+                n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
+                if n > 0:
+                    t_vehicle = step(n)  # (the stepper's time, or None: the vehicle's)
+                    if t_vehicle is None:
+                        t_vehicle = vehicle.time_s
+                advance_clock(t_next)
+                t = t_next
+                if t >= boundary - 1e-12:
+                    # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
+                    # fault ending there would still read as active and never be switched off
+                    self._switch_faults(max(t, boundary))
+                    boundary = self._next_boundary_s
+                    m_next, arrival, t_vehicle = next_mocap(), next_arrival(), vehicle.time_s
+                mocap_due = t >= m_next - 1e-12
+                if mocap_due:
+                    frozen = self._frozen_truth
+                    update(t, pose_values() if frozen is None else frozen, gap_pose)
+                    m_next = next_mocap()
+                if t >= arrival - 1e-12:
+                    poll(t)
+                    arrival = next_arrival()
+                if t >= next_sample - 1e-12:
+                    if not mocap_due:
+                        deliver(t)
+                        if exact:
+                            m_next = next_mocap()
+                    next_sample = sample(t, state_vector())
+            deliver(t_end_s)
+            poll(t_end_s)
+            if not self.hold_mocap:
+                self.mocap_link.flush()
+            wire.pump()
+        except OverflowError:
+            # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
+            # the physics diverged, which a run reports as such instead of crashing
+            if all(abs(v) < DIVERGED_LIMIT for v in pose_values()):
+                raise
+            self._overflow_s = self.clock.now_s()
 
     def checks_open_until_s(self) -> float | None:
         """Until when (sim s) a check's window is still open, as far as recorded: the recovery check

@@ -162,6 +162,7 @@ def run_lockstep(
     first = True
     wire = emu.wire
     tick_frames = wire.framing.tick_frames  # (the command link's protocol)
+    now_s, advance_to, recorder, mocap_link = emu.clock.now_s, emu.advance_to, emu.recorder, emu.mocap_link
     wire.hold_output = True  # the FC's frames go out with the tick, in one write
     wire.spin_s = 0.0  # (until the first answer: a new process takes milliseconds to start, asleep)
     emu.hold_mocap = True  # the mocap frames go out just before the tick that announces their size
@@ -177,11 +178,11 @@ def run_lockstep(
         t = k * tick_s
         # the outputs of a pending tick act from its time + compute on: read them before running past it
         while pending and pending[0] + compute < t - 1e-12:
-            if pending[0] + compute > emu.time_s + 1e-12:  # (with one tick of compute: there already)
-                emu.advance_to(pending[0] + compute)
+            if pending[0] + compute > now_s() + 1e-12:  # (with one tick of compute: there already)
+                advance_to(pending[0] + compute)
             tick = pending.popleft()
             _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
-        emu.advance_to(t)
+        advance_to(t)
         if emu.diverged_s is not None:
             note_divergence(rep, emu)
             break
@@ -193,7 +194,7 @@ def run_lockstep(
                     _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
             apply_process_faults(rep, onboard, faults, t)
         if not first:  # the first tick's mocap waits for a program that has opened its ports
-            mocap_total = (mocap_total + emu.mocap_link.flush()) & MOCAP_COUNT_MASK
+            mocap_total = (mocap_total + mocap_link.flush()) & MOCAP_COUNT_MASK
         if onboard.alive and not onboard.paused:
             # (no look at whether the program has exited here: one that answered its last tick and is
             # closing may or may not be gone yet, depending on the host's load; the tick goes out and its
@@ -202,7 +203,7 @@ def run_lockstep(
                 wire.discard_held()  # depends on how fast it started (warm or cold)
             wire.send_sync(tick_frames(t, mocap_total))
             onboard.service()
-            emu.recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
+            recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
             if first:  # wait for the new process, then the loop proper starts
                 startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
                 _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)
@@ -211,7 +212,8 @@ def run_lockstep(
                 first = False
             else:
                 pending.append(t)
-        wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
+        else:  # (a tick sent took the FC's frames with it)
+            wire.flush()  # frames of a tick not sent (onboard dead or stalled) go out as they are
         if progress is not None and time.perf_counter() >= next_progress:
             progress(t)
             next_progress = time.perf_counter() + 0.5
@@ -261,7 +263,9 @@ def _collect(
     onboard program silent for ``guard_s`` (wall) is declared dead."""
     if not (onboard.alive and not onboard.paused):
         return  # killed or stalled since the tick was sent: no answer will come
-    if _await_answer(emu, onboard, (t, stamp_s, mocap_total), guard_s, resend_s):
+    ns = round(t * 1e9)
+    if emu.wire.take_until_answer(ns, stamp_s) or _await_answer(
+            emu, onboard, (t, ns, stamp_s, mocap_total), guard_s, resend_s):
         rep.answered += 1
         if emu.faults.waiting:  # faults timed after a mission event: the events up to this tick
             emu.mission_events(onboard.new_events(t))
@@ -274,15 +278,14 @@ def _collect(
 
 
 def _await_answer(
-    emu: EmulatorSide, onboard: OnboardSide, tick: tuple[float, float, int], guard_s: float, resend_s: float
+    emu: EmulatorSide, onboard: OnboardSide, tick: tuple[float, int, float, int], guard_s: float,
+    resend_s: float,
 ) -> bool:
-    """Queue the onboard program's outputs until its answer to ``tick`` (time, outputs' stamp (s),
-    mocap byte total); False when no answer came within ``guard_s`` (wall)."""
-    t, stamp_s, mocap_total = tick
+    """Queue the onboard program's outputs until its answer to ``tick`` (time (s), time (ns), outputs'
+    stamp (s), mocap byte total), which has not come yet; False when no answer came within ``guard_s``
+    (wall)."""
+    t, ns, stamp_s, mocap_total = tick
     wire = emu.wire
-    ns = round(t * 1e9)
-    if wire.take_until_answer(ns, stamp_s):
-        return True
     deadline = time.monotonic() + guard_s
     resend_at = time.monotonic() + resend_s
     lost = False

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 from numba import njit
@@ -53,12 +54,14 @@ COLUMNS = (
     "motor_max_pct",
     "setpoint_age_s",
 )
-#: what `Recorder.sample` keeps for `Recorder.flush`: t, state, offset along the gap normal (m), FC
-#: target, FC state (the `FcState` member), setpoints applied, mocap frames written, command frames
-#: lost, mocap packets lost, the heading the FC steers to (rad, NED; NaN: none), the four motor
-#: commands (0..1), when the FC last took a setpoint (s)
-_Sample = tuple[float, np.ndarray, float, AttitudeThrustTarget | None, FcState, int, int, int, int, float,
-                list[float], float]
+#: what `Recorder.sample` keeps for `Recorder.flush` beside the state, a row of plain numbers: t (s),
+#: offset along the gap normal (m), setpoints applied, mocap frames written, command frames lost, mocap
+#: packets lost, the heading the FC steers to (rad, NED; NaN: none), when the FC last took a setpoint
+#: (s), the FC state's code (`FC_STATE_CODES`), the FC target's four columns (`_command`), the four
+#: motor commands (0..1)
+_S_T, _S_WALL, _S_APPLIED, _S_FRAMES, _S_CMD_LOST, _S_MOCAP_LOST, _S_YAW_SP, _S_SETPOINT_S = range(8)
+_S_STATE, _S_CMD, _S_MOTORS = 8, 9, 13  # (the target's columns and the motors: four each)
+_S_SIZE = _S_MOTORS + 4
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 #: the `fc_state` column's code of each FC state: its place in `FcState`
@@ -67,6 +70,10 @@ _COL = {name: i for i, name in enumerate(COLUMNS)}  # column positions by name
 _T, _POS_X, _ROLL, _PITCH, _YAW, _CLEARANCE, _THRUST, _BODY_RATE = (_COL[n] for n in (
     "t_s", "pos_m_x", "roll_deg", "pitch_deg", "yaw_deg", "clearance_m", "thrust_n", "body_rate_rad_s"))
 _CMD = slice(_COL["roll_cmd_deg"], _COL["thrust_cmd_pct"] + 1)  # the FC target's four columns (`_command`)
+_CMD0 = _CMD.start
+_CMD_RATE, _MOCAP_RATE, _CMD_LOST, _MOCAP_LOST, _FC_STATE, _YAW_SP, _MOTOR_MAX, _SETPOINT_AGE = (
+    _COL[n] for n in ("command_rate_hz", "mocap_rate_hz", "command_lost", "mocap_lost", "fc_state",
+                      "yaw_sp_deg", "motor_max_pct", "setpoint_age_s"))
 assert COLUMNS[_POS_X : _POS_X + 6] == tuple(f"{q}_{a}" for q in ("pos_m", "vel_m_s") for a in "xyz")
 assert COLUMNS[_CMD] == ("roll_cmd_deg", "pitch_cmd_deg", "yaw_cmd_deg", "thrust_cmd_pct")
 
@@ -109,6 +116,68 @@ def _state_columns(t: np.ndarray, x: np.ndarray, clr: np.ndarray, in_slab: np.nd
         out[i, _BODY_RATE] = math.sqrt(wx * wx + wy * wy + wz * wz)
 
 
+@njit(cache=True)
+def _sample_columns(s: np.ndarray, ht: np.ndarray, ha: np.ndarray, hf: np.ndarray, n0: int,
+                    out: np.ndarray) -> None:
+    """Fill the columns of ``out`` (N, len(COLUMNS)) that come from the samples' rows ``s`` (N, `_S_*`),
+    recorded as rows ``n0`` on: the command and mocap rates over the last `RATE_WINDOW_S` (from the
+    oldest recorded sample inside it, with the history ``ht``, ``ha``, ``hf`` (times (s), setpoints
+    applied, mocap frames written by row), these rows' entries written here), the FC target's four
+    columns, the lost counts, the FC state's code, the heading setpoint (deg) and the setpoint's age (s;
+    inf before the first). The motors' column is not among them."""
+    m = s.shape[0]
+    n1 = n0 + m
+    for i in range(m):
+        ht[n0 + i], ha[n0 + i], hf[n0 + i] = s[i, _S_T], s[i, _S_APPLIED], s[i, _S_FRAMES]
+    recorded = ht[:n1]
+    for i in range(m):
+        k = n0 + i
+        t = s[i, _S_T]
+        h0 = min(np.searchsorted(recorded, t - RATE_WINDOW_S), k)
+        span = max(t - ht[h0], 1e-9)
+        moving = t > 0
+        out[i, _CMD_RATE] = (ha[k] - ha[h0]) / span if moving else 0.0
+        out[i, _MOCAP_RATE] = (hf[k] - hf[h0]) / span if moving else 0.0
+        for j in range(4):
+            out[i, _CMD0 + j] = s[i, _S_CMD + j]
+        out[i, _CMD_LOST], out[i, _MOCAP_LOST] = s[i, _S_CMD_LOST], s[i, _S_MOCAP_LOST]
+        out[i, _FC_STATE] = s[i, _S_STATE]
+        out[i, _YAW_SP] = np.degrees(s[i, _S_YAW_SP])
+        out[i, _SETPOINT_AGE] = t - s[i, _S_SETPOINT_S]
+
+
+@njit(cache=True)
+def _nonfinite_and_outside(x: np.ndarray, lab_min: np.ndarray, lab_max: np.ndarray) -> tuple[int, float]:
+    """Of the states ``x`` (N, STATE_SIZE): the first with a component not finite (-1: none), and how far
+    the positions go outside the box ``lab_min`` .. ``lab_max`` (m; 0 inside, NaN with a NaN position)."""
+    first = -1
+    for i in range(x.shape[0]):
+        for k in range(x.shape[1]):
+            if not np.isfinite(x[i, k]):
+                first = i
+                break
+        if first >= 0:
+            break
+    below = above = -np.inf  # the largest of lab_min - pos and of pos - lab_max, NaN kept (as np.max)
+    for i in range(x.shape[0]):
+        for k in range(3):
+            d, u = lab_min[k] - x[i, k], x[i, k] - lab_max[k]
+            if d > below or d != d:
+                below = d
+            if u > above or u != u:
+                above = u
+            if below != below:
+                break
+        if below != below:
+            break
+    out = below  # (then the larger of those and 0, as Python's max of the three)
+    if above > out:
+        out = above
+    if out < 0.0:
+        out = 0.0
+    return first, out
+
+
 #: the columns `state_values` gives
 _STATE_VALUES = (*COLUMNS[_T : _POS_X + 6], "roll_deg", "pitch_deg", "yaw_deg", *COLUMNS[_CMD], "thrust_n",
                  "body_rate_rad_s")
@@ -137,9 +206,11 @@ class Collision:
 
 
 class Recorder:
-    """World checks and time-series rows for one run of at most ``duration_s`` (s)."""
+    """World checks and time-series rows for one run of at most ``duration_s`` (s), of the vehicle
+    that FC ``fc`` flies with ``server`` on its command link and ``mocap`` tracking it."""
 
-    def __init__(self, world: World, profile: VehicleProfile, duration_s: float) -> None:
+    def __init__(self, world: World, profile: VehicleProfile, duration_s: float, fc: FlightController,
+                 server: FcServer, mocap: MocapLinkServer) -> None:
         self.world = world
         self.profile = profile
         self._tracker = CrossingTracker(world)  # (which compiles the world's checks now)
@@ -147,6 +218,8 @@ class Recorder:
         level[0, QUAT] = (1.0, 0.0, 0.0, 0.0)
         no = np.zeros(1)
         _state_columns(no, level, no, np.zeros(1, np.bool_), 1.0, np.empty((1, len(COLUMNS))))
+        _sample_columns(np.zeros((1, _S_SIZE)), np.zeros(1), np.zeros(1), np.zeros(1), 0,
+                        np.empty((1, len(COLUMNS))))
         self.next_sample_s = 0.0
         cap = int(duration_s / SAMPLE_S) + 2000
         self._cap = cap
@@ -163,15 +236,26 @@ class Recorder:
         self.nonfinite_seen_s: float | None = None
         #: sim time of the first crossing of the gap plane as far as recorded (no flush), None before
         self.first_crossing_seen_s: float | None = None
-        #: samples taken and not yet checked and recorded (see `sample`)
-        self._pending: list[_Sample] = []
+        #: samples taken and not yet checked and recorded (see `sample`): their rows (`_S_T` ...) and states
+        self._pending: list[tuple[float, ...]] = []
+        self._pending_x: list[np.ndarray] = []
         self._gap_axes = world.gap.axes()
-        self._lab_min = np.asarray(world.lab.min_m)
-        self._lab_max = np.asarray(world.lab.max_m)
+        self._lab_min = np.asarray(world.lab.min_m, dtype=np.float64)
+        self._lab_max = np.asarray(world.lab.max_m, dtype=np.float64)
+        _nonfinite_and_outside(level, self._lab_min, self._lab_max)  # (compiled now, not in a run's loop)
         #: the gap's centre (m) and normal, as plain floats: c_x, c_y, c_z, e1_x, e1_y, e1_z
         self._gap_plane = (*(float(v) for v in world.gap.centre_m), *(float(v) for v in self._gap_axes[1]))
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
+        # what a sample reads besides the state, the same objects for the run's life
+        self._fc, self._machine, self._mocap = fc, fc.machine, mocap
+        self._server_stats, self._to_fc = server.stats, server.codec.transport.to_fc
+        self._radio_stats = mocap.radio.stats
+        # the FC target's columns and the FC state's code, made again when the target or state changes
+        self._target: object = self  # (no target seen yet)
+        self._command_row = _NO_COMMAND
+        self._state: FcState | None = None
+        self._state_code = -1
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -205,55 +289,57 @@ class Recorder:
         return self._attitude_error_deg_at_crossing
 
     # --- sampling -------------------------------------------------------------------------------
-    def sample(
-        self,
-        t: float,
-        x: np.ndarray,
-        fc: FlightController,
-        server: FcServer,
-        mocap: MocapLinkServer,
-    ) -> None:
+    def sample(self, t: float, x: np.ndarray) -> float:
         """Take the sample at sim time ``t`` (s) of the state ``x`` (a flat `VehicleState.to_vector`
-        copy, kept): what the row needs is copied now and ``next_sample_s`` set; the world checks and
-        the row itself wait for `flush` (the lockstep loop calls it while the onboard program works on
-        a tick; results and `columns` call it first)."""
+        copy, kept): what the row needs is copied now and ``next_sample_s`` set (and returned); the
+        world checks and the row itself wait for `flush` (the lockstep loop calls it while the onboard
+        program works on a tick; results and `columns` call it first)."""
         px, py, pz = x[POS].tolist()
         cx, cy, cz, ex, ey, ez = self._gap_plane
         n_wall = (px - cx) * ex + (py - cy) * ey + (pz - cz) * ez
-        self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
-        to_fc = server.codec.transport.to_fc
-        self._pending.append((t, x, n_wall, fc.target, fc.state, server.stats.setpoints_applied,
-                              mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
-                              mocap.radio.stats.lost, fc.heading_setpoint_rad(), fc.motor_cmd.tolist(),
-                              fc.last_setpoint_s))
+        nxt = self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
+        fc, to_fc, mocap = self._fc, self._to_fc, self._mocap
+        tg = fc.target  # (the same target object for every sample until the next setpoint)
+        if tg is not self._target:
+            self._target, self._command_row = tg, _command(tg, self._full_thrust_n)
+        st = self._machine.state  # (the same state for long stretches: its code looked up on a change)
+        if st is not self._state:
+            self._state, self._state_code = st, FC_STATE_CODES.get(st.value, -1)
+        self._pending_x.append(x)
+        self._pending.append((t, n_wall, self._server_stats.setpoints_applied, mocap.frames_written,
+                              to_fc.frames_lost + to_fc.frames_dropped_fault, self._radio_stats.lost,
+                              fc.heading_setpoint_rad(), fc.last_setpoint_s, self._state_code,
+                              *self._command_row, *fc.motor_cmd.tolist()))
+        return nxt
 
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
         (the lockstep loop gathers a batch: the checks and rows are computed for all at once)."""
         pending = self._pending
         if len(pending) >= at_least and pending:
-            self._record(pending)
+            self._record(pending, self._pending_x)
             pending.clear()
+            self._pending_x.clear()
 
-    def _record(self, batch: list[_Sample]) -> None:
-        """World checks, the crossing tracker and the time-series rows of a batch of samples, as the
-        samples would have been taken one by one."""
-        ts, xs, n_wall, targets, fc_states, applied, frames, cmd_lost, mocap_lost, yaw_sp, motors, sp_s = zip(
-            *batch, strict=True
-        )
-        t = np.array(ts)
+    def _record(self, batch: list[tuple[float, ...]], xs: list[np.ndarray]) -> None:
+        """World checks, the crossing tracker and the time-series rows of a batch of samples (their
+        rows of numbers, `_S_T` ..., and their states), as the samples would have been taken one by one."""
+        n_rows = len(batch)
+        rows = np.fromiter(chain.from_iterable(batch), np.float64, n_rows * _S_SIZE).reshape(n_rows, _S_SIZE)
+        t = np.ascontiguousarray(rows[:, _S_T])
         x = np.array(xs)  # (N, STATE_SIZE)
         pos, quat = x[:, POS], x[:, QUAT]
-        if self._nonfinite_s is None and not np.isfinite(x).all():
+        first, outside = _nonfinite_and_outside(x, self._lab_min, self._lab_max)
+        if self._nonfinite_s is None and first >= 0:
             # NaN compares false, so no check below would notice: note it for the `finite_state` check
-            self._nonfinite_s = self.nonfinite_seen_s = ts[int(np.argmin(np.isfinite(x).all(axis=1)))]
+            self._nonfinite_s = self.nonfinite_seen_s = batch[first][_S_T]
         codes, clr, in_slab = self.world.check_states_values(pos, quat)
         hits = [_OBSTACLES[c] for c in codes.tolist()]
-        k0 = 1 if ts[0] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
-        if k0 < len(ts):
+        k0 = 1 if batch[0][_S_T] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
+        if k0 < len(batch):
             tracker = self._tracker
             done = tracker.add_checked_batch(t[k0:], pos[k0:], hits[k0:], clr[k0:], in_slab[k0:],
-                                             np.array(n_wall[k0:]))
+                                             np.ascontiguousarray(rows[k0:, _S_WALL]))
             if done and self._crossings_seen == 0:
                 self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat[k0 + done[0][0]])
                 self.first_crossing_seen_s = tracker.crossings[0].time_s
@@ -265,46 +351,18 @@ class Recorder:
             for i, hit in enumerate(hits):
                 if hit is not None and (hit is not Obstacle.GROUND or speed[i] >= GROUND_HIT_SPEED_M_S):
                     px, py, pz = pos[i].tolist()
-                    self._collision = Collision(str(hit), ts[i], (px, py, pz), float(speed[i]))
+                    self._collision = Collision(str(hit), batch[i][_S_T], (px, py, pz), float(speed[i]))
                     break
-        outside = max(float(np.max(self._lab_min - pos)), float(np.max(pos - self._lab_max)), 0.0)
         if outside > self._max_outside_lab_m:
             self._max_outside_lab_m = outside
-        m = min(len(ts), self._cap - self._n)  # rows that still fit
+        m = min(len(batch), self._cap - self._n)  # rows that still fit
         if m <= 0:
             return
         n0, n1 = self._n, self._n + m
-        t, x, clr, in_slab = t[:m], x[:m], clr[:m], in_slab[:m]
-        # rates over the last RATE_WINDOW_S: from the oldest recorded sample inside the window
-        ht, ha, hf = self._hist_t, self._hist_applied, self._hist_frames
-        ht[n0:n1], ha[n0:n1], hf[n0:n1] = t, applied[:m], frames[:m]
-        h0 = np.minimum(np.searchsorted(ht[:n1], t - RATE_WINDOW_S, side="left"), np.arange(n0, n1))
-        span = np.maximum(t - ht[h0], 1e-9)
-        moving = t > 0
-        cmd_rate = np.where(moving, (ha[n0:n1] - ha[h0]) / span, 0.0)
-        mocap_rate = np.where(moving, (hf[n0:n1] - hf[h0]) / span, 0.0)
         block = self._data[n0:n1]
-        _state_columns(t, x, clr, in_slab, self._thrust_coeff, block)
-        full = self._full_thrust_n
-        last, row = None, _NO_COMMAND
-        cmd = []
-        for tg in targets[:m]:  # the same target object for every sample until the next setpoint
-            if tg is not last:
-                last, row = tg, _command(tg, full)
-            cmd.append(row)
-        block[:, _CMD] = cmd
-        col = _COL
-        block[:, col["command_rate_hz"]], block[:, col["mocap_rate_hz"]] = cmd_rate, mocap_rate
-        block[:, col["command_lost"]], block[:, col["mocap_lost"]] = cmd_lost[:m], mocap_lost[:m]
-        last_st, code, codes = None, -1, []
-        for st in fc_states[:m]:  # (the same state for long stretches: its code looked up on a change)
-            if st is not last_st:
-                last_st, code = st, FC_STATE_CODES.get(st.value, -1)
-            codes.append(code)
-        block[:, col["fc_state"]] = codes
-        block[:, col["yaw_sp_deg"]] = np.degrees(yaw_sp[:m])
-        block[:, col["motor_max_pct"]] = 100.0 * np.max(motors[:m], axis=1)
-        block[:, col["setpoint_age_s"]] = t - np.array(sp_s[:m])  # inf before the first setpoint
+        _state_columns(t[:m], x[:m], clr[:m], in_slab[:m], self._thrust_coeff, block)
+        _sample_columns(rows[:m], self._hist_t, self._hist_applied, self._hist_frames, n0, block)
+        block[:, _MOTOR_MAX] = 100.0 * np.max(rows[:m, _S_MOTORS : _S_MOTORS + 4], axis=1)
         self._n = n1
 
     def _attitude_error_deg(self, quat: np.ndarray) -> float:
