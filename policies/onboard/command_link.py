@@ -196,8 +196,7 @@ class CommandLink:
         if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
             self.foreign["ticks"] += 1
             return
-        tick_s, mocap_total = read_tick_frame(frame)
-        self._on_tick(tick_s, mocap_total)
+        self._on_tick(*read_tick_frame(frame))  # (tick request time, mocap total)
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
         """The harness's mocap byte total, then a lockstep tick request at ``tick_s`` (s) (None: not
@@ -324,10 +323,14 @@ class CommandLink:
             if len(answers) >= ANSWERS_KEPT:
                 del answers[next(iter(answers))]
             answers[tick_s] = frame
-        self._send_frame(frame)
         open_ticks = self._open_ticks
-        self._open_ticks = open_ticks = open_ticks - 1 if open_ticks > 1 else 0  # max(0, open_ticks - 1)
-        if open_ticks == 0:
+        if open_ticks > 0:  # held with the tick's other frames (`_send_frame`, without the call: per tick)
+            self._held.append(frame)
+            self._open_ticks = open_ticks = open_ticks - 1
+            if open_ticks == 0:  # the last tick taken is answered: its frames go in one write
+                self.flush()
+        else:
+            self._send_frame(frame)
             self.flush()
 
     def _answer_frame(self, tick_s: float) -> bytes:
