@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 
 HEADER = 0x55
 FUNCTION_NODE_FRAME0 = 0x02
+_FRAME_START = bytes((HEADER, FUNCTION_NODE_FRAME0))
 FIXED_LEN = 11  # header, function, length, role, id, reserved[4], node count
 NODE_HEADER_LEN = 4  # role, id, data length
 MAX_NODE_DATA = 224  # bytes of data one node may carry
@@ -257,7 +258,7 @@ class FrameDecoder:
         start = 0
         check = self._check
         while start < n:  # (at n: nothing left to look at, no header to hunt for)
-            if not (start + 1 < n and buf[start] == HEADER and buf[start + 1] == FUNCTION_NODE_FRAME0):
+            if not buf.startswith(_FRAME_START, start):  # (both header bytes there, in one C call)
                 start = self._find_header(buf, start)  # (a frame starting right here skips nothing)
             avail = n - start
             if avail < FIXED_LEN:
