@@ -78,7 +78,9 @@ from policies.gap_planning import (
     start_height,
 )
 from policies.mocap_reader import MocapReader
+from policies.onboard.command_link import NED_FRD_QUAT
 from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
+from policies.onboard.dji_command_link import NED_EULER
 from policies.onboard.estimator import (
     EstimatorConfig,
     PoseEstimator,
@@ -335,6 +337,8 @@ def warm_kernels() -> None:
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
     est.state_tuples(0.05)
+    NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (the command links' setpoint attitude)
+    NED_EULER.entry(0.0, 0.0, 0.0)
 
 
 class OnboardProgram:
