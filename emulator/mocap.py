@@ -6,7 +6,7 @@ from __future__ import annotations
 import heapq
 import math
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -184,6 +184,7 @@ class MocapSystem:
         self._exp_block: list[float] = []
         self._exp_next = 0
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
+        self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
         self._buffers_for(2)
         # compiled (or loaded from numba's cache) now, not at the first exposure
         _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values)
@@ -199,6 +200,8 @@ class MocapSystem:
         self._values_buf = bytearray(_VALUES_PER_BODY * 8 * n)
         self._values = np.frombuffer(self._values_buf, np.float64)
         self._get_values = struct.Struct(f"<{_VALUES_PER_BODY * n}d").unpack_from
+        #: each body's index and its first value's
+        self._rows_at = tuple((i, _VALUES_PER_BODY * i) for i in range(n))
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
@@ -244,24 +247,9 @@ class MocapSystem:
 
     def expose(self, now_s: float, truth: Mapping[int, object]) -> None:
         """Take the exposures due by ``now_s`` from ``truth`` (as `update`), releasing none."""
-        period = self._period_s
-        k = self._next_exposure_k
-        if now_s - k * period > MAX_CATCH_UP_S:
-            # called after a long gap (or first at a late time): do not replay frames nobody could see
-            skip_to = math.floor(now_s / period)
-            self.stats.frames_skipped += skip_to - k
-            k = self._next_exposure_k = skip_to
-        while k * period <= now_s + 1e-12:
-            self._next_exposure_k = k + 1
-            self._expose(k, k * period, truth)
-            k += 1
-
-    def _expose(self, k: int, t_s: float, truth: Mapping[int, object]) -> None:
-        """Expose frame ``k`` at ``t_s`` (s) and queue it for its ready time."""
-        cfg, rng = self.config, self._rng
-        pos_sd, att_sd, occlusion = self._pos_sd, self._att_sd, cfg.occlusion_prob
+        if self._next_exposure_k * self._period_s > now_s + 1e-12:
+            return  # none due (nor any to catch up: that needs ``now_s`` past the next)
         body_ids = sorted(truth)
-        n = len(body_ids)
         poses: list[float] = []
         for body_id in body_ids:
             obj = truth[body_id]
@@ -273,42 +261,63 @@ class MocapSystem:
                 pos, quat = _pose_arrays(obj)
                 poses += pos.tolist()
                 poses += quat.tolist()
+        self.expose_values(now_s, body_ids, poses)
+
+    def expose_values(self, now_s: float, body_ids: Sequence[int], poses: Sequence[float]) -> None:
+        """`expose` of true poses as plain values: ``body_ids`` in increasing order and ``poses`` their
+        7 values each, one body after the other (x, y, z (m), qw, qx, qy, qz)."""
+        period = self._period_s
+        k = self._next_exposure_k
+        if now_s - k * period > MAX_CATCH_UP_S:
+            # called after a long gap (or first at a late time): do not replay frames nobody could see
+            skip_to = math.floor(now_s / period)
+            self.stats.frames_skipped += skip_to - k
+            k = self._next_exposure_k = skip_to
+        if k * period > now_s + 1e-12:
+            return  # none due
+        n = len(body_ids)
         if n != self._n_bodies:
             self._buffers_for(n)
-        self._put_poses(self._poses_buf, 0, *poses)
-        values = self._values
-        if occlusion > 0:
-            # the draws keep the order of one body after the other (occlusion, position noise, attitude
-            # noise): taken here, the noise handed to the kernel in that order
-            occluded, noise = self._occlusions(t_s, body_ids, poses)
-            n_invalid = _expose_kernel(self._poses, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
-            extra = rng.exponential(cfg.processing_s) if cfg.processing_s > 0 else 0.0
-        else:
-            # without occlusion the noise of the whole frame comes from the block drawn ahead; a block
-            # that cannot give it all is drawn anew (the kernel says how many draws the frame takes)
-            n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                            self._normal_block, self._normal_next, values)
-            if n_invalid < 0:
-                self._normal_block = rng.standard_normal(max(_BLOCK, nxt))
-                n_invalid, nxt = _expose_kernel(self._poses, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                                self._normal_block, 0, values)
-            self._normal_next = nxt
-            extra = 0.0
-            if cfg.processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
-                j, block = self._exp_next, self._exp_block
-                if j >= len(block):
-                    block = self._exp_block = rng.standard_exponential(_BLOCK).tolist()
-                    j = 0
-                self._exp_next = j + 1
-                extra = cfg.processing_s * block[j]
-        stats = self.stats
-        stats.bodies_occluded += n_invalid
-        stats.frames += 1
-        v = self._get_values(self._values_buf)
-        at = range(0, _VALUES_PER_BODY * n, _VALUES_PER_BODY)
-        rows = [(body_id, v[r + 7] != 0.0, t_s, v[r : r + 7])
-                for body_id, r in zip(body_ids, at, strict=False)]
-        heapq.heappush(self.pending, (t_s + self._latency_s + extra, k, rows))
+        self._put_poses(self._poses_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
+        poses_in, values, at = self._poses, self._values, self._rows_at
+        pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
+        stats, latency_s = self.stats, self._latency_s
+        while k * period <= now_s + 1e-12:
+            # frame ``k``, exposed at ``t_s``, queued for its ready time
+            t_s = k * period
+            self._next_exposure_k = k + 1
+            if self._occlusion_prob > 0:
+                # the draws keep the order of one body after the other (occlusion, position noise,
+                # attitude noise): taken here, the noise handed to the kernel in that order
+                occluded, noise = self._occlusions(t_s, body_ids, poses)
+                n_invalid = _expose_kernel(poses_in, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
+                extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
+            else:
+                # without occlusion the noise of the whole frame comes from the block drawn ahead; a
+                # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
+                n_invalid, nxt = _expose_kernel(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED,
+                                                self._normal_block, self._normal_next, values)
+                if n_invalid < 0:
+                    self._normal_block = self._rng.standard_normal(max(_BLOCK, nxt))
+                    n_invalid, nxt = _expose_kernel(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED,
+                                                    self._normal_block, 0, values)
+                self._normal_next = nxt
+                extra = 0.0
+                if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
+                    j, block = self._exp_next, self._exp_block
+                    if j >= len(block):
+                        block = self._exp_block = self._rng.standard_exponential(_BLOCK).tolist()
+                        j = 0
+                    self._exp_next = j + 1
+                    extra = processing_s * block[j]
+            stats.bodies_occluded += n_invalid
+            stats.frames += 1
+            v = self._get_values(self._values_buf)
+            rows = []
+            for i, r in at:
+                rows.append((body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]))
+            heapq.heappush(self.pending, (t_s + latency_s + extra, k, rows))
+            k += 1
 
     def _occlusions(self, t_s: float, body_ids: list[int], poses: list[float]
                     ) -> tuple[np.ndarray, np.ndarray]:

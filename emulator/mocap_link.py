@@ -19,14 +19,16 @@ from hil.link.clock import Clock
 from hil.link.linktrack import (
     BODY_IDS,
     MAX_BODIES,
+    ONE_NODE_EXTRA_BYTES,
     ROLE_ANCHOR,
     ROLE_TAG,
-    encode_mocap_rows,
-    encode_node_frame,
+    MocapFrameEncoder,
 )
 from hil.link.transport import Transport
 
 _VEHICLE_ID, _GAP_ID = BODY_IDS["vehicle"], BODY_IDS["gap"]
+_BOTH_IDS = (_VEHICLE_ID, _GAP_ID)  # (in increasing order, as the tracker takes bodies)
+assert _VEHICLE_ID < _GAP_ID
 
 
 @dataclass(frozen=True)
@@ -65,8 +67,10 @@ class MocapLinkServer:
         self.mocap = MocapSystem(mocap or MocapConfig(), mocap_rng)
         self.radio = UwbRadio(uwb or UwbConfig(), radio_rng)
         self.uart = UartWire(self.radio.config.uart_baud, self.radio.config.uart_bits_per_byte)
-        self.module_id = module_id
-        self.station_node_id = station_node_id
+        self._ids = (module_id, station_node_id)
+        #: the mocap payload, and the frame the vehicle's module writes for it, encoded as a frame leaves
+        #: the tracker (the radio carries it, sized by its node data)
+        self._encode = MocapFrameEncoder(ROLE_TAG, module_id, ROLE_ANCHOR, station_node_id).encode
         #: LinkTrack frames handed to the transport so far
         self.frames_written = 0
         self._bytes_written = 0
@@ -74,6 +78,19 @@ class MocapLinkServer:
         #: what the tracker, the radio and the wire hold, each ordered by time at its head (``[0][0]``):
         #: frames exposed (ready time), packets in flight (arrival), chunks on the line (done)
         self._queues = (self.mocap.pending, self.radio.in_flight, self.uart.queue)
+        self._expose_values, self._released = self.mocap.expose_values, self.mocap.released
+        self._radio_send, self._radio_arrived = self.radio.send, self.radio.arrived
+        self._uart_write, self._uart_update = self.uart.write, self.uart.update
+
+    @property
+    def module_id(self) -> int:
+        """The id of the vehicle's UWB module, in every frame it writes."""
+        return self._ids[0]
+
+    @property
+    def station_node_id(self) -> int:
+        """The node id of the mocap station's radio, in every frame."""
+        return self._ids[1]
 
     def update(
         self,
@@ -85,7 +102,10 @@ class MocapLinkServer:
         now = self.clock.now_s() if now_s is None else float(now_s)
         if not math.isfinite(now):
             raise ValueError(f"now_s must be finite, got {now_s}")
-        if vehicle_state is not None and gap_pose is not None:
+        if (vehicle_state.__class__ is tuple and gap_pose.__class__ is tuple and len(vehicle_state) == 7
+                and len(gap_pose) == 7):  # plain values (the runner's): no mapping to sort
+            self._expose_values(now, _BOTH_IDS, vehicle_state + gap_pose)
+        elif vehicle_state is not None and gap_pose is not None:
             self.mocap.expose(now, {_VEHICLE_ID: vehicle_state, _GAP_ID: gap_pose})
         else:
             truth: dict[int, object] = {}
@@ -109,20 +129,22 @@ class MocapLinkServer:
     def _forward(self, now: float) -> int:
         """The frames ready by ``now`` through the radio, those arrived onto the wire, those off the
         wire to the transport; returns bytes written."""
-        radio, uart = self.radio, self.uart
-        for ready_s, frame_no, rows in self.mocap.released(now):
-            radio.send(ready_s, encode_mocap_rows(frame_no & 0xFFFFFFFF, rows[:MAX_BODIES]))
-        _, packets, chunks = self._queues
+        frames, packets, chunks = self._queues
         limit = now + 1e-12
+        if frames and frames[0][0] <= limit:
+            send, encode = self._radio_send, self._encode
+            for ready_s, frame_no, rows in self._released(now):
+                frame = encode(frame_no & 0xFFFFFFFF, rows if len(rows) <= MAX_BODIES else rows[:MAX_BODIES])
+                send(ready_s, frame, len(frame) - ONE_NODE_EXTRA_BYTES)
         if packets and packets[0][0] <= limit:
-            module_id, station_id = self.module_id, self.station_node_id
-            for arrival_s, data, _ in radio.arrived(now):
-                uart.write(arrival_s, encode_node_frame(data, ROLE_TAG, module_id, ROLE_ANCHOR, station_id))
+            write = self._uart_write
+            for arrival_s, frame, _ in self._radio_arrived(now):
+                write(arrival_s, frame)
         if not chunks or chunks[0][0] > limit:
             return 0  # nothing off the wire yet (most calls)
         written = 0
         transport = self.transport
-        for _, chunk in uart.update(now):
+        for _, chunk in self._uart_update(now):
             if transport.closed:
                 self._bytes_refused += len(chunk)
                 continue

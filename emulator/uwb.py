@@ -13,6 +13,8 @@ import numpy as np
 from hil.link.channel import BITS_PER_BYTE, Channel, ChannelModel, UartWire
 from hil.link.linktrack import MAX_NODE_DATA
 
+_heappush, _heappop = heapq.heappush, heapq.heappop
+
 __all__ = ["Delivery", "UartWire", "UwbConfig", "UwbRadio", "UwbStats"]
 
 
@@ -95,14 +97,17 @@ class UwbRadio:
         self._max_packet_bytes, self._queue_packets = config.max_packet_bytes, config.queue_packets
         self._air_overhead_bytes, self._air_rate_bps = config.air_overhead_bytes, config.air_rate_bps
         self._late_after_s = config.late_after_s
-        self._arrival_s = self.channel.arrival_s
+        self._arrival_s, self._can_lose = self.channel.arrival_s, self.channel.can_lose
 
-    def send(self, now_s: float, data: bytes) -> bool:
+    def send(self, now_s: float, data: bytes, n_bytes: int | None = None) -> bool:
         """Hand a packet to the radio at ``now_s``; False when it is refused (size, full queue).
-        A packet the channel will lose is accepted (True) and simply never arrives."""
+        A packet the channel will lose is accepted (True) and simply never arrives. ``n_bytes``: the
+        packet's size on the air when ``data`` is what the far side makes of it rather than the packet
+        (the mocap link hands over the frame the vehicle's module writes for it)."""
         stats = self.stats
         stats.sent += 1
-        n_bytes = len(data)
+        if n_bytes is None:
+            n_bytes = len(data)
         if n_bytes > self._max_packet_bytes:
             stats.oversize += 1
             return False
@@ -117,16 +122,15 @@ class UwbRadio:
         busy = (now_s if now_s > busy else busy) + air_s
         self._air_busy_until_s = busy
         ends.append(busy)
-        channel = self.channel
-        if channel.can_lose:
-            lost = channel.drop()
+        if self._can_lose:
+            lost = self.channel.drop()
             if lost is not None:
                 stats.lost += 1
                 stats.burst_lost += lost == "burst"
                 return True
         self._seq += 1
-        heapq.heappush(self.in_flight, (self._arrival_s(busy), self._seq,
-                                         data if data.__class__ is bytes else bytes(data), now_s))
+        _heappush(self.in_flight, (self._arrival_s(busy), self._seq,
+                                   data if data.__class__ is bytes else bytes(data), now_s))
         return True
 
     def next_event_s(self) -> float:
@@ -149,9 +153,8 @@ class UwbRadio:
             return []  # nothing arrived yet (most calls)
         out = []
         stats, late_after = self.stats, self._late_after_s
-        pop = heapq.heappop
         while q and q[0][0] <= limit:
-            arrival_s, _, data, sent_s = pop(q)
+            arrival_s, _, data, sent_s = _heappop(q)
             stats.delivered += 1
             if arrival_s - sent_s > late_after:
                 stats.late += 1

@@ -19,9 +19,12 @@ from hil.link.linktrack import (
     FLAG_VALID,
     MAX_BODIES,
     MAX_NODE_DATA,
+    ROLE_ANCHOR,
+    ROLE_TAG,
     BodySample,
     FrameDecoder,
     FrameError,
+    MocapFrameEncoder,
     MocapPacket,
     Node,
     NodeFrame,
@@ -31,6 +34,8 @@ from hil.link.linktrack import (
     encode_frame,
     encode_mocap_frame,
     encode_mocap_payload,
+    encode_mocap_rows,
+    encode_node_frame,
     mocap_frame_len,
     sum8,
     unpack_mocap_payload,
@@ -163,6 +168,35 @@ def test_payload_crc_catches_what_the_8_bit_sum_misses():
 def test_encoder_rejects_out_of_range_values_with_a_clear_error(packet, message):
     with pytest.raises(FrameError, match=message):
         encode_mocap_payload(packet)
+
+
+def _rows(packet: MocapPacket) -> list:
+    return [(b.body_id, b.valid, b.stamp_s, (*b.pos_m, *b.quat_wxyz)) for b in packet.bodies]
+
+
+@pytest.mark.parametrize("n", range(MAX_BODIES + 1))
+def test_the_mocap_frame_encoder_writes_the_frame_of_the_payload_in_one_call(n):
+    packet = _packet(frame_no=0xFFFFFFFF, n=n)
+    frame = MocapFrameEncoder(ROLE_TAG, 3, ROLE_ANCHOR, 4).encode(packet.frame_no, _rows(packet))
+    payload = encode_mocap_rows(packet.frame_no, _rows(packet))
+    assert frame == encode_node_frame(payload, ROLE_TAG, 3, ROLE_ANCHOR, 4)
+    assert len(frame) == mocap_frame_len(n) and frame[-1] == sum(frame[:-1]) & 0xFF
+    decoded = decode_frame(frame)
+    assert (decoded.role, decoded.module_id, decoded.nodes[0].role, decoded.nodes[0].node_id) == (2, 3, 1, 4)
+    assert decode_mocap_payload(decoded.nodes[0].data) == packet
+
+
+def test_the_mocap_frame_encoder_refuses_what_the_payload_and_frame_encoders_refuse():
+    encoder = MocapFrameEncoder()
+    not_finite = BodySample(1, 0.0, (0.0, math.inf, 0.0), (1.0, 0.0, 0.0, 0.0))
+    for packet, message in [(_packet(n=MAX_BODIES + 1), "at most"), (MocapPacket(-1, ()), "32 bits"),
+                            (MocapPacket(1, (not_finite,)), "finite")]:
+        with pytest.raises(FrameError, match=message):
+            encoder.encode(packet.frame_no, _rows(packet))
+    with pytest.raises(FrameError, match="module id"):
+        MocapFrameEncoder(module_id=256)
+    with pytest.raises(FrameError, match="node id"):
+        MocapFrameEncoder(node_id=1.0)
 
 
 def test_node_data_over_224_bytes_is_refused_and_decode_of_junk_raises():

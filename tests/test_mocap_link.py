@@ -8,13 +8,14 @@ import time
 import numpy as np
 import pytest
 
-from emulator.mocap import MocapConfig
+from emulator.mocap import MocapConfig, pose_of
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.uwb import UwbConfig
 from emulator.world.geometry import Gap
 from hil.link.clock import SimClock, WallClock
 from hil.link.linktrack import mocap_frame_len
+from hil.link.memory import MemoryTransport
 from hil.link.pty import PtyTransport
 from hil.link.transport import Transport
 from hil.link.udp import UdpTransport
@@ -159,6 +160,28 @@ def test_stale_flag_and_age_follow_the_reader_clock(pty_pair):
 
 
 @pytest.mark.realtime
+def test_poses_as_plain_values_give_the_frames_of_the_pose_objects():
+    """The runner hands the vehicle's and the gap's poses over as 7 plain numbers each."""
+    gap = pose_of(GAP)
+    gap_values = (*gap.pos_m.tolist(), *gap.quat_wxyz.tolist())
+    runs = []
+    for plain in (False, True):
+        ours, theirs = MemoryTransport.pair()
+        clock = SimClock()
+        server = MocapLinkServer(ours, clock, np.random.default_rng(4), MocapConfig(),
+                                 UwbConfig(jitter_s=0.002, loss_prob=0.1))
+        got = bytearray()
+        for k in range(2000):
+            clock.advance_to(t := k * 1e-3)
+            v = _vehicle(t)
+            vehicle = (*v.pos_m.tolist(), *v.quat_wxyz.tolist()) if plain else v
+            server.update(t, vehicle, gap_values if plain else GAP)
+            got += theirs.recv(0.0)
+        runs.append((bytes(got), server.stats))
+    assert runs[0] == runs[1]
+    assert runs[0][1].frames_written > 150
+
+
 def test_wall_clock_run_over_a_pty_delivers_the_rate():
     """Real time: server and reader in one process on a WallClock for 1 s (tolerance: 10 %)."""
     clock = WallClock()

@@ -107,6 +107,21 @@ def test_bad_input_gives_errors_or_invalid_bodies_not_crashes():
         assert all(np.isfinite(b.pos_m).all() for b in frame.bodies)
 
 
+@pytest.mark.parametrize("occlusion_prob", [0.0, 0.2])
+def test_plain_values_in_body_order_expose_the_frames_of_the_mapping(occlusion_prob):
+    cfg = MocapConfig(occlusion_prob=occlusion_prob, occlusion_mean_s=0.02)
+    by_map, by_values = (MocapSystem(cfg, np.random.default_rng(5)) for _ in range(2))
+    got_map, got_values = [], []
+    for k in range(1000):
+        t = 0.0037 * k + (1.0 if k >= 500 else 0.0)  # (a second missed: its exposures are skipped)
+        vehicle, gap = (t, 0.1, 1.0, 0.9, 0.1, 0.2, 0.3), (0.0, 0.5, 2.1, 0.866, -0.5, 0.0, 0.0)
+        got_map += by_map.update_rows(t, {2: gap, 1: vehicle})
+        by_values.expose_values(t, (1, 2), vehicle + gap)
+        got_values += by_values.release_rows(t)
+    assert got_values == got_map and len(got_map) > 400
+    assert by_values.stats == by_map.stats
+
+
 def test_a_late_first_update_does_not_replay_the_past():
     system = MocapSystem(MocapConfig(latency_s=0.0, processing_s=0.0), np.random.default_rng(0))
     frames = system.update(100.0, {1: BodyPose(np.zeros(3), LEVEL)})

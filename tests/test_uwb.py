@@ -84,6 +84,16 @@ def test_size_and_queue_limits_refuse_packets():
     assert arrivals == pytest.approx([0.1 + 0.02, 0.2 + 0.02, 0.3 + 0.02])
 
 
+def test_a_packet_sized_apart_from_its_data_takes_the_air_and_limits_of_that_size():
+    """The mocap link hands the radio the frame the far side writes, sized by the node data it carries."""
+    radio = UwbRadio(UwbConfig(max_packet_bytes=100, air_rate_bps=8000.0, air_overhead_bytes=0, jitter_s=0.0),
+                     np.random.default_rng(0))
+    assert not radio.send(0.0, b"frame", n_bytes=101)
+    assert radio.stats.oversize == 1
+    assert radio.send(0.0, b"frame", n_bytes=100)
+    assert radio.arrived(math.inf) == [(pytest.approx(0.1 + 0.02), b"frame", 0.0)]
+
+
 def test_uart_wire_time_at_the_baud():
     uart = UartWire(921600)
     done = uart.write(0.0, bytes(101))

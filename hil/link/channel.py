@@ -63,7 +63,9 @@ def next_burst_state(bad: bool, u: float, enter_prob: float, exit_prob: float) -
 def delivery_s(ready_s: float, latency_s: float, jitter_s: float, last_arrival_s: float) -> float:
     """When a message whose last byte is out at ``ready_s`` arrives (s): after the latency with this
     message's ``jitter_s`` (the sum not below 0), never before the one before (``last_arrival_s``)."""
-    return max(ready_s + max(0.0, latency_s + jitter_s), last_arrival_s)
+    late_s = latency_s + jitter_s
+    arrival_s = ready_s + (late_s if late_s > 0.0 else 0.0)
+    return last_arrival_s if last_arrival_s > arrival_s else arrival_s
 
 
 class Channel:

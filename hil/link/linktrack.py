@@ -75,6 +75,7 @@ def sum8(data: bytes) -> int:
 
 CRC16_INIT = 0xFFFF
 _crc_hqx = binascii.crc_hqx  # (CRC-16/CCITT-FALSE's poly and no reflection: `crc16_ccitt`)
+_isfinite = math.isfinite
 
 
 def crc16_ccitt(data: bytes, crc: int = CRC16_INIT) -> int:
@@ -130,7 +131,26 @@ def encode_frame(frame: NodeFrame) -> bytes:
     return bytes(out)
 
 
-#: (data length, role, module id, node role, node id) -> (the bytes before a one-node frame's data, their sum)
+#: the bytes of a one-node frame before its data: header, function, frame length, role, module id,
+#: reserved[4], node count (1), then the node's role, id and data length
+_ONE_NODE_HEAD = struct.Struct("<BBHBB4xBBBH")
+_ONE_NODE_DATA_AT = _ONE_NODE_HEAD.size  # 15: where a one-node frame's data starts
+ONE_NODE_EXTRA_BYTES = _ONE_NODE_HEAD.size + 1  # a one-node frame's bytes besides its data (checksum too)
+
+
+def _one_node_head(data_len: int, role: int, module_id: int, node_role: int, node_id: int
+                   ) -> tuple[bytes, int]:
+    """The bytes of a one-node frame before its ``data_len`` bytes of data, and their sum. Raises
+    FrameError when a field is out of range."""
+    if data_len > MAX_NODE_DATA:
+        raise FrameError(f"node {node_id}: data is {data_len} bytes, limit {MAX_NODE_DATA}")
+    raw = _ONE_NODE_HEAD.pack(HEADER, FUNCTION_NODE_FRAME0, FIXED_LEN + NODE_HEADER_LEN + data_len + 1,
+                              _u8("role", role), _u8("module id", module_id), 1, _u8("node role", node_role),
+                              _u8("node id", node_id), data_len)
+    return raw, sum(raw)
+
+
+#: (data length, role, module id, node role, node id) -> `_one_node_head` of them
 _ONE_NODE_HEADS: dict[tuple[int, int, int, int, int], tuple[bytes, int]] = {}
 _BYTE = tuple(bytes((b,)) for b in range(256))
 
@@ -147,12 +167,7 @@ def encode_node_frame(
                             is node_id.__class__ is int):  # 1.0 == 1 as a key, but is no byte
         if len(_ONE_NODE_HEADS) > 256:
             _ONE_NODE_HEADS.clear()
-        if len(data) > MAX_NODE_DATA:
-            raise FrameError(f"node {node_id}: data is {len(data)} bytes, limit {MAX_NODE_DATA}")
-        raw = struct.pack("<BBHBB", HEADER, FUNCTION_NODE_FRAME0, FIXED_LEN + NODE_HEADER_LEN + len(data) + 1,
-                          _u8("role", role), _u8("module id", module_id)) + bytes(4) + bytes((1,)) + \
-            struct.pack("<BBH", _u8("node role", node_role), _u8("node id", node_id), len(data))
-        head = _ONE_NODE_HEADS[key] = (raw, sum(raw))
+        head = _ONE_NODE_HEADS[key] = _one_node_head(*key)
     return b"".join((head[0], data, _BYTE[(head[1] + sum8(data)) & 0xFF]))
 
 
@@ -379,25 +394,54 @@ _PAYLOAD_BODIES = tuple(struct.Struct("<BBIB" + "BBQ3f4f" * n) for n in range(MA
 _CRC = struct.Struct("<H")
 
 
+class MocapFrameEncoder:
+    """Mocap rows straight to the bytes of a one-node frame carrying their payload, for one receiving
+    module (``role``, ``module_id``) and one sending node (``node_role``, ``node_id``): what
+    `encode_node_frame` makes of `encode_mocap_rows`, in one call. Raises FrameError as they do."""
+
+    __slots__ = ("_forms",)
+
+    def __init__(self, role: int = ROLE_TAG, module_id: int = 0, node_role: int = ROLE_ANCHOR,
+                 node_id: int = 0) -> None:
+        # by body count: the payload's packer, the bytes before it in the frame and their sum
+        self._forms = tuple((s.pack, *_one_node_head(s.size + _CRC.size, role, module_id, node_role, node_id))
+                            for s in _PAYLOAD_BODIES)
+
+    def encode(self, frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
+        """The frame of the payload of ``rows`` (body id, valid, stamp_s, 7 values: pos (m) then quat
+        (w, x, y, z)); timestamps are sent in whole us."""
+        n = len(rows)
+        if n > MAX_BODIES:
+            raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {n}")
+        if not 0 <= frame_no <= 0xFFFFFFFF:
+            raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
+        fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, n]
+        for body_id, valid, stamp_s, values in rows:
+            # a finite sum means every value is finite (inf and NaN propagate); else look closer
+            if len(values) != 7 or not (_isfinite(sum(values)) or all(_isfinite(v) for v in values)):
+                raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
+            if not 0 <= stamp_s < 1.8e13:
+                raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
+            if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
+                _u8("body id", body_id)
+            fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6))
+            fields += values
+        pack, head, head_sum = self._forms[n]
+        payload = pack(*fields)
+        crc = _crc_hqx(payload, CRC16_INIT)
+        # the frame's checksum: the sum of the head, the payload and the CRC's two bytes
+        return b"".join((head, payload, _CRC.pack(crc),
+                         _BYTE[(head_sum + sum8(payload) + (crc & 0xFF) + (crc >> 8)) & 0xFF]))
+
+
+_MOCAP_FRAMES = MocapFrameEncoder()
+
+
 def encode_mocap_rows(frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
     """`encode_mocap_payload` of rows (body id, valid, stamp_s, 7 values: pos (m) then quat (w, x, y,
-    z)), without building the packet: the same bytes and the same FrameErrors."""
-    if len(rows) > MAX_BODIES:
-        raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {len(rows)}")
-    if not 0 <= frame_no <= 0xFFFFFFFF:
-        raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
-    fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, len(rows)]
-    for body_id, valid, stamp_s, values in rows:
-        # a finite sum means every value is finite (inf and NaN propagate); else look closer
-        if len(values) != 7 or not (math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)):
-            raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
-        if not 0 <= stamp_s < 1.8e13:
-            raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
-        if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
-            _u8("body id", body_id)
-        fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6), *values)
-    out = _PAYLOAD_BODIES[len(rows)].pack(*fields)
-    return out + _CRC.pack(_crc_hqx(out, CRC16_INIT))
+    z)), without building the packet: the same bytes and the same FrameErrors (the data of
+    `MocapFrameEncoder`'s frame)."""
+    return _MOCAP_FRAMES.encode(frame_no, rows)[_ONE_NODE_DATA_AT:-1]
 
 
 #: values `unpack_mocap_payload` gives per body: id, flags, stamp (us), position (3), quaternion (4)
