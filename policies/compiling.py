@@ -3,8 +3,9 @@ or a pose instead of a few hundred interpreted float operations.
 
 A `Kernel` is numba's compilation of a plain-Python function of the module that owns the computation
 (`policies.controller.expert_law`, `policies.gap_planning.plan_reference`, the traditional pilot's
-`traditional_command`, the estimator's `take_pose` and `predicted_state`): that function is the only
-definition, run compiled; the classes' methods (`ExpertController.command`,
+`traditional_command`, the estimator's `take_pose` and `predicted_state`, the command links' setpoint
+attitude `hil.link.mavlink.quat_ned_frd_from_euler` and the OPEN link's `ned_euler`): that function is
+the only definition, run compiled; the classes' methods (`ExpertController.command`,
 `MissionPlan.reference_tuples`, `PoseEstimator.take`, ...) are views of it. A function a kernel calls
 (`_poly_state`, `filter_update`, ...) is compiled too and bound in the kernel's copy of its module's
 globals, so the interpreted code and the compiled code read the same source. numba's IEEE +, -, *, /
@@ -34,7 +35,8 @@ _ROOT = Path(__file__).resolve().parent
 #: every source file whose code or constants the kernels compile (the cache folder's digest)
 SOURCES = tuple(_ROOT / f for f in (
     "compiling.py", "controller.py", "frames.py", "gap_planning.py", "primitives.py", "onboard/estimator.py",
-    "onboard/pilots/traditional.py"))
+    "onboard/pilots/traditional.py", "onboard/command_link.py", "onboard/dji_command_link.py",
+    "../hil/link/mavlink.py"))
 
 
 def cache_folder(sources: tuple[Path, ...] = SOURCES) -> str:
@@ -88,3 +90,13 @@ class Kernel:
             with _caching_in(_folder()):
                 self._compiled = njit(cache=True, error_model="numpy")(copy)
         return self._compiled
+
+    def entry(self, *args: Any) -> Any:
+        """The compiled form for the numba types of ``args`` (an example call's arguments; compiled or
+        loaded from the cache now if need be), called without numba's per-call dispatch on the argument
+        types (about half a call's cost): for a caller whose arguments always have these types, its own
+        arrays (float64, the same layout and flags) and floats. An int or a numpy float where a float
+        goes is converted as `float` converts it; an array is not checked."""
+        from numba import typeof  # (numba loaded with the first kernel: see the module's docstring)
+
+        return self.get().compile(tuple(typeof(a) for a in args))

@@ -71,6 +71,19 @@ def test_estimator_rejects_bad_poses_without_raising():
     assert not est.update(0.1, np.zeros(3), quat, 0.13)  # the same stamp again
 
 
+def test_integer_and_numpy_numbers_are_taken_as_their_float_values():
+    """The compiled intake and prediction run for float arguments; other real numbers count as the floats
+    they are equal to."""
+    floats, others = PoseEstimator(max_accel_m_s2=30.0), PoseEstimator(max_accel_m_s2=30.0)
+    for k in range(1, 5):
+        stamp = k * 0.01
+        assert floats.take(stamp, (1.0, -2.0, 1.0), (0.0, 0.0, 0.0, 2.0), stamp + 0.03)
+        assert others.take(np.float64(stamp), (1, -2, 1), (0, 0, 0, 2), np.float64(stamp + 0.03))
+    assert others.state_tuples(0.07) == floats.state_tuples(0.07)
+    assert others.state_tuples(np.float64(0.07)) == floats.state_tuples(0.07)
+    assert others.quat_wxyz == floats.quat_wxyz and others.updates == floats.updates == 4
+
+
 def _euler_of(rot: np.ndarray) -> tuple[float, float, float]:
     """ZYX (roll, pitch, yaw) of a body -> world rotation matrix (rad)."""
     return (math.atan2(rot[2, 1], rot[2, 2]), math.asin(-rot[2, 0]), math.atan2(rot[1, 0], rot[0, 0]))

@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 
 HEADER = 0x55
 FUNCTION_NODE_FRAME0 = 0x02
+_FRAME_START = bytes((HEADER, FUNCTION_NODE_FRAME0))
 FIXED_LEN = 11  # header, function, length, role, id, reserved[4], node count
 NODE_HEADER_LEN = 4  # role, id, data length
 MAX_NODE_DATA = 224  # bytes of data one node may carry
@@ -211,6 +212,11 @@ def decode_frame(data: bytes) -> NodeFrame:
     return frames[0]
 
 
+#: `FrameDecoder._check`'s verdicts on a frame that is not (yet) good: more bytes needed, lengths that do
+#: not add up, a bad checksum (a good frame's verdict is its length, > 0)
+_WAIT, _BAD_STRUCTURE, _BAD_CHECKSUM = 0, -1, -2
+
+
 @dataclass
 class DecoderStats:
     """Decoder counters: frames accepted, bad checksums, bad structure, resyncs, bytes thrown away."""
@@ -267,23 +273,22 @@ class FrameDecoder:
         start = 0
         check = self._check
         while start < n:  # (at n: nothing left to look at, no header to hunt for)
-            if not (start + 1 < n and buf[start] == HEADER and buf[start + 1] == FUNCTION_NODE_FRAME0):
+            if not buf.startswith(_FRAME_START, start):  # (both header bytes there, in one C call)
                 start = self._find_header(buf, start)  # (a frame starting right here skips nothing)
             avail = n - start
             if avail < FIXED_LEN:
                 break
-            verdict = check(buf, start, avail)
-            if verdict == "wait":
-                break
-            if verdict == "ok":
-                length = buf[start + 2] | (buf[start + 3] << 8)
+            length = check(buf, start, avail)  # (a good frame's length, else a verdict <= 0)
+            if length > 0:
                 out.append(parse(buf, start))  # (no copy of the frame)
                 stats.frames_ok += 1
                 stats.bytes_ok += length
                 self._hunting = False
                 start += length
                 continue
-            if verdict == "checksum":
+            if length == _WAIT:
+                break
+            if length == _BAD_CHECKSUM:
                 stats.bad_checksum += 1
             else:
                 stats.bad_structure += 1
@@ -323,32 +328,33 @@ class FrameDecoder:
             self._skip(n)
 
     @staticmethod
-    def _check(buf: bytes | bytearray, start: int, avail: int) -> str:
-        """'ok', 'wait' (need more bytes), 'structure' or 'checksum' for the frame at ``start``."""
+    def _check(buf: bytes | bytearray, start: int, avail: int) -> int:
+        """The length of the good frame at ``start``, else `_WAIT` (need more bytes), `_BAD_STRUCTURE`
+        or `_BAD_CHECKSUM`."""
         length = buf[start + 2] | (buf[start + 3] << 8)
         n_nodes = buf[start + 10]
         if length <= FIXED_LEN or length > MAX_FRAME_LEN or n_nodes > MAX_NODES:
-            return "structure"
+            return _BAD_STRUCTURE
         # walk the node headers as far as they are buffered: their lengths must add up to the frame's
         pos, end, have = start + FIXED_LEN, start + length - 1, start + avail
         while n_nodes:
             data_at = pos + NODE_HEADER_LEN
             if data_at > end:
-                return "structure"
+                return _BAD_STRUCTURE
             if data_at > have:
-                return "wait"
+                return _WAIT
             dlen = buf[pos + 2] | (buf[pos + 3] << 8)
             if dlen > MAX_NODE_DATA:
-                return "structure"
+                return _BAD_STRUCTURE
             pos = data_at + dlen
             n_nodes -= 1
         if pos != end:
-            return "structure"
+            return _BAD_STRUCTURE
         if avail < length:
-            return "wait"
+            return _WAIT
         if sum8(buf[start:end]) != buf[end]:  # (a slice's copy is cheaper than a view of it)
-            return "checksum"
-        return "ok"
+            return _BAD_CHECKSUM
+        return length
 
 
 # --- mocap payload -------------------------------------------------------------------------------

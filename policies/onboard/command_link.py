@@ -35,9 +35,12 @@ from hil.link.mavlink import (
     decode_frame,
     mav,
     px4_mode_parts,
+    quat_enu_flu_to_ned_frd_tuple,
+    quat_from_euler_tuple,
     quat_ned_frd_from_euler,
 )
 from hil.link.transport import Transport
+from policies.compiling import Kernel
 
 ONBOARD_SYSTEM_ID = 1  # same vehicle as the FC (PX4 companion convention)
 ONBOARD_COMPONENT_ID = mav.MAV_COMP_ID_ONBOARD_COMPUTER
@@ -59,6 +62,10 @@ _ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker
 _ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 #: SET_ATTITUDE_TARGET type_mask: ignore the three body rates, use attitude and thrust
 ATTITUDE_THRUST_TYPE_MASK = 0b0000_0111
+#: the setpoint's attitude as the wire's body FRD -> world NED quaternion, compiled (one call a setpoint
+#: instead of three and their float math): `quat_ned_frd_from_euler`
+NED_FRD_QUAT = Kernel(quat_ned_frd_from_euler, quat_from_euler_tuple=Kernel(quat_from_euler_tuple),
+                      quat_enu_flu_to_ned_frd_tuple=Kernel(quat_enu_flu_to_ned_frd_tuple))
 #: DO_SET_MODE base mode: custom mode enabled (1) | safety armed flag passed through (128)
 PX4_BASE_MODE_CUSTOM = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_SAFETY_ARMED
 
@@ -138,6 +145,7 @@ class CommandLink:
         #: messages ignored for not coming from the FC: heartbeats, acks, ticks (TIMESYNC requests and
         #: mocap byte counts)
         self.foreign = {"heartbeats": 0, "acks": 0, "ticks": 0}
+        self._ned_frd_quat = NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (compiled for floats: no dispatch a call)
 
     @property
     def transport(self) -> Transport:
@@ -196,8 +204,7 @@ class CommandLink:
         if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
             self.foreign["ticks"] += 1
             return
-        tick_s, mocap_total = read_tick_frame(frame)
-        self._on_tick(tick_s, mocap_total)
+        self._on_tick(*read_tick_frame(frame))  # (tick request time, mocap total)
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
         """The harness's mocap byte total, then a lockstep tick request at ``tick_s`` (s) (None: not
@@ -282,7 +289,7 @@ class CommandLink:
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        q = quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad)
+        q = self._ned_frd_quat(roll_rad, pitch_rad, yaw_rad)  # (`quat_ned_frd_from_euler`, compiled)
         thrust = clipped_thrust(thrust)
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
         payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
@@ -324,10 +331,14 @@ class CommandLink:
             if len(answers) >= ANSWERS_KEPT:
                 del answers[next(iter(answers))]
             answers[tick_s] = frame
-        self._send_frame(frame)
         open_ticks = self._open_ticks
-        self._open_ticks = open_ticks = open_ticks - 1 if open_ticks > 1 else 0  # max(0, open_ticks - 1)
-        if open_ticks == 0:
+        if open_ticks > 0:  # held with the tick's other frames (`_send_frame`, without the call: per tick)
+            self._held.append(frame)
+            self._open_ticks = open_ticks = open_ticks - 1
+            if open_ticks == 0:  # the last tick taken is answered: its frames go in one write
+                self.flush()
+        else:
+            self._send_frame(frame)
             self.flush()
 
     def _answer_frame(self, tick_s: float) -> bytes:

@@ -25,7 +25,8 @@ from hil.link.clock import Clock
 from hil.link.lockstep import dji_answer_payload, dji_read_tick
 from hil.link.mavlink import euler_from_quat, mav, quat_ned_frd_from_euler
 from hil.link.transport import Transport
-from policies.onboard.command_link import CommandAck, CommandLink, clipped_thrust
+from policies.compiling import Kernel
+from policies.onboard.command_link import NED_FRD_QUAT, CommandAck, CommandLink, clipped_thrust
 
 #: the Onboard SDK app's activation: app id, reserved, the FC's version (as OSDK sends it), the bundle id
 APP_ID = 1069806
@@ -56,6 +57,18 @@ _CONTROL_LOST = bytes((dj.SET_BROADCAST, dj.CMD_CONTROL_LOST))
 #: the setup after activation, in order: each step's command and payload
 _SETUP = ((_RATES, BROADCAST_RATES), (_SUB_VERSION, struct.pack("<I", dj.SUB_DB_VERSION)),
           (_SUB_ADD, _PACKAGE))
+
+
+def ned_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float, float]:
+    """The N3's roll, pitch and heading (rad; NED, Z-Y-X) of ZYX Euler angles of body FLU -> world ENU
+    (rad): `euler_from_quat` of `quat_ned_frd_from_euler`. Compiled by numba (`NED_EULER`), which is how
+    the setpoint runs it."""
+    return euler_from_quat(quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad))
+
+
+#: the setpoint's angles on the wire, compiled: `ned_euler`
+NED_EULER = Kernel(ned_euler, quat_ned_frd_from_euler=NED_FRD_QUAT,
+                   euler_from_quat=Kernel(euler_from_quat))
 
 
 @dataclass(frozen=True)
@@ -101,6 +114,7 @@ class DjiCommandLink(CommandLink):
         self._display_mode = dj.MODE_P_GPS
         self._last_data_s: float | None = None
         self.control_lost = 0  # times the FC pushed "control lost"
+        self._ned_euler = NED_EULER.entry(0.0, 0.0, 0.0)  # (compiled for floats: no dispatch a call)
 
     # --- input --------------------------------------------------------------------------------
     def _poll(self, timeout_s: float) -> list:
@@ -228,8 +242,7 @@ class DjiCommandLink(CommandLink):
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        q = quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad)
-        roll, pitch, yaw = euler_from_quat(q)
+        roll, pitch, yaw = self._ned_euler(roll_rad, pitch_rad, yaw_rad)  # (`ned_euler`, compiled)
         percent = 100.0 * clipped_thrust(thrust)
         payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
                                       percent, math.degrees(yaw))

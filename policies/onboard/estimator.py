@@ -95,14 +95,17 @@ class PoseEstimator:
         self._settings = np.array([cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s, cfg.reset_after_s,
                                    cfg.latency_s, max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas])
         self._settings.flags.writeable = False
-        self._quat = (1.0, 0.0, 0.0, 0.0)
+        #: the latest pose's attitude (w, x, y, z; body FLU -> world ENU), unit
+        self.quat_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
         self._euler: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
         self.updates = 0
         self.rejected = 0  # poses out of order, repeated, not finite or implausible
         self.implausible = 0  # poses further from the prediction than the vehicle can move
         self.implausible_run = 0  # of those, how many in a row since the latest pose taken
         self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
-        self._take, self._predict = TAKE_POSE.get(), PREDICTED_STATE.get()
+        # (the compiled forms for this state's and these settings' arrays and floats: no dispatch a call)
+        self._take = TAKE_POSE.entry(self._state, self._settings, *(0.0,) * 9)
+        self._predict = PREDICTED_STATE.entry(self._state, self._settings, 0.0)
 
     @property
     def ready(self) -> bool:
@@ -141,7 +144,7 @@ class PoseEstimator:
         self.implausible_run = 0
         self._ready = True
         self._received_s = received_s
-        self._quat = (qw, qx, qy, qz)
+        self.quat_wxyz = (qw, qx, qy, qz)
         self._euler = None  # from the quaternion when first asked for
         self.updates += 1
         return True
@@ -165,16 +168,11 @@ class PoseEstimator:
         px, py, pz, vx, vy, vz, ax, ay, az = self._predict(self._state, self._settings, now_s)
         return (px, py, pz), (vx, vy, vz), (ax, ay, az)
 
-    @property
-    def quat_wxyz(self) -> tuple[float, float, float, float]:
-        """The latest pose's attitude (w, x, y, z; body FLU -> world ENU), unit."""
-        return self._quat
-
     def euler_rad(self) -> tuple[float, float, float]:
         """ZYX Euler angles (rad) of `quat_wxyz` (made once per pose)."""
         euler = self._euler
         if euler is None:
-            euler = self._euler = euler_from_quat(self._quat)
+            euler = self._euler = euler_from_quat(self.quat_wxyz)
         return euler
 
     def estimate(self, now_s: float) -> StateEstimate:
@@ -183,7 +181,7 @@ class PoseEstimator:
         pose has come yet."""
         pos, vel, acc = self.state_tuples(now_s)
         return _new_estimate(np.array(pos), np.array(vel), np.array(acc), np.array(self.euler_rad()),
-                             np.array(self._quat))
+                             np.array(self.quat_wxyz))
 
 
 class StaticPoseCheck:
@@ -193,8 +191,8 @@ class StaticPoseCheck:
 
     def __init__(self, jump_m: float, turn_rad: float) -> None:
         self.jump_m, self.turn_rad = jump_m, turn_rad
-        #: the first pose: position (m), quaternion (w, x, y, z), as given
-        self._ref: tuple[Sequence[float], Sequence[float]] | None = None
+        #: the first pose: position (m) and quaternion (w, x, y, z), seven floats in a row
+        self._ref: tuple[float, ...] | None = None
         self._taken: tuple[Sequence[float], Sequence[float]] | None = None  # the latest pose taken
         self._pose: tuple[np.ndarray, np.ndarray] | None = None  # its arrays, made when first asked for
         self.received_s = -math.inf  # arrival of the latest pose taken (s)
@@ -213,15 +211,21 @@ class StaticPoseCheck:
     def update(self, pos_m: Sequence[float], quat_wxyz: Sequence[float], received_s: float) -> bool:
         """Take one pose (arriving at ``received_s``, s); False if refused. On plain floats: the check
         runs once per mocap frame (the planner asks for `pose` a few times a run)."""
-        pos_m, quat_wxyz = tuple(pos_m), tuple(quat_wxyz)  # (kept: a copy of what the caller may reuse)
-        if self._ref is None:
-            self._ref = (pos_m, quat_wxyz)
+        # (kept: a copy of what the caller may reuse; a tuple is one already)
+        if pos_m.__class__ is not tuple:
+            pos_m = tuple(pos_m)
+        if quat_wxyz.__class__ is not tuple:
+            quat_wxyz = tuple(quat_wxyz)
         (px, py, pz), (qw, qx, qy, qz) = pos_m, quat_wxyz
-        (rx, ry, rz), (rw, rqx, rqy, rqz) = self._ref
+        ref = self._ref
+        if ref is None:
+            ref = self._ref = (px, py, pz, qw, qx, qy, qz)
+        rx, ry, rz, rw, rqx, rqy, rqz = ref
         dx, dy, dz = px - rx, py - ry, pz - rz
-        jump = math.sqrt(dx * dx + dy * dy + dz * dz)
-        # the angle between the attitudes
-        turn = 2.0 * math.acos(min(1.0, abs(qw * rw + qx * rqx + qy * rqy + qz * rqz)))
+        jump = _sqrt(dx * dx + dy * dy + dz * dz)
+        # the angle between the attitudes (the cosine at most 1: `min(1.0, c)` without the call, NaN to 1)
+        c = abs(qw * rw + qx * rqx + qy * rqy + qz * rqz)
+        turn = 2.0 * _acos(c if c < 1.0 else 1.0)
         if jump > self.jump_m or turn > self.turn_rad:
             self.implausible += 1
             self.implausible_run += 1
@@ -230,6 +234,9 @@ class StaticPoseCheck:
         self._taken, self._pose = (pos_m, quat_wxyz), None
         self.received_s, self.implausible_run = received_s, 0
         return True
+
+
+_sqrt, _acos = math.sqrt, math.acos  # (per mocap frame: one global read each)
 
 
 def _items(v: object) -> object:

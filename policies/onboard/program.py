@@ -64,6 +64,7 @@ from policies.gap_planning import (
     _PLAN_APPROACH,
     _PLAN_RECOVERY,
     PLAN_FLOATS,
+    PLAN_POLY_FLOATS,
     PLAN_REFERENCE,
     BodyClearance,
     GapPose,
@@ -77,7 +78,9 @@ from policies.gap_planning import (
     start_height,
 )
 from policies.mocap_reader import MocapReader
+from policies.onboard.command_link import NED_FRD_QUAT
 from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
+from policies.onboard.dji_command_link import NED_EULER
 from policies.onboard.estimator import (
     EstimatorConfig,
     PoseEstimator,
@@ -248,13 +251,13 @@ class ProgramClock:
     """The program's notion of now (s): set by `step` (wall time or the latest lockstep tick)."""
 
     def __init__(self) -> None:
-        self._t = 0.0
+        self.t_s = 0.0  # (what `now_s` gives)
 
     def now_s(self) -> float:
-        return self._t
+        return self.t_s
 
     def set(self, t_s: float) -> None:
-        self._t = t_s
+        self.t_s = t_s
 
 
 class EventLog:
@@ -334,6 +337,8 @@ def warm_kernels() -> None:
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
     est.state_tuples(0.05)
+    NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (the command links' setpoint attitude)
+    NED_EULER.entry(0.0, 0.0, 0.0)
 
 
 class OnboardProgram:
@@ -376,7 +381,8 @@ class OnboardProgram:
         self._mission_start_s = 0.0
         #: trajectory, its `poly_packed` form, yaw0, yaw1, start
         self._takeoff: tuple[Any, np.ndarray, float, float, float] | None = None
-        self._track = TRACKING_COMMAND.get()
+        # (the compiled form for a packed trajectory, floats and the expert's gains: no dispatch a step)
+        self._track = TRACKING_COMMAND.entry(np.zeros(PLAN_POLY_FLOATS), *(0.0,) * 9, self.expert.gains_array)
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
         # the most the commanded roll and pitch move in a control step from the traverse on (rad; the
         # vehicle's body rate times the period), so that the pull-out asks no faster turn than the FC makes:
@@ -387,6 +393,7 @@ class OnboardProgram:
         self._period_s = cfg.period_s  # (the control period, s: a property of the frozen config, read once)
         # (the frozen config's and the link's per-tick numbers and method, bound once)
         self._stale_mocap_s, self._full_thrust_n = cfg.stale_mocap_s, cfg.full_thrust_n
+        self._fc_lost_s = cfg.fc_lost_s
         self._heartbeat_period_s, self._max_catch_up_steps = cfg.heartbeat_period_s, cfg.max_catch_up_steps
         self._send_attitude_target = self.link.send_attitude_target
         self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
@@ -416,17 +423,32 @@ class OnboardProgram:
             return
         self._act(now_s)
 
-    def lockstep_tick(self, tick_s: float) -> None:
-        """One lockstep tick: read the mocap (up to what the harness says it has written, when it says),
-        act at ``tick_s``, then answer the tick."""
-        self.clock.set(tick_s)
+    def lockstep_tick(self, tick_s: float, *, repeat: bool = False) -> None:
+        """One lockstep tick: read the mocap link up to what the harness has announced (all that has
+        arrived when it does not say), act at ``tick_s``, then answer the tick. A ``repeat`` (a tick acted
+        on before) is read and answered, not acted on, and leaves the clock where it is."""
+        if not repeat:
+            self.clock.t_s = tick_s  # (`ProgramClock.set`, without the call: per tick)
+        link, mocap = self.link, self.mocap
         try:
-            self._read_tick_mocap()
+            announced = link.mocap_announced
+            if announced is None:
+                mocap.poll()
+            else:
+                short = mocap.lockstep_short_reads
+                mocap.poll_to(announced)
+                if mocap.lockstep_short_reads != short:
+                    # the bytes the harness announced did not arrive: from here the run is not the
+                    # scenario's deterministic run any more, which the harness must be told (it fails its
+                    # lockstep check)
+                    self.events.emit("lockstep_lost", self.clock.now_s(),
+                                     short_reads=mocap.lockstep_short_reads)
         except LinkError as exc:
             self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
             return
-        self._act(tick_s)
-        self.link.answer_tick(tick_s)
+        if not repeat:
+            self._act(tick_s)
+        link.answer_tick(tick_s)
 
     def _mocap_due_s(self) -> float:
         """When `step` next reads the mocap link (s): at the next control step, as lockstep reads it at
@@ -451,7 +473,27 @@ class OnboardProgram:
         if now_s >= self._next_heartbeat_s:
             self.link.send_heartbeat()
             self._next_heartbeat_s = now_s + self._heartbeat_period_s
-        self._transitions(now_s)
+        # the phase logic, in the order its checks win: the FC lost, stale mocap, an implausible gap pose,
+        # then the phase's own progress (one place a tick: no call of its own)
+        ph = self.phase
+        est = self.estimator
+        gap = self.gap_check
+        if ph is not _WAIT and self.link.heartbeat_age_s(now_s) > self._fc_lost_s:
+            self._finish(Phase.FAILED, EXIT_ERROR, "fc_lost", phase=str(ph),
+                         silence_s=round(self.link.heartbeat_age_s(now_s), 3))
+        elif ph in _FRESH_STATE and not est.age_s(now_s) <= self._stale_mocap_s:  # (`_mocap_fresh`)
+            if est.implausible_run:  # the poses came, but none the vehicle could have flown to
+                self._abort(now_s, "implausible_mocap", age_s=round(est.age_s(now_s), 4),
+                            refused=est.implausible_run, jump_m=round(est.latest_jump_m, 3))
+            else:
+                self._abort(now_s, "stale_mocap", age_s=round(est.age_s(now_s), 4))
+        elif ph is not _ABORTING and gap.implausible_run and now_s - gap.received_s > self._stale_mocap_s:
+            self._abort(now_s, "implausible_gap_pose", refused=gap.implausible_run,
+                        jump_m=round(gap.latest_jump_m, 3))
+        else:
+            handler = self._handlers.get(ph)
+            if handler is not None:  # the final phases have none
+                handler(now_s)
         if self.phase in FINAL_PHASES or self._next_control_s is None:
             return
         period = self._period_s
@@ -479,30 +521,6 @@ class OnboardProgram:
     def _mocap_fresh(self, now_s: float) -> bool:
         """Whether the estimator has taken a vehicle pose within ``stale_mocap_s`` of ``now_s``."""
         return self.estimator.age_s(now_s) <= self._stale_mocap_s
-
-    def _transitions(self, now_s: float) -> None:
-        cfg, ph = self.config, self.phase
-        if ph is not _WAIT and self.link.heartbeat_age_s(now_s) > cfg.fc_lost_s:
-            self._finish(Phase.FAILED, EXIT_ERROR, "fc_lost", phase=str(ph),
-                         silence_s=round(self.link.heartbeat_age_s(now_s), 3))
-            return
-        est = self.estimator
-        # (`_mocap_fresh`, its call folded in: per tick)
-        if ph in _FRESH_STATE and not est.age_s(now_s) <= self._stale_mocap_s:
-            if est.implausible_run:  # the poses came, but none the vehicle could have flown to
-                self._abort(now_s, "implausible_mocap", age_s=round(est.age_s(now_s), 4),
-                            refused=est.implausible_run, jump_m=round(est.latest_jump_m, 3))
-            else:
-                self._abort(now_s, "stale_mocap", age_s=round(est.age_s(now_s), 4))
-            return
-        gap = self.gap_check
-        if ph is not _ABORTING and gap.implausible_run and now_s - gap.received_s > cfg.stale_mocap_s:
-            self._abort(now_s, "implausible_gap_pose", refused=gap.implausible_run,
-                        jump_m=round(gap.latest_jump_m, 3))
-            return
-        handler = self._handlers.get(ph)
-        if handler is not None:  # the final phases have none
-            handler(now_s)
 
     def _wait(self, now_s: float) -> None:
         cfg = self.config
@@ -813,12 +831,9 @@ class OnboardProgram:
                     # a repeat (sent again while this program started) or a tick sent again after a
                     # later one was done (the first copy lost to corrupt bytes): answer, do not act, as
                     # time never goes back
-                    try:
-                        self._read_tick_mocap()
-                    except LinkError as exc:
-                        self._finish(Phase.FAILED, EXIT_ERROR, "link_lost", reason=str(exc))
+                    self.lockstep_tick(tick, repeat=True)
+                    if self.phase in FINAL_PHASES:  # (the link lost)
                         break
-                    link.answer_tick(tick)
                     continue
                 self._last_tick_s = tick
                 self.lockstep_tick(tick)
@@ -830,21 +845,6 @@ class OnboardProgram:
                 # link's descriptor) instead of a read per tick that finds nothing
                 break
         return done
-
-    def _read_tick_mocap(self) -> None:
-        """Lockstep: read the mocap link up to what the harness has announced (all that has arrived
-        when it does not say)."""
-        announced = self.link.mocap_announced
-        if announced is None:
-            self.mocap.poll()
-            return
-        mocap = self.mocap
-        short = mocap.lockstep_short_reads
-        mocap.poll_to(announced)
-        if mocap.lockstep_short_reads != short:
-            # the bytes the harness announced did not arrive: from here the run is not the scenario's
-            # deterministic run any more, which the harness must be told (it fails its lockstep check)
-            self.events.emit("lockstep_lost", self.clock.now_s(), short_reads=mocap.lockstep_short_reads)
 
     def run_lockstep(self, tick_timeout_s: float = 10.0) -> int:
         """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick

@@ -16,7 +16,7 @@ from policies.controller import (
     _new_command,
     expert_law,
 )
-from policies.gap_planning import PLAN_REFERENCE, POLY_AXES, _poly_axes, plan_reference
+from policies.gap_planning import PLAN_FLOATS, PLAN_REFERENCE, POLY_AXES, _poly_axes, plan_reference
 from policies.onboard.pilots import Observation, PilotContext, flown_by
 
 
@@ -27,8 +27,11 @@ class TraditionalPilot:
     def __init__(self, mass_kg: float = 0.9, max_tilt_deg: float = 75.0) -> None:
         self.controller = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
         self.flies = flown_by()
-        self._step = TRADITIONAL_COMMAND.get()
         self._mass_kg, self._gains = self.controller.mass_kg, self.controller.gains_array
+        # (the compiled form for a plan's packed array (read-only), floats and these gains: no dispatch)
+        plan = np.zeros(PLAN_FLOATS)
+        plan.flags.writeable = False
+        self._step = TRADITIONAL_COMMAND.entry(plan, *(0.0,) * 8, self._gains)
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
         pos, vel = obs.pos_vel()  # (plain floats where the observation holds them so, else the arrays)
