@@ -20,6 +20,7 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 #: folders of other digests kept whatever their age (other checkouts, a branch switched back to)
 KEEP_OTHERS = 4
@@ -85,6 +86,18 @@ def cold(module: str = "") -> Path | None:
     package, _, stem = module.rpartition(".")
     pattern = f"{package.rpartition('.')[2]}_*/{stem}.*.nbi" if module else "*.nbi"
     return Path(folder) if next(Path(folder).rglob(pattern), None) is None else None
+
+
+def entry(kernel: Any, *args: Any) -> Any:
+    """The compiled form of ``kernel`` (a numba dispatcher) for the numba types of ``args`` (an example
+    call's arguments; compiled or loaded from the cache now if need be), called without numba's per-call
+    dispatch on the argument types: for a per-tick caller whose arguments always have these types (its
+    own float64 arrays, bound once, and floats and ints). An int or a numpy float where a float goes is
+    converted as `float` converts it; an array is not checked (its dtype, dimensions, layout and
+    writability must be the example's)."""
+    from numba import typeof  # (numba is configured by `configure` before its first import)
+
+    return kernel.compile(tuple(typeof(a) for a in args))
 
 
 def _remove_stale(current: Path) -> None:

@@ -13,6 +13,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from emulator.kernel_cache import entry
+
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
@@ -186,8 +188,11 @@ class MocapSystem:
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
         self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
         self._buffers_for(2)
-        # compiled (or loaded from numba's cache) now, not at the first exposure
-        _expose_kernel(self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, self._values)
+        # the exposure kernel's form for its buffers and the block of draws (float64 arrays whatever their
+        # size, uint8 occlusion flags), compiled or loaded from numba's cache now, not at the first
+        # exposure, and called without numba's type dispatch
+        self._expose = entry(_expose_kernel, self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0,
+                             self._values)
 
     def _buffers_for(self, n: int) -> None:
         """The kernel's buffers for exposures of ``n`` bodies, and their structs: the true poses in (7
@@ -281,7 +286,7 @@ class MocapSystem:
         self._put_poses(self._poses_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
         poses_in, values, at = self._poses, self._values, self._rows_at
         pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
-        stats, latency_s = self.stats, self._latency_s
+        stats, latency_s, expose = self.stats, self._latency_s, self._expose
         while k * period <= now_s + 1e-12:
             # frame ``k``, exposed at ``t_s``, queued for its ready time
             t_s = k * period
@@ -290,17 +295,17 @@ class MocapSystem:
                 # the draws keep the order of one body after the other (occlusion, position noise,
                 # attitude noise): taken here, the noise handed to the kernel in that order
                 occluded, noise = self._occlusions(t_s, body_ids, poses)
-                n_invalid = _expose_kernel(poses_in, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
+                n_invalid = expose(poses_in, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
                 extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
             else:
                 # without occlusion the noise of the whole frame comes from the block drawn ahead; a
                 # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
-                n_invalid, nxt = _expose_kernel(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                                self._normal_block, self._normal_next, values)
+                n_invalid, nxt = expose(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
+                                        self._normal_next, values)
                 if n_invalid < 0:
                     self._normal_block = self._rng.standard_normal(max(_BLOCK, nxt))
-                    n_invalid, nxt = _expose_kernel(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED,
-                                                    self._normal_block, 0, values)
+                    n_invalid, nxt = expose(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
+                                            values)
                 self._normal_next = nxt
                 extra = 0.0
                 if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead

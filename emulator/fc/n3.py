@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from emulator.kernel_cache import entry
 from emulator.profile import VehicleProfile
 
 # the control flag byte is the OPEN protocol's (`hil.link.dji_open` owns it)
@@ -225,7 +226,7 @@ def target_from_values(
         if flag & 0xC0 != HORIZONTAL_ANGLE:
             return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
         roll_deg, pitch_deg, thrust_percent, yaw = map(float, values)
-    verdict, roll, pitch, heading, rate = attitude_thrust_values(
+    verdict, roll, pitch, heading, rate = _attitude_thrust(
         flag, roll_deg, pitch_deg, thrust_percent, yaw, float(profile.max_tilt_deg),
         float(profile.max_yaw_rate_deg_s))
     if verdict != ACCEPTED_FIELDS:
@@ -238,6 +239,17 @@ def target_from_values(
     d["yaw_rate_rad_s"] = rate if flag & YAW_RATE else None
     d["thrust_n"] = profile.thrust_percent_to_force_n(thrust_field)
     return tg
+
+
+def _attitude_thrust_first(*args: object) -> tuple[int, float, float, float, float]:
+    """`attitude_thrust_values` of ``args`` (an int, then floats), on its first call: puts the kernel's
+    form for those types (`entry`, called without numba's type dispatch) in its own place."""
+    global _attitude_thrust
+    _attitude_thrust = entry(attitude_thrust_values, 0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
+    return _attitude_thrust(*args)
+
+
+_attitude_thrust = _attitude_thrust_first
 
 
 def _motion_target(flag: int, x: float, y: float, z: float, yaw: float, profile: VehicleProfile

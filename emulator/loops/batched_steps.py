@@ -25,6 +25,7 @@ from emulator.fc.flight_controller import HOLD_STATES, steps_before
 from emulator.fc.hold import hold_command
 from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.fc.landed import body_landed
+from emulator.kernel_cache import entry
 from emulator.physics.kernels import step_vehicle
 from emulator.physics.native import NativeBackend
 from emulator.physics.state import QUAT
@@ -133,23 +134,22 @@ class FastStepper:
         self._fc = vehicle.fc
         self._backend = vehicle.backend
         if native:
-            inner = vehicle.fc.inner
-            self._arrays = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
-            self._loop = (inner.params, inner.mix_inv, inner.motor_cmd)
-            self._landed_test = vehicle.fc.landed_test
+            fc = vehicle.fc
+            inner = fc.inner
+            self._arrays = x, aux, p = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
+            self._loop = gains, mix_inv, out = (inner.params, inner.mix_inv, inner.motor_cmd)
+            self._landed_test = landed_test = fc.landed_test
             self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
+            # the kernels' forms for these arrays, floats and ints (compiled or loaded from the cache
+            # now, not inside the timed loop), called without numba's type dispatch
+            self._fly_batch = entry(_fly_batch, x, aux, p, 0.0, 0.0, 0.0, 0.0, gains, mix_inv, out, 0,
+                                    landed_test)
+            self._hold_batch = entry(_hold_batch, x, aux, p, 0.0, 0.0, landed_test, fc.hold_params, gains,
+                                     mix_inv, out, 0)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
-        stepper = cls(vehicle, isinstance(vehicle.backend, NativeBackend))
-        if stepper.native:  # compile (or load from the cache) now, not inside the timed loop
-            x, aux, p = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
-            fc, inner = vehicle.fc, vehicle.fc.inner
-            _fly_batch(x, aux, p, 0.0, 0.0, 0.0, 0.0, inner.params, inner.mix_inv, inner.motor_cmd, 0,
-                       fc.landed_test)
-            gains, mix_inv, out = inner.params, inner.mix_inv, inner.motor_cmd
-            _hold_batch(x, aux, p, 0.0, 0.0, fc.landed_test, fc.hold_params, gains, mix_inv, out, 0)
-        return stepper
+        return cls(vehicle, isinstance(vehicle.backend, NativeBackend))
 
     def step(self, n_steps: int) -> float | None:
         """Advance ``n_steps`` physics steps; returns the vehicle's time (s) after them on the native
@@ -170,8 +170,8 @@ class FastStepper:
                 if n > 0:
                     x, aux, p = self._arrays
                     gains, mix_inv, out = self._loop
-                    landed = _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
-                                        self._landed_test)
+                    landed = self._fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
+                                             self._landed_test)
             if n == 0:
                 n = self._hold_steps(n_steps, time_s)
             if n > 0:
@@ -204,5 +204,5 @@ class FastStepper:
             return 0
         x, aux, p = self._arrays
         yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        return _hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
-                           *self._loop, n_steps)
+        return self._hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
+                                *self._loop, n_steps)

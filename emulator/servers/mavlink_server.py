@@ -21,6 +21,7 @@ from numba import njit
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
+from emulator.kernel_cache import entry
 from emulator.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
 from emulator.servers.arrivals import input_due
 from emulator.servers.link_budget import LinkBudget
@@ -180,7 +181,9 @@ class MavlinkServer:
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
-        attitude_fields(0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # compiled (or loaded) now, not at a setpoint
+        # compiled (or loaded) now, not at a setpoint; called without numba's type dispatch: a frame's
+        # fields are the int and floats its struct unpacks
+        self._attitude_fields = entry(attitude_fields, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -335,7 +338,7 @@ class MavlinkServer:
         _, q0, q1, q2, q3, _, _, yaw_rate, thrust, target_system, target_component, type_mask = values
         if not self._for_me(target_system, target_component):
             return
-        verdict, flag, roll, pitch, thrust_percent, yaw, norm = attitude_fields(
+        verdict, flag, roll, pitch, thrust_percent, yaw, norm = self._attitude_fields(
             type_mask, q0, q1, q2, q3, thrust, yaw_rate)
         if verdict != ATTITUDE_TAKEN:
             self._setpoint_rejected(attitude_rejection(verdict, thrust, norm), now_s)
