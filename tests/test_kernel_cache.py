@@ -65,3 +65,17 @@ def test_folders_of_other_digests_unused_for_a_day_go_beyond_the_few_most_recent
     kept = {p.name for p in root.iterdir()}
     assert current is not None and current.name in kept and "fresh" in kept
     assert kept - {current.name, "fresh"} == {f"old{i}" for i in range(kernel_cache.KEEP_OTHERS - 1)}
+
+
+def test_a_kernels_entry_gives_the_kernels_numbers_and_takes_ints_where_floats_go():
+    """The compiled form a per-tick caller binds (no type dispatch) flies what the kernel flies: accepted,
+    tilt-limited and refused setpoints alike; an int where a float goes is taken as that float."""
+    from emulator.fc.n3 import ATTITUDE_THRUST_YAW_RATE, attitude_thrust_values
+
+    fast = kernel_cache.entry(attitude_thrust_values, 0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
+    flag = ATTITUDE_THRUST_YAW_RATE
+    for args in [(flag, 12.5, -20.0, 55.0, 30.0, 35.0, 150.0), (flag, 80.0, 70.0, 55.0, 400.0, 35.0, 150.0),
+                 (flag, 10.0, 0.0, 120.0, 0.0, 35.0, 150.0), (flag, 95.0, 0.0, 50.0, 0.0, 35.0, 150.0)]:
+        assert fast(*args) == attitude_thrust_values(*args)
+    assert fast(flag, 12, -20, 55, 30, 35, 150) == attitude_thrust_values(flag, 12.0, -20.0, 55.0, 30.0, 35.0,
+                                                                        150.0)
