@@ -439,9 +439,9 @@ def frame_ok(frame: bytes) -> bool:
     return _mcrf4xx(extra, _mcrf4xx(frame[1:crc_at], 0xFFFF)) == frame[crc_at] | frame[crc_at + 1] << 8
 
 
-#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags, sequence,
-#: system, component, message id (24 bits: low 16, high 8)
-_V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
+#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags (both 0: pad
+#: bytes), sequence, system, component, message id (24 bits: low 16, high 8)
+_V2_HEADER_TAIL = struct.Struct("<B2xBBBHB")
 _V2_START = bytes((MAVLINK_V2_MAGIC,))
 _CRC_BYTES = struct.Struct("<H")  # the frame's CRC, low byte first
 
@@ -450,7 +450,7 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     """An unsigned MAVLink 2 frame of ``payload`` (full length; trailing zeros are trimmed to one byte
     at least, as MAVLink 2 does), byte for byte what pymavlink makes of the same message."""
     body = payload.rstrip(b"\x00") or payload[:1]
-    covered = _V2_HEADER_TAIL.pack(len(body), 0, 0, seq, system_id, component_id, msg_id & 0xFFFF,
+    covered = _V2_HEADER_TAIL.pack(len(body), seq, system_id, component_id, msg_id & 0xFFFF,
                                    msg_id >> 16) + body
     # MAVLink's CRC-16/MCRF4XX (from 0xFFFF, fastcrc's default) of header and payload, then CRC_EXTRA:
     # one call on the joined bytes
