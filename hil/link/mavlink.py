@@ -262,7 +262,15 @@ class MavlinkCodec:
         if self._signing:
             return self.pack(message_from_payload(msg_id, payload))
         m = self._mav
-        return self._sent(encode_frame(msg_id, payload, m.seq, m.srcSystem, m.srcComponent))
+        seq = m.seq
+        frame = encode_frame(msg_id, payload, seq, m.srcSystem, m.srcComponent)
+        # (`_sent`, without its call: a frame or more a tick)
+        m.seq = (seq + 1) & 0xFF
+        self.stats.frames_sent += 1
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.record(frame, self.clock.now_s())
+        return frame
 
     def _sent(self, frame: bytes) -> bytes:
         """Count and record ``frame``, framed on the packer's sequence number, and step that number."""
@@ -343,8 +351,9 @@ class MavlinkCodec:
             if known is None:
                 break  # an unknown id: pymavlink counts it
             extra, kind = known
-            # the CRC of header and payload, then CRC_EXTRA, compared with the frame's (low byte first)
-            if crc(extra, crc(data[i + 1 : end - 2], 0xFFFF)) != data[end - 2] | data[end - 1] << 8:
+            # the CRC (from 0xFFFF) of header and payload, then CRC_EXTRA, compared with the frame's (low
+            # byte first)
+            if crc(data[i + 1 : end - 2] + extra) != data[end - 2] | data[end - 1] << 8:
                 break  # a bad frame: pymavlink counts it
             if kind == _REFUSE:
                 stats.unsigned_refused += 1
@@ -430,9 +439,9 @@ def frame_ok(frame: bytes) -> bool:
     return _mcrf4xx(extra, _mcrf4xx(frame[1:crc_at], 0xFFFF)) == frame[crc_at] | frame[crc_at + 1] << 8
 
 
-#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags, sequence,
-#: system, component, message id (24 bits: low 16, high 8)
-_V2_HEADER_TAIL = struct.Struct("<BBBBBBHB")
+#: a MAVLink 2 header after its start byte: length, incompatibility and compatibility flags (both 0: pad
+#: bytes), sequence, system, component, message id (24 bits: low 16, high 8)
+_V2_HEADER_TAIL = struct.Struct("<B2xBBBHB")
 _V2_START = bytes((MAVLINK_V2_MAGIC,))
 _CRC_BYTES = struct.Struct("<H")  # the frame's CRC, low byte first
 
@@ -441,10 +450,11 @@ def encode_frame(msg_id: int, payload: bytes, seq: int, system_id: int, componen
     """An unsigned MAVLink 2 frame of ``payload`` (full length; trailing zeros are trimmed to one byte
     at least, as MAVLink 2 does), byte for byte what pymavlink makes of the same message."""
     body = payload.rstrip(b"\x00") or payload[:1]
-    covered = _V2_HEADER_TAIL.pack(len(body), 0, 0, seq, system_id, component_id, msg_id & 0xFFFF,
+    covered = _V2_HEADER_TAIL.pack(len(body), seq, system_id, component_id, msg_id & 0xFFFF,
                                    msg_id >> 16) + body
-    # MAVLink's CRC-16/MCRF4XX of header and payload, then CRC_EXTRA
-    return _V2_START + covered + _CRC_BYTES.pack(_mcrf4xx(_CRC_EXTRA[msg_id], _mcrf4xx(covered, 0xFFFF)))
+    # MAVLink's CRC-16/MCRF4XX (from 0xFFFF, fastcrc's default) of header and payload, then CRC_EXTRA:
+    # one call on the joined bytes
+    return _V2_START + covered + _CRC_BYTES.pack(_mcrf4xx(covered + _CRC_EXTRA[msg_id]))
 
 
 #: pymavlink's parser, for its public `decode` of single frames

@@ -294,7 +294,11 @@ class CommandLink:
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
         payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
                                         FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK)
-        self._send_frame(self.codec.pack_payload(_ATTITUDE_TARGET_ID, payload))
+        frame = self.codec.pack_payload(_ATTITUDE_TARGET_ID, payload)
+        if self._open_ticks > 0:  # held for the tick's answer (`_send_frame`, without the call: per tick)
+            self._held.append(frame)
+        else:
+            self._send_frame(frame)
         self.setpoints_sent += 1
 
     def send_command(self, command: int, *params: float) -> None:
