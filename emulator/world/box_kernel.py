@@ -201,6 +201,8 @@ def check_states(
 
 #: `scan_samples`'s verdicts on a batch's times
 SCAN_OK, SCAN_NONFINITE, SCAN_NOT_INCREASING = 0, 1, 2
+#: `scan_samples`' (prev_t, prev_n, has_prev) for a batch with no sample before it
+NO_PREVIOUS = (-np.inf, np.nan, False)
 
 
 @njit(cache=True)

@@ -14,10 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from emulator.world.box_kernel import SCAN_NONFINITE, SCAN_NOT_INCREASING, scan_samples
+from emulator.world.box_kernel import NO_PREVIOUS, SCAN_NONFINITE, SCAN_NOT_INCREASING, scan_samples
 from emulator.world.collision import Obstacle, ObstacleCode, World
-
-_NO_PREV = (-np.inf, np.nan, False)  # `scan_samples`'s last sample before the first
 
 
 @dataclass(frozen=True)
@@ -52,8 +50,6 @@ class CrossingTracker:
         self.first_collision: CollisionEvent | None = None
         self.samples = 0
         self._changes = np.empty(64, np.int64)  # `scan_samples`' sign changes of a batch
-        one = np.zeros(1)
-        scan_samples(one, np.zeros(1, np.int64), one, np.zeros(1, np.bool_), one, *_NO_PREV, self._changes)
 
     def update(self, time_s: float, pos_m: np.ndarray, attitude: np.ndarray) -> Crossing | None:
         """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz), checked with
@@ -88,7 +84,7 @@ class CrossingTracker:
             self._changes = np.empty(2 * m, np.int64)
         n = np.asarray(n_m, dtype=np.float64)
         prev = self._prev
-        last = (prev[0], prev[2], True) if prev else _NO_PREV
+        last = (prev[0], prev[2], True) if prev else NO_PREVIOUS
         verdict, j, hit, count = scan_samples(t, codes, clearance_m, in_slab, n, *last, self._changes)
         if verdict == SCAN_NONFINITE:
             raise ValueError(f"time_s must be finite, got {time_s!r}")
