@@ -263,7 +263,6 @@ def test_a_batch_of_samples_tracks_like_the_samples_one_by_one() -> None:
     q = rng.normal(size=(300, 4)) * 0.05 + [1, 0, 0, 0]
     q /= np.linalg.norm(q, axis=1)[:, None]
     codes, clr, in_slab = w.check_states_values(pos, q)
-    hits = [World.obstacle(int(c)) for c in codes]
     n = (pos - w.gap.centre_m) @ w.gap.axes()[1]
     one = CrossingTracker(w)
     for i in range(300):
@@ -271,7 +270,8 @@ def test_a_batch_of_samples_tracks_like_the_samples_one_by_one() -> None:
     batch = CrossingTracker(w)
     done = []
     for lo, hi in ((0, 1), (1, 49), (49, 50), (50, 300)):  # batches of every size, a crossing across two
-        got = batch.add_checked_batch(t[lo:hi], pos[lo:hi], hits[lo:hi], clr[lo:hi], in_slab[lo:hi], n[lo:hi])
+        got = batch.add_checked_batch(t[lo:hi], pos[lo:hi], codes[lo:hi], clr[lo:hi], in_slab[lo:hi],
+                                      n[lo:hi])
         done += [(lo + i, c) for i, c in got]
     assert len(one.crossings) >= 4 and one.first_collision is not None and one.min_clearance_m is not None
     assert [c for _, c in done] == list(batch.crossings)
@@ -285,7 +285,7 @@ def test_a_batch_of_samples_tracks_like_the_samples_one_by_one() -> None:
     assert batch.min_clearance_time_s == one.min_clearance_time_s
     assert batch.first_collision == one.first_collision and batch.samples == one.samples == 300
     with pytest.raises(ValueError, match="increase"):
-        batch.add_checked_batch(t[-2:], pos[-2:], hits[-2:], clr[-2:], in_slab[-2:], n[-2:])
+        batch.add_checked_batch(t[-2:], pos[-2:], codes[-2:], clr[-2:], in_slab[-2:], n[-2:])
 
 
 # --- bad input ----------------------------------------------------------------------------------------------

@@ -1,7 +1,9 @@
 """The compiled checks of `emulator.world.collision`: one oriented box against the gap's wall, the
-ground and the lab (definitions in that module's docstring), for one pose or a batch of them.
+ground and the lab (definitions in that module's docstring), for one pose or a batch of them; and the
+crossing tracker's pass over a batch of checked samples (`scan_samples`).
 
-The only implementation: `World`'s queries, one pose or many, are views of it.
+The only implementation: `World`'s queries, one pose or many, and `CrossingTracker`'s batches are views
+of it.
 """
 
 from __future__ import annotations
@@ -195,3 +197,49 @@ def check_states(
         codes[i] = c
         clr[i] = cl
         in_slab[i] = s
+
+
+#: `scan_samples`'s verdicts on a batch's times
+SCAN_OK, SCAN_NONFINITE, SCAN_NOT_INCREASING = 0, 1, 2
+#: `scan_samples`' (prev_t, prev_n, has_prev) for a batch with no sample before it
+NO_PREVIOUS = (-np.inf, np.nan, False)
+
+
+@njit(cache=True)
+def scan_samples(t: np.ndarray, codes: np.ndarray, clr: np.ndarray, in_slab: np.ndarray, n: np.ndarray,
+                 prev_t: float, prev_n: float, has_prev: bool, changes: np.ndarray) -> tuple:
+    """The crossing tracker's pass over a batch of checked samples: times ``t`` (N,) (s), obstacle codes,
+    clearances (m) and in_slab (N,), offsets along the gap normal ``n`` (N,) (m), after the last sample
+    (``prev_t`` s, ``prev_n`` m) when ``has_prev``. Returns (verdict SCAN_*, the first sample of least
+    clearance in the slab (NaN counts least, as np.argmin; -1: none), the first that hit something (-1:
+    none), how many sign changes of ``n`` (< 0 or not) there are): their indices, written to ``changes``
+    in order, are the samples that complete a crossing (0: across from the last sample)."""
+    m = t.shape[0]
+    for i in range(m):
+        if not np.isfinite(t[i]):
+            return SCAN_NONFINITE, -1, -1, 0
+    if has_prev and t[0] <= prev_t:
+        return SCAN_NOT_INCREASING, -1, -1, 0
+    for i in range(1, m):
+        if t[i] - t[i - 1] <= 0:
+            return SCAN_NOT_INCREASING, -1, -1, 0
+    least = -1
+    for i in range(m):
+        if in_slab[i]:
+            c = clr[i]
+            if least < 0 or (clr[least] == clr[least] and (c != c or c < clr[least])):
+                least = i
+    hit = -1
+    for i in range(m):
+        if codes[i] != 0:
+            hit = i
+            break
+    count = 0
+    if has_prev and (prev_n < 0) != (n[0] < 0):
+        changes[0] = 0
+        count = 1
+    for i in range(1, m):
+        if (n[i] < 0) != (n[i - 1] < 0):
+            changes[count] = i
+            count += 1
+    return SCAN_OK, least, hit, count

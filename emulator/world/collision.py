@@ -29,7 +29,14 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
-from emulator.world.box_kernel import check_packed, check_states, pack_world, quat_to_rot
+from emulator.world.box_kernel import (
+    NO_PREVIOUS,
+    check_packed,
+    check_states,
+    pack_world,
+    quat_to_rot,
+    scan_samples,
+)
 from emulator.world.geometry import Gap, LabVolume
 
 EDGE_NAMES: tuple[str, ...] = ("+e0", "-e0", "+e2", "-e2")
@@ -129,11 +136,13 @@ class World:
         return self._packed
 
     def compile_kernels(self) -> None:
-        """Compile the compiled checks, one pose and N, or load them from numba's cache, now rather than
-        at the first check: a real-time loop would otherwise stall in flight on a fresh install."""
+        """Compile the compiled checks, one pose and N, and the crossing tracker's pass over a batch, or
+        load them from numba's cache, now rather than at the first check: a real-time loop would otherwise
+        stall in flight on a fresh install."""
         level = np.array([1.0, 0.0, 0.0, 0.0])
         self.check(self._centre, level)
-        self.check_states_values(self._centre[None, :], level[None, :])
+        codes, clr, in_slab = self.check_states_values(self._centre[None, :], level[None, :])
+        scan_samples(clr, codes, clr, in_slab, clr, *NO_PREVIOUS, np.empty(1, np.int64))  # (the tracker's)
 
     # --- one pose ---------------------------------------------------------------------------------------
     def check(self, pos_m: np.ndarray, attitude: np.ndarray) -> tuple[Obstacle | None, Clearance]:

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from emulator.world.collision import Obstacle, World
+from emulator.world.box_kernel import NO_PREVIOUS, SCAN_NONFINITE, SCAN_NOT_INCREASING, scan_samples
+from emulator.world.collision import Obstacle, ObstacleCode, World
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,7 @@ class CrossingTracker:
         self.min_clearance_time_s: float | None = None
         self.first_collision: CollisionEvent | None = None
         self.samples = 0
+        self._changes = np.empty(64, np.int64)  # `scan_samples`' sign changes of a batch
 
     def update(self, time_s: float, pos_m: np.ndarray, attitude: np.ndarray) -> Crossing | None:
         """Add one sample (time in s, position m, attitude as 3x3 or quaternion wxyz), checked with
@@ -55,52 +57,56 @@ class CrossingTracker:
         world = self.world
         hit, clr = world.check(pos_m, attitude)  # validates the pose
         p = np.array(pos_m, dtype=np.float64)
-        done = self.add_checked_batch([time_s], p[None], [hit], np.array([clr.clearance_m]),
-                                      np.array([clr.in_slab]), world.gap_coords(p)[1:2])
+        code = ObstacleCode.NONE if hit is None else ObstacleCode[hit.name]
+        done = self.add_checked_batch([time_s], p[None], np.array([code], np.int64),
+                                      np.array([clr.clearance_m]), np.array([clr.in_slab]),
+                                      world.gap_coords(p)[1:2])
         return done[0][1] if done else None
 
     def add_checked_batch(
         self,
         time_s: np.ndarray,
         pos_m: np.ndarray,
-        hits: list[Obstacle | None],
+        codes: np.ndarray,
         clearance_m: np.ndarray,
         in_slab: np.ndarray,
         n_m: np.ndarray,
     ) -> list[tuple[int, Crossing]]:
         """Add N samples whose poses the caller has checked already: times (N,) (s) increasing, positions
-        (N, 3) (m), what each hit, clearances (N,) (m) and in_slab (N,) as ``world.check`` gives them,
-        and offsets along e1 (N,) (m). Returns the crossings completed, each with the index of the
-        sample that completed it."""
+        (N, 3) (m), what each hit (`ObstacleCode` (N,)), clearances (N,) (m) and in_slab (N,) as
+        ``world.check_states_values`` gives them, and offsets along e1 (N,) (m). Returns the crossings
+        completed, each with the index of the sample that completed it."""
         t = np.asarray(time_s, dtype=np.float64)
-        if len(t) == 0:
+        m = len(t)
+        if m == 0:
             return []
-        if not np.all(np.isfinite(t)):
-            raise ValueError(f"time_s must be finite, got {time_s!r}")
-        if (self._prev is not None and t[0] <= self._prev[0]) or np.any(np.diff(t) <= 0):
-            raise ValueError("time_s must increase")
-        p = np.array(pos_m, dtype=np.float64)
-        if np.any(in_slab):
-            idx = np.flatnonzero(in_slab)
-            j = int(idx[np.argmin(clearance_m[idx])])  # the first of equal minima
-            if self.min_clearance_m is None or clearance_m[j] < self.min_clearance_m:
-                self.min_clearance_m, self.min_clearance_time_s = float(clearance_m[j]), float(t[j])
-        if self.first_collision is None:
-            j = next((i for i, hit in enumerate(hits) if hit is not None), None)
-            if j is not None:
-                self.first_collision = CollisionEvent(float(t[j]), hits[j])  # type: ignore[arg-type]
+        if m > len(self._changes):
+            self._changes = np.empty(2 * m, np.int64)
         n = np.asarray(n_m, dtype=np.float64)
-        out = []
         prev = self._prev
-        neg = n < 0
-        for i in np.flatnonzero(neg[1:] != neg[:-1]) + 1:  # sign changes inside the batch
-            out.append((int(i), self._crossing(float(t[i - 1]), p[i - 1], float(n[i - 1]), float(t[i]), p[i],
-                                               float(n[i]))))
-        if prev is not None and (prev[2] < 0) != neg[0]:  # ... and across from the last batch
-            out.insert(0, (0, self._crossing(prev[0], prev[1], prev[2], float(t[0]), p[0], float(n[0]))))
-        self._crossings.extend(c for _, c in out)
-        self._prev = (float(t[-1]), p[-1], float(n[-1]))
-        self.samples += len(t)
+        last = (prev[0], prev[2], True) if prev else NO_PREVIOUS
+        verdict, j, hit, count = scan_samples(t, codes, clearance_m, in_slab, n, *last, self._changes)
+        if verdict == SCAN_NONFINITE:
+            raise ValueError(f"time_s must be finite, got {time_s!r}")
+        if verdict == SCAN_NOT_INCREASING:
+            raise ValueError("time_s must increase")
+        if j >= 0 and (self.min_clearance_m is None or clearance_m[j] < self.min_clearance_m):
+            self.min_clearance_m, self.min_clearance_time_s = float(clearance_m[j]), float(t[j])
+        if hit >= 0 and self.first_collision is None:
+            obstacle = World.obstacle(codes[hit])
+            self.first_collision = CollisionEvent(float(t[hit]), obstacle)  # type: ignore[arg-type]
+        p = np.asarray(pos_m, dtype=np.float64)
+        out = []
+        if count:
+            for i in self._changes[:count].tolist():
+                if i == 0:  # across from the last batch
+                    out.append((0, self._crossing(prev[0], prev[1], prev[2], float(t[0]), p[0], float(n[0]))))
+                else:
+                    out.append((i, self._crossing(float(t[i - 1]), p[i - 1], float(n[i - 1]), float(t[i]),
+                                                  p[i], float(n[i]))))
+            self._crossings.extend(c for _, c in out)
+        self._prev = (float(t[-1]), p[-1].copy(), float(n[-1]))
+        self.samples += m
         return out
 
     def _crossing(self, t0: float, p0: np.ndarray, n0: float, t: float, p: np.ndarray, n: float) -> Crossing:

@@ -334,21 +334,20 @@ class Recorder:
             # NaN compares false, so no check below would notice: note it for the `finite_state` check
             self._nonfinite_s = self.nonfinite_seen_s = batch[first][_S_T]
         codes, clr, in_slab = self.world.check_states_values(pos, quat)
-        hits = [_OBSTACLES[c] for c in codes.tolist()]
         k0 = 1 if batch[0][_S_T] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
         if k0 < len(batch):
             tracker = self._tracker
-            done = tracker.add_checked_batch(t[k0:], pos[k0:], hits[k0:], clr[k0:], in_slab[k0:],
+            done = tracker.add_checked_batch(t[k0:], pos[k0:], codes[k0:], clr[k0:], in_slab[k0:],
                                              np.ascontiguousarray(rows[k0:, _S_WALL]))
             if done and self._crossings_seen == 0:
                 self._attitude_error_deg_at_crossing = self._attitude_error_deg(quat[k0 + done[0][0]])
                 self.first_crossing_seen_s = tracker.crossings[0].time_s
             self._crossings_seen = tracker.crossing_count
         vel = x[:, VEL]
-        if self._collision is None and any(h is not None for h in hits):
+        if self._collision is None and codes.any():
             with np.errstate(over="ignore", invalid="ignore"):  # a diverged state is reported elsewhere
                 speed = np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1] + vel[:, 2] * vel[:, 2])
-            for i, hit in enumerate(hits):
+            for i, hit in enumerate(_OBSTACLES[c] for c in codes.tolist()):
                 if hit is not None and (hit is not Obstacle.GROUND or speed[i] >= GROUND_HIT_SPEED_M_S):
                     px, py, pz = pos[i].tolist()
                     self._collision = Collision(str(hit), batch[i][_S_T], (px, py, pz), float(speed[i]))
