@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import subprocess
 import sys
 import time
@@ -33,6 +34,13 @@ def start_fc(*args: str) -> tuple[subprocess.Popen, str]:
     line = proc.stdout.readline()
     assert line, "hil fc printed no endpoint line"
     return proc, json.loads(line)["command_link"]
+
+
+def free_udp_port() -> int:
+    """A UDP port free on the loopback now (s)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def stop_fc(proc: subprocess.Popen) -> dict:
@@ -96,11 +104,13 @@ def test_mavsdk_over_a_pty_arms_takes_offboard_and_climbs():
 
 def test_mavsdk_over_udp_and_mavlogdump_reads_the_tlog(tmp_path: Path):
     tlog = tmp_path / "flight.tlog"
-    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--tlog", str(tlog))
+    # MAVSDK listens on the loopback and the FC sends to it (MAVSDK's own udpout socket would be bound
+    # to every interface)
+    port = free_udp_port()
+    proc, endpoint = start_fc("--link", f"udpout:127.0.0.1:{port}", "--tlog", str(tlog))
     try:
-        kind, host, port = endpoint.split(":")
-        assert kind == "udp" and host == "127.0.0.1" and int(port) > 0
-        mavsdk_climb(f"udpout://{host}:{port}")
+        assert endpoint == f"udpout:127.0.0.1:{port}"
+        mavsdk_climb(f"udpin://127.0.0.1:{port}")
     finally:
         stop_fc(proc)
     dump = subprocess.run(

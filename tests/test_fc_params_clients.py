@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import hashlib
 import shutil
-import socket
 import struct
 import subprocess
 import sys
@@ -16,8 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
-from test_fc_mavsdk import HOVER, start_fc, stop_fc, wait_for
-from test_fc_signing import Station, packer
+from test_fc_mavsdk import HOVER, free_udp_port, start_fc, stop_fc, wait_for
+from test_fc_signing import Station, loopback_udpout, packer
 
 from emulator.params import PARAMS, read_param_file
 from hil.link import SerialTransport, WallClock
@@ -25,12 +24,6 @@ from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, decode_frame, mav,
 from hil.link.tlog import read_tlog
 
 MAVPROXY = shutil.which("mavproxy.py") or str(Path(sys.executable).parent / "mavproxy.py")
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Lines:
@@ -59,11 +52,12 @@ def stop_gcs(gcs: subprocess.Popen) -> None:
 
 def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(tmp_path: Path):
     tlog = tmp_path / "fc.tlog"
-    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--tlog", str(tlog), "--mocap-link", "none")
-    out_port = free_udp_port()
-    _, host, port = endpoint.split(":")
+    # MAVProxy listens on the loopback and the FC sends to it (a pymavlink udpout socket would be bound
+    # to every interface)
+    port, out_port = free_udp_port(), free_udp_port()
+    proc, _ = start_fc("--link", f"udpout:127.0.0.1:{port}", "--tlog", str(tlog), "--mocap-link", "none")
     gcs = subprocess.Popen(
-        [sys.executable, MAVPROXY, f"--master=udpout:{host}:{port}", f"--out=udpin:127.0.0.1:{out_port}",
+        [sys.executable, MAVPROXY, f"--master=udpin:127.0.0.1:{port}", f"--out=udpin:127.0.0.1:{out_port}",
          "--non-interactive", f"--state-basedir={tmp_path}",
          "--cmd=repeat add 1 param set COM_OF_LOSS_T 0.5"],  # (each second: it waits for the table)
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -76,9 +70,7 @@ def test_mavproxy_downloads_the_table_sets_the_timeout_and_the_failsafe_follows(
         wait_for(lambda: out.seen(f"Received {len(PARAMS)} parameters"), 10.0, "the parameter download")
         download_s = time.monotonic() - t0
         # a pymavlink client on MAVProxy's output, as a second tool beside a ground station
-        from pymavlink import mavutil
-
-        client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{out_port}", source_system=254)
+        client = loopback_udpout("127.0.0.1", out_port, 254)
         codec = client
 
         def recv_all(seconds: float) -> list:
@@ -185,13 +177,13 @@ def test_mavproxy_fetches_loads_and_sets_parameters_on_a_signed_fc(tmp_path: Pat
 
     tlog = tmp_path / "fc.tlog"
     key = hashlib.sha256(b"bench").hexdigest()
-    proc, endpoint = start_fc("--link", "udp:127.0.0.1:0", "--signing-key", key, "--tlog", str(tlog),
-                              "--mocap-link", "none")
+    port = free_udp_port()  # (MAVProxy listens on the loopback, the FC sends to it: see above)
+    proc, _ = start_fc("--link", f"udpout:127.0.0.1:{port}", "--signing-key", key, "--tlog", str(tlog),
+                       "--mocap-link", "none")
     (tmp_path / "load.parm").write_text("COM_OBL_RC_ACT 4\nN3_ESC_FS_ACT 2\nCOM_OF_LOSS_T 0.5\n"
                                         "MPC_THR_HOVER 0.8\n")
-    _, host, port = endpoint.split(":")
     gcs = subprocess.Popen(
-        [sys.executable, MAVPROXY, f"--master=udpout:{host}:{port}", f"--state-basedir={tmp_path}",
+        [sys.executable, MAVPROXY, f"--master=udpin:127.0.0.1:{port}", f"--state-basedir={tmp_path}",
          "--cmd=signing key bench"],
         cwd=tmp_path, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )

@@ -24,13 +24,21 @@ def packer(key: bytes | None, link_id: int = 0, age_s: float = 0.0) -> mav.MAVLi
     return m
 
 
+def loopback_udpout(host: str, port: int, source_system: int) -> mavutil.mavfile:
+    """pymavlink's UDP client to ``host``:``port`` (a loopback address), its own socket bound to the
+    loopback too: left unbound, the first send would bind it to every interface."""
+    conn = mavutil.mavlink_connection(f"udpout:{host}:{port}", source_system=source_system)
+    conn.port.bind(("127.0.0.1", 0))
+    return conn
+
+
 class Station:
     """One UDP socket to the FC (pymavlink's, no key: it reads the FC's signed frames without judging
     them); frames packed elsewhere are written raw."""
 
     def __init__(self, endpoint: str) -> None:
         _, host, port = endpoint.split(":")
-        self.conn = mavutil.mavlink_connection(f"udpout:{host}:{port}", source_system=255)
+        self.conn = loopback_udpout(host, int(port), 255)
 
     def write(self, frame: bytes) -> bytes:
         self.conn.write(frame)
