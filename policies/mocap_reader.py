@@ -153,6 +153,7 @@ class MocapReader:
         self.on_pose = on_pose
         self._decoder = FrameDecoder()
         self._feed_node_data = self._decoder.feed_node_data  # (bound once: per read)
+        self._decoder_holds = False  # whether the decoder holds the start of a frame (after `_feed`'s read)
         self._bad_payload = 0
         self._bytes_bad_payload = 0
         self._frames_ok = 0
@@ -222,7 +223,7 @@ class MocapReader:
         accepted = 0
         intake = self._intake
         if (intake is not None and data.__class__ is bytes and self.on_sample is None
-                and self.intake_jumps == self._refused["clock_jumps"] and not self._decoder.buffered):
+                and self.intake_jumps == self._refused["clock_jumps"] and not self._decoder_holds):
             end, accepted = intake(self._rd, data, self.clock.now_s())  # (the usual case: all of it)
             if accepted:
                 self._frames_ok += accepted
@@ -233,7 +234,9 @@ class MocapReader:
         now_s = self.clock.now_s()
         rd = self._rd
         on_sample, on_pose = self.on_sample, self.on_pose
-        for nodes in self._feed_node_data(data):
+        decoded = self._feed_node_data(data)
+        self._decoder_holds = self._decoder.buffered != 0  # (only this path leaves bytes held)
+        for nodes in decoded:
             taken = 0
             for payload in nodes:
                 try:
