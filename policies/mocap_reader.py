@@ -221,18 +221,18 @@ class MocapReader:
         """Decode bytes read from the link and take the valid poses of each good mocap payload; returns
         the mocap frames accepted."""
         accepted = 0
+        now_s = self.clock.now_s()  # (every pose of the read: arrived now)
+        rd = self._rd
         intake = self._intake
         if (intake is not None and data.__class__ is bytes and self.on_sample is None
                 and self.intake_jumps == self._refused["clock_jumps"] and not self._decoder_holds):
-            end, accepted = intake(self._rd, data, self.clock.now_s())  # (the usual case: all of it)
+            end, accepted = intake(rd, data, now_s)  # (the usual case: all of it)
             if accepted:
                 self._frames_ok += accepted
                 self._decoder.count_good(end, accepted)
                 if end == len(data):
                     return accepted
                 data = data[end:]
-        now_s = self.clock.now_s()
-        rd = self._rd
         on_sample, on_pose = self.on_sample, self.on_pose
         decoded = self._feed_node_data(data)
         self._decoder_holds = self._decoder.buffered != 0  # (only this path leaves bytes held)
