@@ -4,7 +4,8 @@ or a pose instead of a few hundred interpreted float operations.
 A `Kernel` is numba's compilation of a plain-Python function of the module that owns the computation
 (`policies.controller.expert_law`, `policies.gap_planning.plan_reference`, the traditional pilot's
 `traditional_command`, the estimator's `take_pose` and `predicted_state`, the command links' setpoint
-attitude `hil.link.mavlink.quat_ned_frd_from_euler` and the OPEN link's `ned_euler`): that function is
+attitude `hil.link.mavlink.quat_ned_frd_from_euler`, the OPEN link's `ned_euler` and the mocap intake's
+`intake_frames`): that function is
 the only definition, run compiled; the classes' methods (`ExpertController.command`,
 `MissionPlan.reference_tuples`, `PoseEstimator.take`, ...) are views of it. A function a kernel calls
 (`_poly_state`, `filter_update`, ...) is compiled too and bound in the kernel's copy of its module's
@@ -36,7 +37,7 @@ _ROOT = Path(__file__).resolve().parent
 SOURCES = tuple(_ROOT / f for f in (
     "compiling.py", "controller.py", "frames.py", "gap_planning.py", "primitives.py", "onboard/estimator.py",
     "onboard/pilots/traditional.py", "onboard/command_link.py", "onboard/dji_command_link.py",
-    "../hil/link/mavlink.py"))
+    "onboard/mocap_intake.py", "mocap_reader.py", "../hil/link/mavlink.py", "../hil/link/linktrack.py"))
 
 
 def cache_folder(sources: tuple[Path, ...] = SOURCES) -> str:

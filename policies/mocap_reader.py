@@ -60,11 +60,17 @@ REFERENCE_STEP_S = 0.05
 #: frames in a row that agree on a new mocap clock (refused until then) before it is believed
 CLOCK_JUMP_FRAMES = 10
 _NORM2_LO, _NORM2_HI = (1.0 - QUAT_NORM_TOL) ** 2, (1.0 + QUAT_NORM_TOL) ** 2
-_NEVER = -math.inf  # the stamp before a body's first
 _Vec3 = tuple[float, float, float]
 _Quat = tuple[float, float, float, float]
-#: a valid pose not yet made a PoseSample: position, unit quaternion, stamp_s, received_s, frame_no
-_Pose = tuple[_Vec3, _Quat, float, float, int]
+#: the reader's pose state in one array (`READER_FLOATS`): the smallest arrival minus stamp (s) of an
+#: accepted pose (the reference for future stamps), the stamp (s) of each body id's latest accepted pose
+#: (-inf: none yet), and each body id's latest valid pose, `POSE_FLOATS` each: position (m), unit
+#: quaternion (w, x, y, z), stamp_s, received_s (-inf: none yet), frame_no
+_MIN_DELAY, _LAST_STAMP, _POSES = 0, 1, 257
+BODY_ID_COUNT = 256  # (a body id is one byte)
+POSE_FLOATS = 10
+_STAMP, _RECEIVED, _FRAME_NO = 7, 8, 9  # (in a pose's row)
+READER_FLOATS = _POSES + BODY_ID_COUNT * POSE_FLOATS
 
 
 @dataclass(frozen=True)
@@ -120,6 +126,13 @@ class MocapReader:
     ``on_pose``: called with the numbers of every valid pose as it is parsed (then, with ``on_sample``
     unset, a PoseSample is made only when `latest` asks for it): body id, mocap time ``stamp_s``,
     position (m), unit quaternion (w, x, y, z) and arrival time (s), as the PoseSample would hold them.
+    ``intake``: the same consumer compiled, for the usual bytes (whole good frames whose bodies pass the
+    checks): called with the reader's pose state (`READER_FLOATS`), the bytes and the time they are
+    stamped with, it takes the frames from the start that it can, keeps their poses as this reader's
+    own path would (`keep_pose`) and hands them on, and returns where it stopped and the frames taken;
+    the reader reads the rest itself (``on_pose`` then gets those poses). It is used only while it has
+    followed every clock jump the reader believed (``intake_jumps``, set by its owner) and never with
+    ``on_sample``.
     """
 
     def __init__(
@@ -129,6 +142,7 @@ class MocapReader:
         stale_after_s: float = DEFAULT_STALE_AFTER_S,
         on_sample: Callable[[PoseSample], None] | None = None,
         on_pose: Callable[[int, float, _Vec3, _Quat, float], None] | None = None,
+        intake: Callable[[np.ndarray, bytes, float], tuple[int, int]] | None = None,
     ) -> None:
         if not (math.isfinite(stale_after_s) and stale_after_s > 0):
             raise ValueError(f"stale_after_s must be > 0, got {stale_after_s}")
@@ -139,21 +153,25 @@ class MocapReader:
         self.on_pose = on_pose
         self._decoder = FrameDecoder()
         self._feed_node_data = self._decoder.feed_node_data  # (bound once: per read)
+        self._decoder_holds = False  # whether the decoder holds the start of a frame (after `_feed`'s read)
         self._bad_payload = 0
         self._bytes_bad_payload = 0
         self._frames_ok = 0
         #: refused body records by kind, as named in ReaderCounters
         self._refused = dict.fromkeys(("bodies_invalid", "bodies_non_finite", "bodies_bad_quat",
                                        "bodies_stamp_future", "bodies_stamp_backwards", "clock_jumps"), 0)
-        #: body id -> stamp (s) of its latest accepted pose
-        self._last_stamp_s: dict[int, float] = {}
-        #: the smallest arrival minus stamp (s) of an accepted pose: the reference for future stamps
-        self._min_delay_s = math.inf
+        #: the poses' state (`READER_FLOATS`): the reference delay, each body's latest stamp and pose
+        self._rd = np.full(READER_FLOATS, -math.inf)
+        self._rd[_MIN_DELAY] = math.inf
+        self._rows = self._rd[_POSES:].reshape(BODY_ID_COUNT, POSE_FLOATS)  # (a view: a body's pose)
         #: body id -> the run of refused stamps agreeing on a new clock: frames, delay (s), last stamp
         #: (s), arrival of the first (s)
         self._jump: dict[int, tuple[int, float, float, float]] = {}
-        #: body id -> its latest valid pose: a PoseSample, or the `_Pose` to make it from when asked for
-        self._latest: dict[int, PoseSample | _Pose] = {}
+        #: body id -> the PoseSample of its latest pose, once made (`latest`)
+        self._samples: dict[int, PoseSample] = {}
+        #: the poses' consumer compiled (`intake`), and the clock jumps it has followed
+        self._intake = intake
+        self.intake_jumps = 0
         self.lockstep_short_reads = 0  # `poll_to` calls that got fewer bytes than announced
         self._lockstep_read = 0  # bytes read by `poll_to` (mod 2^31)
 
@@ -203,11 +221,22 @@ class MocapReader:
         """Decode bytes read from the link and take the valid poses of each good mocap payload; returns
         the mocap frames accepted."""
         accepted = 0
-        now_s = self.clock.now_s()
-        latest, last_stamps = self._latest, self._last_stamp_s
+        now_s = self.clock.now_s()  # (every pose of the read: arrived now)
+        rd = self._rd
+        intake = self._intake
+        if (intake is not None and data.__class__ is bytes and self.on_sample is None
+                and self.intake_jumps == self._refused["clock_jumps"] and not self._decoder_holds):
+            end, accepted = intake(rd, data, now_s)  # (the usual case: all of it)
+            if accepted:
+                self._frames_ok += accepted
+                self._decoder.count_good(end, accepted)
+                if end == len(data):
+                    return accepted
+                data = data[end:]
         on_sample, on_pose = self.on_sample, self.on_pose
-        lo, hi, never, sqrt = _NORM2_LO, _NORM2_HI, _NEVER, math.sqrt  # (locals: read per body)
-        for nodes in self._feed_node_data(data):
+        decoded = self._feed_node_data(data)
+        self._decoder_holds = self._decoder.buffered != 0  # (only this path leaves bytes held)
+        for nodes in decoded:
             taken = 0
             for payload in nodes:
                 try:
@@ -219,27 +248,23 @@ class MocapReader:
                 self._frames_ok += 1
                 frame_no = values[2]
                 # a later stamp is from the future or lowers the reference
-                newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
+                newest_s = now_s - rd.item(_MIN_DELAY) + REFERENCE_STEP_S
                 for k in range(4, len(values), BODY_VALUES):
                     body_id, flags, stamp_us, px, py, pz, qw, qx, qy, qz = values[k:k + BODY_VALUES]
                     pos_sum = px + py + pz  # NaN when a coordinate is NaN or infinite
                     norm2 = qw * qw + qx * qx + qy * qy + qz * qz  # (a NaN or infinite one fails the range)
                     stamp_s = stamp_us * 1e-6
-                    last = last_stamps.get(body_id, never)
-                    if not (flags & FLAG_VALID and pos_sum - pos_sum == 0.0 and lo <= norm2 <= hi
-                            and last < stamp_s <= newest_s):
+                    last = rd.item(_LAST_STAMP + body_id)
+                    if not pose_passes(flags, pos_sum, norm2, stamp_s, last, newest_s):
                         if self._refuse(body_id, flags, pos_sum, norm2, stamp_s, now_s, last):
                             continue
-                        newest_s = now_s - self._min_delay_s + REFERENCE_STEP_S
-                    last_stamps[body_id] = stamp_s
-                    norm = sqrt(norm2)
-                    pos, quat = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
-                    if on_sample is None:
-                        latest[body_id] = (pos, quat, stamp_s, now_s, frame_no)
-                    else:
-                        sample = _new_sample(_body_name(body_id), body_id, np.array(pos), np.array(quat),
-                                             stamp_s, now_s, frame_no)
-                        latest[body_id] = sample
+                        newest_s = now_s - rd.item(_MIN_DELAY) + REFERENCE_STEP_S
+                    quat = keep_pose(rd, body_id, px, py, pz, qw, qx, qy, qz, norm2, stamp_s, now_s, frame_no)
+                    pos = (px, py, pz)
+                    if on_sample is not None:
+                        sample = self._samples[body_id] = _new_sample(_body_name(body_id), body_id,
+                                                                      np.array(pos), np.array(quat), stamp_s,
+                                                                      now_s, frame_no)
                         on_sample(sample)
                     if on_pose is not None:
                         on_pose(body_id, stamp_s, pos, quat, now_s)
@@ -253,6 +278,7 @@ class MocapReader:
         """Whether a body record that failed the quick checks of `_feed` is refused (counted by kind), or
         taken after all: a new lowest arrival-minus-stamp, or the frame that confirms a clock jump."""
         refused = self._refused
+        rd = self._rd
         if not flags & FLAG_VALID:
             kind = "bodies_invalid"
         elif pos_sum - pos_sum != 0.0 or norm2 - norm2 != 0.0:
@@ -261,14 +287,15 @@ class MocapReader:
             kind = "bodies_bad_quat"
         else:
             delay = now_s - stamp_s
-            future = delay < self._min_delay_s - MAX_STAMP_LEAD_S < math.inf  # (none before a first pose)
+            min_delay = rd.item(_MIN_DELAY)
+            future = delay < min_delay - MAX_STAMP_LEAD_S < math.inf  # (none before a first pose)
             if not future and stamp_s > last:
-                self._min_delay_s = min(self._min_delay_s, delay)  # came quicker: the new reference
+                rd[_MIN_DELAY] = min(min_delay, delay)  # came quicker: the new reference
                 return False
             if self._clock_jumped(body_id, stamp_s, delay, now_s):
                 refused["clock_jumps"] += 1
-                self._min_delay_s = delay
-                self._last_stamp_s.clear()
+                rd[_MIN_DELAY] = delay
+                rd[_LAST_STAMP:_LAST_STAMP + BODY_ID_COUNT] = -math.inf
                 self._jump.clear()
                 return False
             kind = "bodies_stamp_future" if future else "bodies_stamp_backwards"
@@ -282,10 +309,8 @@ class MocapReader:
         run = self._jump.get(body_id)
         if run is not None:
             frames, delay0, stamp0, since_s = run
-            entry = self._latest.get(body_id)
-            received = None if entry is None else entry[3] if isinstance(entry, tuple) else entry.received_s
-            if (stamp_s > stamp0 and abs(delay_s - delay0) <= MAX_STAMP_LEAD_S
-                    and (received is None or received < since_s)):
+            received = self._rows[body_id].item(_RECEIVED)  # (-inf: none yet)
+            if stamp_s > stamp0 and abs(delay_s - delay0) <= MAX_STAMP_LEAD_S and received < since_s:
                 if frames + 1 >= CLOCK_JUMP_FRAMES:
                     return True
                 self._jump[body_id] = (frames + 1, delay0, stamp_s, since_s)
@@ -297,20 +322,27 @@ class MocapReader:
     def latest(self, body: str | int = "vehicle") -> PoseSample | None:
         """The latest valid pose of ``body`` ("vehicle", "gap" or a body id), None if none yet."""
         body_id = _body_id(body)
-        sample = self._latest.get(body_id)
-        if isinstance(sample, tuple):  # a pose kept as numbers: made a PoseSample now, once
-            pos, quat, stamp_s, received_s, frame_no = sample
-            sample = self._latest[body_id] = _new_sample(_body_name(body_id), body_id, np.array(pos),
-                                                         np.array(quat), stamp_s, received_s, frame_no)
+        if not 0 <= body_id < BODY_ID_COUNT:
+            return None
+        row = self._rows[body_id]
+        px, py, pz, qw, qx, qy, qz, stamp_s, received_s, frame_no = row.tolist()
+        if received_s == -math.inf:
+            return None
+        sample = self._samples.get(body_id)
+        if sample is None or (sample.stamp_s, sample.received_s, sample.frame_no) != (stamp_s, received_s,
+                                                                                         frame_no):
+            # (a pose kept as numbers: made a PoseSample now, once)
+            sample = self._samples[body_id] = _new_sample(
+                _body_name(body_id), body_id, np.array((px, py, pz)), np.array((qw, qx, qy, qz)), stamp_s,
+                received_s, int(frame_no))
         return sample
 
     def age_s(self, body: str | int = "vehicle") -> float:
         """Seconds since ``body``'s latest valid pose arrived (inf if none yet)."""
-        sample = self._latest.get(_body_id(body))
-        if sample is None:
+        body_id = _body_id(body)
+        if not 0 <= body_id < BODY_ID_COUNT:
             return math.inf
-        received_s = sample[3] if isinstance(sample, tuple) else sample.received_s
-        return self.clock.now_s() - received_s
+        return self.clock.now_s() - self._rows[body_id].item(_RECEIVED)
 
     def is_stale(self, body: str | int = "vehicle") -> bool:
         """True when ``body`` has no valid pose younger than ``stale_after_s``."""
@@ -371,6 +403,32 @@ def _new_sample(name: str, body_id: int, pos_m: np.ndarray, quat_wxyz: np.ndarra
     sample.__dict__.update(name=name, body_id=body_id, pos_m=pos_m, quat_wxyz=quat_wxyz, stamp_s=stamp_s,
                            received_s=received_s, frame_no=frame_no)
     return sample
+
+
+def pose_passes(flags: int, pos_sum: float, norm2: float, stamp_s: float, last_s: float,
+                newest_s: float) -> bool:
+    """The quick checks of a body record: flagged valid, its coordinates' sum ``pos_sum`` finite (m), its
+    quaternion's squared norm ``norm2`` within `QUAT_NORM_TOL`, its stamp after the body's latest
+    ``last_s`` and not after ``newest_s`` (s). A record failing them is looked at closer (`_refuse`).
+    Plain Python, compiled too by the program's mocap intake."""
+    return (flags & FLAG_VALID) != 0 and pos_sum - pos_sum == 0.0 and _NORM2_LO <= norm2 <= _NORM2_HI \
+        and last_s < stamp_s <= newest_s
+
+
+def keep_pose(rd: np.ndarray, body_id: int, px: float, py: float, pz: float, qw: float, qx: float,
+              qy: float, qz: float, norm2: float, stamp_s: float, now_s: float,
+              frame_no: int) -> tuple[float, float, float, float]:
+    """A body's pose taken into the reader's state ``rd`` (`READER_FLOATS`): its stamp the body's
+    latest, the pose (the quaternion of squared norm ``norm2`` made unit) its latest, arrived at
+    ``now_s`` (s); returns the unit quaternion (w, x, y, z). Plain Python, compiled too by the program's
+    mocap intake."""
+    rd[_LAST_STAMP + body_id] = stamp_s
+    norm = math.sqrt(norm2)
+    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    r = _POSES + body_id * POSE_FLOATS
+    rd[r], rd[r + 1], rd[r + 2], rd[r + 3], rd[r + 4], rd[r + 5], rd[r + 6] = px, py, pz, qw, qx, qy, qz
+    rd[r + _STAMP], rd[r + _RECEIVED], rd[r + _FRAME_NO] = stamp_s, now_s, frame_no
+    return qw, qx, qy, qz
 
 
 def open_transport(spec: str, baud: int = DEFAULT_BAUD) -> Transport:

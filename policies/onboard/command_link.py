@@ -175,36 +175,30 @@ class CommandLink:
             data = transport.recv(0.0, READ_BYTES)
             if data:
                 msgs.extend(codec.feed(data))
-        if not self.lockstep:
-            for m in msgs:
-                if m.__class__ is bytes:
-                    self._handle_frame(m)
-                else:
-                    self._handle(m)
-            return msgs
         # lockstep: act on the messages up to the next tick only; what came after it (the FC's next
         # tick, already written when the harness keeps two ticks in flight) waits for that tick
         backlog = self._backlog
         backlog.extend(msgs)
         handled = []
         tick_list = self._ticks
-        ticks = len(tick_list)
-        handle_frame, handle = self._handle_frame, self._handle
-        while backlog and len(tick_list) == ticks:
+        stop = len(tick_list) + 1 if self.lockstep else -1  # (the ticks at which it stops; -1: none)
+        handle, target = self._handle, self.target_system
+        while backlog and len(tick_list) != stop:
             m = backlog.popleft()
-            if m.__class__ is bytes:
-                handle_frame(m)
-            else:
+            if m.__class__ is not bytes:
                 handle(m)
+            # a good MAVLink 2 frame of one of `RAW_MSG_IDS`, read here (`_handle` of its message, two
+            # calls less a frame: two a tick)
+            elif m[5] != target or m[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
+                self.foreign["ticks"] += 1
+            else:
+                tick_s, mocap_total = read_tick_frame(m)  # (`_on_tick`'s, without the call)
+                if mocap_total is not None:
+                    self.mocap_announced = mocap_total
+                if tick_s is not None:
+                    tick_list.append(tick_s)
             handled.append(m)
         return handled
-
-    def _handle_frame(self, frame: bytes) -> None:
-        """`_handle` of the message in ``frame`` (a good MAVLink 2 frame of one of `RAW_MSG_IDS`)."""
-        if frame[5] != self.target_system or frame[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
-            self.foreign["ticks"] += 1
-            return
-        self._on_tick(*read_tick_frame(frame))  # (tick request time, mocap total)
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
         """The harness's mocap byte total, then a lockstep tick request at ``tick_s`` (s) (None: not

@@ -86,34 +86,58 @@ class PoseEstimator:
         if not max_accel_m_s2 > 0:
             raise ValueError(f"max_accel_m_s2 must be a positive number, got {max_accel_m_s2!r}")
         self.max_accel_m_s2 = max_accel_m_s2
-        self._ready = False
-        self._received_s = -math.inf  # arrival of the latest accepted pose (s; also in the state array)
-        #: the filter's state as `take_pose` and `predicted_state` keep it (`STATE_FLOATS`)
+        #: the filter's state, the latest pose's attitude and the counters, as `take_pose` and
+        #: `predicted_state` keep them (`STATE_FLOATS`; the properties below read it)
         self._state = np.zeros(STATE_FLOATS)
         self._state[_STAMP] = self._state[_RECEIVED] = -math.inf
+        self._state[_QUAT] = 1.0  # (level until the first pose)
         cfg = self.config
         self._settings = np.array([cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s, cfg.reset_after_s,
                                    cfg.latency_s, max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas])
         self._settings.flags.writeable = False
-        #: the latest pose's attitude (w, x, y, z; body FLU -> world ENU), unit
-        self.quat_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
-        self._euler: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
-        self.updates = 0
-        self.rejected = 0  # poses out of order, repeated, not finite or implausible
-        self.implausible = 0  # poses further from the prediction than the vehicle can move
-        self.implausible_run = 0  # of those, how many in a row since the latest pose taken
-        self.latest_jump_m = 0.0  # the latest implausible pose's distance from the prediction (m)
+        self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._euler_at = 0.0  # the `updates` count `_euler` was made at
         # (the compiled forms for this state's and these settings' arrays and floats: no dispatch a call)
         self._take = TAKE_POSE.entry(self._state, self._settings, *(0.0,) * 9)
         self._predict = PREDICTED_STATE.entry(self._state, self._settings, 0.0)
 
     @property
     def ready(self) -> bool:
-        return self._ready
+        return self._state.item(_READY) != 0.0
+
+    @property
+    def quat_wxyz(self) -> tuple[float, float, float, float]:
+        """The latest pose's attitude (w, x, y, z; body FLU -> world ENU), unit; level before the first."""
+        return tuple(self._state[_QUAT:_QUAT + 4].tolist())  # type: ignore[return-value]
+
+    @property
+    def updates(self) -> int:
+        """Poses taken."""
+        return int(self._state.item(_UPDATES))
+
+    @property
+    def rejected(self) -> int:
+        """Poses out of order, repeated, not finite or implausible."""
+        return int(self._state.item(_REJECTED))
+
+    @property
+    def implausible(self) -> int:
+        """Poses further from the prediction than the vehicle can move."""
+        return int(self._state.item(_IMPLAUSIBLE))
+
+    @property
+    def implausible_run(self) -> int:
+        """Of the implausible poses, how many in a row since the latest pose taken."""
+        return int(self._state.item(_IMPLAUSIBLE_RUN))
+
+    @property
+    def latest_jump_m(self) -> float:
+        """The latest implausible pose's distance from the prediction (m)."""
+        return self._state.item(_LATEST_JUMP)
 
     def age_s(self, now_s: float) -> float:
         """Time (s) from the arrival of the latest accepted pose to ``now_s`` (inf before the first)."""
-        return now_s - self._received_s
+        return now_s - self._state.item(_RECEIVED)
 
     def update(self, stamp_s: float, pos_m: np.ndarray, quat_wxyz: np.ndarray, received_s: float) -> bool:
         """Take one pose (exposure time ``stamp_s``, arrival ``received_s``, s); False if rejected."""
@@ -122,7 +146,7 @@ class PoseEstimator:
             qw, qx, qy, qz = map(float, _items(quat_wxyz))
             stamp_s, received_s = float(stamp_s), float(received_s)
         except (TypeError, ValueError):
-            self.rejected += 1
+            self._state[_REJECTED] += 1
             return False
         return self.take(stamp_s, (px, py, pz), (qw, qx, qy, qz), received_s)
 
@@ -132,27 +156,13 @@ class PoseEstimator:
         the mocap reader hands them over (the per-frame path, without the conversions)."""
         px, py, pz = pos_m
         qw, qx, qy, qz = quat_wxyz
-        verdict, jump, qw, qx, qy, qz = self._take(self._state, self._settings, stamp_s, received_s, px, py,
-                                                   pz, qw, qx, qy, qz)
-        if verdict != TAKEN:
-            self.rejected += 1
-            if verdict == IMPLAUSIBLE:
-                self.implausible += 1
-                self.implausible_run += 1
-                self.latest_jump_m = jump
-            return False
-        self.implausible_run = 0
-        self._ready = True
-        self._received_s = received_s
-        self.quat_wxyz = (qw, qx, qy, qz)
-        self._euler = None  # from the quaternion when first asked for
-        self.updates += 1
-        return True
+        return self._take(self._state, self._settings, stamp_s, received_s, px, py, pz, qw, qx, qy,
+                          qz) == TAKEN
 
     def rebase(self, stamp_s: float, received_s: float) -> None:
         """The mocap clock jumped (the reader followed it): read the pose of exposure ``stamp_s``,
         arriving at ``received_s``, as one that came as late as the latest pose; the state is kept."""
-        if self._ready:
+        if self.ready:
             st = self._state
             shift = (stamp_s - received_s) - (st[_STAMP] - st[_RECEIVED])  # new clock - old clock (s)
             st[_STAMP] += shift
@@ -163,17 +173,17 @@ class PoseEstimator:
                                                   tuple[float, float, float]]:
         """`estimate`'s position (m), velocity (m/s) and acceleration (m/s^2) at ``now_s`` as (x, y, z)
         tuples of plain floats (the per-step path); ValueError if no pose has come yet."""
-        if not self._ready:
+        if self._state.item(_READY) == 0.0:
             raise ValueError("no pose received yet")
         px, py, pz, vx, vy, vz, ax, ay, az = self._predict(self._state, self._settings, now_s)
         return (px, py, pz), (vx, vy, vz), (ax, ay, az)
 
     def euler_rad(self) -> tuple[float, float, float]:
         """ZYX Euler angles (rad) of `quat_wxyz` (made once per pose)."""
-        euler = self._euler
-        if euler is None:
-            euler = self._euler = euler_from_quat(self.quat_wxyz)
-        return euler
+        updates = self._state.item(_UPDATES)
+        if self._euler_at != updates:
+            self._euler, self._euler_at = euler_from_quat(self.quat_wxyz), updates
+        return self._euler
 
     def estimate(self, now_s: float) -> StateEstimate:
         """The state predicted to ``now_s`` (reader clock) from the latest pose: over its age, plus the
@@ -187,56 +197,90 @@ class PoseEstimator:
 class StaticPoseCheck:
     """The poses of a body that does not move (the gap): the first is the reference, and a later one
     further than ``jump_m`` (m) from it or turned more than ``turn_rad`` (rad) from it is refused
-    (a swapped rigid body, a reflection). `pose` is the latest one taken."""
+    (a swapped rigid body, a reflection). `pose` is the latest one taken. The check and its state run
+    compiled (`static_pose_update` on one array), as the program's mocap intake runs it."""
 
     def __init__(self, jump_m: float, turn_rad: float) -> None:
         self.jump_m, self.turn_rad = jump_m, turn_rad
-        #: the first pose: position (m) and quaternion (w, x, y, z), seven floats in a row
-        self._ref: tuple[float, ...] | None = None
-        self._taken: tuple[Sequence[float], Sequence[float]] | None = None  # the latest pose taken
-        self._pose: tuple[np.ndarray, np.ndarray] | None = None  # its arrays, made when first asked for
-        self.received_s = -math.inf  # arrival of the latest pose taken (s)
-        self.implausible = 0
-        self.implausible_run = 0  # refused in a row since the latest pose taken
-        self.latest_jump_m = 0.0  # the latest refused pose's distance from the reference (m)
+        #: `static_pose_update`'s state (`GAP_FLOATS`)
+        self._state = np.zeros(GAP_FLOATS)
+        self._state[_G_JUMP_M], self._state[_G_TURN_RAD] = jump_m, turn_rad
+        self._state[_G_RECEIVED] = -math.inf
+        self._pose: tuple[np.ndarray, np.ndarray] | None = None  # `pose`'s arrays, made when first asked for
+        self._pose_at = 0.0  # the poses taken when `_pose` was made
+        self._update = STATIC_POSE_UPDATE.entry(self._state, *(0.0,) * 8)  # (no dispatch a call)
 
     @property
     def pose(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The latest pose taken: position (m), quaternion (w, x, y, z); None before the first."""
-        if self._pose is None and self._taken is not None:
-            pos, quat = self._taken
-            self._pose = (np.array(pos, dtype=float), np.array(quat, dtype=float))
+        st = self._state
+        taken = st.item(_G_TAKEN)
+        if taken == 0.0:
+            return None
+        if self._pose is None or self._pose_at != taken:
+            self._pose = (st[_G_POSE:_G_POSE + 3].copy(), st[_G_POSE + 3:_G_POSE + 7].copy())
+            self._pose_at = taken
         return self._pose
 
+    @property
+    def received_s(self) -> float:
+        """Arrival of the latest pose taken (s; -inf before the first)."""
+        return self._state.item(_G_RECEIVED)
+
+    @property
+    def implausible(self) -> int:
+        """Poses refused."""
+        return int(self._state.item(_G_IMPLAUSIBLE))
+
+    @property
+    def implausible_run(self) -> int:
+        """Poses refused in a row since the latest pose taken."""
+        return int(self._state.item(_G_IMPLAUSIBLE_RUN))
+
+    @property
+    def latest_jump_m(self) -> float:
+        """The latest refused pose's distance from the reference (m)."""
+        return self._state.item(_G_LATEST_JUMP)
+
     def update(self, pos_m: Sequence[float], quat_wxyz: Sequence[float], received_s: float) -> bool:
-        """Take one pose (arriving at ``received_s``, s); False if refused. On plain floats: the check
-        runs once per mocap frame (the planner asks for `pose` a few times a run)."""
-        # (kept: a copy of what the caller may reuse; a tuple is one already)
-        if pos_m.__class__ is not tuple:
-            pos_m = tuple(pos_m)
-        if quat_wxyz.__class__ is not tuple:
-            quat_wxyz = tuple(quat_wxyz)
+        """Take one pose (arriving at ``received_s``, s); False if refused."""
         (px, py, pz), (qw, qx, qy, qz) = pos_m, quat_wxyz
-        ref = self._ref
-        if ref is None:
-            ref = self._ref = (px, py, pz, qw, qx, qy, qz)
-        rx, ry, rz, rw, rqx, rqy, rqz = ref
-        dx, dy, dz = px - rx, py - ry, pz - rz
-        jump = _sqrt(dx * dx + dy * dy + dz * dz)
-        # the angle between the attitudes (the cosine at most 1: `min(1.0, c)` without the call, NaN to 1)
-        c = abs(qw * rw + qx * rqx + qy * rqy + qz * rqz)
-        turn = 2.0 * _acos(c if c < 1.0 else 1.0)
-        if jump > self.jump_m or turn > self.turn_rad:
-            self.implausible += 1
-            self.implausible_run += 1
-            self.latest_jump_m = jump
-            return False
-        self._taken, self._pose = (pos_m, quat_wxyz), None
-        self.received_s, self.implausible_run = received_s, 0
-        return True
+        return self._update(self._state, px, py, pz, qw, qx, qy, qz, received_s)
 
 
-_sqrt, _acos = math.sqrt, math.acos  # (per mocap frame: one global read each)
+#: `static_pose_update`'s state: the refusal limits (m, rad), 1.0 once the reference is set, the reference
+#: (position (m), quaternion (w, x, y, z)), the latest pose taken (the same seven), its arrival (s), the
+#: poses taken, refused, refused in a row since the latest taken, and the latest refused one's jump (m)
+_G_JUMP_M, _G_TURN_RAD, _G_HAS_REF, _G_REF, _G_POSE, _G_RECEIVED = 0, 1, 2, 3, 10, 17
+_G_TAKEN, _G_IMPLAUSIBLE, _G_IMPLAUSIBLE_RUN, _G_LATEST_JUMP = 18, 19, 20, 21
+GAP_FLOATS = 22
+
+
+def static_pose_update(st: np.ndarray, px: float, py: float, pz: float, qw: float, qx: float, qy: float,
+                       qz: float, received_s: float) -> bool:
+    """`StaticPoseCheck.update` on its state ``st`` (`GAP_FLOATS`): whether the pose (position m,
+    quaternion w, x, y, z, arriving at ``received_s``, s) lies within the limits of the reference (the
+    first pose); counted there. Run compiled by numba (`policies.compiling`)."""
+    if st[_G_HAS_REF] == 0.0:
+        st[_G_HAS_REF] = 1.0
+        st[_G_REF], st[_G_REF + 1], st[_G_REF + 2] = px, py, pz
+        st[_G_REF + 3], st[_G_REF + 4], st[_G_REF + 5], st[_G_REF + 6] = qw, qx, qy, qz
+    dx, dy, dz = px - st[_G_REF], py - st[_G_REF + 1], pz - st[_G_REF + 2]
+    jump = math.sqrt(dx * dx + dy * dy + dz * dz)
+    # the angle between the attitudes (the cosine at most 1, a NaN taken as 1)
+    c = abs(qw * st[_G_REF + 3] + qx * st[_G_REF + 4] + qy * st[_G_REF + 5] + qz * st[_G_REF + 6])
+    turn = 2.0 * math.acos(c if c < 1.0 else 1.0)
+    if jump > st[_G_JUMP_M] or turn > st[_G_TURN_RAD]:
+        st[_G_IMPLAUSIBLE] += 1.0
+        st[_G_IMPLAUSIBLE_RUN] += 1.0
+        st[_G_LATEST_JUMP] = jump
+        return False
+    st[_G_POSE], st[_G_POSE + 1], st[_G_POSE + 2] = px, py, pz
+    st[_G_POSE + 3], st[_G_POSE + 4], st[_G_POSE + 5], st[_G_POSE + 6] = qw, qx, qy, qz
+    st[_G_RECEIVED] = received_s
+    st[_G_TAKEN] += 1.0
+    st[_G_IMPLAUSIBLE_RUN] = 0.0
+    return True
 
 
 def _items(v: object) -> object:
@@ -299,25 +343,28 @@ def filter_update(x: tuple, P: tuple, mean_delay_s: float, restart: bool, dt: fl
 TAKEN, REJECTED, IMPLAUSIBLE = 0, 1, 2
 #: the state array of `take_pose`: the filter's state x (p, v, a of x, y, z), its shared covariance (p00,
 #: p01, p02, p11, p12, p22), the latest pose's stamp and arrival (s), its arrival - stamp and the running
-#: mean of that (s), 1.0 once a pose is taken
+#: mean of that (s), 1.0 once a pose is taken, the latest pose's unit quaternion (w, x, y, z), the poses
+#: taken, rejected and implausible, the implausible ones in a row since the latest taken and the latest
+#: one's jump (m)
 _X, _P, _STAMP, _RECEIVED, _DELAY, _MEAN_DELAY, _READY = 0, 9, 15, 16, 17, 18, 19
-STATE_FLOATS = 20
+_QUAT, _UPDATES, _REJECTED, _IMPLAUSIBLE, _IMPLAUSIBLE_RUN, _LATEST_JUMP = 20, 24, 25, 26, 27, 28
+STATE_FLOATS = 29
 
 
 def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: float, px: float, py: float,
-              pz: float, qw: float, qx: float, qy: float, qz: float) -> tuple[int, float, float, float, float,
-                                                                           float]:
+              pz: float, qw: float, qx: float, qy: float, qz: float) -> int:
     """One pose (exposure ``stamp_s``, arrival ``received_s``, s; position m; quaternion w, x, y, z) into
     the state ``st`` (`STATE_FLOATS`) under ``settings`` (pos_noise_m, jerk_psd, delay_window_s,
-    reset_after_s, latency_s, max_accel_m_s2, max_speed_change_m_s, jump_sigmas): the verdict (`TAKEN`;
-    `REJECTED`: out of order, repeated or not finite; `IMPLAUSIBLE`: a jump the vehicle cannot make),
-    the implausible jump (m, else 0) and the unit quaternion. `PoseEstimator.take` runs it compiled by
-    numba (`policies.compiling`)."""
+    reset_after_s, latency_s, max_accel_m_s2, max_speed_change_m_s, jump_sigmas), counted there: the
+    verdict (`TAKEN`; `REJECTED`: out of order, repeated or not finite; `IMPLAUSIBLE`: a jump the vehicle
+    cannot make). `PoseEstimator.take` runs it compiled by numba (`policies.compiling`), and so does the
+    program's mocap intake."""
     qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     reset_after_s = settings[3]
     if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
             stamp_s <= st[_STAMP] and received_s - st[_RECEIVED] <= reset_after_s):
-        return REJECTED, 0.0, qw, qx, qy, qz
+        st[_REJECTED] += 1.0
+        return REJECTED
     dt = stamp_s - st[_STAMP]
     delay = received_s - stamp_s
     restart = st[_READY] == 0.0 or not 0.0 < dt <= reset_after_s
@@ -327,7 +374,11 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
         ex, ey, ez, _, _, _ = predicted(x, dt)
         jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
         if jump > plausible_jump_m(dt, max_accel, settings[6], settings[7], settings[0]):
-            return IMPLAUSIBLE, jump, qw, qx, qy, qz
+            st[_REJECTED] += 1.0
+            st[_IMPLAUSIBLE] += 1.0
+            st[_IMPLAUSIBLE_RUN] += 1.0
+            st[_LATEST_JUMP] = jump
+            return IMPLAUSIBLE
     P = (st[_P], st[_P + 1], st[_P + 2], st[_P + 3], st[_P + 4], st[_P + 5])
     x, P, mean_delay_s = filter_update(x, P, st[_MEAN_DELAY], restart, dt, delay, px, py, pz, settings[0],
                                        settings[1], settings[2])
@@ -337,7 +388,10 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
         st[_P + k] = P[k]
     st[_STAMP], st[_RECEIVED], st[_DELAY], st[_READY] = stamp_s, received_s, delay, 1.0
     st[_MEAN_DELAY] = mean_delay_s
-    return TAKEN, 0.0, qw / qn, qx / qn, qy / qn, qz / qn
+    st[_QUAT], st[_QUAT + 1], st[_QUAT + 2], st[_QUAT + 3] = qw / qn, qx / qn, qy / qn, qz / qn
+    st[_UPDATES] += 1.0
+    st[_IMPLAUSIBLE_RUN] = 0.0
+    return TAKEN
 
 
 def predicted_state(st: np.ndarray, settings: np.ndarray, now_s: float) -> tuple[float, ...]:
@@ -380,6 +434,8 @@ _PREDICTED = Kernel(predicted)
 #: one pose into the estimator's state, compiled: `take_pose`
 TAKE_POSE = Kernel(take_pose, filter_update=Kernel(filter_update), predicted=_PREDICTED,
                    plausible_jump_m=Kernel(plausible_jump_m))
+#: the gap's pose check, compiled: `static_pose_update`
+STATIC_POSE_UPDATE = Kernel(static_pose_update)
 #: the estimator's state predicted, compiled: `predicted_state`
 PREDICTED_STATE = Kernel(predicted_state, prediction_horizon_s=Kernel(prediction_horizon_s),
                          predicted=_PREDICTED)

@@ -87,6 +87,7 @@ from policies.onboard.estimator import (
     StaticPoseCheck,
     plausible_jump_m,
 )
+from policies.onboard.mocap_intake import mocap_intake
 from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
 from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND
 from policies.primitives import solve
@@ -337,6 +338,7 @@ def warm_kernels() -> None:
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
     est.state_tuples(0.05)
+    mocap_intake(est, StaticPoseCheck(0.1, 0.1))  # (the mocap intake, for the estimator's and the check's)
     NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (the command links' setpoint attitude)
     NED_EULER.entry(0.0, 0.0, 0.0)
 
@@ -351,10 +353,13 @@ class OnboardProgram:
         warm_kernels()  # (once a process: no control step waits for a kernel's compilation or cache load)
         self.clock = ProgramClock()
         self.link: OnboardLink = COMMAND_LINKS[cfg.fc_protocol](command_transport, self.clock)
-        self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose)
         self.estimator = PoseEstimator(cfg.estimator, cfg.full_thrust_n / cfg.mass_kg + GRAVITY_M_S2)
         noise_jump_m = plausible_jump_m(0.0, 0.0, 0.0, cfg.estimator.jump_sigmas, cfg.estimator.pos_noise_m)
         self.gap_check = StaticPoseCheck(noise_jump_m, GAP_TURN_LIMIT_RAD)
+        # (the usual mocap bytes into the estimator and the gap check in one compiled call, the rest
+        # through `_on_pose`)
+        self.mocap = MocapReader(mocap_transport, self.clock, cfg.stale_mocap_s, on_pose=self._on_pose,
+                                 intake=mocap_intake(self.estimator, self.gap_check))
         self.pilot = pilot or make_pilot(
             cfg.pilot, PilotContext(cfg.mass_kg, cfg.full_thrust_n, max_tilt_deg=cfg.max_tilt_deg)
         )
@@ -401,7 +406,6 @@ class OnboardProgram:
         self._last_cmd: AttitudeThrustCommand | None = None
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
-        self._clock_jumps = 0  # the mocap reader's clock jumps the estimator has followed
         self._handlers = {ph: getattr(self, name) for ph, name in _PHASE_HANDLERS.items()}  # (bound once)
 
     # --- the step ---------------------------------------------------------------------------
@@ -782,9 +786,10 @@ class OnboardProgram:
         if body_id == GAP_BODY_ID:
             self._gap_update(pos_m, quat_wxyz, received_s)
         elif body_id == VEHICLE_BODY_ID and not self._estimator_take(stamp_s, pos_m, quat_wxyz, received_s):
-            jumps = self.mocap.clock_jumps
-            if jumps != self._clock_jumps:  # the reader follows a new mocap clock: so does the estimate
-                self._clock_jumps = jumps
+            mocap = self.mocap
+            jumps = mocap.clock_jumps
+            if jumps != mocap.intake_jumps:  # the reader follows a new mocap clock: so does the estimate
+                mocap.intake_jumps = jumps  # (and from here the intake again)
                 self.estimator.rebase(stamp_s, received_s)
                 self.estimator.take(stamp_s, pos_m, quat_wxyz, received_s)
 
