@@ -18,7 +18,6 @@ from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
     BODY_IDS,
-    MAX_BODIES,
     ONE_NODE_EXTRA_BYTES,
     ROLE_ANCHOR,
     ROLE_TAG,
@@ -64,13 +63,13 @@ class MocapLinkServer:
         self.transport = transport
         self.clock = clock
         mocap_rng, radio_rng = rng.spawn(2)
-        self.mocap = MocapSystem(mocap or MocapConfig(), mocap_rng)
+        # the tracker's exposures come out as the frames the vehicle's module writes for them (encoded by
+        # the exposure kernel); the radio carries each, sized by its node data
+        encoder = MocapFrameEncoder(ROLE_TAG, module_id, ROLE_ANCHOR, station_node_id)
+        self.mocap = MocapSystem(mocap or MocapConfig(), mocap_rng, encoder)
         self.radio = UwbRadio(uwb or UwbConfig(), radio_rng)
         self.uart = UartWire(self.radio.config.uart_baud, self.radio.config.uart_bits_per_byte)
         self._ids = (module_id, station_node_id)
-        #: the mocap payload, and the frame the vehicle's module writes for it, encoded as a frame leaves
-        #: the tracker (the radio carries it, sized by its node data)
-        self._encode = MocapFrameEncoder(ROLE_TAG, module_id, ROLE_ANCHOR, station_node_id).encode
         #: LinkTrack frames handed to the transport so far
         self.frames_written = 0
         self._bytes_written = 0
@@ -132,9 +131,8 @@ class MocapLinkServer:
         frames, packets, chunks = self._queues
         limit = now + 1e-12
         if frames and frames[0][0] <= limit:
-            send, encode = self._radio_send, self._encode
-            for ready_s, frame_no, rows in self._released(now):
-                frame = encode(frame_no & 0xFFFFFFFF, rows if len(rows) <= MAX_BODIES else rows[:MAX_BODIES])
+            send = self._radio_send
+            for ready_s, _, frame in self._released(now):
                 send(ready_s, frame, len(frame) - ONE_NODE_EXTRA_BYTES)
         if packets and packets[0][0] <= limit:
             write = self._uart_write
