@@ -410,15 +410,18 @@ def _crc16_table() -> np.ndarray:
 _CRC16_TABLE = _crc16_table()
 
 
-def pack_mocap_frame(out: np.ndarray, frame_no: int, n: int, ids: np.ndarray, flags: np.ndarray,
-                     stamps_us: np.ndarray, floats: np.ndarray) -> int:
+#: values `pack_mocap_frame` takes per body: pos (3), quat (4), valid (1.0 or 0.0)
+PACKED_VALUES = 8
+
+
+def pack_mocap_frame(out: np.ndarray, frame_no: int, n: int, ints: np.ndarray, values: np.ndarray) -> int:
     """Write the mocap payload of ``n`` bodies and what follows it into the one-node frame ``out``
     (uint8, its head already there: `MocapFrameEncoder.head`): the payload's fields (``frame_no``, then
-    per body ``ids[b]``, ``flags[b]``, ``stamps_us[b]`` and the 7 float32 values whose bytes are
-    ``floats[28 b : 28 b + 28]``), its CRC and the frame's checksum (the sum of every byte before it);
-    returns the frame's length. The only packer of the format: plain arithmetic on arrays, run as it is
-    by `MocapFrameEncoder.encode` and compiled into the emulator's exposure kernel. Fields are not
-    checked here (the callers do)."""
+    per body ``b`` its id and stamp (us) ``ints[2 b : 2 b + 2]`` and its values ``values[8 b : 8 b + 8]``:
+    7 sent as float32, then the valid flag, nonzero if valid), its CRC and the frame's checksum (the sum
+    of every byte before it); returns the frame's length. The only packer of the format: plain
+    arithmetic on arrays, run as it is by `MocapFrameEncoder.encode` and compiled into the emulator's
+    exposure kernel. Fields are not checked here (the callers do)."""
     p = _ONE_NODE_DATA_AT
     out[p] = PAYLOAD_TYPE_MOCAP
     out[p + 1] = PAYLOAD_VERSION
@@ -426,13 +429,18 @@ def pack_mocap_frame(out: np.ndarray, frame_no: int, n: int, ids: np.ndarray, fl
         out[p + 2 + j] = (frame_no >> (8 * j)) & 0xFF
     out[p + 6] = n
     p += _PAYLOAD_HEAD_LEN
+    floats = np.empty(7, np.float32)  # (a body's values as float32, C's rounding; their bytes below)
+    float_bytes = floats.view(np.uint8)
     for b in range(n):
-        out[p] = ids[b]
-        out[p + 1] = flags[b]
-        s = int(stamps_us[b])
+        r = PACKED_VALUES * b
+        out[p] = ints[2 * b]
+        out[p + 1] = FLAG_VALID if values[r + 7] != 0.0 else 0
+        s = int(ints[2 * b + 1])
         for j in range(8):
             out[p + 2 + j] = (s >> (8 * j)) & 0xFF
-        out[p + 10 : p + BODY_LEN] = floats[28 * b : 28 * b + 28]
+        for j in range(7):
+            floats[j] = values[r + j]
+        out[p + 10 : p + BODY_LEN] = float_bytes
         p += BODY_LEN
     crc = CRC16_INIT
     for i in range(_ONE_NODE_DATA_AT, p):
@@ -473,7 +481,7 @@ class MocapFrameEncoder:
             raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {n}")
         if not 0 <= frame_no <= 0xFFFFFFFF:
             raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
-        ids, flags, stamps_us, values = [], [], [], []
+        ids, ints, values = [], [], []
         for body_id, valid, stamp_s, body_values in rows:
             # a finite sum means every value is finite (inf and NaN propagate); else look closer
             if len(body_values) != 7 or not (_isfinite(sum(body_values))
@@ -484,20 +492,18 @@ class MocapFrameEncoder:
             if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
                 _u8("body id", body_id)
             ids.append(body_id)
-            flags.append(FLAG_VALID if valid else 0)
-            stamps_us.append(round(stamp_s * 1e6))
+            ints += (body_id, round(stamp_s * 1e6))
             values += body_values
+            values.append(1.0 if valid else 0.0)
         head = self._heads[n]
         out = np.zeros(mocap_frame_len(n), np.uint8)
         out[: len(head)] = np.frombuffer(head, np.uint8)
+        packed = np.array(values, np.float64)
         with np.errstate(over="ignore"):
-            floats = np.array(values, np.float32)
-        if n and not np.isfinite(floats).all():  # (as a C cast rounds: past float32's range is inf)
-            body = int(np.argmin(np.isfinite(floats).reshape(n, 7).all(axis=1)))
-            raise FrameError(f"body {ids[body]}: a value is out of float32's range")
-        floats = floats.view(np.uint8)
-        pack_mocap_frame(out, frame_no, n, np.array(ids, np.int64), np.array(flags, np.int64),
-                         np.array(stamps_us, np.int64), floats)
+            fits = np.isfinite(packed.astype(np.float32)).reshape(n, PACKED_VALUES).all(axis=1)
+        if not fits.all():  # (as a C cast rounds: past float32's range is inf)
+            raise FrameError(f"body {ids[int(np.argmin(fits))]}: a value is out of float32's range")
+        pack_mocap_frame(out, frame_no, n, np.array(ints, np.int64), packed)
         return out.tobytes()
 
 
