@@ -31,7 +31,7 @@ _ROOT = Path(__file__).resolve().parent
 _OTHER_SOURCES = tuple(_ROOT.parent / f for f in (
     "hil/runner/recorder.py", "hil/rl/observe.py", "hil/rl/reward.py", "hil/rl/targets.py",
     "hil/link/mavlink.py", "policies/learning/learned_pilots.py", "hil/rl/link_observe.py",
-    "hil/link/channel.py", "policies/onboard/estimator.py"))
+    "hil/link/channel.py", "policies/onboard/estimator.py", "hil/link/linktrack.py"))
 
 
 def sources_digest() -> str:

@@ -14,6 +14,14 @@ import numpy as np
 from numba import njit
 
 from emulator.kernel_cache import entry
+from hil.link.linktrack import (
+    MAX_BODIES,
+    PACKED_VALUES,
+    FrameError,
+    MocapFrameEncoder,
+    mocap_frame_len,
+    pack_mocap_frame,
+)
 
 MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
@@ -21,9 +29,12 @@ MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not repl
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
 _BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
-#: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0)
-_VALUES_PER_BODY = 8
+#: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0), as
+#: the LinkTrack packer takes it
+_VALUES_PER_BODY = PACKED_VALUES
 _NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
+_NO_FRAME = np.zeros(0, np.uint8)  # (the exposure kernel's frame when the tracker keeps rows)
+_NO_INTS = np.zeros(0, np.int64)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -114,6 +125,10 @@ class MocapFrame:
     bodies: tuple[TrackedBody, ...]
 
 
+#: a body of a frame as plain values: body id, valid, stamp_s, the 7 values pos_m (3) then quat_wxyz (4)
+_Row = tuple[int, bool, float, list[float]]
+
+
 class FrameRows(NamedTuple):
     """A frame as plain values, what the mocap link encodes: per body (body id, valid, stamp_s, the 7
     values pos_m (3) then quat_wxyz (4)); an occluded body has zeros and the identity."""
@@ -168,13 +183,19 @@ class MocapSystem:
     returned. ``next_event_s()`` says when to call next.
     """
 
-    def __init__(self, config: MocapConfig, rng: np.random.Generator) -> None:
+    def __init__(self, config: MocapConfig, rng: np.random.Generator,
+                 frames: MocapFrameEncoder | None = None) -> None:
+        """With ``frames`` each exposure is kept as the bytes of its LinkTrack frame, as that encoder
+        writes it (frame number modulo 2**32, up to `MAX_BODIES` bodies), encoded by the exposure
+        kernel itself: `released` gives them in place of rows, and the rows' readers (`update`,
+        `update_rows`, `release_rows`) are refused."""
         self.config = config
+        self._frames = frames
         self._rng = rng
         self._next_exposure_k = 0
-        #: the frames exposed and not yet released: (ready_s, frame number, rows), a heap (its head the
-        #: next release; read, never changed, by the mocap link)
-        self.pending: list[tuple[float, int, list[tuple[int, bool, float, list[float]]]]] = []
+        #: the frames exposed and not yet released: (ready_s, frame number, rows or the frame's bytes), a
+        #: heap (its head the next release; read, never changed, by the mocap link)
+        self.pending: list[tuple[float, int, list[_Row] | bytes]] = []
         self._occluded_until: dict[int, float] = {}
         self.stats = MocapStats()
         self._period_s = config.period_s
@@ -189,24 +210,34 @@ class MocapSystem:
         self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
         self._buffers_for(2)
         # the exposure kernel's form for its buffers and the block of draws (float64 arrays whatever their
-        # size, uint8 occlusion flags), compiled or loaded from numba's cache now, not at the first
-        # exposure, and called without numba's type dispatch
-        self._expose = entry(_expose_kernel, self._poses, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0,
-                             self._values)
+        # size, uint8 occlusion flags and frame bytes, int64 frame fields), compiled or loaded from numba's
+        # cache now, not at the first exposure, and called without numba's type dispatch
+        self._expose = entry(_expose_kernel, self._io, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0,
+                             _NO_FRAME, 0, 0, _NO_INTS)
 
     def _buffers_for(self, n: int) -> None:
-        """The kernel's buffers for exposures of ``n`` bodies, and their structs: the true poses in (7
-        doubles each) and the measured values out (`_VALUES_PER_BODY` doubles each), each read and
-        written by Python in one call."""
+        """The kernel's buffer for exposures of ``n`` bodies, and its structs: the true poses in (7
+        doubles each) then the measured values out (`_VALUES_PER_BODY` doubles each), each written and
+        read by Python in one call."""
+        if self._frames is not None and n > MAX_BODIES:
+            raise ValueError(f"a LinkTrack mocap frame holds at most {MAX_BODIES} bodies, got {n}")
         self._n_bodies = n
-        self._poses_buf = bytearray(7 * 8 * n)
-        self._poses = np.frombuffer(self._poses_buf, np.float64)
+        self._io_buf = bytearray((7 + _VALUES_PER_BODY) * 8 * n)
+        self._io = np.frombuffer(self._io_buf, np.float64)
         self._put_poses = struct.Struct(f"<{7 * n}d").pack_into
-        self._values_buf = bytearray(_VALUES_PER_BODY * 8 * n)
-        self._values = np.frombuffer(self._values_buf, np.float64)
-        self._get_values = struct.Struct(f"<{_VALUES_PER_BODY * n}d").unpack_from
+        self._get_values = struct.Struct(f"<{7 * 8 * n}x{_VALUES_PER_BODY * n}d").unpack_from
         #: each body's index and its first value's
         self._rows_at = tuple((i, _VALUES_PER_BODY * i) for i in range(n))
+        # the frame's bytes (its head written once) and its fields, as the kernel packs them
+        self._frame_buf = bytearray()
+        self._frame, self._ints = _NO_FRAME, _NO_INTS
+        self._frame_ids: tuple[int, ...] = ()
+        if self._frames is not None:
+            self._frame_buf = bytearray(mocap_frame_len(n))
+            self._frame = np.frombuffer(self._frame_buf, np.uint8)
+            head = self._frames.head(n)
+            self._frame_buf[: len(head)] = head
+            self._ints = np.zeros(2 * n, np.int64)  # (each body's id, then its stamp (us), set by the kernel)
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
@@ -223,12 +254,15 @@ class MocapSystem:
 
     def release_rows(self, now_s: float) -> list[FrameRows]:
         """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
+        if self._frames is not None:
+            raise ValueError("this tracker keeps its frames as LinkTrack bytes, not rows (see `released`)")
         period = self._period_s
         return [FrameRows(k, k * period, ready_s, rows) for ready_s, k, rows in self.released(now_s)]
 
-    def released(self, now_s: float) -> list[tuple[float, int, list[tuple[int, bool, float, list[float]]]]]:
+    def released(self, now_s: float) -> list[tuple[float, int, list[_Row] | bytes]]:
         """`release_rows` as (ready_s, frame number, rows) (the frame's stamp is its number x the
-        period): what the mocap link encodes, without a `FrameRows` per frame."""
+        period), without a `FrameRows` per frame; with an encoder (see ``__init__``) the frame's
+        LinkTrack bytes in place of its rows (what the mocap link sends)."""
         pending = self.pending
         limit = now_s + 1e-12
         if not pending or pending[0][0] > limit:
@@ -283,10 +317,14 @@ class MocapSystem:
         n = len(body_ids)
         if n != self._n_bodies:
             self._buffers_for(n)
-        self._put_poses(self._poses_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
-        poses_in, values, at = self._poses, self._values, self._rows_at
+        frames = self._frames is not None
+        if frames and body_ids is not self._frame_ids:
+            self._frame_ids_for(body_ids)
+        self._put_poses(self._io_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
+        io, at = self._io, self._rows_at
         pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
         stats, latency_s, expose = self.stats, self._latency_s, self._expose
+        frame, ints = self._frame, self._ints
         while k * period <= now_s + 1e-12:
             # frame ``k``, exposed at ``t_s``, queued for its ready time
             t_s = k * period
@@ -295,17 +333,19 @@ class MocapSystem:
                 # the draws keep the order of one body after the other (occlusion, position noise,
                 # attitude noise): taken here, the noise handed to the kernel in that order
                 occluded, noise = self._occlusions(t_s, body_ids, poses)
-                n_invalid = expose(poses_in, n, pos_sd, att_sd, occluded, noise, 0, values)[0]
+                n_invalid = expose(io, n, pos_sd, att_sd, occluded, noise, 0, frame, k & 0xFFFFFFFF,
+                                   round(t_s * 1e6), ints)[0]
                 extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
             else:
                 # without occlusion the noise of the whole frame comes from the block drawn ahead; a
                 # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
-                n_invalid, nxt = expose(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
-                                        self._normal_next, values)
+                frame_no, stamp_us = k & 0xFFFFFFFF, round(t_s * 1e6)
+                n_invalid, nxt = expose(io, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
+                                        self._normal_next, frame, frame_no, stamp_us, ints)
                 if n_invalid < 0:
                     self._normal_block = self._rng.standard_normal(max(_BLOCK, nxt))
-                    n_invalid, nxt = expose(poses_in, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
-                                            values)
+                    n_invalid, nxt = expose(io, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
+                                            frame, frame_no, stamp_us, ints)
                 self._normal_next = nxt
                 extra = 0.0
                 if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
@@ -317,12 +357,25 @@ class MocapSystem:
                     extra = processing_s * block[j]
             stats.bodies_occluded += n_invalid
             stats.frames += 1
-            v = self._get_values(self._values_buf)
-            rows = []
-            for i, r in at:
-                rows.append((body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]))
-            heapq.heappush(self.pending, (t_s + latency_s + extra, k, rows))
+            if frames:
+                heapq.heappush(self.pending, (t_s + latency_s + extra, k, bytes(self._frame_buf)))
+            else:
+                v = self._get_values(self._io_buf)
+                rows = []
+                for i, r in at:
+                    rows.append((body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]))
+                heapq.heappush(self.pending, (t_s + latency_s + extra, k, rows))
             k += 1
+
+    def _frame_ids_for(self, body_ids: Sequence[int]) -> None:
+        """Put ``body_ids`` into the frame's fields (checked: one byte each)."""
+        ids = tuple(body_ids)  # (a tuple is itself: the next call with it is known by identity)
+        if ids != self._frame_ids:
+            for body_id in ids:
+                if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
+                    raise FrameError(f"body id must be an integer 0..255, got {body_id!r}")
+            self._ints[::2] = ids
+        self._frame_ids = ids
 
     def _occlusions(self, t_s: float, body_ids: list[int], poses: list[float]
                     ) -> tuple[np.ndarray, np.ndarray]:
@@ -390,18 +443,25 @@ def measured_pose(px: float, py: float, pz: float, qw: float, qx: float, qy: flo
 
 _trackable = njit(cache=True)(trackable)
 _measured_pose = njit(cache=True)(measured_pose)
+_pack_mocap_frame = njit(cache=True)(pack_mocap_frame)
 
 
 @njit(cache=True)
-def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
-                   noise: np.ndarray, k: int, values: np.ndarray) -> tuple[int, int]:
-    """One exposure of ``n`` bodies: their true poses ``poses`` (7 each: x, y, z, qw, qx, qy, qz) as the
-    tracker measures them, into ``values`` (`_VALUES_PER_BODY` each: the 7, then 1.0 if valid else
-    0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then `measured_pose` with the
-    standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0 (m), then 3 for the
-    attitude when ``att_sd`` > 0 (rad), body after body; an invalid body gets zeros and the identity.
+def _expose_kernel(io: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
+                   noise: np.ndarray, k: int, frame: np.ndarray, frame_no: int, stamp_us: int,
+                   ints: np.ndarray) -> tuple[int, int]:
+    """One exposure of ``n`` bodies: their true poses (``io``'s first 7 ``n``, 7 each: x, y, z, qw, qx,
+    qy, qz) as the tracker measures them, into the values after them (`_VALUES_PER_BODY` each: the 7,
+    then 1.0 if valid else 0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then
+    `measured_pose` with the standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0
+    (m), then 3 for the attitude when ``att_sd`` > 0 (rad), body after body; an invalid body gets zeros
+    and the identity.
     Returns (bodies invalid, the next draw's index), or (-1, draws the frame takes) with nothing
-    measured when ``noise`` does not hold them after ``k``."""
+    measured when ``noise`` does not hold them after ``k``. With a ``frame`` (not empty: the LinkTrack
+    frame's bytes, its head there) the measured bodies are packed into it too (`pack_mocap_frame`: frame
+    ``frame_no``, each body stamped ``stamp_us``; ``ints`` holds the bodies' ids, the kernel their
+    stamps)."""
+    poses, values = io[: 7 * n], io[7 * n :]
     n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
     seen = 0
     for b in range(n):
@@ -434,4 +494,8 @@ def _expose_kernel(poses: np.ndarray, n: int, pos_sd: float, att_sd: float, occl
                            qw * qw + qx * qx + qy * qy + qz * qz, pos_sd, att_sd, z0, z1, z2, z3, z4, z5)
         for j in range(7):
             values[r + j] = m[j]
+    if frame.size:
+        for b in range(n):
+            ints[2 * b + 1] = stamp_us
+        _pack_mocap_frame(frame, frame_no, n, ints, values)
     return invalid, k

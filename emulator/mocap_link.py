@@ -18,7 +18,6 @@ from emulator.uwb import UartWire, UwbConfig, UwbRadio, UwbStats
 from hil.link.clock import Clock
 from hil.link.linktrack import (
     BODY_IDS,
-    MAX_BODIES,
     ONE_NODE_EXTRA_BYTES,
     ROLE_ANCHOR,
     ROLE_TAG,
@@ -64,13 +63,13 @@ class MocapLinkServer:
         self.transport = transport
         self.clock = clock
         mocap_rng, radio_rng = rng.spawn(2)
-        self.mocap = MocapSystem(mocap or MocapConfig(), mocap_rng)
+        # the tracker's exposures come out as the frames the vehicle's module writes for them (encoded by
+        # the exposure kernel); the radio carries each, sized by its node data
+        encoder = MocapFrameEncoder(ROLE_TAG, module_id, ROLE_ANCHOR, station_node_id)
+        self.mocap = MocapSystem(mocap or MocapConfig(), mocap_rng, encoder)
         self.radio = UwbRadio(uwb or UwbConfig(), radio_rng)
         self.uart = UartWire(self.radio.config.uart_baud, self.radio.config.uart_bits_per_byte)
         self._ids = (module_id, station_node_id)
-        #: the mocap payload, and the frame the vehicle's module writes for it, encoded as a frame leaves
-        #: the tracker (the radio carries it, sized by its node data)
-        self._encode = MocapFrameEncoder(ROLE_TAG, module_id, ROLE_ANCHOR, station_node_id).encode
         #: LinkTrack frames handed to the transport so far
         self.frames_written = 0
         self._bytes_written = 0
@@ -78,9 +77,12 @@ class MocapLinkServer:
         #: what the tracker, the radio and the wire hold, each ordered by time at its head (``[0][0]``):
         #: frames exposed (ready time), packets in flight (arrival), chunks on the line (done)
         self._queues = (self.mocap.pending, self.radio.in_flight, self.uart.queue)
+        #: the earliest of those heads (inf: all empty), kept by `update` and `_forward`, the only ones that
+        #: change the queues: when the chain next has something to move
+        self._next_move_s = math.inf
         self._expose_values, self._released = self.mocap.expose_values, self.mocap.released
         self._radio_send, self._radio_arrived = self.radio.send, self.radio.arrived
-        self._uart_write, self._uart_update = self.uart.write, self.uart.update
+        self._uart_finish, self._uart_update = self.uart.finish_s, self.uart.update
 
     @property
     def module_id(self) -> int:
@@ -114,50 +116,58 @@ class MocapLinkServer:
             if gap_pose is not None:
                 truth[_GAP_ID] = gap_pose
             self.mocap.expose(now, truth)
-        return self._forward(now)
+        frames, nxt = self._queues[0], self._next_move_s
+        if frames and frames[0][0] < nxt:  # (a frame just exposed)
+            nxt = frames[0][0]
+        if nxt <= now + 1e-12:
+            return self._forward(now)
+        self._next_move_s = nxt
+        return 0  # nothing to move yet (most exposures: a frame is ready after its latency)
 
     def deliver(self, now_s: float) -> int:
         """Advance the radio and the wire to ``now_s`` without taking an exposure (none may be due
         before ``now_s``: see `next_exposure_s`); returns bytes written."""
-        limit = now_s + 1e-12
-        frames, packets, chunks = self._queues
-        if (frames and frames[0][0] <= limit) or (packets and packets[0][0] <= limit) or (
-                chunks and chunks[0][0] <= limit):
+        if self._next_move_s <= now_s + 1e-12:
             return self._forward(now_s)
         return 0  # nothing leaves the tracker, the radio or the wire by then (most calls)
 
     def _forward(self, now: float) -> int:
         """The frames ready by ``now`` through the radio, those arrived onto the wire, those off the
-        wire to the transport; returns bytes written."""
+        wire to the transport (and when the chain next moves); returns bytes written."""
         frames, packets, chunks = self._queues
         limit = now + 1e-12
         if frames and frames[0][0] <= limit:
-            send, encode = self._radio_send, self._encode
-            for ready_s, frame_no, rows in self._released(now):
-                frame = encode(frame_no & 0xFFFFFFFF, rows if len(rows) <= MAX_BODIES else rows[:MAX_BODIES])
+            send = self._radio_send
+            for ready_s, _, frame in self._released(now):
                 send(ready_s, frame, len(frame) - ONE_NODE_EXTRA_BYTES)
-        if packets and packets[0][0] <= limit:
-            write = self._uart_write
+        if packets and packets[0][0] <= limit:  # onto the wire as they arrive (the frames are bytes)
+            finish = self._uart_finish
             for arrival_s, frame, _ in self._radio_arrived(now):
-                write(arrival_s, frame)
-        if not chunks or chunks[0][0] > limit:
-            return 0  # nothing off the wire yet (most calls)
+                chunks.append((finish(arrival_s, len(frame)), frame))
         written = 0
-        transport = self.transport
-        for _, chunk in self._uart_update(now):
-            if transport.closed:
-                self._bytes_refused += len(chunk)
-                continue
-            n = transport.send(chunk)
-            written += n
-            self._bytes_refused += len(chunk) - n
-            self.frames_written += 1
-        self._bytes_written += written
+        if chunks and chunks[0][0] <= limit:
+            transport = self.transport
+            for _, chunk in self._uart_update(now):
+                if transport.closed:
+                    self._bytes_refused += len(chunk)
+                    continue
+                n = transport.send(chunk)
+                written += n
+                self._bytes_refused += len(chunk) - n
+                self.frames_written += 1
+            self._bytes_written += written
+        nxt = chunks[0][0] if chunks else math.inf
+        if packets and packets[0][0] < nxt:
+            nxt = packets[0][0]
+        if frames and frames[0][0] < nxt:
+            nxt = frames[0][0]
+        self._next_move_s = nxt
         return written
 
     def next_event_s(self) -> float:
         """When ``update`` next has something to do (s, on the clock)."""
-        return min(self.mocap.next_event_s(), self.radio.next_event_s(), self.uart.next_event_s())
+        m = self.mocap.next_exposure_s()
+        return m if m < self._next_move_s else self._next_move_s
 
     def next_exposure_s(self) -> float:
         """When the tracker next needs the true poses (s); everything between exposures can be caught

@@ -164,6 +164,7 @@ def test_payload_crc_catches_what_the_8_bit_sum_misses():
     (MocapPacket(1, (BodySample(1, -1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),)), "stamp_s"),
     (MocapPacket(1, (BodySample(300, 0.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),)), "body id"),
     (MocapPacket(-1, ()), "32 bits"),
+    (MocapPacket(1, (BodySample(7, 0.0, (0.0, 1e39, 0.0), (1.0, 0.0, 0.0, 0.0)),)), "body 7: .*float32"),
 ])
 def test_encoder_rejects_out_of_range_values_with_a_clear_error(packet, message):
     with pytest.raises(FrameError, match=message):

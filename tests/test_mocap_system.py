@@ -8,6 +8,7 @@ import pytest
 from emulator.mocap import BodyPose, MocapConfig, MocapSystem, optitrack_latency_s
 from emulator.physics.state import VehicleState
 from emulator.world.geometry import Gap
+from hil.link.linktrack import FrameError, MocapFrameEncoder, decode_frame, decode_mocap_payload
 
 LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -120,6 +121,39 @@ def test_plain_values_in_body_order_expose_the_frames_of_the_mapping(occlusion_p
         got_values += by_values.release_rows(t)
     assert got_values == got_map and len(got_map) > 400
     assert by_values.stats == by_map.stats
+
+
+@pytest.mark.parametrize("occlusion_prob", [0.0, 0.2])
+def test_a_tracker_with_an_encoder_keeps_each_frame_as_the_linktrack_frame_of_its_rows(occlusion_prob):
+    cfg = MocapConfig(occlusion_prob=occlusion_prob, occlusion_mean_s=0.02)
+    encoder = MocapFrameEncoder(module_id=3, node_id=4)
+    by_rows = MocapSystem(cfg, np.random.default_rng(5))
+    by_frames = MocapSystem(cfg, np.random.default_rng(5), encoder)
+    got_rows, got_frames = [], []
+    for k in range(1200):
+        t = 0.0037 * k
+        vehicle = (t, 0.1, 1.0 if k % 97 else np.nan, 0.9, 0.1, 0.2, 0.3)  # (now and then not seen)
+        gap = (0.0, 0.5, 2.1, 0.866, -0.5, 0.0, 0.0)
+        # one, two, then three bodies (the frame's buffers follow the count and the ids)
+        ids, poses = ((1,), vehicle) if k < 300 else ((1, 2), vehicle + gap) if k < 800 else \
+            ((1, 2, 200), vehicle + gap + (5.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0))
+        by_rows.expose_values(t, ids, poses)
+        by_frames.expose_values(t, ids, poses)
+        got_rows += by_rows.released(t)
+        got_frames += by_frames.released(t)
+    assert len(got_frames) == len(got_rows) > 500 and by_frames.stats == by_rows.stats
+    assert any(not valid for _, _, rows in got_rows for _, valid, _, _ in rows)
+    for (ready_s, k, rows), (frame_ready_s, frame_k, frame) in zip(got_rows, got_frames, strict=True):
+        assert (frame_ready_s, frame_k) == (ready_s, k)
+        assert frame == encoder.encode(k, rows)
+        packet = decode_mocap_payload(decode_frame(frame).nodes[0].data)
+        assert [(b.body_id, b.valid) for b in packet.bodies] == [(r[0], r[1]) for r in rows]
+    with pytest.raises(ValueError, match="LinkTrack bytes"):
+        by_frames.release_rows(10.0)
+    with pytest.raises(FrameError, match="body id"):
+        by_frames.expose_values(10.0, (1, 300), vehicle + gap)
+    with pytest.raises(ValueError, match="at most 5 bodies"):
+        by_frames.expose_values(10.0, tuple(range(6)), gap * 6)
 
 
 def test_a_late_first_update_does_not_replay_the_past():

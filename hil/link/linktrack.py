@@ -400,9 +400,68 @@ def encode_mocap_payload(packet: MocapPacket) -> bytes:
     )
 
 
-#: the payload's fields before the CRC, by body count: one pack call per payload
+#: the payload's fields before the CRC, by body count (the decoder's unpack)
 _PAYLOAD_BODIES = tuple(struct.Struct("<BBIB" + "BBQ3f4f" * n) for n in range(MAX_BODIES + 1))
-_CRC = struct.Struct("<H")
+
+
+def _crc16_table() -> np.ndarray:
+    """CRC-16/CCITT-FALSE of each byte value alone from a zero register: the table `pack_mocap_frame`
+    runs the CRC by (the same CRC as `crc16_ccitt`)."""
+    table = np.zeros(256, np.int64)
+    for b in range(256):
+        crc = b << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
+        table[b] = crc & 0xFFFF
+    return table
+
+
+_CRC16_TABLE = _crc16_table()
+
+
+#: values `pack_mocap_frame` takes per body: pos (3), quat (4), valid (1.0 or 0.0)
+PACKED_VALUES = 8
+
+
+def pack_mocap_frame(out: np.ndarray, frame_no: int, n: int, ints: np.ndarray, values: np.ndarray) -> int:
+    """Write the mocap payload of ``n`` bodies and what follows it into the one-node frame ``out``
+    (uint8, its head already there: `MocapFrameEncoder.head`): the payload's fields (``frame_no``, then
+    per body ``b`` its id and stamp (us) ``ints[2 b : 2 b + 2]`` and its values ``values[8 b : 8 b + 8]``:
+    7 sent as float32, then the valid flag, nonzero if valid), its CRC and the frame's checksum (the sum
+    of every byte before it); returns the frame's length. The only packer of the format: plain
+    arithmetic on arrays, run as it is by `MocapFrameEncoder.encode` and compiled into the emulator's
+    exposure kernel. Fields are not checked here (the callers do)."""
+    p = _ONE_NODE_DATA_AT
+    out[p] = PAYLOAD_TYPE_MOCAP
+    out[p + 1] = PAYLOAD_VERSION
+    for j in range(4):
+        out[p + 2 + j] = (frame_no >> (8 * j)) & 0xFF
+    out[p + 6] = n
+    p += _PAYLOAD_HEAD_LEN
+    floats = np.empty(7, np.float32)  # (a body's values as float32, C's rounding; their bytes below)
+    float_bytes = floats.view(np.uint8)
+    for b in range(n):
+        r = PACKED_VALUES * b
+        out[p] = ints[2 * b]
+        out[p + 1] = FLAG_VALID if values[r + 7] != 0.0 else 0
+        s = int(ints[2 * b + 1])
+        for j in range(8):
+            out[p + 2 + j] = (s >> (8 * j)) & 0xFF
+        for j in range(7):
+            floats[j] = values[r + j]
+        out[p + 10 : p + BODY_LEN] = float_bytes
+        p += BODY_LEN
+    crc = CRC16_INIT
+    for i in range(_ONE_NODE_DATA_AT, p):
+        crc = ((crc << 8) & 0xFFFF) ^ int(_CRC16_TABLE[((crc >> 8) ^ int(out[i])) & 0xFF])
+    out[p] = crc & 0xFF
+    out[p + 1] = crc >> 8
+    p += 2
+    total = 0
+    for i in range(p):
+        total += int(out[i])
+    out[p] = total & 0xFF
+    return p + 1
 
 
 class MocapFrameEncoder:
@@ -410,13 +469,18 @@ class MocapFrameEncoder:
     module (``role``, ``module_id``) and one sending node (``node_role``, ``node_id``): what
     `encode_node_frame` makes of `encode_mocap_rows`, in one call. Raises FrameError as they do."""
 
-    __slots__ = ("_forms",)
+    __slots__ = ("_heads",)
 
     def __init__(self, role: int = ROLE_TAG, module_id: int = 0, node_role: int = ROLE_ANCHOR,
                  node_id: int = 0) -> None:
-        # by body count: the payload's packer, the bytes before it in the frame and their sum
-        self._forms = tuple((s.pack, *_one_node_head(s.size + _CRC.size, role, module_id, node_role, node_id))
+        # by body count: the bytes before the payload in the frame
+        self._heads = tuple(_one_node_head(s.size + 2, role, module_id, node_role, node_id)[0]
                             for s in _PAYLOAD_BODIES)
+
+    def head(self, n_bodies: int) -> bytes:
+        """The bytes of the frame of ``n_bodies`` bodies before its payload (`pack_mocap_frame` writes
+        the rest)."""
+        return self._heads[n_bodies]
 
     def encode(self, frame_no: int, rows: Sequence[tuple[int, bool, float, Sequence[float]]]) -> bytes:
         """The frame of the payload of ``rows`` (body id, valid, stamp_s, 7 values: pos (m) then quat
@@ -426,23 +490,30 @@ class MocapFrameEncoder:
             raise FrameError(f"a mocap payload holds at most {MAX_BODIES} bodies, got {n}")
         if not 0 <= frame_no <= 0xFFFFFFFF:
             raise FrameError(f"frame_no must fit in 32 bits, got {frame_no}")
-        fields: list = [PAYLOAD_TYPE_MOCAP, PAYLOAD_VERSION, frame_no, n]
-        for body_id, valid, stamp_s, values in rows:
+        ids, ints, values = [], [], []
+        for body_id, valid, stamp_s, body_values in rows:
             # a finite sum means every value is finite (inf and NaN propagate); else look closer
-            if len(values) != 7 or not (_isfinite(sum(values)) or all(_isfinite(v) for v in values)):
+            if len(body_values) != 7 or not (_isfinite(sum(body_values))
+                                             or all(_isfinite(v) for v in body_values)):
                 raise FrameError(f"body {body_id}: position and quaternion must be 3 + 4 finite numbers")
             if not 0 <= stamp_s < 1.8e13:
                 raise FrameError(f"body {body_id}: stamp_s must be >= 0, got {stamp_s}")
             if body_id.__class__ is not int or not 0 <= body_id <= 0xFF:
                 _u8("body id", body_id)
-            fields += (body_id, FLAG_VALID if valid else 0, round(stamp_s * 1e6))
-            fields += values
-        pack, head, head_sum = self._forms[n]
-        payload = pack(*fields)
-        crc = _crc_hqx(payload, CRC16_INIT)
-        # the frame's checksum: the sum of the head, the payload and the CRC's two bytes
-        return b"".join((head, payload, _CRC.pack(crc),
-                         _BYTE[(head_sum + sum8(payload) + (crc & 0xFF) + (crc >> 8)) & 0xFF]))
+            ids.append(body_id)
+            ints += (body_id, round(stamp_s * 1e6))
+            values += body_values
+            values.append(1.0 if valid else 0.0)
+        head = self._heads[n]
+        out = np.zeros(mocap_frame_len(n), np.uint8)
+        out[: len(head)] = np.frombuffer(head, np.uint8)
+        packed = np.array(values, np.float64)
+        with np.errstate(over="ignore"):
+            fits = np.isfinite(packed.astype(np.float32)).reshape(n, PACKED_VALUES).all(axis=1)
+        if not fits.all():  # (as a C cast rounds: past float32's range is inf)
+            raise FrameError(f"body {ids[int(np.argmin(fits))]}: a value is out of float32's range")
+        pack_mocap_frame(out, frame_no, n, np.array(ints, np.int64), packed)
+        return out.tobytes()
 
 
 _MOCAP_FRAMES = MocapFrameEncoder()
