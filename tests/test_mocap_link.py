@@ -159,7 +159,6 @@ def test_stale_flag_and_age_follow_the_reader_clock(pty_pair):
         reader.latest("drone")
 
 
-@pytest.mark.realtime
 def test_poses_as_plain_values_give_the_frames_of_the_pose_objects():
     """The runner hands the vehicle's and the gap's poses over as 7 plain numbers each."""
     gap = pose_of(GAP)
@@ -182,6 +181,7 @@ def test_poses_as_plain_values_give_the_frames_of_the_pose_objects():
     assert runs[0][1].frames_written > 150
 
 
+@pytest.mark.realtime
 def test_wall_clock_run_over_a_pty_delivers_the_rate():
     """Real time: server and reader in one process on a WallClock for 1 s (tolerance: 10 %)."""
     clock = WallClock()
