@@ -463,7 +463,8 @@ class DjiOpenServer:
         fc = self.fc
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
-        elif (st := fc.state) in _TAKEOVER_STATES or (st is FcState.DISARMED and not fc.offboard_selected):
+        elif (st := fc.machine.state) in _TAKEOVER_STATES or (
+                st is FcState.DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)

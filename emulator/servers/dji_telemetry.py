@@ -55,7 +55,7 @@ def _state_free(fn: Values) -> Values:
 def flight_status(server: DjiOpenServer) -> int:
     """The N3's flight status: motors stopped, on the ground (motors running), in the air."""
     fc = server.fc
-    if fc.state is FcState.DISARMED:
+    if fc.machine.state is FcState.DISARMED:  # (the state machine's own: read per push)
         return dj.FLIGHT_STOPPED
     return dj.FLIGHT_ON_GROUND if fc.landed else dj.FLIGHT_IN_AIR
 
@@ -65,7 +65,7 @@ def display_mode(server: DjiOpenServer) -> int:
     task, auto landing while landing in the air, SDK control while it flies the onboard setpoints, P-GPS
     otherwise (the emulated N3 has an ideal position fix)."""
     fc = server.fc
-    st = fc.state
+    st = fc.machine.state
     if st is FcState.TAKEOFF:
         return dj.MODE_ENGINE_START if fc.landed else dj.MODE_AUTO_TAKEOFF
     if st in (FcState.LAND, FcState.FAILSAFE_LAND) and not fc.landed:
@@ -85,7 +85,7 @@ def control_device(server: DjiOpenServer) -> tuple[int, int]:
     device = dj.DEVICE_ONBOARD if server.sdk_control else dj.DEVICE_RC
     mode = 0
     tg = fc.target
-    if server.sdk_control and tg is not None and fc.state is FcState.OFFBOARD:
+    if server.sdk_control and tg is not None and fc.machine.state is FcState.OFFBOARD:
         rate = tg.yaw_rate_rad_s is not None
         if isinstance(tg, MotionTarget):
             mode = _MOTION_MODES[(tg.horizontal_position, tg.vertical_position, rate)]
@@ -181,7 +181,7 @@ def rc(server: DjiOpenServer, x: list) -> tuple:
 @_state_free
 def battery(server: DjiOpenServer, x: list) -> tuple:
     volts, pct = server.telemetry.battery()
-    current = HOVER_CURRENT_MA if server.fc.state.armed else 0
+    current = HOVER_CURRENT_MA if server.fc.machine.state.armed else 0
     return BATTERY_CAPACITY_MAH * pct // 100, round(volts * 1000), current, pct
 
 
