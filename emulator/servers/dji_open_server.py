@@ -454,13 +454,14 @@ class DjiOpenServer:
             return
         # validated and taken as MAVLink's are (the FC core flies a target in OFFBOARD only): without
         # authority a setpoint is not flown, as the N3 ignores it, and the stream is counted as PX4's is
+        flag, x, y, z, yaw = values  # (a call with its arguments listed: no tuple built for it)
+        fc = self.fc
         try:
-            self.fc.set_setpoint_values(*values, now_s)
+            fc.set_setpoint_values(flag, x, y, z, yaw, now_s)
         except SetpointRejected:
             self.stats.setpoints_rejected += 1
             return
         self.stats.setpoints_applied += 1
-        fc = self.fc
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
         elif (st := fc.machine.state) in _TAKEOVER_STATES or (
