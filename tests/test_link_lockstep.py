@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from emulator.servers.arrivals import input_due
+from emulator.servers.arrivals import arrivals
 from hil.link.clock import SimClock
 from hil.link.mavlink import (
     MavlinkCodec,
@@ -190,7 +190,8 @@ def test_the_fc_reads_the_wire_once_a_frame_has_arrived_and_when_it_is_closed():
     clock = SimClock()
     raw, peer = MemoryTransport.pair()
     wire = CommandWire(raw, clock, LinkSpec(latency_ms=5.0), np.random.default_rng(7), FaultSchedule(()))
-    assert input_due(wire)() is False  # nothing on the way: a poll does not read
+    assert arrivals(wire).next_input_s > clock.now_s()  # nothing on the way: a poll does not read
+    assert arrivals(raw).next_input_s < clock.now_s()  # a link without arrival times: read at every poll
     ob = MavlinkCodec(peer, clock, 1, 191)
     ob.send(ob.mav.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0))
     assert wire.read_onboard()

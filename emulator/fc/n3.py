@@ -226,9 +226,9 @@ def target_from_values(
         if flag & 0xC0 != HORIZONTAL_ANGLE:
             return _motion_target(flag, roll_deg, pitch_deg, thrust_percent, yaw, profile)
         roll_deg, pitch_deg, thrust_percent, yaw = map(float, values)
+    # (the profile's limits as they are: the kernel's entry takes an int where a float goes as `float`)
     verdict, roll, pitch, heading, rate = _attitude_thrust(
-        flag, roll_deg, pitch_deg, thrust_percent, yaw, float(profile.max_tilt_deg),
-        float(profile.max_yaw_rate_deg_s))
+        flag, roll_deg, pitch_deg, thrust_percent, yaw, profile.max_tilt_deg, profile.max_yaw_rate_deg_s)
     if verdict != ACCEPTED_FIELDS:
         raise SetpointRejected(rejection(verdict, roll_deg, pitch_deg, thrust_percent, yaw))
     # AttitudeThrustTarget(roll, ...) with its fields put in place directly (a frozen dataclass's own

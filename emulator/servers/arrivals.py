@@ -1,19 +1,24 @@
-"""Whether an FC server's command link has anything to read now: a transport that models arrival times
-(the runner's command wire) says so itself with ``input_due()``, so a poll that finds nothing due returns
-without a read; any other transport is read at every poll."""
+"""When an FC server's command link next has something to read: a transport that models arrival times
+(the runner's command wire) keeps that time in its ``next_input_s``, so a poll before it compares one
+float and reads nothing; any other transport is read at every poll."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
 from typing import Any
 
 
-def _always() -> bool:
-    return True
+class _Untimed:
+    """A transport without arrival times as a poll sees it: something may have come at any time."""
+
+    next_input_s = -math.inf
 
 
-def input_due(transport: Any) -> Callable[[], bool]:
-    """A function (looked up once per transport) that says whether ``transport`` may be read now: its
-    own ``input_due`` when it models arrival times (False only while it is open and its next arrival is
-    still to come), else one that always says yes."""
-    return getattr(transport, "input_due", None) or _always
+_UNTIMED = _Untimed()
+
+
+def arrivals(transport: Any) -> Any:
+    """What a poll reads ``next_input_s`` (s; looked up once per transport) from: ``transport`` itself
+    when it models arrival times (inf while nothing is on the way, -inf once it is closed: its read then
+    says so), else an object whose time has always come."""
+    return transport if hasattr(transport, "next_input_s") else _UNTIMED

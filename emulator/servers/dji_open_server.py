@@ -17,12 +17,13 @@ import math
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import SetpointRejected
 from emulator.params import Parameters
 from emulator.servers import dji_telemetry
-from emulator.servers.arrivals import input_due
+from emulator.servers.arrivals import arrivals
 from emulator.servers.dji_subscription import Subscriptions
 from emulator.servers.link_budget import LinkBudget
 from emulator.servers.telemetry import Home, TelemetryEncoder
@@ -115,8 +116,8 @@ class DjiOpenServer:
         self.fc = vehicle.fc
         self._fc_events = vehicle.fc.events  # (the FC's list of events, appended to)
         self.codec = codec
-        self._timed_transport: object | None = None  # the transport `_input_due` is of
-        self._input_due: Callable[[], bool] = input_due(None)
+        self._timed_transport: object | None = None  # the transport `_arrivals` is of
+        self._arrivals: Any = arrivals(None)  # what ``next_input_s`` is read from (the transport)
         #: the FC's parameters (`emulator.params`), set from files and scenarios: the OPEN protocol
         #: has no parameter messages, and no MAVLink telemetry whose rates they would set
         self.params = Parameters(self.fc, streams=None)
@@ -173,8 +174,8 @@ class DjiOpenServer:
         codec = self.codec
         if codec.transport is not self._timed_transport:  # (looked up once per transport)
             self._timed_transport = codec.transport
-            self._input_due = input_due(codec.transport)
-        if self._input_due():
+            self._arrivals = arrivals(codec.transport)
+        if self._arrivals.next_input_s <= now_s + 1e-12:
             for f in codec.receive():
                 self.handle(f, now_s)
         if self._events_seen != len(self._fc_events):
@@ -453,16 +454,18 @@ class DjiOpenServer:
             return
         # validated and taken as MAVLink's are (the FC core flies a target in OFFBOARD only): without
         # authority a setpoint is not flown, as the N3 ignores it, and the stream is counted as PX4's is
+        flag, x, y, z, yaw = values  # (a call with its arguments listed: no tuple built for it)
+        fc = self.fc
         try:
-            self.fc.set_setpoint_values(*values, now_s)
+            fc.set_setpoint_values(flag, x, y, z, yaw, now_s)
         except SetpointRejected:
             self.stats.setpoints_rejected += 1
             return
         self.stats.setpoints_applied += 1
-        fc = self.fc
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
-        elif (st := fc.state) in _TAKEOVER_STATES or (st is FcState.DISARMED and not fc.offboard_selected):
+        elif (st := fc.machine.state) in _TAKEOVER_STATES or (
+                st is FcState.DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -40,11 +41,21 @@ _MOTION_MODES = {
 }
 
 
+#: the value functions that do not read the state vector (`_state_free`): a push of only these builds none
+_STATE_FREE: set[Values] = set()
+
+
+def _state_free(fn: Values) -> Values:
+    """Mark a value function that does not read the state vector (it is given None for it)."""
+    _STATE_FREE.add(fn)
+    return fn
+
+
 # --- state -------------------------------------------------------------------------------------
 def flight_status(server: DjiOpenServer) -> int:
     """The N3's flight status: motors stopped, on the ground (motors running), in the air."""
     fc = server.fc
-    if fc.state is FcState.DISARMED:
+    if fc.machine.state is FcState.DISARMED:  # (the state machine's own: read per push)
         return dj.FLIGHT_STOPPED
     return dj.FLIGHT_ON_GROUND if fc.landed else dj.FLIGHT_IN_AIR
 
@@ -54,7 +65,7 @@ def display_mode(server: DjiOpenServer) -> int:
     task, auto landing while landing in the air, SDK control while it flies the onboard setpoints, P-GPS
     otherwise (the emulated N3 has an ideal position fix)."""
     fc = server.fc
-    st = fc.state
+    st = fc.machine.state
     if st is FcState.TAKEOFF:
         return dj.MODE_ENGINE_START if fc.landed else dj.MODE_AUTO_TAKEOFF
     if st in (FcState.LAND, FcState.FAILSAFE_LAND) and not fc.landed:
@@ -74,7 +85,7 @@ def control_device(server: DjiOpenServer) -> tuple[int, int]:
     device = dj.DEVICE_ONBOARD if server.sdk_control else dj.DEVICE_RC
     mode = 0
     tg = fc.target
-    if server.sdk_control and tg is not None and fc.state is FcState.OFFBOARD:
+    if server.sdk_control and tg is not None and fc.machine.state is FcState.OFFBOARD:
         rate = tg.yaw_rate_rad_s is not None
         if isinstance(tg, MotionTarget):
             mode = _MOTION_MODES[(tg.horizontal_position, tg.vertical_position, rate)]
@@ -138,6 +149,7 @@ def height(server: DjiOpenServer, x: list) -> tuple:
     return (x[2] - server.fc.config.ground_z_m,)
 
 
+@_state_free
 def home_altitude(server: DjiOpenServer, x: list) -> tuple:
     return (server.config.home.alt_m + server.fc.config.ground_z_m,)
 
@@ -156,17 +168,20 @@ def gps_velocity(server: DjiOpenServer, x: list) -> tuple:
     return x[4] * 100.0, x[3] * 100.0, -x[5] * 100.0  # NED (cm/s)
 
 
+@_state_free
 def gps_details(server: DjiOpenServer, x: list) -> tuple:
     return 0.8, 1.2, 3.0, 0.0, 500.0, 10.0, SATELLITES, 0, SATELLITES, 0
 
 
+@_state_free
 def rc(server: DjiOpenServer, x: list) -> tuple:
     return 0, 0, 0, 0, _RC_MODE[server.config.rc_mode], RC_GEAR_DOWN
 
 
+@_state_free
 def battery(server: DjiOpenServer, x: list) -> tuple:
     volts, pct = server.telemetry.battery()
-    current = HOVER_CURRENT_MA if server.fc.state.armed else 0
+    current = HOVER_CURRENT_MA if server.fc.machine.state.armed else 0
     return BATTERY_CAPACITY_MAH * pct // 100, round(volts * 1000), current, pct
 
 
@@ -187,11 +202,11 @@ def status(server: DjiOpenServer, x: list) -> tuple:
 
 
 def _zeros(n: int) -> Values:
-    return lambda server, x: (0,) * n
+    return _state_free(lambda server, x: (0,) * n)
 
 
 def _one(fn: Callable[[DjiOpenServer], int]) -> Values:
-    return lambda server, x: (fn(server),)
+    return _state_free(lambda server, x: (fn(server),))
 
 
 #: the broadcast items' values in `dj.BROADCAST_ITEMS` order (the time item takes the time too: `_time`)
@@ -224,18 +239,18 @@ TOPIC_VALUES: dict[str, Values] = {
     "gps_details": gps_details,
     "compass": _zeros(3),
     "rc": rc,
-    "gimbal_angles": lambda server, x: (0.0, 0.0, 0.0),
+    "gimbal_angles": _state_free(lambda server, x: (0.0, 0.0, 0.0)),
     "gimbal_status": _zeros(1),  # no gimbal mounted
     "status_flight": _one(flight_status),
     "status_displaymode": _one(display_mode),
     "status_landinggear": _zeros(1),
     "status_motor_start_error": _zeros(1),
     "battery_info": battery,
-    "control_device": lambda server, x: control_device(server),
-    "gps_signal_level": lambda server, x: (GPS_HEALTH,),
-    "gps_control_level": lambda server, x: (GPS_HEALTH,),
-    "home_point_set_status": lambda server, x: (int(server.home_en_m is not None),),
-    "home_point_info": lambda server, x: _home_rad(server),
+    "control_device": _state_free(lambda server, x: control_device(server)),
+    "gps_signal_level": _state_free(lambda server, x: (GPS_HEALTH,)),
+    "gps_control_level": _state_free(lambda server, x: (GPS_HEALTH,)),
+    "home_point_set_status": _state_free(lambda server, x: (int(server.home_en_m is not None),)),
+    "home_point_info": _state_free(lambda server, x: _home_rad(server)),
 }
 
 
@@ -261,19 +276,25 @@ def flight_data(server: DjiOpenServer, now_s: float, flags: int) -> bytes:
 
 def package_data(server: DjiOpenServer, package_id: int, uids: tuple[int, ...], timestamp: bool,
                  now_s: float) -> bytes:
-    """A subscription package's push (0x02 0x05): its id, the time stamp when asked, its topics."""
-    x = server.vehicle.state_vector().tolist()
-    parts = [bytes((package_id,))]
+    """A subscription package's push (0x02 0x05): its id, the time stamp (ms, ns) when asked, its
+    topics, packed in one call; the state vector read only for topics that need it."""
+    pack, topics, reads_state = _package_form(uids, timestamp)
+    x = server.vehicle.state_vector().tolist() if reads_state else None
+    fields: list = [package_id]
     if timestamp:
-        ms, ns, *_ = _time(server, x, now_s)
-        parts.append(ms.to_bytes(4, "little") + ns.to_bytes(4, "little"))
-    for pack, values in _topic_packers(uids):
-        parts.append(pack(*values(server, x)))
-    return b"".join(parts)
+        fields += _time(server, x, now_s)[:2]  # type: ignore[arg-type]
+    for values in topics:
+        fields += values(server, x)  # type: ignore[arg-type]
+    return pack(*fields)
 
 
 @functools.cache
-def _topic_packers(uids: tuple[int, ...]) -> tuple[tuple[Callable[..., bytes], Values], ...]:
-    """(its struct's ``pack``, its value function) of each topic of ``uids`` (known UIDs), in order:
-    looked up once per package's topics."""
-    return tuple((dj.TOPIC_STRUCTS[uid].pack, TOPIC_VALUES[dj.TOPICS[uid][0]]) for uid in uids)
+def _package_form(uids: tuple[int, ...], timestamp: bool
+                  ) -> tuple[Callable[..., bytes], tuple[Values, ...], bool]:
+    """The ``pack`` of a push of topics ``uids`` (known UIDs; package id, time stamp when asked, the
+    topics' structs in order, one little-endian struct), their value functions, and whether any of them
+    reads the state vector: made once per package's topics."""
+    formats = "".join(dj.TOPIC_STRUCTS[uid].format.lstrip("<") for uid in uids)
+    pack = struct.Struct("<B" + ("II" if timestamp else "") + formats).pack
+    topics = tuple(TOPIC_VALUES[dj.TOPICS[uid][0]] for uid in uids)
+    return pack, topics, any(fn not in _STATE_FREE for fn in topics)

@@ -23,7 +23,7 @@ from emulator.fc.modes import CommandResult, FcState
 from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
 from emulator.kernel_cache import entry
 from emulator.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
-from emulator.servers.arrivals import input_due
+from emulator.servers.arrivals import arrivals
 from emulator.servers.link_budget import LinkBudget
 from emulator.servers.telemetry import DEFAULT_INTERVALS_S, MIN_INTERVAL_S, Home, TelemetryEncoder
 from emulator.vehicle import EmulatedVehicle
@@ -55,8 +55,9 @@ _SET_ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 _STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
 #: streams the link budget keeps at their rate up to 1 Hz (a ground station counts a link lost without it)
 FIXED_STREAMS = frozenset({mav.MAVLINK_MSG_ID_HEARTBEAT})
-#: the recorder's ``tick`` (its flush check) is called at most this often (s of the poll's clock)
-RECORDER_TICK_S = 0.01
+#: the recorder's ``tick`` (its flush check, for a link that has gone quiet: each frame recorded checks
+#: too) is called at most this often (s of the poll's clock)
+RECORDER_TICK_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -123,11 +124,13 @@ class MavlinkServer:
         self._intervals = self._granted()  # intervals streamed at (s)
         self._next_due: dict[int, float] = {}
         self._streams_due_s = -math.inf  # the earliest next due time of any stream (s)
+        #: the earlier of `_streams_due_s` and `_recorder_tick_s`: a poll before it sends nothing (s)
+        self._due_s = -math.inf
         self._events_seen = 0
         self._backlog: list[Any] = []  # received, to be acted on in the next passes
         self._param_list: deque[int] = deque()  # parameter indices still to send (a budgeted link)
-        self._timed_transport: object | None = None  # the transport `_input_due` is of
-        self._input_due: Callable[[], bool] = input_due(None)
+        self._timed_transport: object | None = None  # the transport `_arrivals` is of
+        self._arrivals: Any = arrivals(None)  # what ``next_input_s`` is read from (the transport)
         self._last_text_s: dict[str, float] = {}
         #: never called: whatever this server has to say goes to the peer in a STATUSTEXT
         #: (`emulator.servers.registry.FcServer.on_untold`)
@@ -177,7 +180,7 @@ class MavlinkServer:
                 i, f(now_s, t.state_values()))
         self._recorder: object | None = None  # what `poll` last looked up ``tick`` on
         self._recorder_tick: Callable[[], None] | None = None
-        self._recorder_tick_s = -math.inf  # when `poll` calls it next (s)
+        self._recorder_tick_s = math.inf  # when `poll` calls it next (s; inf: no recorder)
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
@@ -196,8 +199,8 @@ class MavlinkServer:
         codec = self.codec
         if codec.transport is not self._timed_transport:  # (looked up once per transport)
             self._timed_transport = codec.transport
-            self._input_due = input_due(codec.transport)
-        if self._backlog or self._input_due():
+            self._arrivals = arrivals(codec.transport)
+        if self._backlog or self._arrivals.next_input_s <= now_s + 1e-12:
             backlog = self._backlog
             msgs = backlog or codec.receive()
             if len(msgs) > MAX_MESSAGES_PER_POLL:
@@ -213,16 +216,24 @@ class MavlinkServer:
         if self._events_seen != len(self._fc_events):
             self._report_events(now_s)
         self.telemetry.track_battery(now_s)
+        if now_s >= self._due_s:  # (most polls: nothing streamed, no flush check)
+            self._send_due(now_s)
+
+    def _send_due(self, now_s: float) -> None:
+        """The streams due at ``now_s`` and the recorder's flush check when it is due; `_due_s` set to
+        the earlier of the two next times."""
         if now_s >= self._streams_due_s:
             self._send_streams(now_s)
-        recorder = codec.recorder
+        recorder = self.codec.recorder
         if recorder is not self._recorder:  # (looked up once per recorder)
             self._recorder = recorder
             self._recorder_tick = getattr(recorder, "tick", None) if recorder is not None else None
-            self._recorder_tick_s = -math.inf
-        if now_s >= self._recorder_tick_s and self._recorder_tick is not None:
+            self._recorder_tick_s = -math.inf if self._recorder_tick is not None else math.inf
+        if now_s >= self._recorder_tick_s:
             self._recorder_tick_s = now_s + RECORDER_TICK_S
-            self._recorder_tick()
+            self._recorder_tick()  # type: ignore[misc]
+        due = self._streams_due_s
+        self._due_s = due if due < self._recorder_tick_s else self._recorder_tick_s
 
     def handle(self, msg: MAVLinkMessage | bytes, now_s: float) -> None:
         """Act on one received message, or on the frame of one a codec hands over undecoded
@@ -336,7 +347,8 @@ class MavlinkServer:
         else:
             values = _SET_ATTITUDE_TARGET.unpack(frame[10 : 10 + frame[1]][:size].ljust(size, b"\x00"))
         _, q0, q1, q2, q3, _, _, yaw_rate, thrust, target_system, target_component, type_mask = values
-        if not self._for_me(target_system, target_component):
+        if target_system not in self._systems or target_component not in self._components:
+            self._for_me(target_system, target_component)  # (counts it)
             return
         verdict, flag, roll, pitch, thrust_percent, yaw, norm = self._attitude_fields(
             type_mask, q0, q1, q2, q3, thrust, yaw_rate)
@@ -500,7 +512,7 @@ class MavlinkServer:
     def _regrant(self) -> None:
         self._intervals = self._granted()
         self._next_due.clear()
-        self._streams_due_s = -math.inf
+        self._streams_due_s = self._due_s = -math.inf
 
     def set_stream_rate(self, msg_id: int, rate_hz: float) -> None:
         """Stream message ``msg_id`` at ``rate_hz`` (Hz; at most 1 / `MIN_INTERVAL_S`; 0: stop), from now."""
@@ -515,7 +527,7 @@ class MavlinkServer:
         if self.budget is None:
             self._intervals = dict(self._requested)
             self._next_due.pop(msg_id, None)
-            self._streams_due_s = -math.inf
+            self._streams_due_s = self._due_s = -math.inf
             return
         self._regrant()
         asked, granted = self.stream_rate_hz(msg_id), self.granted_rate_hz(msg_id)

@@ -96,6 +96,10 @@ class CommandWire(Transport):
         self._in = _Direction(model, spec.baud, in_rng)
         self._out_queue: list[tuple[float, int, bytes]] = []
         self._in_queue: list[tuple[float, int, bytes]] = []
+        #: when the FC's codec next has something to read (s): the first arrival in the queue to the FC
+        #: (inf: none on the way), -inf once this end is closed (its read then says so); an FC server's
+        #: poll compares it with its time (`emulator.servers.arrivals`)
+        self.next_input_s = math.inf
         self._seq = 0
         self.splitter = self.framing.splitter()
         self._answered_ns = self.framing.answered_ns
@@ -246,19 +250,23 @@ class CommandWire(Transport):
             return
         self._seq += 1
         heapq.heappush(self._in_queue, (arrival, self._seq, frame))
+        if arrival < self.next_input_s:
+            self.next_input_s = arrival
 
     def next_arrival_s(self) -> float:
         """When the next onboard frame reaches the FC (s; inf when none is on the way)."""
         return self._in_queue[0][0] if self._in_queue else math.inf
 
     def input_due(self) -> bool:
-        """Whether the FC's codec has anything to read now: an onboard frame has arrived (or the link is
-        closed, which its read says); a poll asks this before it reads (`emulator.servers.arrivals`)."""
-        q = self._in_queue
-        return self._closed or (bool(q) and q[0][0] <= self.clock.now_s() + 1e-12)
+        """Whether the FC's codec has anything to read now (`next_input_s`): an onboard frame has
+        arrived, or the link is closed, which its read says."""
+        return self.next_input_s <= self.clock.now_s() + 1e-12
 
     def _recv_internal(self, max_bytes: int) -> bytes:
-        return self._drain(self._in_queue, self.to_fc)
+        q = self._in_queue
+        data = self._drain(q, self.to_fc)
+        self.next_input_s = q[0][0] if q else math.inf  # (open: `recv` reads only an open link)
+        return data
 
     def _drain(self, q: list, st: DirectionStats) -> bytes:
         """The frames of queue ``q`` that have arrived by now, with the link's faults applied."""
@@ -289,4 +297,5 @@ class CommandWire(Transport):
         return  # the FC's codec only ever polls (timeout 0)
 
     def _close_internal(self) -> None:
+        self.next_input_s = -math.inf
         self.raw.close()
