@@ -25,6 +25,7 @@ from emulator.fc import FcConfig
 from emulator.loops.batched_steps import FastStepper
 from emulator.mocap import MocapConfig, pose_of
 from emulator.params import ParamError
+from emulator.physics.native import NativeBackend
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 from emulator.servers.mavlink_server import RAW_MSG_IDS
@@ -220,6 +221,10 @@ class EmulatorSide:
                                   **self.server.params.esc_settings())
             self.esc = attach_esc_bus(self.vehicle, self.server, config, rng.spawn(1)[0])
         self.fast: FastStepper | EscBusStepper = self.esc or FastStepper.for_vehicle(self.vehicle)
+        #: the native backend's own state row, which its steps advance in place (None on another
+        #: backend): what a sample copies, without a copy of its own first
+        backend = self.vehicle.backend
+        self._state_row = backend.kernel_arrays[0] if isinstance(backend, NativeBackend) else None
         self.vehicle.compile_kernels()  # (its own per-step path too: no compile inside a run's loop)
         self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
@@ -256,6 +261,7 @@ class EmulatorSide:
         server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
         update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
         gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
+        state_row = self._state_row
         dt = vehicle.dt_s
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
@@ -303,7 +309,7 @@ class EmulatorSide:
                         deliver(t)
                         if exact:
                             m_next = next_mocap()
-                    next_sample = sample(t, state_vector())
+                    next_sample = sample(t, state_row if state_row is not None else state_vector())
             deliver(t_end_s)
             poll(t_end_s)
             if not self.hold_mocap:
