@@ -138,9 +138,10 @@ class NativeBackend:
         return self._t0_s, self._steps
 
     def advance_clock(self, n_steps: int) -> float:
-        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``."""
-        self._steps += n_steps
-        return self.time_s
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``
+        (its sum, without the property's call: a batched stepper calls this about three times a tick)."""
+        steps = self._steps = self._steps + n_steps
+        return self._t0_s + steps * self.dt_s
 
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""

@@ -221,6 +221,10 @@ class EmulatorSide:
                                   **self.server.params.esc_settings())
             self.esc = attach_esc_bus(self.vehicle, self.server, config, rng.spawn(1)[0])
         self.fast: FastStepper | EscBusStepper = self.esc or FastStepper.for_vehicle(self.vehicle)
+        #: the loop's step: ``(n_steps, the vehicle's time (s))`` -> the time after them (None: ask the
+        #: vehicle); the batched stepper starts from the time handed to it, the ESC bus's reads its own
+        esc = self.esc
+        self._step = self.fast.step if esc is None else (lambda n_steps, _time_s: esc.step(n_steps))
         #: the native backend's own state row, which its steps advance in place (None on another
         #: backend): what a sample copies, without a copy of its own first
         backend = self.vehicle.backend
@@ -258,7 +262,7 @@ class EmulatorSide:
         exact = self.faults.has_mocap_faults
         next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
         next_arrival = wire.next_arrival_s
-        server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
+        server, step, advance_clock = self.server, self._step, self.clock.advance_to
         update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
         gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
         state_row = self._state_row
@@ -285,7 +289,7 @@ class EmulatorSide:
                     t_next = t + 1e-9
                 n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
                 if n > 0:
-                    t_vehicle = step(n)  # (the stepper's time, or None: the vehicle's)
+                    t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
                     if t_vehicle is None:
                         t_vehicle = vehicle.time_s
                 advance_clock(t_next)
