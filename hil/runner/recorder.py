@@ -148,23 +148,23 @@ def _sample_columns(s: np.ndarray, ht: np.ndarray, ha: np.ndarray, hf: np.ndarra
 
 
 @njit(cache=True, nogil=True)
-def _take_sample(rows: np.ndarray, xs: np.ndarray, k: int, x: np.ndarray, t: float, plane: np.ndarray,
-                 applied: int, frames: int, cmd_lost: int, mocap_lost: int, yaw_sp: float, setpoint_s: float,
-                 state_code: int, command: np.ndarray, motors: np.ndarray) -> float:
-    """Keep the sample at ``t`` (s) of the state ``x`` (STATE_SIZE,) as row ``k`` of ``xs`` and of ``rows``
-    (the `_S_T` ... columns: the offset along the gap normal from ``plane`` (the gap's centre (m) and
-    normal), then the other arguments in their order; ``command``: the FC target's four columns, ``motors``:
-    the four motor commands); returns the next sample's time (s), sooner within `NEAR_WALL_M` of the
-    gap plane."""
+def _take_sample(pending: np.ndarray, k: int, x: np.ndarray, t: float, fixed: np.ndarray, applied: int,
+                 frames: int, cmd_lost: int, mocap_lost: int, yaw_sp: float, setpoint_s: float,
+                 state_code: int, motors: np.ndarray) -> float:
+    """Keep the sample at ``t`` (s) of the state ``x`` (STATE_SIZE,) as row ``k`` of ``pending`` (its
+    `_S_T` ... columns, then the state's: the offset along the gap normal from the gap's centre (m) and
+    normal, ``fixed[:6]``, then the other arguments in their order, the FC target's four columns
+    ``fixed[6:10]`` and the four motor commands ``motors``); returns the next sample's time (s), sooner
+    within `NEAR_WALL_M` of the gap plane. (Arrays are few: numba unboxes each array of each call.)"""
+    row = pending[k]
     for j in range(x.shape[0]):
-        xs[k, j] = x[j]
-    n_wall = (x[0] - plane[0]) * plane[3] + (x[1] - plane[1]) * plane[4] + (x[2] - plane[2]) * plane[5]
-    row = rows[k]
+        row[_S_SIZE + j] = x[j]
+    n_wall = (x[0] - fixed[0]) * fixed[3] + (x[1] - fixed[1]) * fixed[4] + (x[2] - fixed[2]) * fixed[5]
     row[_S_T], row[_S_WALL], row[_S_APPLIED], row[_S_FRAMES] = t, n_wall, applied, frames
     row[_S_CMD_LOST], row[_S_MOCAP_LOST], row[_S_YAW_SP] = cmd_lost, mocap_lost, yaw_sp
     row[_S_SETPOINT_S], row[_S_STATE] = setpoint_s, state_code
     for j in range(4):
-        row[_S_CMD + j] = command[j]
+        row[_S_CMD + j] = fixed[6 + j]
         row[_S_MOTORS + j] = motors[j]
     return t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
 
@@ -259,17 +259,17 @@ class Recorder:
         self.nonfinite_seen_s: float | None = None
         #: sim time of the first crossing of the gap plane as far as recorded (no flush), None before
         self.first_crossing_seen_s: float | None = None
-        #: samples taken and not yet checked and recorded (see `sample`): their rows (`_S_T` ...) and
-        #: states, the first ``_n_pending`` rows of these (grown when full)
-        self._pending_rows = np.empty((PENDING_ROWS, _S_SIZE))
-        self._pending_x = np.empty((PENDING_ROWS, STATE_SIZE))
+        #: samples taken and not yet checked and recorded (see `sample`): the first ``_n_pending`` rows,
+        #: each its `_S_T` ... columns and then its state (grown when full)
+        self._pending = np.empty((PENDING_ROWS, _S_SIZE + STATE_SIZE))
         self._n_pending = 0
         self._gap_axes = world.gap.axes()
         self._lab_min = np.asarray(world.lab.min_m, dtype=np.float64)
         self._lab_max = np.asarray(world.lab.max_m, dtype=np.float64)
         _nonfinite_and_outside(level, self._lab_min, self._lab_max)  # (compiled now, not in a run's loop)
-        #: the gap's centre (m) and normal: c_x, c_y, c_z, e1_x, e1_y, e1_z
-        self._gap_plane = np.array([*world.gap.centre_m, *self._gap_axes[1]], dtype=np.float64)
+        #: what a sample's row takes that changes seldom: the gap's centre (m) and normal (c_x, c_y, c_z,
+        #: e1_x, e1_y, e1_z), then the FC target's four columns (`_command`, made again when it changes)
+        self._fixed = np.array([*world.gap.centre_m, *self._gap_axes[1], *_NO_COMMAND], dtype=np.float64)
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
         # what a sample reads besides the state, the same objects for the run's life
@@ -278,12 +278,11 @@ class Recorder:
         self._radio_stats = mocap.radio.stats
         # the FC target's columns and the FC state's code, made again when the target or state changes
         self._target: object = self  # (no target seen yet)
-        self._command_row = np.array(_NO_COMMAND)
         self._state: FcState | None = None
         self._state_code = -1
         # the sample's kernel for these arrays, ints and floats, called without numba's type dispatch
-        self._take_sample = entry(_take_sample, self._pending_rows, self._pending_x, 0, level[0], 0.0,
-                                  self._gap_plane, 0, 0, 0, 0, 0.0, 0.0, 0, self._command_row, fc.motor_cmd)
+        self._take_sample = entry(_take_sample, self._pending, 0, level[0], 0.0, self._fixed, 0, 0, 0, 0, 0.0,
+                                  0.0, 0, fc.motor_cmd)
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -323,35 +322,35 @@ class Recorder:
         returned); the world checks and the row itself wait for `flush` (the lockstep loop calls it while
         the onboard program works on a tick; results and `columns` call it first)."""
         k = self._n_pending
-        if k == len(self._pending_rows):
+        if k == len(self._pending):
             self._grow_pending()
         fc, to_fc = self._fc, self._to_fc
         tg = fc.target  # (the same target object for every sample until the next setpoint)
         if tg is not self._target:
             self._target = tg
-            self._command_row[:] = _command(tg, self._full_thrust_n)
+            self._fixed[6:] = _command(tg, self._full_thrust_n)
         st = self._machine.state  # (the same state for long stretches: its code looked up on a change)
         if st is not self._state:
             self._state, self._state_code = st, FC_STATE_CODES.get(st.value, -1)
         nxt = self.next_sample_s = self._take_sample(
-            self._pending_rows, self._pending_x, k, x, t, self._gap_plane,
-            self._server_stats.setpoints_applied, self._mocap.frames_written,
-            to_fc.frames_lost + to_fc.frames_dropped_fault, self._radio_stats.lost, fc.heading_setpoint_rad(),
-            fc.last_setpoint_s, self._state_code, self._command_row, fc.motor_cmd)
+            self._pending, k, x, t, self._fixed, self._server_stats.setpoints_applied,
+            self._mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
+            self._radio_stats.lost, fc.heading_setpoint_rad(), fc.last_setpoint_s, self._state_code,
+            fc.motor_cmd)
         self._n_pending = k + 1
         return nxt
 
     def _grow_pending(self) -> None:
         """Room for twice as many pending samples (a loop that flushes seldom)."""
-        self._pending_rows = np.concatenate((self._pending_rows, np.empty_like(self._pending_rows)))
-        self._pending_x = np.concatenate((self._pending_x, np.empty_like(self._pending_x)))
+        self._pending = np.concatenate((self._pending, np.empty_like(self._pending)))
 
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
         (the lockstep loop gathers a batch: the checks and rows are computed for all at once)."""
         n = self._n_pending
         if n >= at_least and n:
-            self._record(self._pending_rows[:n], self._pending_x[:n])
+            pending = self._pending[:n]
+            self._record(pending[:, :_S_SIZE].copy(), pending[:, _S_SIZE:].copy())
             self._n_pending = 0
 
     def _record(self, rows: np.ndarray, x: np.ndarray) -> None:
