@@ -140,7 +140,8 @@ class FlightController:
         self.motor_cmd = self._off
         #: the offboard attitude target a batched stepper may fly outside `update`: (roll, pitch, yaw
         #: (NED, rad), thrust (N), the setpoint-loss failsafe's time (s)), None when none may be; made
-        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`
+        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`;
+        #: while there is one, its yaw is the heading the FC steers to (`heading_setpoint_rad`)
         self.batch_plan: tuple[float, float, float, float, float] | None = None
 
     def _pack_hold(self) -> np.ndarray:

@@ -332,11 +332,12 @@ class Recorder:
         st = self._machine.state  # (the same state for long stretches: its code looked up on a change)
         if st is not self._state:
             self._state, self._state_code = st, FC_STATE_CODES.get(st.value, -1)
+        plan = fc.batch_plan  # (an offboard attitude target: its yaw is the heading the FC steers to)
         nxt = self.next_sample_s = self._take_sample(
             self._pending, k, x, t, self._fixed, self._server_stats.setpoints_applied,
             self._mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
-            self._radio_stats.lost, fc.heading_setpoint_rad(), fc.last_setpoint_s, self._state_code,
-            fc.motor_cmd)
+            self._radio_stats.lost, fc.heading_setpoint_rad() if plan is None else plan[2],
+            fc.last_setpoint_s, self._state_code, fc.motor_cmd)
         self._n_pending = k + 1
         return nxt
 
