@@ -229,6 +229,7 @@ class EmulatorSide:
         #: backend): what a sample copies, without a copy of its own first
         backend = self.vehicle.backend
         self._state_row = backend.kernel_arrays[0] if isinstance(backend, NativeBackend) else None
+        self._dt_s = self.vehicle.dt_s  # (the backend's step, fixed for its life)
         self.vehicle.compile_kernels()  # (its own per-step path too: no compile inside a run's loop)
         self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
@@ -266,7 +267,7 @@ class EmulatorSide:
         update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
         gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
         state_row = self._state_row
-        dt = vehicle.dt_s
+        dt = self._dt_s
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
         t_stop = t_end_s - 1e-12
