@@ -104,6 +104,28 @@ def test_batched_offboard_flight_equals_per_step_flight():
     np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=1e-12)
 
 
+def test_a_setpoint_timeout_past_any_step_count_still_flies_in_batches():
+    """A failsafe timeout longer than an int64 count of steps (a parameter set to 1e17 s): the batches
+    fly the whole advance, the same flight as the FC's own steps."""
+    profile = load_profile("n3_tx2")
+    runs = []
+    for batched in (False, True):
+        v = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.0, 0.0, 1.0)))
+        v.fc.reconfigure(failsafe_timeout_s=1e17)
+        v.fc.arm(0.0)
+        for k in range(3):
+            v.fc.set_setpoint(N3Setpoint(0x20, 5.0, 0.0, 40.0, 0.0), 0.001 * k)
+        assert v.fc.request_offboard(0.003).accepted
+        if batched:
+            stepper = FastStepper.for_vehicle(v)
+            stepper.step(300)
+            assert stepper.batched_steps == 300
+        else:
+            v.step(300)
+        runs.append(v.state.to_vector())
+    np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=1e-12)
+
+
 def test_batches_stop_at_the_setpoint_timeout():
     profile = load_profile("n3_tx2")
     v = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.0, 0.0, 1.0)))

@@ -43,11 +43,12 @@ HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
 
 def steps_before(room_s: float, dt_s: float, n_max: int) -> int:
     """How many of the next ``n_max`` steps of ``dt_s`` (s) begin within ``room_s`` (s) from now (each
-    checked at its start time; inf: all)."""
-    if room_s == math.inf:
-        return n_max
-    n_ok = int(room_s / dt_s) if room_s > 0 else 0
-    return n_max if n_max < n_ok else n_ok
+    checked at its start time; inf: all). Plain arithmetic on floats and ints: a batched stepper's
+    kernel compiles it (`emulator.loops.batched_steps`)."""
+    room_steps = room_s / dt_s if room_s > 0 else 0.0  # (NaN: none)
+    if room_steps >= n_max:
+        return n_max  # (inf, or a room past any int: all of them)
+    return int(room_steps)
 
 
 def heading_ned_rad(quat_wxyz: np.ndarray) -> float:
@@ -139,7 +140,8 @@ class FlightController:
         self.motor_cmd = self._off
         #: the offboard attitude target a batched stepper may fly outside `update`: (roll, pitch, yaw
         #: (NED, rad), thrust (N), the setpoint-loss failsafe's time (s)), None when none may be; made
-        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`
+        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`;
+        #: while there is one, its yaw is the heading the FC steers to (`heading_setpoint_rad`)
         self.batch_plan: tuple[float, float, float, float, float] | None = None
 
     def _pack_hold(self) -> np.ndarray:

@@ -2,7 +2,7 @@
 hovers or lands in the air on its own velocity controller, its controller and the native physics run
 together in one numba call for a whole batch of 1 kHz steps (the lockstep runner's fast path).
 
-It steps through the public contract of its parts: the backend's `NativeBackend.kernel_arrays` and
+It steps through the public contract of its parts: the backend's `NativeBackend.kernel_buffer` and
 `advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd``,
 the FC's `hold_command` parameters, `landed_test`, `batch_plan`, `quiet_steps` and `flew_outside`.
 Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
@@ -27,22 +27,31 @@ from emulator.fc.inner_loop import control, control_quat, target_quat_floats
 from emulator.fc.landed import body_landed
 from emulator.kernel_cache import entry
 from emulator.physics.kernels import step_vehicle
-from emulator.physics.native import NativeBackend
-from emulator.physics.state import QUAT
+from emulator.physics.native import KERNEL_PARAMS, NativeBackend
+from emulator.physics.state import QUAT, STATE_SIZE
 from emulator.vehicle import EmulatedVehicle
 from emulator.world.box_kernel import check_packed, quat_to_rot_into
 
+_steps_before = njit(cache=True, nogil=True)(steps_before)  # (the FC's count, compiled for `_fly_batch`)
+
 
 @njit(cache=True, nogil=True)
-def _fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n_steps, landed_test
-               ):  # pragma: no cover
-    """``n_steps`` steps of a held attitude target; returns the FC's landed test of the body after them
-    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`)."""
+def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, gains, mix_inv, out, n_max, time_s, dt_s,
+               landed_test):  # pragma: no cover
+    """The steps of a held attitude target (the FC's `batch_plan`: ``until_s`` its setpoint-loss
+    failsafe's time (s)) that begin before ``until_s``, of the next ``n_max`` steps of ``dt_s`` from
+    ``time_s`` (s) (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf``; returns
+    (the steps flown, the FC's landed test of the body after them: `FlightController.detect_landed`,
+    ``landed_test`` its `FlightController.landed_test`)."""
+    n_steps = _steps_before(until_s - time_s, dt_s, n_max)
+    if n_steps <= 0:
+        return 0, False
+    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
     d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
     for _ in range(n_steps):
         control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
-    return body_landed(x[2], x[5], landed_test[0], landed_test[1])
+    return n_steps, body_landed(x[2], x[5], landed_test[0], landed_test[1])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -103,12 +112,13 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(x, aux, p, climb, yaw, landed_test, hold_params, gains, mix_inv, out, n_steps
+def _hold_batch(buf, climb, yaw, landed_test, hold_params, gains, mix_inv, out, n_steps
                 ):  # pragma: no cover
     """Velocity-hold steps (`FlightController._velocity_hold` per step) at climb rate ``climb`` (m/s,
     up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as landed
-    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`); returns
-    the steps taken."""
+    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`), on the
+    backend's `NativeBackend.kernel_buffer` ``buf``; returns the steps taken."""
+    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
     rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
@@ -136,43 +146,43 @@ class FastStepper:
         if native:
             fc = vehicle.fc
             inner = fc.inner
-            self._arrays = x, aux, p = vehicle.backend.kernel_arrays  # type: ignore[attr-defined]
+            self._buffer = buf = vehicle.backend.kernel_buffer  # type: ignore[attr-defined]
+            self._x = vehicle.backend.kernel_arrays[0]  # type: ignore[attr-defined]
             self._loop = gains, mix_inv, out = (inner.params, inner.mix_inv, inner.motor_cmd)
             self._landed_test = landed_test = fc.landed_test
             self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
             # the kernels' forms for these arrays, floats and ints (compiled or loaded from the cache
             # now, not inside the timed loop), called without numba's type dispatch
-            self._fly_batch = entry(_fly_batch, x, aux, p, 0.0, 0.0, 0.0, 0.0, gains, mix_inv, out, 0,
-                                    landed_test)
-            self._hold_batch = entry(_hold_batch, x, aux, p, 0.0, 0.0, landed_test, fc.hold_params, gains,
-                                     mix_inv, out, 0)
+            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, gains, mix_inv, out, 0, 0.0,
+                                    0.0, landed_test)
+            self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, gains, mix_inv,
+                                     out, 0)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
         return cls(vehicle, isinstance(vehicle.backend, NativeBackend))
 
-    def step(self, n_steps: int) -> float | None:
-        """Advance ``n_steps`` physics steps; returns the vehicle's time (s) after them on the native
-        backend (None on another: ask the vehicle)."""
+    def step(self, n_steps: int, time_s: float | None = None) -> float | None:
+        """Advance ``n_steps`` physics steps from the backend's time ``time_s`` (s; None: read it);
+        returns the vehicle's time (s) after them on the native backend (None on another: ask the
+        vehicle)."""
         if not self.native:
             self.vehicle.step(n_steps)
             self.single_steps += n_steps
             return None
         fc, v, dt = self._fc, self.vehicle, self._dt_s
         advance_clock = self._advance_clock
-        time_s = self._backend.time_s
+        if time_s is None:
+            time_s = self._backend.time_s
         while n_steps > 0:
             n, landed = 0, None
             plan = fc.batch_plan  # (an offboard attitude target: flown in batches, `batch_target`)
             if plan is not None:
-                roll, pitch, yaw, thrust_n, until_s = plan
-                n = steps_before(until_s - time_s, dt, n_steps)
-                if n > 0:
-                    x, aux, p = self._arrays
-                    gains, mix_inv, out = self._loop
-                    landed = self._fly_batch(x, aux, p, roll, pitch, yaw, thrust_n, gains, mix_inv, out, n,
-                                             self._landed_test)
+                gains, mix_inv, out = self._loop
+                n, landed = self._fly_batch(self._buffer, *plan, gains, mix_inv, out, n_steps, time_s, dt,
+                                            self._landed_test)
             if n == 0:
+                landed = None  # (the hold batch stops before a landing: the flag stays as it is)
                 n = self._hold_steps(n_steps, time_s)
             if n > 0:
                 # the counts and the FC's bookkeeping as its own per-step update would have left them
@@ -202,7 +212,6 @@ class FastStepper:
         n_steps = fc.quiet_steps(time_s, self._dt_s, n_steps)
         if n_steps <= 0:
             return 0
-        x, aux, p = self._arrays
-        yaw = fc.hold_heading_rad(x[QUAT])  # latched at the first hold step, as the FC's own
-        return self._hold_batch(x, aux, p, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
+        yaw = fc.hold_heading_rad(self._x[QUAT])  # latched at the first hold step, as the FC's own
+        return self._hold_batch(self._buffer, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
                                 *self._loop, n_steps)

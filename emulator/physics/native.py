@@ -27,6 +27,9 @@ from emulator.physics.kernels import (
 from emulator.physics.state import OMEGA, POS, QUAT, ROTOR, STATE_SIZE, VEL, VehicleState
 from emulator.profile import VehicleProfile
 
+#: where the parameters begin in `NativeBackend.kernel_buffer` (after the state and auxiliary rows)
+KERNEL_PARAMS = STATE_SIZE + AUX_SIZE
+
 
 def hover_state(profile: VehicleProfile, pos_m: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> VehicleState:
     """A level vehicle at rest at ``pos_m`` (m, ENU) with rotors spinning at the hover speed."""
@@ -99,10 +102,15 @@ class NativeBackend:
 
     def __init__(self, profile: VehicleProfile, dt_s: float = DEFAULT_DT_S) -> None:
         self.profile = profile
-        self._params = pack_params(profile, dt_s)
+        params = pack_params(profile, dt_s)
         self.dt_s = float(dt_s)
-        self._x = np.empty(STATE_SIZE)
-        self._aux = np.zeros(AUX_SIZE)
+        # the state row, the auxiliary row and the parameters one after another in one array
+        # (`kernel_buffer`), each a view of it
+        self._buffer = np.zeros(KERNEL_PARAMS + params.size)
+        self._x = self._buffer[:STATE_SIZE]
+        self._aux = self._buffer[STATE_SIZE:KERNEL_PARAMS]
+        self._params = self._buffer[KERNEL_PARAMS:]
+        self._params[:] = params
         self._t0_s = 0.0
         self._steps = 0
         self.reset(VehicleState())
@@ -132,15 +140,24 @@ class NativeBackend:
         return self._x, self._aux, self._params
 
     @property
+    def kernel_buffer(self) -> np.ndarray:
+        """`kernel_arrays` as one array, of which they are views: the state row ``[:STATE_SIZE]``, the
+        auxiliary row ``[STATE_SIZE:KERNEL_PARAMS]``, the parameters ``[KERNEL_PARAMS:]``; a compiled
+        caller called often takes this one argument instead of three (numba unboxes each array
+        argument of each call)."""
+        return self._buffer
+
+    @property
     def clock(self) -> tuple[float, int]:
         """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s``, for a compiled caller that keeps the time
         of the steps it takes through `kernel_arrays`."""
         return self._t0_s, self._steps
 
     def advance_clock(self, n_steps: int) -> float:
-        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``."""
-        self._steps += n_steps
-        return self.time_s
+        """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``
+        (its sum, without the property's call: a batched stepper calls this about three times a tick)."""
+        steps = self._steps = self._steps + n_steps
+        return self._t0_s + steps * self.dt_s
 
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""

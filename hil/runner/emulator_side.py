@@ -25,6 +25,7 @@ from emulator.fc import FcConfig
 from emulator.loops.batched_steps import FastStepper
 from emulator.mocap import MocapConfig, pose_of
 from emulator.params import ParamError
+from emulator.physics.native import NativeBackend
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 from emulator.servers.mavlink_server import RAW_MSG_IDS
@@ -220,6 +221,15 @@ class EmulatorSide:
                                   **self.server.params.esc_settings())
             self.esc = attach_esc_bus(self.vehicle, self.server, config, rng.spawn(1)[0])
         self.fast: FastStepper | EscBusStepper = self.esc or FastStepper.for_vehicle(self.vehicle)
+        #: the loop's step: ``(n_steps, the vehicle's time (s))`` -> the time after them (None: ask the
+        #: vehicle); the batched stepper starts from the time handed to it, the ESC bus's reads its own
+        esc = self.esc
+        self._step = self.fast.step if esc is None else (lambda n_steps, _time_s: esc.step(n_steps))
+        #: the native backend's own state row, which its steps advance in place (None on another
+        #: backend): what a sample copies, without a copy of its own first
+        backend = self.vehicle.backend
+        self._state_row = backend.kernel_arrays[0] if isinstance(backend, NativeBackend) else None
+        self._dt_s = self.vehicle.dt_s  # (the backend's step, fixed for its life)
         self.vehicle.compile_kernels()  # (its own per-step path too: no compile inside a run's loop)
         self._frozen_truth: tuple[float, ...] | None = None
         self._force_on = False
@@ -253,10 +263,11 @@ class EmulatorSide:
         exact = self.faults.has_mocap_faults
         next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
         next_arrival = wire.next_arrival_s
-        server, step, advance_clock = self.server, self.fast.step, self.clock.advance_to
+        server, step, advance_clock = self.server, self._step, self.clock.advance_to
         update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
         gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
-        dt = vehicle.dt_s
+        state_row = self._state_row
+        dt = self._dt_s
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
         t_stop = t_end_s - 1e-12
@@ -279,7 +290,7 @@ class EmulatorSide:
                     t_next = t + 1e-9
                 n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
                 if n > 0:
-                    t_vehicle = step(n)  # (the stepper's time, or None: the vehicle's)
+                    t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
                     if t_vehicle is None:
                         t_vehicle = vehicle.time_s
                 advance_clock(t_next)
@@ -303,7 +314,7 @@ class EmulatorSide:
                         deliver(t)
                         if exact:
                             m_next = next_mocap()
-                    next_sample = sample(t, state_vector())
+                    next_sample = sample(t, state_row if state_row is not None else state_vector())
             deliver(t_end_s)
             poll(t_end_s)
             if not self.hold_mocap:

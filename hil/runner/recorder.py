@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 from numba import njit
 
 from emulator.fc import FcState, FlightController
 from emulator.fc.n3 import AttitudeThrustTarget
+from emulator.kernel_cache import entry
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
 from emulator.profile import VehicleProfile
@@ -26,6 +26,7 @@ NEAR_WALL_SAMPLE_S = 0.001  # within NEAR_WALL_M of the gap plane (s)
 NEAR_WALL_M = 0.6
 GROUND_HIT_SPEED_M_S = 1.0  # touching the ground slower than this is a landing, not a crash
 RATE_WINDOW_S = 1.0
+PENDING_ROWS = 128  # samples the pending buffer holds at first (it grows when full)
 
 COLUMNS = (
     "t_s",
@@ -63,6 +64,7 @@ _S_T, _S_WALL, _S_APPLIED, _S_FRAMES, _S_CMD_LOST, _S_MOCAP_LOST, _S_YAW_SP, _S_
 _S_STATE, _S_CMD, _S_MOTORS = 8, 9, 13  # (the target's columns and the motors: four each)
 _S_SIZE = _S_MOTORS + 4
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
+_FIXED_CMD = 6  # where the FC target's columns begin in the pending block's first row (`_take_sample`)
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 #: the `fc_state` column's code of each FC state: its place in `FcState`
 FC_STATE_CODES = {st.value: i for i, st in enumerate(FcState)}
@@ -144,6 +146,30 @@ def _sample_columns(s: np.ndarray, ht: np.ndarray, ha: np.ndarray, hf: np.ndarra
         out[i, _FC_STATE] = s[i, _S_STATE]
         out[i, _YAW_SP] = np.degrees(s[i, _S_YAW_SP])
         out[i, _SETPOINT_AGE] = t - s[i, _S_SETPOINT_S]
+
+
+@njit(cache=True, nogil=True)
+def _take_sample(pending: np.ndarray, k: int, x: np.ndarray, t: float, applied: int, frames: int,
+                 cmd_lost: int, mocap_lost: int, yaw_sp: float, setpoint_s: float, state_code: int,
+                 motors: np.ndarray) -> float:
+    """Keep the sample at ``t`` (s) of the state ``x`` (STATE_SIZE,) as pending sample ``k``, row
+    ``1 + k`` of ``pending`` (its `_S_T` ... columns, then the state's: the offset along the gap normal
+    from the gap's centre (m) and normal, ``pending[0, :6]``, then the other arguments in their order,
+    the FC target's four columns ``pending[0, 6:10]`` and the four motor commands ``motors``); returns
+    the next sample's time (s), sooner within `NEAR_WALL_M` of the gap plane. (Arrays are few: numba
+    unboxes each array of each call.)"""
+    fixed = pending[0]
+    row = pending[1 + k]
+    for j in range(x.shape[0]):
+        row[_S_SIZE + j] = x[j]
+    n_wall = (x[0] - fixed[0]) * fixed[3] + (x[1] - fixed[1]) * fixed[4] + (x[2] - fixed[2]) * fixed[5]
+    row[_S_T], row[_S_WALL], row[_S_APPLIED], row[_S_FRAMES] = t, n_wall, applied, frames
+    row[_S_CMD_LOST], row[_S_MOCAP_LOST], row[_S_YAW_SP] = cmd_lost, mocap_lost, yaw_sp
+    row[_S_SETPOINT_S], row[_S_STATE] = setpoint_s, state_code
+    for j in range(4):
+        row[_S_CMD + j] = fixed[_FIXED_CMD + j]
+        row[_S_MOTORS + j] = motors[j]
+    return t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
 
 
 @njit(cache=True)
@@ -236,15 +262,19 @@ class Recorder:
         self.nonfinite_seen_s: float | None = None
         #: sim time of the first crossing of the gap plane as far as recorded (no flush), None before
         self.first_crossing_seen_s: float | None = None
-        #: samples taken and not yet checked and recorded (see `sample`): their rows (`_S_T` ...) and states
-        self._pending: list[tuple[float, ...]] = []
-        self._pending_x: list[np.ndarray] = []
+        #: samples taken and not yet checked and recorded (see `sample`): rows 1 .. ``_n_pending``, each
+        #: its `_S_T` ... columns and then its state (grown when full); row 0 holds what a sample's row
+        #: takes that changes seldom: the gap's centre (m) and normal (c_x, c_y, c_z, e1_x, e1_y, e1_z),
+        #: then the FC target's four columns (`_command`, made again when the target changes)
+        self._pending = np.empty((1 + PENDING_ROWS, _S_SIZE + STATE_SIZE))
+        self._pending_room = PENDING_ROWS
+        self._n_pending = 0
         self._gap_axes = world.gap.axes()
         self._lab_min = np.asarray(world.lab.min_m, dtype=np.float64)
         self._lab_max = np.asarray(world.lab.max_m, dtype=np.float64)
         _nonfinite_and_outside(level, self._lab_min, self._lab_max)  # (compiled now, not in a run's loop)
-        #: the gap's centre (m) and normal, as plain floats: c_x, c_y, c_z, e1_x, e1_y, e1_z
-        self._gap_plane = (*(float(v) for v in world.gap.centre_m), *(float(v) for v in self._gap_axes[1]))
+        self._pending[0, :_FIXED_CMD] = (*world.gap.centre_m, *self._gap_axes[1])
+        self._pending[0, _FIXED_CMD : _FIXED_CMD + 4] = _NO_COMMAND
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
         # what a sample reads besides the state, the same objects for the run's life
@@ -253,9 +283,11 @@ class Recorder:
         self._radio_stats = mocap.radio.stats
         # the FC target's columns and the FC state's code, made again when the target or state changes
         self._target: object = self  # (no target seen yet)
-        self._command_row = _NO_COMMAND
         self._state: FcState | None = None
         self._state_code = -1
+        # the sample's kernel for these arrays, ints and floats, called without numba's type dispatch
+        self._take_sample = entry(_take_sample, self._pending, 0, level[0], 0.0, 0, 0, 0, 0, 0.0, 0.0, 0,
+                                  fc.motor_cmd)
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -291,51 +323,57 @@ class Recorder:
     # --- sampling -------------------------------------------------------------------------------
     def sample(self, t: float, x: np.ndarray) -> float:
         """Take the sample at sim time ``t`` (s) of the state ``x`` (a flat `VehicleState.to_vector`
-        copy, kept): what the row needs is copied now and ``next_sample_s`` set (and returned); the
-        world checks and the row itself wait for `flush` (the lockstep loop calls it while the onboard
-        program works on a tick; results and `columns` call it first)."""
-        px, py, pz = x[POS].tolist()
-        cx, cy, cz, ex, ey, ez = self._gap_plane
-        n_wall = (px - cx) * ex + (py - cy) * ey + (pz - cz) * ez
-        nxt = self.next_sample_s = t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
-        fc, to_fc, mocap = self._fc, self._to_fc, self._mocap
+        row, float64, copied now): what the row needs is copied now and ``next_sample_s`` set (and
+        returned); the world checks and the row itself wait for `flush` (the lockstep loop calls it while
+        the onboard program works on a tick; results and `columns` call it first)."""
+        k = self._n_pending
+        if k == self._pending_room:
+            self._grow_pending()
+        fc, to_fc = self._fc, self._to_fc
         tg = fc.target  # (the same target object for every sample until the next setpoint)
         if tg is not self._target:
-            self._target, self._command_row = tg, _command(tg, self._full_thrust_n)
+            self._target = tg
+            self._pending[0, _FIXED_CMD : _FIXED_CMD + 4] = _command(tg, self._full_thrust_n)
         st = self._machine.state  # (the same state for long stretches: its code looked up on a change)
         if st is not self._state:
             self._state, self._state_code = st, FC_STATE_CODES.get(st.value, -1)
-        self._pending_x.append(x)
-        self._pending.append((t, n_wall, self._server_stats.setpoints_applied, mocap.frames_written,
-                              to_fc.frames_lost + to_fc.frames_dropped_fault, self._radio_stats.lost,
-                              fc.heading_setpoint_rad(), fc.last_setpoint_s, self._state_code,
-                              *self._command_row, *fc.motor_cmd.tolist()))
+        plan = fc.batch_plan  # (an offboard attitude target: its yaw is the heading the FC steers to)
+        nxt = self.next_sample_s = self._take_sample(
+            self._pending, k, x, t, self._server_stats.setpoints_applied,
+            self._mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
+            self._radio_stats.lost, fc.heading_setpoint_rad() if plan is None else plan[2],
+            fc.last_setpoint_s, self._state_code, fc.motor_cmd)
+        self._n_pending = k + 1
         return nxt
+
+    def _grow_pending(self) -> None:
+        """Room for twice as many pending samples (a loop that flushes seldom)."""
+        self._pending = np.concatenate((self._pending, np.empty_like(self._pending[1:])))
+        self._pending_room *= 2
 
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
         (the lockstep loop gathers a batch: the checks and rows are computed for all at once)."""
-        pending = self._pending
-        if len(pending) >= at_least and pending:
-            self._record(pending, self._pending_x)
-            pending.clear()
-            self._pending_x.clear()
+        n = self._n_pending
+        if n >= at_least and n:
+            pending = self._pending[1 : 1 + n]
+            self._record(pending[:, :_S_SIZE].copy(), pending[:, _S_SIZE:].copy())
+            self._n_pending = 0
 
-    def _record(self, batch: list[tuple[float, ...]], xs: list[np.ndarray]) -> None:
+    def _record(self, rows: np.ndarray, x: np.ndarray) -> None:
         """World checks, the crossing tracker and the time-series rows of a batch of samples (their
-        rows of numbers, `_S_T` ..., and their states), as the samples would have been taken one by one."""
-        n_rows = len(batch)
-        rows = np.fromiter(chain.from_iterable(batch), np.float64, n_rows * _S_SIZE).reshape(n_rows, _S_SIZE)
+        rows of numbers (N, `_S_SIZE`) and their states (N, STATE_SIZE)), as the samples would have been
+        taken one by one."""
+        n_rows = len(rows)
         t = np.ascontiguousarray(rows[:, _S_T])
-        x = np.array(xs)  # (N, STATE_SIZE)
         pos, quat = x[:, POS], x[:, QUAT]
         first, outside = _nonfinite_and_outside(x, self._lab_min, self._lab_max)
         if self._nonfinite_s is None and first >= 0:
             # NaN compares false, so no check below would notice: note it for the `finite_state` check
-            self._nonfinite_s = self.nonfinite_seen_s = batch[first][_S_T]
+            self._nonfinite_s = self.nonfinite_seen_s = float(t[first])
         codes, clr, in_slab = self.world.check_states_values(pos, quat)
-        k0 = 1 if batch[0][_S_T] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
-        if k0 < len(batch):
+        k0 = 1 if t[0] <= 0 else 0  # the sample at t = 0 is no step of a trajectory
+        if k0 < n_rows:
             tracker = self._tracker
             done = tracker.add_checked_batch(t[k0:], pos[k0:], codes[k0:], clr[k0:], in_slab[k0:],
                                              np.ascontiguousarray(rows[k0:, _S_WALL]))
@@ -350,11 +388,11 @@ class Recorder:
             for i, hit in enumerate(_OBSTACLES[c] for c in codes.tolist()):
                 if hit is not None and (hit is not Obstacle.GROUND or speed[i] >= GROUND_HIT_SPEED_M_S):
                     px, py, pz = pos[i].tolist()
-                    self._collision = Collision(str(hit), batch[i][_S_T], (px, py, pz), float(speed[i]))
+                    self._collision = Collision(str(hit), float(t[i]), (px, py, pz), float(speed[i]))
                     break
         if outside > self._max_outside_lab_m:
             self._max_outside_lab_m = outside
-        m = min(len(batch), self._cap - self._n)  # rows that still fit
+        m = min(n_rows, self._cap - self._n)  # rows that still fit
         if m <= 0:
             return
         n0, n1 = self._n, self._n + m
