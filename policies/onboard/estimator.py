@@ -86,20 +86,20 @@ class PoseEstimator:
         if not max_accel_m_s2 > 0:
             raise ValueError(f"max_accel_m_s2 must be a positive number, got {max_accel_m_s2!r}")
         self.max_accel_m_s2 = max_accel_m_s2
-        #: the filter's state, the latest pose's attitude and the counters, as `take_pose` and
-        #: `predicted_state` keep them (`STATE_FLOATS`; the properties below read it)
+        #: the filter's state, the latest pose's attitude and the counters, then the settings, as
+        #: `take_pose` and `predicted_state` keep and read them (`STATE_FLOATS`; the properties below read
+        #: it): one array, so that a compiled call unpacks one array argument, not two
         self._state = np.zeros(STATE_FLOATS)
         self._state[_STAMP] = self._state[_RECEIVED] = -math.inf
         self._state[_QUAT] = 1.0  # (level until the first pose)
         cfg = self.config
-        self._settings = np.array([cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s, cfg.reset_after_s,
-                                   cfg.latency_s, max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas])
-        self._settings.flags.writeable = False
+        self._state[_SETTINGS:] = (cfg.pos_noise_m, cfg.jerk_psd, cfg.delay_window_s, cfg.reset_after_s,
+                                   cfg.latency_s, max_accel_m_s2, cfg.max_speed_change_m_s, cfg.jump_sigmas)
         self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._euler_at = 0.0  # the `updates` count `_euler` was made at
-        # (the compiled forms for this state's and these settings' arrays and floats: no dispatch a call)
-        self._take = TAKE_POSE.entry(self._state, self._settings, *(0.0,) * 9)
-        self._predict = PREDICTED_STATE.entry(self._state, self._settings, 0.0)
+        # (the compiled forms for this state's array and floats: no dispatch a call)
+        self._take = TAKE_POSE.entry(self._state, *(0.0,) * 9)
+        self._predict = PREDICTED_STATE.entry(self._state, 0.0)
 
     @property
     def ready(self) -> bool:
@@ -156,8 +156,7 @@ class PoseEstimator:
         the mocap reader hands them over (the per-frame path, without the conversions)."""
         px, py, pz = pos_m
         qw, qx, qy, qz = quat_wxyz
-        return self._take(self._state, self._settings, stamp_s, received_s, px, py, pz, qw, qx, qy,
-                          qz) == TAKEN
+        return self._take(self._state, stamp_s, received_s, px, py, pz, qw, qx, qy, qz) == TAKEN
 
     def rebase(self, stamp_s: float, received_s: float) -> None:
         """The mocap clock jumped (the reader followed it): read the pose of exposure ``stamp_s``,
@@ -175,7 +174,7 @@ class PoseEstimator:
         tuples of plain floats (the per-step path); ValueError if no pose has come yet."""
         if self._state.item(_READY) == 0.0:
             raise ValueError("no pose received yet")
-        px, py, pz, vx, vy, vz, ax, ay, az = self._predict(self._state, self._settings, now_s)
+        px, py, pz, vx, vy, vz, ax, ay, az = self._predict(self._state, now_s)
         return (px, py, pz), (vx, vy, vz), (ax, ay, az)
 
     def euler_rad(self) -> tuple[float, float, float]:
@@ -348,19 +347,23 @@ TAKEN, REJECTED, IMPLAUSIBLE = 0, 1, 2
 #: one's jump (m)
 _X, _P, _STAMP, _RECEIVED, _DELAY, _MEAN_DELAY, _READY = 0, 9, 15, 16, 17, 18, 19
 _QUAT, _UPDATES, _REJECTED, _IMPLAUSIBLE, _IMPLAUSIBLE_RUN, _LATEST_JUMP = 20, 24, 25, 26, 27, 28
-STATE_FLOATS = 29
+#: then the settings: pos_noise_m, jerk_psd, delay_window_s, reset_after_s, latency_s, max_accel_m_s2,
+#: max_speed_change_m_s, jump_sigmas
+_SETTINGS = 29
+_NOISE_M, _JERK_PSD, _DELAY_WINDOW_S, _RESET_AFTER_S, _LATENCY_S, _MAX_ACCEL, _SPEED_CHANGE, _SIGMAS = range(
+    _SETTINGS, _SETTINGS + 8)
+STATE_FLOATS = _SETTINGS + 8
 
 
-def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: float, px: float, py: float,
-              pz: float, qw: float, qx: float, qy: float, qz: float) -> int:
+def take_pose(st: np.ndarray, stamp_s: float, received_s: float, px: float, py: float, pz: float, qw: float,
+              qx: float, qy: float, qz: float) -> int:
     """One pose (exposure ``stamp_s``, arrival ``received_s``, s; position m; quaternion w, x, y, z) into
-    the state ``st`` (`STATE_FLOATS`) under ``settings`` (pos_noise_m, jerk_psd, delay_window_s,
-    reset_after_s, latency_s, max_accel_m_s2, max_speed_change_m_s, jump_sigmas), counted there: the
+    the state ``st`` (`STATE_FLOATS`, under the settings it holds), counted there: the
     verdict (`TAKEN`; `REJECTED`: out of order, repeated or not finite; `IMPLAUSIBLE`: a jump the vehicle
     cannot make). `PoseEstimator.take` runs it compiled by numba (`policies.compiling`), and so does the
     program's mocap intake."""
     qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    reset_after_s = settings[3]
+    reset_after_s = st[_RESET_AFTER_S]
     if not math.isfinite(px + py + pz + qn + stamp_s + received_s) or qn == 0.0 or (
             stamp_s <= st[_STAMP] and received_s - st[_RECEIVED] <= reset_after_s):
         st[_REJECTED] += 1.0
@@ -369,19 +372,19 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
     delay = received_s - stamp_s
     restart = st[_READY] == 0.0 or not 0.0 < dt <= reset_after_s
     x = (st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7], st[8])
-    max_accel = settings[5]
+    max_accel = st[_MAX_ACCEL]
     if not restart and max_accel < math.inf:
         ex, ey, ez, _, _, _ = predicted(x, dt)
         jump = math.sqrt((px - ex) ** 2 + (py - ey) ** 2 + (pz - ez) ** 2)
-        if jump > plausible_jump_m(dt, max_accel, settings[6], settings[7], settings[0]):
+        if jump > plausible_jump_m(dt, max_accel, st[_SPEED_CHANGE], st[_SIGMAS], st[_NOISE_M]):
             st[_REJECTED] += 1.0
             st[_IMPLAUSIBLE] += 1.0
             st[_IMPLAUSIBLE_RUN] += 1.0
             st[_LATEST_JUMP] = jump
             return IMPLAUSIBLE
     P = (st[_P], st[_P + 1], st[_P + 2], st[_P + 3], st[_P + 4], st[_P + 5])
-    x, P, mean_delay_s = filter_update(x, P, st[_MEAN_DELAY], restart, dt, delay, px, py, pz, settings[0],
-                                       settings[1], settings[2])
+    x, P, mean_delay_s = filter_update(x, P, st[_MEAN_DELAY], restart, dt, delay, px, py, pz, st[_NOISE_M],
+                                       st[_JERK_PSD], st[_DELAY_WINDOW_S])
     for k in range(9):
         st[_X + k] = x[k]
     for k in range(6):
@@ -394,11 +397,12 @@ def take_pose(st: np.ndarray, settings: np.ndarray, stamp_s: float, received_s: 
     return TAKEN
 
 
-def predicted_state(st: np.ndarray, settings: np.ndarray, now_s: float) -> tuple[float, ...]:
+def predicted_state(st: np.ndarray, now_s: float) -> tuple[float, ...]:
     """`PoseEstimator.state_tuples`'s numbers from the state ``st`` (`take_pose`'s): position (m), velocity
     (m/s) and acceleration (m/s^2) predicted to ``now_s`` (s, reader clock), x, y, z each. Run compiled by
     numba (`policies.compiling`)."""
-    h = prediction_horizon_s(now_s - st[_RECEIVED], settings[4], st[_DELAY], st[_MEAN_DELAY], settings[3])
+    h = prediction_horizon_s(now_s - st[_RECEIVED], st[_LATENCY_S], st[_DELAY], st[_MEAN_DELAY],
+                             st[_RESET_AFTER_S])
     x = (st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7], st[8])
     px, py, pz, vx, vy, vz = predicted(x, h)
     return px, py, pz, vx, vy, vz, x[2], x[5], x[8]

@@ -63,11 +63,11 @@ def body_at(buf: bytes, at: int) -> tuple[int, int, float, float, float, float, 
             f32_at(buf, at + 34))
 
 
-def intake_frames(est: np.ndarray, est_settings: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes,
-                  now_s: float) -> tuple[int, int]:
+def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes, now_s: float
+                  ) -> tuple[int, int]:
     """Take the mocap frames at the start of ``buf``, read at ``now_s`` (s), as far as they are whole, good
     and their bodies pass the quick checks: each body kept in the reader's state ``rd``, the vehicle's
-    pose into the estimator's state ``est`` (settings ``est_settings``), the gap's into its check's
+    pose into the estimator's state ``est`` (with its settings), the gap's into its check's
     ``gap``. Returns where it stopped in ``buf`` and the frames taken. Run compiled (`MOCAP_INTAKE`)."""
     n = len(buf)
     start = 0
@@ -95,7 +95,7 @@ def intake_frames(est: np.ndarray, est_settings: np.ndarray, gap: np.ndarray, rd
             qw, qx, qy, qz = keep_pose(rd, body_id, px, py, pz, qw, qx, qy, qz, norm2, stamp_s, now_s,
                                        frame_no)
             if body_id == VEHICLE_BODY_ID:
-                take_pose(est, est_settings, stamp_s, now_s, px, py, pz, qw, qx, qy, qz)
+                take_pose(est, stamp_s, now_s, px, py, pz, qw, qx, qy, qz)
             elif body_id == GAP_BODY_ID:
                 static_pose_update(gap, px, py, pz, qw, qx, qy, qz, now_s)
         frames += 1
@@ -116,6 +116,6 @@ def mocap_intake(estimator: PoseEstimator, gap_check: StaticPoseCheck
                  ) -> Callable[[np.ndarray, bytes, float], tuple[int, int]]:
     """The intake of `MocapReader` for ``estimator`` and ``gap_check``: called with the reader's state, the
     bytes and their time, `intake_frames` compiled for them (no dispatch a call)."""
-    est, settings, gap = estimator._state, estimator._settings, gap_check._state
-    entry = MOCAP_INTAKE.entry(est, settings, gap, np.zeros(READER_FLOATS), b"", 0.0)
-    return functools.partial(entry, est, settings, gap)
+    est, gap = estimator._state, gap_check._state
+    entry = MOCAP_INTAKE.entry(est, gap, np.zeros(READER_FLOATS), b"", 0.0)
+    return functools.partial(entry, est, gap)

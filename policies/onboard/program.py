@@ -89,7 +89,7 @@ from policies.onboard.estimator import (
 )
 from policies.onboard.mocap_intake import mocap_intake
 from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
-from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND
+from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND, plan_with_gains
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
@@ -331,7 +331,7 @@ def warm_kernels() -> None:
     plan.flags.writeable = False  # (as `MissionPlan.packed`: numba compiles a read-only array apart)
     for t in (-1.0, 0.0, 1.0):
         PLAN_REFERENCE.get()(plan, t)
-        TRADITIONAL_COMMAND.get()(plan, t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, g)
+        TRADITIONAL_COMMAND.get()(plan_with_gains(plan, g), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9)
         TRACKING_COMMAND.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                                0.0, 0.9, g)
     est = PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)

@@ -28,32 +28,45 @@ class TraditionalPilot:
         self.controller = ExpertController(mass_kg, ExpertGains(tilt_max_rad=math.radians(max_tilt_deg)))
         self.flies = flown_by()
         self._mass_kg, self._gains = self.controller.mass_kg, self.controller.gains_array
-        # (the compiled form for a plan's packed array (read-only), floats and these gains: no dispatch)
-        plan = np.zeros(PLAN_FLOATS)
-        plan.flags.writeable = False
-        self._step = TRADITIONAL_COMMAND.entry(plan, *(0.0,) * 8, self._gains)
+        #: the plan last flown (`MissionPlan.packed`) and it with these gains after it, as
+        #: `traditional_command` reads them (one array argument a step, not two)
+        self._plan: np.ndarray | None = None
+        self._plan_gains = plan_with_gains(np.zeros(PLAN_FLOATS), self._gains)
+        # (the compiled form for that read-only array and floats: no dispatch a call)
+        self._step = TRADITIONAL_COMMAND.entry(self._plan_gains, *(0.0,) * 8)
 
     def command(self, obs: Observation) -> AttitudeThrustCommand:
         pos, vel = obs.pos_vel()  # (plain floats where the observation holds them so, else the arrays)
         if pos.__class__ is not tuple:
             pos, vel = tuple(np.asarray(pos, float).tolist()), tuple(np.asarray(vel, float).tolist())
         (px, py, pz), (vx, vy, vz) = pos, vel
-        roll, pitch, yaw, thrust = self._step(obs.plan.packed, obs.t_s, px, py, pz, vx, vy, vz, self._mass_kg,
-                                              self._gains)
+        plan = obs.plan.packed
+        if plan is not self._plan:  # (a new plan: once a plan)
+            self._plan, self._plan_gains = plan, plan_with_gains(plan, self._gains)
+        roll, pitch, yaw, thrust = self._step(self._plan_gains, obs.t_s, px, py, pz, vx, vy, vz,
+                                              self._mass_kg)
         if not math.isfinite(roll + pitch + thrust):  # a bad input: the controller's checks name it
             p, v, a, yaw = obs.plan.reference_tuples(obs.t_s)
             return self.controller.command(p, v, a, yaw, pos, vel)
         return _new_command(roll, pitch, thrust, yaw)
 
 
-def traditional_command(plan: np.ndarray, t_s: float, px: float, py: float, pz: float, vx: float, vy: float,
-                        vz: float, mass_kg: float, gains: np.ndarray) -> tuple[float, float, float, float]:
-    """The pilot's command at mission time ``t_s`` (s) for the plan packed in ``plan`` (`MissionPlan.packed`)
-    and the state ``p`` (m), ``v`` (m/s): `expert_law` on `plan_reference`, roll, pitch, yaw (rad) and
-    thrust (N). Compiled by numba (`policies.compiling`), which is how it runs."""
-    prx, pry, prz, vrx, vry, vrz, arx, ary, arz, yaw = plan_reference(plan, t_s)
+def plan_with_gains(plan: np.ndarray, gains: np.ndarray) -> np.ndarray:
+    """The plan packed in ``plan`` (`MissionPlan.packed`, `PLAN_FLOATS`) followed by the gains ``gains``
+    (`policies.controller.gains_array`), as `traditional_command` reads them (read-only)."""
+    k = np.concatenate((plan, gains))
+    k.flags.writeable = False
+    return k
+
+
+def traditional_command(plan_gains: np.ndarray, t_s: float, px: float, py: float, pz: float, vx: float,
+                        vy: float, vz: float, mass_kg: float) -> tuple[float, float, float, float]:
+    """The pilot's command at mission time ``t_s`` (s) for the plan and the gains packed in ``plan_gains``
+    (`plan_with_gains`) and the state ``p`` (m), ``v`` (m/s): `expert_law` on `plan_reference`, roll,
+    pitch, yaw (rad) and thrust (N). Compiled by numba (`policies.compiling`), which is how it runs."""
+    prx, pry, prz, vrx, vry, vrz, arx, ary, arz, yaw = plan_reference(plan_gains, t_s)
     roll, pitch, thrust = expert_law(prx, pry, prz, vrx, vry, vrz, arx, ary, arz, px, py, pz, vx, vy, vz, yaw,
-                                     mass_kg, gains)
+                                     mass_kg, plan_gains[PLAN_FLOATS:])
     return roll, pitch, yaw, thrust
 
 
