@@ -40,12 +40,14 @@ from hil.link.dji_open import (
 _HORIZONTAL_NAMES = {0x00: "ANGLE", 0x40: "VELOCITY", 0x80: "POSITION", 0xC0: "ANGULAR_RATE"}
 _VERTICAL_NAMES = {0x00: "VELOCITY", 0x10: "POSITION", 0x20: "THRUST", 0x30: "RESERVED"}
 
-#: every control flag `check_flag` lets through (either yaw mode, stable mode on or off)
-_FLOWN_FLAGS = frozenset(
+#: the attitude-thrust control flags `check_flag` lets through (either yaw mode, stable mode on or off)
+ATTITUDE_THRUST_FLAGS = frozenset(
     flag | stable
     for flag in (ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE)
     for stable in (STABLE_DISABLE, STABLE_ENABLE)
-) | frozenset(
+)
+#: every control flag `check_flag` lets through
+_FLOWN_FLAGS = ATTITUDE_THRUST_FLAGS | frozenset(
     horizontal | vertical | yaw | frame | stable
     for horizontal in (HORIZONTAL_VELOCITY, HORIZONTAL_POSITION)
     for vertical in (VERTICAL_VELOCITY, VERTICAL_POSITION)
