@@ -196,18 +196,18 @@ class FlightController:
     # --- inputs ----------------------------------------------------------------------------
     def set_setpoint(self, sp: N3Setpoint, time_s: float) -> AttitudeThrustTarget | MotionTarget:
         """Take a setpoint that arrived at ``time_s``; raises SetpointRejected with the reason."""
-        return self._take(to_target(sp, self.profile), time_s)
+        return self.take_target(to_target(sp, self.profile), time_s)
 
     def set_setpoint_values(
         self, flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float, time_s: float
     ) -> AttitudeThrustTarget | MotionTarget:
         """`set_setpoint` of the N3Setpoint with these fields (degrees, percent), without building it."""
         check_flag(flag)
-        return self._take(
+        return self.take_target(
             target_from_values(flag, roll_deg, pitch_deg, thrust_percent, yaw, self.profile), time_s
         )
 
-    def _take(self, target: AttitudeThrustTarget | MotionTarget, time_s: float
+    def take_target(self, target: AttitudeThrustTarget | MotionTarget, time_s: float
               ) -> AttitudeThrustTarget | MotionTarget:
         """Make a validated ``target`` that arrived at ``time_s`` (s) the one flown."""
         self._goal_en_m = None

@@ -40,12 +40,14 @@ from hil.link.dji_open import (
 _HORIZONTAL_NAMES = {0x00: "ANGLE", 0x40: "VELOCITY", 0x80: "POSITION", 0xC0: "ANGULAR_RATE"}
 _VERTICAL_NAMES = {0x00: "VELOCITY", 0x10: "POSITION", 0x20: "THRUST", 0x30: "RESERVED"}
 
-#: every control flag `check_flag` lets through (either yaw mode, stable mode on or off)
-_FLOWN_FLAGS = frozenset(
+#: the attitude-thrust control flags `check_flag` lets through (either yaw mode, stable mode on or off)
+ATTITUDE_THRUST_FLAGS = frozenset(
     flag | stable
     for flag in (ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE)
     for stable in (STABLE_DISABLE, STABLE_ENABLE)
-) | frozenset(
+)
+#: every control flag `check_flag` lets through
+_FLOWN_FLAGS = ATTITUDE_THRUST_FLAGS | frozenset(
     horizontal | vertical | yaw | frame | stable
     for horizontal in (HORIZONTAL_VELOCITY, HORIZONTAL_POSITION)
     for vertical in (VERTICAL_VELOCITY, VERTICAL_POSITION)
@@ -231,13 +233,20 @@ def target_from_values(
         flag, roll_deg, pitch_deg, thrust_percent, yaw, profile.max_tilt_deg, profile.max_yaw_rate_deg_s)
     if verdict != ACCEPTED_FIELDS:
         raise SetpointRejected(rejection(verdict, roll_deg, pitch_deg, thrust_percent, yaw))
+    return attitude_thrust_target(flag, roll, pitch, heading, rate, thrust_field, profile)
+
+
+def attitude_thrust_target(flag: int, roll_rad: float, pitch_rad: float, heading_rad: float,
+                           rate_rad_s: float, thrust_percent: float, profile: VehicleProfile
+                           ) -> AttitudeThrustTarget:
+    """The target of an accepted setpoint's `attitude_thrust_values` (its ``flag`` and thrust field)."""
     # AttitudeThrustTarget(roll, ...) with its fields put in place directly (a frozen dataclass's own
     # __init__ sets each through object.__setattr__: twice the cost, once a setpoint)
     tg = _new(AttitudeThrustTarget)
     d = tg.__dict__
-    d["roll_rad"], d["pitch_rad"], d["yaw_rad"] = roll, pitch, heading
-    d["yaw_rate_rad_s"] = rate if flag & YAW_RATE else None
-    d["thrust_n"] = profile.thrust_percent_to_force_n(thrust_field)
+    d["roll_rad"], d["pitch_rad"], d["yaw_rad"] = roll_rad, pitch_rad, heading_rad
+    d["yaw_rate_rad_s"] = rate_rad_s if flag & YAW_RATE else None
+    d["thrust_n"] = profile.thrust_percent_to_force_n(thrust_percent)
     return tg
 
 

@@ -20,7 +20,14 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from emulator.fc.modes import CommandResult, FcState
-from emulator.fc.n3 import SetpointRejected
+from emulator.fc.n3 import (
+    ACCEPTED_FIELDS,
+    ATTITUDE_THRUST_FLAGS,
+    SetpointRejected,
+    attitude_thrust_target,
+    attitude_thrust_values,
+)
+from emulator.kernel_cache import entry
 from emulator.params import Parameters
 from emulator.servers import dji_telemetry
 from emulator.servers.arrivals import arrivals
@@ -151,6 +158,9 @@ class DjiOpenServer:
         self._statustexts: list[str] = []
         #: called with (flag, roll, pitch, thrust, yaw, now_s) after a setpoint is applied
         self.on_setpoint: Callable[..., None] | None = None
+        # compiled (or loaded) now, not at a setpoint; called without numba's type dispatch: a setpoint's
+        # flag and fields are the int and floats its struct unpacks
+        self._attitude_thrust = entry(attitude_thrust_values, 0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
         self._handlers: dict[tuple[int, int], Callable[[dj.Frame, float], bytes | None]] = {
             (dj.SET_ACTIVATION, dj.CMD_VERSION): self._on_version,
             (dj.SET_ACTIVATION, dj.CMD_ACTIVATE): self._on_activate,
@@ -456,11 +466,20 @@ class DjiOpenServer:
         # authority a setpoint is not flown, as the N3 ignores it, and the stream is counted as PX4's is
         flag, x, y, z, yaw = values  # (a call with its arguments listed: no tuple built for it)
         fc = self.fc
-        try:
-            fc.set_setpoint_values(flag, x, y, z, yaw, now_s)
-        except SetpointRejected:
-            self.stats.setpoints_rejected += 1
-            return
+        if flag in ATTITUDE_THRUST_FLAGS:  # (the per-tick case: the N3's checks and target, fewer calls)
+            profile = fc.profile
+            verdict, roll, pitch, heading, rate = self._attitude_thrust(
+                flag, x, y, z, yaw, profile.max_tilt_deg, profile.max_yaw_rate_deg_s)
+            if verdict != ACCEPTED_FIELDS:
+                self.stats.setpoints_rejected += 1
+                return
+            fc.take_target(attitude_thrust_target(flag, roll, pitch, heading, rate, z, profile), now_s)
+        else:
+            try:
+                fc.set_setpoint_values(flag, x, y, z, yaw, now_s)
+            except SetpointRejected:
+                self.stats.setpoints_rejected += 1
+                return
         self.stats.setpoints_applied += 1
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1

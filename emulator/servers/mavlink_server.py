@@ -20,7 +20,15 @@ from typing import Any
 from numba import njit
 
 from emulator.fc.modes import CommandResult, FcState
-from emulator.fc.n3 import ATTITUDE_THRUST_YAW_ANGLE, ATTITUDE_THRUST_YAW_RATE, SetpointRejected
+from emulator.fc.n3 import (
+    ACCEPTED_FIELDS,
+    ATTITUDE_THRUST_YAW_ANGLE,
+    ATTITUDE_THRUST_YAW_RATE,
+    SetpointRejected,
+    attitude_thrust_target,
+    attitude_thrust_values,
+    rejection,
+)
 from emulator.kernel_cache import entry
 from emulator.params import BY_NAME, INT, PARAMS, ParamDef, ParamError, Parameters, read_param_file
 from emulator.servers.arrivals import arrivals
@@ -186,7 +194,7 @@ class MavlinkServer:
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
         # compiled (or loaded) now, not at a setpoint; called without numba's type dispatch: a frame's
         # fields are the int and floats its struct unpacks
-        self._attitude_fields = entry(attitude_fields, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self._attitude_target = entry(attitude_target, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -350,13 +358,21 @@ class MavlinkServer:
         if target_system not in self._systems or target_component not in self._components:
             self._for_me(target_system, target_component)  # (counts it)
             return
-        verdict, flag, roll, pitch, thrust_percent, yaw, norm = self._attitude_fields(
-            type_mask, q0, q1, q2, q3, thrust, yaw_rate)
+        fc = self.fc
+        profile = fc.profile
+        (verdict, flag, roll, pitch, thrust_percent, yaw, norm, fc_verdict, roll_rad, pitch_rad, heading,
+         rate) = self._attitude_target(type_mask, q0, q1, q2, q3, thrust, yaw_rate, profile.max_tilt_deg,
+                                       profile.max_yaw_rate_deg_s)
         if verdict != ATTITUDE_TAKEN:
             self._setpoint_rejected(attitude_rejection(verdict, thrust, norm), now_s)
             return
-        taken = self._take_setpoint(flag, roll, pitch, thrust_percent, yaw, now_s)
-        if taken and self.on_setpoint is not None:
+        if fc_verdict != ACCEPTED_FIELDS:
+            self._setpoint_rejected(rejection(fc_verdict, roll, pitch, thrust_percent, yaw), now_s)
+            return
+        target = attitude_thrust_target(flag, roll_rad, pitch_rad, heading, rate, thrust_percent, profile)
+        fc.take_target(target, now_s)
+        self.stats.setpoints_applied += 1
+        if self.on_setpoint is not None:
             self.on_setpoint(decode_frame(frame), now_s)
 
     def _take_setpoint(self, flag: int, roll_deg: float, pitch_deg: float, thrust_percent: float, yaw: float,
@@ -727,6 +743,23 @@ def attitude_fields(type_mask: int, q0: float, q1: float, q2: float, q3: float, 
         return YAW_RATE_NON_FINITE, 0, 0.0, 0.0, 0.0, 0.0, norm
     return (ATTITUDE_TAKEN, ATTITUDE_THRUST_YAW_RATE, math.degrees(roll), math.degrees(pitch),
             100.0 * thrust, math.degrees(body_yaw_rate), norm)
+
+
+@njit(cache=True)
+def attitude_target(type_mask: int, q0: float, q1: float, q2: float, q3: float, thrust: float,
+                    body_yaw_rate: float, max_tilt_deg: float, max_yaw_rate_deg_s: float
+                    ) -> tuple[int, int, float, float, float, float, float, int, float, float, float, float]:
+    """`attitude_fields` of a SET_ATTITUDE_TARGET's fields and, when taken, the N3's
+    `attitude_thrust_values` of its setpoint (the profile's limits), in one call: `attitude_fields`'s
+    seven, then the N3's verdict, roll, pitch (rad), heading (rad), yaw rate (rad/s)."""
+    verdict, flag, roll, pitch, thrust_percent, yaw, norm = attitude_fields(
+        type_mask, q0, q1, q2, q3, thrust, body_yaw_rate)
+    if verdict != ATTITUDE_TAKEN:
+        return verdict, flag, roll, pitch, thrust_percent, yaw, norm, ACCEPTED_FIELDS, 0.0, 0.0, 0.0, 0.0
+    fc_verdict, roll_rad, pitch_rad, heading, rate = attitude_thrust_values(
+        flag, roll, pitch, thrust_percent, yaw, max_tilt_deg, max_yaw_rate_deg_s)
+    return (verdict, flag, roll, pitch, thrust_percent, yaw, norm, fc_verdict, roll_rad, pitch_rad, heading,
+            rate)
 
 
 def attitude_rejection(verdict: int, thrust: float, norm: float) -> str:
