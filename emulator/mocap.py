@@ -33,8 +33,6 @@ _F64 = np.dtype(np.float64)
 #: the LinkTrack packer takes it
 _VALUES_PER_BODY = PACKED_VALUES
 _NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
-_NO_FRAME = np.zeros(0, np.uint8)  # (the exposure kernel's frame when the tracker keeps rows)
-_NO_INTS = np.zeros(0, np.int64)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -209,35 +207,36 @@ class MocapSystem:
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
         self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
         self._buffers_for(2)
-        # the exposure kernel's form for its buffers and the block of draws (float64 arrays whatever their
-        # size, uint8 occlusion flags and frame bytes, int64 frame fields), compiled or loaded from numba's
-        # cache now, not at the first exposure, and called without numba's type dispatch
-        self._expose = entry(_expose_kernel, self._io, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0,
-                             _NO_FRAME, 0, 0, _NO_INTS)
+        # the exposure kernel's form for its buffer and the block of draws (uint8 bytes and occlusion flags,
+        # float64 draws, whatever their size), compiled or loaded from numba's cache now, not at the first
+        # exposure, and called without numba's type dispatch
+        self._expose = entry(_expose_kernel, self._mem, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, 0,
+                             0)
 
     def _buffers_for(self, n: int) -> None:
-        """The kernel's buffer for exposures of ``n`` bodies, and its structs: the true poses in (7
-        doubles each) then the measured values out (`_VALUES_PER_BODY` doubles each), each written and
-        read by Python in one call."""
+        """The kernel's buffer for exposures of ``n`` bodies (`_expose_kernel`'s ``mem``), and its structs:
+        the true poses in (7 doubles each) then the measured values out (`_VALUES_PER_BODY` doubles
+        each), each written and read by Python in one call; then the frame's fields and its bytes."""
         if self._frames is not None and n > MAX_BODIES:
             raise ValueError(f"a LinkTrack mocap frame holds at most {MAX_BODIES} bodies, got {n}")
         self._n_bodies = n
-        self._io_buf = bytearray((7 + _VALUES_PER_BODY) * 8 * n)
-        self._io = np.frombuffer(self._io_buf, np.float64)
+        fields_at = (7 + _VALUES_PER_BODY) * 8 * n  # (the frame's fields, then its bytes: `_expose_kernel`)
+        frame_at = fields_at + 16 * n
+        frame_len = mocap_frame_len(n) if self._frames is not None else 0
+        self._io_buf = bytearray(frame_at + frame_len)
+        self._mem = np.frombuffer(self._io_buf, np.uint8)
         self._put_poses = struct.Struct(f"<{7 * n}d").pack_into
         self._get_values = struct.Struct(f"<{7 * 8 * n}x{_VALUES_PER_BODY * n}d").unpack_from
         #: each body's index and its first value's
         self._rows_at = tuple((i, _VALUES_PER_BODY * i) for i in range(n))
-        # the frame's bytes (its head written once) and its fields, as the kernel packs them
-        self._frame_buf = bytearray()
-        self._frame, self._ints = _NO_FRAME, _NO_INTS
+        # the frame's fields (each body's id, then its stamp (us), set by the kernel) and its bytes (its
+        # head written once), as the kernel packs them
+        self._ints = np.frombuffer(self._io_buf, np.int64, 2 * n, fields_at)
+        self._frame_buf = memoryview(self._io_buf)[frame_at:]
         self._frame_ids: tuple[int, ...] = ()
         if self._frames is not None:
-            self._frame_buf = bytearray(mocap_frame_len(n))
-            self._frame = np.frombuffer(self._frame_buf, np.uint8)
             head = self._frames.head(n)
             self._frame_buf[: len(head)] = head
-            self._ints = np.zeros(2 * n, np.int64)  # (each body's id, then its stamp (us), set by the kernel)
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
@@ -321,10 +320,9 @@ class MocapSystem:
         if frames and body_ids is not self._frame_ids:
             self._frame_ids_for(body_ids)
         self._put_poses(self._io_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
-        io, at = self._io, self._rows_at
+        mem, at = self._mem, self._rows_at
         pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
         stats, latency_s, expose = self.stats, self._latency_s, self._expose
-        frame, ints = self._frame, self._ints
         while k * period <= now_s + 1e-12:
             # frame ``k``, exposed at ``t_s``, queued for its ready time
             t_s = k * period
@@ -333,19 +331,19 @@ class MocapSystem:
                 # the draws keep the order of one body after the other (occlusion, position noise,
                 # attitude noise): taken here, the noise handed to the kernel in that order
                 occluded, noise = self._occlusions(t_s, body_ids, poses)
-                n_invalid = expose(io, n, pos_sd, att_sd, occluded, noise, 0, frame, k & 0xFFFFFFFF,
-                                   round(t_s * 1e6), ints)[0]
+                n_invalid = expose(mem, n, pos_sd, att_sd, occluded, noise, 0, k & 0xFFFFFFFF,
+                                   round(t_s * 1e6))[0]
                 extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
             else:
                 # without occlusion the noise of the whole frame comes from the block drawn ahead; a
                 # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
                 frame_no, stamp_us = k & 0xFFFFFFFF, round(t_s * 1e6)
-                n_invalid, nxt = expose(io, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
-                                        self._normal_next, frame, frame_no, stamp_us, ints)
+                n_invalid, nxt = expose(mem, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
+                                        self._normal_next, frame_no, stamp_us)
                 if n_invalid < 0:
                     self._normal_block = self._rng.standard_normal(max(_BLOCK, nxt))
-                    n_invalid, nxt = expose(io, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
-                                            frame, frame_no, stamp_us, ints)
+                    n_invalid, nxt = expose(mem, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
+                                            frame_no, stamp_us)
                 self._normal_next = nxt
                 extra = 0.0
                 if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
@@ -447,10 +445,11 @@ _pack_mocap_frame = njit(cache=True)(pack_mocap_frame)
 
 
 @njit(cache=True)
-def _expose_kernel(io: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
-                   noise: np.ndarray, k: int, frame: np.ndarray, frame_no: int, stamp_us: int,
-                   ints: np.ndarray) -> tuple[int, int]:
-    """One exposure of ``n`` bodies: their true poses (``io``'s first 7 ``n``, 7 each: x, y, z, qw, qx,
+def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
+                   noise: np.ndarray, k: int, frame_no: int, stamp_us: int) -> tuple[int, int]:
+    """One exposure of ``n`` bodies on the bytes ``mem`` (one array: numba unboxes each array argument on
+    every call), which hold ``io`` (float64, (7 + `_VALUES_PER_BODY`) ``n``), ``ints`` (int64, 2 ``n``)
+    and the rest ``frame``: the bodies' true poses (``io``'s first 7 ``n``, 7 each: x, y, z, qw, qx,
     qy, qz) as the tracker measures them, into the values after them (`_VALUES_PER_BODY` each: the 7,
     then 1.0 if valid else 0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then
     `measured_pose` with the standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0
@@ -461,6 +460,10 @@ def _expose_kernel(io: np.ndarray, n: int, pos_sd: float, att_sd: float, occlude
     frame's bytes, its head there) the measured bodies are packed into it too (`pack_mocap_frame`: frame
     ``frame_no``, each body stamped ``stamp_us``; ``ints`` holds the bodies' ids, the kernel their
     stamps)."""
+    fields_at = (7 + _VALUES_PER_BODY) * 8 * n
+    io = mem[:fields_at].view(np.float64)
+    ints = mem[fields_at : fields_at + 16 * n].view(np.int64)
+    frame = mem[fields_at + 16 * n :]
     poses, values = io[: 7 * n], io[7 * n :]
     n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
     seen = 0

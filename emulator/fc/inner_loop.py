@@ -22,6 +22,10 @@ _S = math.sqrt(0.5)
 #: the share of the throttle range (idle to full) by which yaw may lower the collective thrust to keep some
 #: yaw authority with the motors at full throttle (PX4's MINIMUM_YAW_MARGIN)
 YAW_THRUST_MARGIN = 0.15
+# an `InnerLoop`'s ``buffer``: its params (12), then its mix_inv (4 x 4, by rows), then its motor_cmd (4)
+_PARAMS = 12
+_MOTOR_CMD = _PARAMS + 16
+LOOP_SIZE = _MOTOR_CMD + 4
 
 
 @dataclass(frozen=True)
@@ -52,7 +56,7 @@ class InnerLoop:
     ``control(q, w, roll, pitch, yaw, thrust_n, params, mix_inv, out)`` (`control`, numba) with this
     loop's ``params`` and ``mix_inv`` writes the throttles into ``out`` (4,), here ``motor_cmd``;
     ``control_quat`` takes the target as its quaternion (`target_quat_floats`), for a target held over
-    many steps.
+    many steps. ``buffer`` holds the three (`loop_views` splits it in a compiled caller).
     """
 
     def __init__(self, profile: VehicleProfile, gains: InnerLoopGains) -> None:
@@ -60,21 +64,24 @@ class InnerLoop:
             raise ValueError(f"idle_throttle must be in [0, 1), got {gains.idle_throttle}")
         self.profile = profile
         self.gains = gains
-        #: inverse allocation (4, 4): [thrust (N), torque x, y, z (N m)] -> rotor thrusts (N)
-        self.mix_inv = np.ascontiguousarray(np.linalg.inv(allocation_matrix(profile)))
+        #: ``params``, ``mix_inv`` and ``motor_cmd`` as views of one array (`LOOP_SIZE`): a compiled caller
+        #: takes the three as this one argument and splits it (`loop_views`)
+        self.buffer = np.zeros(LOOP_SIZE)
         #: gains, tuned inertia (kg m^2), rate limit (rad/s), rotor thrust (N), idle throttle, packed
-        self.params = np.array(
-            [
-                *gains.attitude_p_per_s,
-                *gains.rate_p_per_s,
-                *profile.fc_tuned_inertia_kgm2,  # what the FC believes (the airframe's by default)
-                profile.max_body_rate_rad_s,
-                profile.max_thrust_per_rotor_n,
-                gains.idle_throttle,
-            ]
+        self.params = self.buffer[:_PARAMS]
+        self.params[:] = (
+            *gains.attitude_p_per_s,
+            *gains.rate_p_per_s,
+            *profile.fc_tuned_inertia_kgm2,  # what the FC believes (the airframe's by default)
+            profile.max_body_rate_rad_s,
+            profile.max_thrust_per_rotor_n,
+            gains.idle_throttle,
         )
+        #: inverse allocation (4, 4): [thrust (N), torque x, y, z (N m)] -> rotor thrusts (N)
+        self.mix_inv = self.buffer[_PARAMS:_MOTOR_CMD].reshape(4, 4)
+        self.mix_inv[:] = np.linalg.inv(allocation_matrix(profile))
         #: the last throttles (4,) in [0, 1], written in place by every `update`
-        self.motor_cmd = np.zeros(4)
+        self.motor_cmd = self.buffer[_MOTOR_CMD:]
 
     def update(
         self,
@@ -113,6 +120,13 @@ class InnerLoop:
         out = np.empty((n, 4))
         _control_batch(q, w, tg, self.params, self.mix_inv, out)
         return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def loop_views(buf):  # pragma: no cover
+    """An `InnerLoop`'s ``buffer`` split into its (``params``, ``mix_inv`` (4, 4), ``motor_cmd``) views, for a
+    compiled caller (numba unboxes each array argument on every call: one array, not three)."""
+    return buf[:_PARAMS], buf[_PARAMS:_MOTOR_CMD].reshape((4, 4)), buf[_MOTOR_CMD:LOOP_SIZE]
 
 
 @njit(cache=True)

@@ -3,7 +3,8 @@ hovers or lands in the air on its own velocity controller, its controller and th
 together in one numba call for a whole batch of 1 kHz steps (the lockstep runner's fast path).
 
 It steps through the public contract of its parts: the backend's `NativeBackend.kernel_buffer` and
-`advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd``,
+`advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd`` (its
+``buffer``, split by `loop_views`),
 the FC's `hold_command` parameters, `landed_test`, `batch_plan`, `quiet_steps` and `flew_outside`.
 Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
 millisecond); a batch stops before anything the FC's own step would act on: the setpoint-loss timeout,
@@ -23,7 +24,7 @@ from numba import njit, prange
 from emulator.fc import FcState
 from emulator.fc.flight_controller import HOLD_STATES, steps_before
 from emulator.fc.hold import hold_command
-from emulator.fc.inner_loop import control, control_quat, target_quat_floats
+from emulator.fc.inner_loop import control, control_quat, loop_views, target_quat_floats
 from emulator.fc.landed import body_landed
 from emulator.kernel_cache import entry
 from emulator.physics.kernels import step_vehicle
@@ -36,17 +37,19 @@ _steps_before = njit(cache=True, nogil=True)(steps_before)  # (the FC's count, c
 
 
 @njit(cache=True, nogil=True)
-def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, gains, mix_inv, out, n_max, time_s, dt_s,
-               landed_test):  # pragma: no cover
+def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt_s, landed_test
+               ):  # pragma: no cover
     """The steps of a held attitude target (the FC's `batch_plan`: ``until_s`` its setpoint-loss
     failsafe's time (s)) that begin before ``until_s``, of the next ``n_max`` steps of ``dt_s`` from
-    ``time_s`` (s) (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf``; returns
+    ``time_s`` (s) (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf`` with the inner
+    loop's ``buffer`` ``loop``; returns
     (the steps flown, the FC's landed test of the body after them: `FlightController.detect_landed`,
     ``landed_test`` its `FlightController.landed_test`)."""
     n_steps = _steps_before(until_s - time_s, dt_s, n_max)
     if n_steps <= 0:
         return 0, False
     x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
+    gains, mix_inv, out = loop_views(loop)
     d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
     for _ in range(n_steps):
         control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
@@ -112,13 +115,14 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(buf, climb, yaw, landed_test, hold_params, gains, mix_inv, out, n_steps
-                ):  # pragma: no cover
+def _hold_batch(buf, climb, yaw, landed_test, hold_params, loop, n_steps):  # pragma: no cover
     """Velocity-hold steps (`FlightController._velocity_hold` per step) at climb rate ``climb`` (m/s,
     up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as landed
     (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`), on the
-    backend's `NativeBackend.kernel_buffer` ``buf``; returns the steps taken."""
+    backend's `NativeBackend.kernel_buffer` ``buf`` with the inner loop's ``buffer`` ``loop``; returns the
+    steps taken."""
     x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
+    gains, mix_inv, out = loop_views(loop)
     rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
@@ -148,15 +152,13 @@ class FastStepper:
             inner = fc.inner
             self._buffer = buf = vehicle.backend.kernel_buffer  # type: ignore[attr-defined]
             self._x = vehicle.backend.kernel_arrays[0]  # type: ignore[attr-defined]
-            self._loop = gains, mix_inv, out = (inner.params, inner.mix_inv, inner.motor_cmd)
+            self._loop = loop = inner.buffer
             self._landed_test = landed_test = fc.landed_test
             self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
             # the kernels' forms for these arrays, floats and ints (compiled or loaded from the cache
             # now, not inside the timed loop), called without numba's type dispatch
-            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, gains, mix_inv, out, 0, 0.0,
-                                    0.0, landed_test)
-            self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, gains, mix_inv,
-                                     out, 0)
+            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, loop, 0, 0.0, 0.0, landed_test)
+            self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, loop, 0)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -178,8 +180,7 @@ class FastStepper:
             n, landed = 0, None
             plan = fc.batch_plan  # (an offboard attitude target: flown in batches, `batch_target`)
             if plan is not None:
-                gains, mix_inv, out = self._loop
-                n, landed = self._fly_batch(self._buffer, *plan, gains, mix_inv, out, n_steps, time_s, dt,
+                n, landed = self._fly_batch(self._buffer, *plan, self._loop, n_steps, time_s, dt,
                                             self._landed_test)
             if n == 0:
                 landed = None  # (the hold batch stops before a landing: the flag stays as it is)
@@ -214,4 +215,4 @@ class FastStepper:
             return 0
         yaw = fc.hold_heading_rad(self._x[QUAT])  # latched at the first hold step, as the FC's own
         return self._hold_batch(self._buffer, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
-                                *self._loop, n_steps)
+                                self._loop, n_steps)
