@@ -405,18 +405,21 @@ _PAYLOAD_BODIES = tuple(struct.Struct("<BBIB" + "BBQ3f4f" * n) for n in range(MA
 
 
 def _crc16_table() -> np.ndarray:
-    """CRC-16/CCITT-FALSE of each byte value alone from a zero register: the table `pack_mocap_frame`
-    runs the CRC by (the same CRC as `crc16_ccitt`)."""
-    table = np.zeros(256, np.int64)
+    """CRC-16/CCITT-FALSE (the same CRC as `crc16_ccitt`) of each byte value alone from a zero register."""
+    out = []
     for b in range(256):
         crc = b << 8
         for _ in range(8):
             crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
-        table[b] = crc & 0xFFFF
+        out.append(crc & 0xFFFF)
+    table = np.array(out, dtype=np.int64)
+    table.flags.writeable = False
     return table
 
 
-_CRC16_TABLE = _crc16_table()
+#: CRC-16/CCITT-FALSE of each byte value: the table `pack_mocap_frame` and `crc16_at` run the CRC by (an
+#: array: compiled, a constant that compiles in a quarter of the time a tuple's 256 items take)
+CRC16_TABLE = _crc16_table()
 
 
 #: values `pack_mocap_frame` takes per body: pos (3), quat (4), valid (1.0 or 0.0)
@@ -453,7 +456,7 @@ def pack_mocap_frame(out: np.ndarray, frame_no: int, n: int, ints: np.ndarray, v
         p += BODY_LEN
     crc = CRC16_INIT
     for i in range(_ONE_NODE_DATA_AT, p):
-        crc = ((crc << 8) & 0xFFFF) ^ int(_CRC16_TABLE[((crc >> 8) ^ int(out[i])) & 0xFF])
+        crc = ((crc << 8) & 0xFFFF) ^ int(CRC16_TABLE[((crc >> 8) ^ int(out[i])) & 0xFF])
     out[p] = crc & 0xFF
     out[p + 1] = crc >> 8
     p += 2
@@ -571,21 +574,6 @@ def decode_mocap_payload(data: bytes) -> MocapPacket:
 # left to those
 
 
-def _crc16_table() -> np.ndarray:
-    out = []
-    for b in range(256):
-        crc = b << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
-        out.append(crc & 0xFFFF)
-    table = np.array(out, dtype=np.int64)
-    table.flags.writeable = False
-    return table
-
-
-#: CRC-16/CCITT-FALSE of each byte value (the `crc16_at` table; an array: compiled, a constant that
-#: compiles in a quarter of the time a tuple's 256 items take)
-CRC16_TABLE = _crc16_table()
 #: where a one-node frame's data (the mocap payload) starts, and where its bodies start in the payload
 MOCAP_PAYLOAD_AT = FIXED_LEN + NODE_HEADER_LEN
 MOCAP_BODIES_AT = _PAYLOAD_HEAD_LEN
