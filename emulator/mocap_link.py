@@ -82,7 +82,7 @@ class MocapLinkServer:
         self._next_move_s = math.inf
         self._expose_values, self._released = self.mocap.expose_values, self.mocap.released
         self._radio_send, self._radio_arrived = self.radio.send, self.radio.arrived
-        self._uart_finish, self._uart_update = self.uart.finish_s, self.uart.update
+        self._uart_write, self._uart_update = self.uart.write, self.uart.update
 
     @property
     def module_id(self) -> int:
@@ -140,10 +140,10 @@ class MocapLinkServer:
             send = self._radio_send
             for ready_s, _, frame in self._released(now):
                 send(ready_s, frame, len(frame) - ONE_NODE_EXTRA_BYTES)
-        if packets and packets[0][0] <= limit:  # onto the wire as they arrive (the frames are bytes)
-            finish = self._uart_finish
+        if packets and packets[0][0] <= limit:  # onto the wire as they arrive
+            write = self._uart_write
             for arrival_s, frame, _ in self._radio_arrived(now):
-                chunks.append((finish(arrival_s, len(frame)), frame))
+                write(arrival_s, frame)
         written = 0
         if chunks and chunks[0][0] <= limit:
             transport = self.transport
