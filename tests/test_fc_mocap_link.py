@@ -9,6 +9,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from policies.mocap_reader import MocapReader
 
@@ -18,6 +19,7 @@ def _roll_deg(q: np.ndarray) -> float:
     return math.degrees(math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
 
 
+@pytest.mark.realtime  # (frames counted over one second of wall clock)
 def test_hil_fc_serves_vehicle_and_gap_poses_on_its_mocap_pty() -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "hil.cli", "fc", "--duration", "20", "--mocap-rate", "120", "--seed", "3"],
