@@ -16,7 +16,7 @@ from emulator.mocap import MocapConfig, MocapSystem
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
-from emulator.servers.registry import FcServer, ServerOptions, make_server
+from emulator.servers.registry import FC_SERVERS, FcServer, ServerOptions, make_server
 from emulator.uwb import UwbConfig
 from emulator.vehicle import EmulatedVehicle
 from emulator.world import Gap, LabVolume, World
@@ -39,11 +39,14 @@ class Emulator:
 
 def warm_up(profile: VehicleProfile) -> None:
     """Compile (or load from numba's cache) the kernels an emulator of ``profile`` runs (the vehicle's
-    own steps, the world's checks, the mocap exposure), so that a wall clock started afterwards does not
-    pay for them."""
+    own steps, the world's checks, the mocap exposure, each protocol's server's), so that a wall clock
+    started afterwards does not pay for them."""
     EmulatedVehicle(profile).compile_kernels()
     World.for_profile(Gap(), LabVolume(), profile).compile_kernels()
     MocapSystem(MocapConfig(), np.random.default_rng(0))  # (its exposure kernel, built with the tracker)
+    for server in FC_SERVERS.values():  # (a server compiles its kernels as it is built, after the clock)
+        if server.warm_up is not None:
+            server.warm_up()
 
 
 def assemble(

@@ -158,9 +158,7 @@ class DjiOpenServer:
         self._statustexts: list[str] = []
         #: called with (flag, roll, pitch, thrust, yaw, now_s) after a setpoint is applied
         self.on_setpoint: Callable[..., None] | None = None
-        # compiled (or loaded) now, not at a setpoint; called without numba's type dispatch: a setpoint's
-        # flag and fields are the int and floats its struct unpacks
-        self._attitude_thrust = entry(attitude_thrust_values, 0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
+        self._attitude_thrust = setpoint_kernel()
         self._handlers: dict[tuple[int, int], Callable[[dj.Frame, float], bytes | None]] = {
             (dj.SET_ACTIVATION, dj.CMD_VERSION): self._on_version,
             (dj.SET_ACTIVATION, dj.CMD_ACTIVATE): self._on_activate,
@@ -536,3 +534,9 @@ class DjiOpenServer:
         return True
 
 
+def setpoint_kernel() -> Callable[..., tuple]:
+    """The N3's `attitude_thrust_values` compiled (or loaded from the cache) for a setpoint's flag and fields
+    as the int and floats its struct unpacks, called without numba's type dispatch: each server binds it at
+    construction, and `emulator.assembly.warm_up` calls this before a wall clock starts (the protocol's
+    registered warm-up)."""
+    return entry(attitude_thrust_values, 0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)

@@ -192,9 +192,7 @@ class MavlinkServer:
         #: the FC's parameters (`emulator.params`); every change is broadcast as a PARAM_VALUE
         self.params = Parameters(self.fc, self)
         self.params.on_change = lambda name, value: self._send_param(BY_NAME[name], value)
-        # compiled (or loaded) now, not at a setpoint; called without numba's type dispatch: a frame's
-        # fields are the int and floats its struct unpacks
-        self._attitude_target = entry(attitude_target, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
+        self._attitude_target = setpoint_kernel()
 
     # --- the loop ----------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
@@ -760,6 +758,13 @@ def attitude_target(type_mask: int, q0: float, q1: float, q2: float, q3: float, 
         flag, roll, pitch, thrust_percent, yaw, max_tilt_deg, max_yaw_rate_deg_s)
     return (verdict, flag, roll, pitch, thrust_percent, yaw, norm, fc_verdict, roll_rad, pitch_rad, heading,
             rate)
+
+
+def setpoint_kernel() -> Callable[..., tuple]:
+    """`attitude_target` compiled (or loaded from the cache) for a frame's int and floats as its struct
+    unpacks them, called without numba's type dispatch: each server binds it at construction, and
+    `emulator.assembly.warm_up` calls this before a wall clock starts (the protocol's registered warm-up)."""
+    return entry(attitude_target, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0)
 
 
 def attitude_rejection(verdict: int, thrust: float, norm: float) -> str:

@@ -12,7 +12,9 @@ from typing import Any, Protocol
 from emulator.fc.modes import FcState
 from emulator.params import Parameters
 from emulator.servers.dji_open_server import DjiOpenServer, DjiServerConfig
+from emulator.servers.dji_open_server import setpoint_kernel as dji_setpoint_kernel
 from emulator.servers.mavlink_server import MavlinkServer, ServerConfig
+from emulator.servers.mavlink_server import setpoint_kernel as mavlink_setpoint_kernel
 from emulator.vehicle import EmulatedVehicle
 from hil.link.clock import Clock
 from hil.link.dji_open import OpenCodec
@@ -72,10 +74,12 @@ ServerFactory = Callable[[EmulatedVehicle, Transport, Clock, ServerOptions], FcS
 
 @dataclass(frozen=True)
 class ServerEntry:
-    """One protocol's FC server: its factory, and the type of its settings (None: it takes none)."""
+    """One protocol's FC server: its factory, the type of its settings (None: it takes none), and what
+    compiles (or loads) its servers' kernels before a wall clock starts (None: none)."""
 
     factory: ServerFactory
     config_type: type | None = None
+    warm_up: Callable[[], object] | None = None
 
 
 def _mavlink(vehicle: EmulatedVehicle, link: Transport, clock: Clock, o: ServerOptions) -> MavlinkServer:
@@ -94,13 +98,15 @@ def _dji_open(vehicle: EmulatedVehicle, link: Transport, clock: Clock, o: Server
 FC_SERVERS: dict[str, ServerEntry] = {}
 
 
-def register_server(name: str, factory: ServerFactory, config_type: type | None = None) -> None:
+def register_server(name: str, factory: ServerFactory, config_type: type | None = None,
+                    warm_up: Callable[[], object] | None = None) -> None:
     """Serve protocol ``name`` (a name of `hil.link.protocols.PROTOCOLS`) with ``factory``'s servers, their
-    settings of ``config_type`` (a dataclass; None: they take none); ValueError if a server is registered
-    under that name already."""
+    settings of ``config_type`` (a dataclass; None: they take none); ``warm_up``: compiles (or loads) the
+    kernels a server compiles at construction (`emulator.assembly.warm_up` calls it, so that a real-time
+    run's clock does not pay for them). ValueError if a server is registered under that name already."""
     if name in FC_SERVERS:
         raise ValueError(f"an FC server for {name!r} is registered already")
-    FC_SERVERS[name] = ServerEntry(factory, config_type)
+    FC_SERVERS[name] = ServerEntry(factory, config_type, warm_up)
 
 
 def _entry(name: str) -> ServerEntry:
@@ -133,5 +139,5 @@ def make_server(name: str, vehicle: EmulatedVehicle, link: Transport, clock: Clo
     return entry.factory(vehicle, link, clock, options)
 
 
-register_server("mavlink", _mavlink, ServerConfig)
-register_server("dji_open", _dji_open, DjiServerConfig)
+register_server("mavlink", _mavlink, ServerConfig, mavlink_setpoint_kernel)
+register_server("dji_open", _dji_open, DjiServerConfig, dji_setpoint_kernel)
