@@ -126,6 +126,50 @@ def test_a_setpoint_timeout_past_any_step_count_still_flies_in_batches():
     np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=1e-12)
 
 
+def _offboard_vehicle(height_m: float, thrust_pct: float, hold: bool = False) -> EmulatedVehicle:
+    """A vehicle hovering at ``height_m``, in OFFBOARD on a held target of ``thrust_pct`` % (1 s
+    setpoint-loss timeout from 3 ms), or holding on its own (``hold``)."""
+    profile = load_profile("n3_tx2")
+    v = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.0, 0.0, height_m)))
+    v.fc.arm(0.0)
+    if not hold:
+        for k in range(3):
+            v.fc.set_setpoint(N3Setpoint(0x20, 4.0, -3.0, thrust_pct, 10.0), 0.001 * k)
+        assert v.fc.request_offboard(0.003).accepted
+    return v
+
+
+def _fc_trace(v: EmulatedVehicle) -> tuple[object, ...]:
+    fc = v.fc
+    # (since when it is landed: the auto-disarm's clock in a landing state)
+    return (fc.state, fc.landed, fc._landed_since_s, tuple((e.to_state, e.time_s) for e in fc.events), v.steps)
+
+
+@pytest.mark.parametrize(("height_m", "thrust_pct", "hold", "ks", "n_after"), [
+    (1.0, 40.0, False, (1, 137, 400), 250),  # flown through in one batch
+    (1.0, 40.0, False, (960, 990, 1001, 1010), 40),  # the setpoint-loss failsafe near or inside the span
+    (0.12, 10.0, False, tuple(range(5, 400, 9)), 60),  # touching down somewhere in the span
+    (1.0, 40.0, True, (50,), 100),  # the FC's own hold: no attitude target to batch
+])
+def test_a_pose_captured_inside_the_steps_is_the_pose_between_two_advances(height_m, thrust_pct, hold, ks,
+                                                                             n_after):
+    """`FastStepper.step` with ``capture_at``: the same flight, FC bookkeeping and pose as two advances
+    split at the capture with the pose read between them (what the run loop's exposure would read)."""
+    for k in ks:
+        split = _offboard_vehicle(height_m, thrust_pct, hold)
+        s = FastStepper.for_vehicle(split)
+        s.step(k)
+        pose = split.pose_values()
+        s.step(n_after)
+        fused = _offboard_vehicle(height_m, thrust_pct, hold)
+        f = FastStepper.for_vehicle(fused)
+        f.step(k + n_after, None, k)
+        assert f.pose_captured == pose, k
+        assert np.array_equal(fused.state_vector(), split.state_vector()), k
+        assert _fc_trace(fused) == _fc_trace(split), k
+        assert (f.batched_steps, f.single_steps) == (s.batched_steps, s.single_steps), k
+
+
 def test_batches_stop_at_the_setpoint_timeout():
     profile = load_profile("n3_tx2")
     v = EmulatedVehicle(profile, initial_state=hover_state(profile, (0.0, 0.0, 1.0)))

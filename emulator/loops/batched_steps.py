@@ -28,7 +28,7 @@ from emulator.fc.inner_loop import control, control_quat, loop_views, target_qua
 from emulator.fc.landed import body_landed
 from emulator.kernel_cache import entry
 from emulator.physics.kernels import step_vehicle
-from emulator.physics.native import KERNEL_PARAMS, NativeBackend
+from emulator.physics.native import KERNEL_PARAMS, KERNEL_POSE, NativeBackend
 from emulator.physics.state import QUAT, STATE_SIZE
 from emulator.vehicle import EmulatedVehicle
 from emulator.world.box_kernel import check_packed, quat_to_rot_into
@@ -37,24 +37,49 @@ _steps_before = njit(cache=True, nogil=True)(steps_before)  # (the FC's count, c
 
 
 @njit(cache=True, nogil=True)
-def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt_s, landed_test
-               ):  # pragma: no cover
+def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt_s, landed_test, capture_at,
+               landed_now):  # pragma: no cover
     """The steps of a held attitude target (the FC's `batch_plan`: ``until_s`` its setpoint-loss
     failsafe's time (s)) that begin before ``until_s``, of the next ``n_max`` steps of ``dt_s`` from
     ``time_s`` (s) (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf`` with the inner
     loop's ``buffer`` ``loop``; returns
     (the steps flown, the FC's landed test of the body after them: `FlightController.detect_landed`,
-    ``landed_test`` its `FlightController.landed_test`)."""
+    ``landed_test`` its `FlightController.landed_test`).
+
+    ``capture_at`` (1 to ``n_max``; 0: none): the pose after that many steps is copied into ``buf``'s
+    captured pose (`NativeBackend.captured_pose`) and the batch flies on, as two batches split there would
+    have flown (the steps taken said by the count returned: at least ``capture_at`` when captured). Where
+    the split could differ the batch ends at the capture, as the first of the two would: when the
+    setpoint-loss time lies within a step of the batch's end (the second's count is then its own), and
+    when the landed test after the capture differs from the FC's ``landed_now`` (the FC acts on it)."""
+    if capture_at > 0 and _steps_before(until_s - time_s, dt_s, n_max + 1) <= n_max:
+        n_max = capture_at
     n_steps = _steps_before(until_s - time_s, dt_s, n_max)
     if n_steps <= 0:
         return 0, False
-    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
+    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:KERNEL_POSE]
     gains, mix_inv, out = loop_views(loop)
     d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
-    for _ in range(n_steps):
+    at = capture_at if capture_at > 0 else -1
+    for i in range(n_steps):
+        if i == at:
+            _capture(x, buf)
+            landed = body_landed(x[2], x[5], landed_test[0], landed_test[1])
+            if landed != landed_now:
+                return i, landed
         control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
+    if n_steps == capture_at:
+        _capture(x, buf)
     return n_steps, body_landed(x[2], x[5], landed_test[0], landed_test[1])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _capture(x, buf):  # pragma: no cover
+    """The pose of state row ``x`` into ``buf``'s captured pose (`NativeBackend.captured_pose`)."""
+    at = KERNEL_POSE
+    buf[at], buf[at + 1], buf[at + 2] = x[0], x[1], x[2]
+    buf[at + 3], buf[at + 4], buf[at + 5], buf[at + 6] = x[6], x[7], x[8], x[9]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -121,7 +146,7 @@ def _hold_batch(buf, climb, yaw, landed_test, hold_params, loop, n_steps):  # pr
     (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`), on the
     backend's `NativeBackend.kernel_buffer` ``buf`` with the inner loop's ``buffer`` ``loop``; returns the
     steps taken."""
-    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:]
+    x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:KERNEL_POSE]
     gains, mix_inv, out = loop_views(loop)
     rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
@@ -142,6 +167,8 @@ class FastStepper:
         self.batched_steps = 0
         self.single_steps = 0
         self._dt_s = vehicle.dt_s  # (the backend's step, fixed for its life)
+        #: the pose (x, y, z (m), qw, qx, qy, qz) a `step` with ``capture_at`` captured
+        self.pose_captured: tuple[float, ...] = ()
         # what a batch reads, bound once (a tick batches about three times): the vehicle's FC and
         # backend, and the arrays the kernels advance in place (`NativeBackend.kernel_arrays`, the inner
         # loop's, the FC's landed test), the same objects for the backend's life
@@ -157,34 +184,45 @@ class FastStepper:
             self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
             # the kernels' forms for these arrays, floats and ints (compiled or loaded from the cache
             # now, not inside the timed loop), called without numba's type dispatch
-            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, loop, 0, 0.0, 0.0, landed_test)
+            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, loop, 0, 0.0, 0.0, landed_test,
+                                    0, False)
+            self._captured_pose = vehicle.backend.captured_pose  # type: ignore[attr-defined]
+            self._pose_values = vehicle.backend.pose_values  # type: ignore[attr-defined]
             self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, loop, 0)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
         return cls(vehicle, isinstance(vehicle.backend, NativeBackend))
 
-    def step(self, n_steps: int, time_s: float | None = None) -> float | None:
+    def step(self, n_steps: int, time_s: float | None = None, capture_at: int = 0) -> float | None:
         """Advance ``n_steps`` physics steps from the backend's time ``time_s`` (s; None: read it);
         returns the vehicle's time (s) after them on the native backend (None on another: ask the
-        vehicle)."""
+        vehicle). ``capture_at`` (1 to ``n_steps``; 0: none): the pose after that many of the steps
+        (`NativeBackend.pose_values` then) is kept in ``pose_captured``, the steps the same, in the same
+        order, as two calls split there would take (a batch flies through it: `_fly_batch`)."""
         if not self.native:
-            self.vehicle.step(n_steps)
-            self.single_steps += n_steps
+            v = self.vehicle
+            if capture_at > 0:
+                v.step(capture_at)
+                self.pose_captured = v.pose_values()
+                n_steps -= capture_at
+            v.step(n_steps)
+            self.single_steps += n_steps + capture_at
             return None
         fc, v, dt = self._fc, self.vehicle, self._dt_s
         advance_clock = self._advance_clock
         if time_s is None:
             time_s = self._backend.time_s
+        capture = capture_at  # (the steps still before the capture; 0: none, or taken)
         while n_steps > 0:
             n, landed = 0, None
             plan = fc.batch_plan  # (an offboard attitude target: flown in batches, `batch_target`)
             if plan is not None:
                 n, landed = self._fly_batch(self._buffer, *plan, self._loop, n_steps, time_s, dt,
-                                            self._landed_test)
+                                            self._landed_test, capture, fc.landed)
             if n == 0:
                 landed = None  # (the hold batch stops before a landing: the flag stays as it is)
-                n = self._hold_steps(n_steps, time_s)
+                n = self._hold_steps(capture or n_steps, time_s)
             if n > 0:
                 # the counts and the FC's bookkeeping as its own per-step update would have left them
                 time_s = advance_clock(n)
@@ -198,6 +236,12 @@ class FastStepper:
                 n = 1
                 time_s = self._backend.time_s
             n_steps -= n
+            if capture:
+                if n < capture:
+                    capture -= n
+                else:  # (past it: captured inside the batch; at it: the pose now)
+                    self.pose_captured = self._captured_pose() if n > capture else self._pose_values()
+                    capture = 0
         return time_s
 
     def _hold_steps(self, n_steps: int, time_s: float) -> int:

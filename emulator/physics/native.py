@@ -20,6 +20,7 @@ from emulator.physics.kernels import (
     AUX_FORCE,
     AUX_SIZE,
     AUX_TORQUE,
+    N_PARAMS,
     pack_params,
     step_batch,
     step_vehicle,
@@ -29,6 +30,10 @@ from emulator.profile import VehicleProfile
 
 #: where the parameters begin in `NativeBackend.kernel_buffer` (after the state and auxiliary rows)
 KERNEL_PARAMS = STATE_SIZE + AUX_SIZE
+#: where the captured pose begins in `NativeBackend.kernel_buffer` (after the parameters): a batched
+#: stepper's copy of the pose at a step inside its batch (x, y, z (m), qw, qx, qy, qz: `pose_values`)
+KERNEL_POSE = KERNEL_PARAMS + N_PARAMS
+POSE_SIZE = 7
 
 
 def hover_state(profile: VehicleProfile, pos_m: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> VehicleState:
@@ -105,11 +110,12 @@ class NativeBackend:
         params = pack_params(profile, dt_s)
         self.dt_s = float(dt_s)
         # the state row, the auxiliary row and the parameters one after another in one array
-        # (`kernel_buffer`), each a view of it
-        self._buffer = np.zeros(KERNEL_PARAMS + params.size)
+        # and a pose captured mid-batch (`kernel_buffer`), each a view of it
+        self._buffer = np.zeros(KERNEL_POSE + POSE_SIZE)
         self._x = self._buffer[:STATE_SIZE]
         self._aux = self._buffer[STATE_SIZE:KERNEL_PARAMS]
-        self._params = self._buffer[KERNEL_PARAMS:]
+        self._params = self._buffer[KERNEL_PARAMS:KERNEL_POSE]
+        self._pose = self._buffer[KERNEL_POSE:]
         self._params[:] = params
         self._t0_s = 0.0
         self._steps = 0
@@ -142,9 +148,9 @@ class NativeBackend:
     @property
     def kernel_buffer(self) -> np.ndarray:
         """`kernel_arrays` as one array, of which they are views: the state row ``[:STATE_SIZE]``, the
-        auxiliary row ``[STATE_SIZE:KERNEL_PARAMS]``, the parameters ``[KERNEL_PARAMS:]``; a compiled
-        caller called often takes this one argument instead of three (numba unboxes each array
-        argument of each call)."""
+        auxiliary row ``[STATE_SIZE:KERNEL_PARAMS]``, the parameters ``[KERNEL_PARAMS:KERNEL_POSE]``, a
+        captured pose ``[KERNEL_POSE:]`` (`captured_pose`); a compiled caller called often takes this
+        one argument instead of three (numba unboxes each array argument of each call)."""
         return self._buffer
 
     @property
@@ -158,6 +164,16 @@ class NativeBackend:
         (its sum, without the property's call: a batched stepper calls this about three times a tick)."""
         steps = self._steps = self._steps + n_steps
         return self._t0_s + steps * self.dt_s
+
+    def time_after_s(self, n_steps: int) -> float:
+        """``time_s`` after ``n_steps`` more steps (s), as `advance_clock` will count them, without
+        counting them."""
+        return self._t0_s + (self._steps + n_steps) * self.dt_s
+
+    def captured_pose(self) -> tuple[float, ...]:
+        """The pose a batched stepper last captured in `kernel_buffer` (``[KERNEL_POSE:]``), as
+        `pose_values` gives a pose: (x, y, z (m), qw, qx, qy, qz)."""
+        return tuple(self._pose.tolist())
 
     def set_external_force(self, force_world_n: np.ndarray) -> None:
         """A disturbance force (N, world ENU) held until changed."""

@@ -225,6 +225,12 @@ class EmulatorSide:
         #: vehicle); the batched stepper starts from the time handed to it, the ESC bus's reads its own
         esc = self.esc
         self._step = self.fast.step if esc is None else (lambda n_steps, _time_s: esc.step(n_steps))
+        #: the batched stepper that captures a pose inside its steps, with its backend's time after a
+        #: number of steps (None, None: another stepper or backend, which stops at each exposure)
+        fast = self.fast
+        native = isinstance(fast, FastStepper) and isinstance(fast.vehicle.backend, NativeBackend)
+        self._capturing: tuple[FastStepper | None, Any] = (
+            (fast, fast.vehicle.backend.time_after_s) if native else (None, None))  # type: ignore[union-attr]
         #: the native backend's own state row, which its steps advance in place (None on another
         #: backend): what a sample copies, without a copy of its own first
         backend = self.vehicle.backend
@@ -232,6 +238,7 @@ class EmulatorSide:
         self._dt_s = self.vehicle.dt_s  # (the backend's step, fixed for its life)
         self.vehicle.compile_kernels()  # (its own per-step path too: no compile inside a run's loop)
         self._frozen_truth: tuple[float, ...] | None = None
+        self._exposure_period_s = self.mocap.mocap.config.period_s  # (the tracker's frame grid, s)
         self._force_on = False
         #: keep the mocap frames until ``mocap_link.flush()`` (lockstep: written with the next tick)
         self.hold_mocap = False
@@ -271,6 +278,14 @@ class EmulatorSide:
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
         t_stop = t_end_s - 1e-12
+        # an exposure between two other stops needs only the pose at its step: the stepper captures it
+        # while it flies on to the next stop (`FastStepper.step`'s ``capture_at``), and the exposure is
+        # taken there, before anything else of that stop, as a stop of its own would have taken it
+        # first; not with faults on the mocap link, a frozen mocap, or another stepper
+        fast, time_after = self._capturing
+        if exact:
+            fast = None
+        period = self._exposure_period_s
         # the next mocap event, command frame's arrival and sample change only where the loop acts on
         # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
         m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
@@ -278,21 +293,45 @@ class EmulatorSide:
         try:
             while t < t_stop:
                 t_next = t_end_s  # (the earliest of the five, as min() but without a call a stop)
-                if m_next < t_next:
-                    t_next = m_next
                 if arrival < t_next:
                     t_next = arrival
                 if next_sample < t_next:
                     t_next = next_sample
                 if boundary < t_next:
                     t_next = boundary
-                if t_next < t + 1e-9:
-                    t_next = t + 1e-9
-                n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
-                if n > 0:
-                    t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
-                    if t_vehicle is None:
-                        t_vehicle = vehicle.time_s
+                if m_next < t_next:
+                    if (fast is not None and t + 1e-9 <= m_next < t_next - 1e-9
+                            and t_next < m_next + period - 1e-9 and self._frozen_truth is None):
+                        # (the one exposure before t_next, well apart from it and from now)
+                        k = floor((m_next - t_vehicle) / dt + 1e-6)  # physics steps up to the exposure
+                        if k < 0:
+                            k = 0
+                        n = floor((t_next - time_after(k)) / dt + 1e-6)  # and on from there to t_next
+                        if n < 0:
+                            n = 0
+                        if k > 0:
+                            t_vehicle = fast.step(k + n, t_vehicle, k)
+                            pose = fast.pose_captured
+                        else:
+                            pose = pose_values()
+                            if n > 0:
+                                t_vehicle = fast.step(n, t_vehicle)
+                        update(m_next, pose, gap_pose)
+                        m_next = next_mocap()
+                        n = 0
+                    else:
+                        t_next = m_next
+                        n = -1
+                else:
+                    n = -1
+                if n < 0:
+                    if t_next < t + 1e-9:
+                        t_next = t + 1e-9
+                    n = floor((t_next - t_vehicle) / dt + 1e-6)  # physics steps up to t_next
+                    if n > 0:
+                        t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
+                        if t_vehicle is None:
+                            t_vehicle = vehicle.time_s
                 advance_clock(t_next)
                 t = t_next
                 if t >= boundary - 1e-12:
