@@ -290,6 +290,8 @@ class EmulatorSide:
         # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
         m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
         t_vehicle = vehicle.time_s  # (moved by the steps only)
+        #: an exposure taken at a stop after its own, while it is taken: its time (s) and pose
+        exposing: tuple[float, tuple[float, ...]] | None = None
         try:
             while t < t_stop:
                 t_next = t_end_s  # (the earliest of the five, as min() but without a call a stop)
@@ -316,7 +318,9 @@ class EmulatorSide:
                             pose = pose_values()
                             if n > 0:
                                 t_vehicle = fast.step(n, t_vehicle)
+                        exposing = (m_next, pose)
                         update(m_next, pose, gap_pose)
+                        exposing = None
                         m_next = next_mocap()
                         n = 0
                     else:
@@ -362,9 +366,11 @@ class EmulatorSide:
         except OverflowError:
             # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
             # the physics diverged, which a run reports as such instead of crashing
-            if all(abs(v) < DIVERGED_LIMIT for v in pose_values()):
+            # (an exposure taken after its step: its own time and pose, as at a stop of its own)
+            t_bad, pose = (self.clock.now_s(), pose_values()) if exposing is None else exposing
+            if all(abs(v) < DIVERGED_LIMIT for v in pose):
                 raise
-            self._overflow_s = self.clock.now_s()
+            self._overflow_s = t_bad
 
     def checks_open_until_s(self) -> float | None:
         """Until when (sim s) a check's window is still open, as far as recorded: the recovery check
