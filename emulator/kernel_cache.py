@@ -19,8 +19,11 @@ import hashlib
 import os
 import shutil
 import time
+import weakref
 from pathlib import Path
 from typing import Any
+
+from hil.link.kernel_types import types_key
 
 #: folders of other digests kept whatever their age (other checkouts, a branch switched back to)
 KEEP_OTHERS = 4
@@ -94,10 +97,23 @@ def entry(kernel: Any, *args: Any) -> Any:
     dispatch on the argument types: for a per-tick caller whose arguments always have these types (its
     own float64 arrays, bound once, and floats and ints). An int or a numpy float where a float goes is
     converted as `float` converts it; an array is not checked (its dtype, dimensions, layout and
-    writability must be the example's)."""
+    writability must be the example's). Each kernel's forms are kept by the argument types' key
+    (`hil.link.kernel_types.types_key`): a second run of a process asks numba nothing."""
     from numba import typeof  # (numba is configured by `configure` before its first import)
+    from numba._dispatcher import compute_fingerprint
 
-    return kernel.compile(tuple(typeof(a) for a in args))
+    key = types_key(args, compute_fingerprint)
+    forms = _entries.setdefault(kernel, {})
+    form = forms.get(key) if key is not None else None
+    if form is None:
+        form = kernel.compile(tuple(typeof(a) for a in args))
+        if key is not None:
+            forms[key] = form
+    return form
+
+
+#: the compiled forms `entry` handed out, by kernel and argument types' key
+_entries: weakref.WeakKeyDictionary[Any, dict[tuple[bytes, ...], Any]] = weakref.WeakKeyDictionary()
 
 
 def _remove_stale(current: Path) -> None:

@@ -32,6 +32,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from hil.link.kernel_types import types_key
+
 _ROOT = Path(__file__).resolve().parent
 #: every source file whose code or constants the kernels compile (the cache folder's digest)
 SOURCES = tuple(_ROOT / f for f in (
@@ -76,6 +78,7 @@ class Kernel:
         self.fn = fn
         self.callees = callees
         self._compiled: Any = None
+        self._entries: dict[tuple[bytes, ...], Any] = {}  # (`entry`'s forms, by argument types' key)
 
     def get(self) -> Any:
         """The compiled function (numba's dispatcher: it compiles or loads each argument type's form on
@@ -97,7 +100,16 @@ class Kernel:
         loaded from the cache now if need be), called without numba's per-call dispatch on the argument
         types (about half a call's cost): for a caller whose arguments always have these types, its own
         arrays (float64, the same layout and flags) and floats. An int or a numpy float where a float
-        goes is converted as `float` converts it; an array is not checked."""
+        goes is converted as `float` converts it; an array is not checked. The forms are kept by the
+        argument types' key (`hil.link.kernel_types.types_key`): a program forked from a process that
+        made them asks numba nothing."""
         from numba import typeof  # (numba loaded with the first kernel: see the module's docstring)
+        from numba._dispatcher import compute_fingerprint
 
-        return self.get().compile(tuple(typeof(a) for a in args))
+        key = types_key(args, compute_fingerprint)
+        form = self._entries.get(key) if key is not None else None
+        if form is None:
+            form = self.get().compile(tuple(typeof(a) for a in args))
+            if key is not None:
+                self._entries[key] = form
+        return form

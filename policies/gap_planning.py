@@ -828,7 +828,10 @@ class MissionRequest:
         the planner searches on to other speeds where none is found at the one asked for, and a steep
         gap's plans are often faster (70 deg at 2 m/s from the paper's start: 3 m/s), where the attitude
         error is larger."""
-        plan = self.plan()
+        return self.checked(self.plan())
+
+    def checked(self, plan: MissionPlan) -> MissionPlan:
+        """``plan`` (this request's `plan`), refused as `checked_plan` refuses it."""
         speed = plan.traverse.crossing_speed_m_s
         why = self.passage(speed).refusal if speed != self.crossing_speed_m_s else None
         if why is not None:
@@ -896,11 +899,26 @@ def start_height(request: MissionRequest) -> float:
     above it; where none does, where it is. Raises PlanningError (as `MissionRequest.plan`) when there is
     no plan from the start.
     """
+    return _start_height(request)[0]
+
+
+def start_plan(request: MissionRequest) -> tuple[float, MissionPlan]:
+    """`start_height` and `MissionRequest.plan` from there (``request`` started at that height): where
+    that is the request's own start, the plan `start_height` made on its way, not planned twice."""
+    z, plan = _start_height(request)
+    if plan is None:
+        x, y, _ = request.start_pos_m
+        plan = dataclasses.replace(request, start_pos_m=(x, y, z)).plan()
+    return z, plan
+
+
+def _start_height(request: MissionRequest) -> tuple[float, MissionPlan | None]:
+    """`start_height`, with `MissionRequest.plan` where that is the request's own start (else None)."""
     stage, plan = request.ranked_plan()
     z0 = request.start_pos_m[2]
     if request.own_rate_stages == 0 or stage < request.own_rate_stages or (
             plan.candidates_tried == 1 and plan.traverse.crossing_speed_m_s == request.crossing_speed_m_s):
-        return z0
+        return z0, plan
     speed = request.crossing_speed_m_s
     top = request.lab.max_m[2] - request.body.clearance_m
     x, y, _ = request.start_pos_m
@@ -912,5 +930,5 @@ def start_height(request: MissionRequest) -> float:
         except PlanningError:
             continue
         if higher.candidates_tried == 1:  # (half a step above it: room for the take-off's settling)
-            return min(z + START_HEIGHT_STEP_M / 2, top)
-    return z0
+            return min(z + START_HEIGHT_STEP_M / 2, top), None
+    return z0, plan

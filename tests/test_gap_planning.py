@@ -28,6 +28,7 @@ from policies.gap_planning import (
     plan_traverse,
     search_recovery,
     start_height,
+    start_plan,
 )
 from policies.primitives import Feasibility, Trajectory, solve
 
@@ -447,3 +448,17 @@ def test_a_slow_vehicle_starts_as_high_as_its_approach_needs_and_a_fast_one_wher
     assert after.approach.state(0.0)[0][2] == pytest.approx(z)
     assert start_height(_f450_request(30.0, 6.0)) == 0.5
     assert start_height(_f450_request(-60.0, 15.0)) == 0.5
+
+
+def test_the_start_and_its_plan_are_the_plan_from_that_start() -> None:
+    """`start_plan` (the program's check before its take-off) gives the start height and the very plan
+    `plan` makes from there: planned afresh where the start moves up, the search's own plan where it
+    stays (made once)."""
+    for request in (_f450_request(-60.0, 6.0), _f450_request(30.0, 6.0), _f450_request(-60.0, 15.0)):
+        z, plan = start_plan(request)
+        assert z == start_height(request)
+        x, y, _ = request.start_pos_m
+        again = dataclasses.replace(request, start_pos_m=(x, y, z)).plan()
+        assert plan.packed.tobytes() == again.packed.tobytes()
+        assert (plan.traverse.crossing_speed_m_s, plan.candidates_tried) == (
+            again.traverse.crossing_speed_m_s, again.candidates_tried)

@@ -79,3 +79,24 @@ def test_a_kernels_entry_gives_the_kernels_numbers_and_takes_ints_where_floats_g
         assert fast(*args) == attitude_thrust_values(*args)
     assert fast(flag, 12, -20, 55, 30, 35, 150) == attitude_thrust_values(flag, 12.0, -20.0, 55.0, 30.0, 35.0,
                                                                         150.0)
+
+
+def test_a_kernels_entry_is_kept_by_its_argument_types_and_never_mixes_two_types():
+    """A run asks for the same compiled forms as the run before it: the second ask is answered from what
+    the first made, and arguments of other numba types (a read-only array, an int beyond int64, a
+    float32 array) get their own form, never one compiled for another type."""
+    import numba
+    import numpy as np
+
+    @numba.njit
+    def first(a, k):
+        return a[0] + k
+
+    row, frozen = np.arange(3.0), np.arange(3.0)
+    frozen.flags.writeable = False
+    one = kernel_cache.entry(first, row, 1)
+    assert kernel_cache.entry(first, np.zeros(5), 7) is one  # the same types: the same form, kept
+    forms = {one, kernel_cache.entry(first, frozen, 1), kernel_cache.entry(first, row, 1 << 63),
+             kernel_cache.entry(first, row.astype(np.float32), 1), kernel_cache.entry(first, row, 1.0)}
+    assert len(forms) == 5
+    assert kernel_cache.entry(first, row, 1 << 63)(row, 1 << 63) == float(1 << 63)  # (uint64, not int64)

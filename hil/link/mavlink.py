@@ -203,12 +203,9 @@ class MavlinkCodec:
         self._accept = None if accept_ids is None else frozenset(accept_ids)
         self._raw = frozenset(raw_ids)
         self._signing = signing_key is not None  # (fixed for the codec's life)
-        #: what `_take_leading` does with a good unsigned frame, by the id's three bytes on the wire: each
-        #: id pymavlink knows -> (its CRC_EXTRA byte, `_REFUSE`, `_IGNORE`, `_RAW` or `_DECODE`)
-        self._leading: dict[bytes, tuple[bytes, int]] = {
-            msg_id.to_bytes(3, "little"): (extra, self._leading_kind(msg_id))
-            for msg_id, extra in _CRC_EXTRA.items()
-        }
+        #: what `_take_leading` does with a good unsigned frame, by the id's three bytes on the wire
+        #: (`_leading_table`: one table for the codecs of the same rules)
+        self._leading = _leading_table(self._signing, self._unsigned_ok, self._accept, self._raw)
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise ValueError(f"signing key must be 32 bytes, got {len(signing_key)}")
@@ -322,15 +319,6 @@ class MavlinkCodec:
                     self.recorder.record(bytes(m.get_msgbuf()), now_s)
                 good.append(m)
 
-    def _leading_kind(self, msg_id: int) -> int:
-        """What `_take_leading` does with a good unsigned frame of ``msg_id``: refuse it (a signed link and
-        an id that must be signed), drop it undecoded (not accepted), hand it over as bytes, or decode it."""
-        if self._signing and msg_id not in self._unsigned_ok:
-            return _REFUSE
-        if self._accept is not None and msg_id not in self._accept:
-            return _IGNORE
-        return _RAW if msg_id in self._raw else _DECODE
-
     def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
         """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
         not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded, all
@@ -413,7 +401,7 @@ class MavlinkCodec:
         self._mav.signing.timestamp = max(self._mav.signing.timestamp, stamp, 0)
 
 
-#: what `MavlinkCodec._take_leading` does with a good unsigned frame (`MavlinkCodec._leading_kind`)
+#: what `MavlinkCodec._take_leading` does with a good unsigned frame (`_leading_table`)
 _REFUSE, _IGNORE, _RAW, _DECODE = range(4)
 #: MAVLink's CRC-16/MCRF4XX of ``data`` continued from ``crc`` (0xFFFF to start): fastcrc's, the one
 #: pymavlink itself computes with
@@ -422,6 +410,24 @@ _mcrf4xx = _fastcrc16.mcrf4xx
 _CRC_EXTRA: dict[int, bytes] = {
     msg_id: bytes((cls.crc_extra,)) for msg_id, cls in mavlink2.mavlink_map.items()
 }
+
+
+@functools.lru_cache(maxsize=16)
+def _leading_table(signing: bool, unsigned_ok: frozenset[int], accept: frozenset[int] | None,
+                   raw: frozenset[int]) -> dict[bytes, tuple[bytes, int]]:
+    """A codec's `MavlinkCodec._take_leading` table: each id pymavlink knows, as its three bytes on the
+    wire -> (its CRC_EXTRA byte, what is done with a good unsigned frame of it: refused on a signing link
+    when the id must be signed, dropped undecoded when not accepted, handed over as bytes, or decoded).
+    Built once for each set of rules (a run builds codecs of the same rules): the codecs only read it."""
+
+    def kind(msg_id: int) -> int:
+        if signing and msg_id not in unsigned_ok:
+            return _REFUSE
+        if accept is not None and msg_id not in accept:
+            return _IGNORE
+        return _RAW if msg_id in raw else _DECODE
+
+    return {msg_id.to_bytes(3, "little"): (extra, kind(msg_id)) for msg_id, extra in _CRC_EXTRA.items()}
 
 
 def frame_ok(frame: bytes) -> bool:

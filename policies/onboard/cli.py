@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import signal
 import sys
 from types import FrameType
@@ -183,8 +184,15 @@ def _on_sigterm(handler: object) -> object:
     return None
 
 
+@functools.cache
+def parser() -> argparse.ArgumentParser:
+    """``python -m policies.onboard``'s parser, built once a process (a program forked warm finds it
+    built: about a millisecond of each run's start); parsing leaves it as it was."""
+    p = argparse.ArgumentParser(prog="python -m policies.onboard",
+                                description="the onboard program: fly a pilot through the gap")
+    add_arguments(p)
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m policies.onboard",
-                                     description="the onboard program: fly a pilot through the gap")
-    add_arguments(parser)
-    return run(parser.parse_args(argv), "policies.onboard")
+    return run(parser().parse_args(argv), "policies.onboard")

@@ -27,7 +27,6 @@ when its control socket closes (its harnesses exited), ending the children still
 
 from __future__ import annotations
 
-import argparse
 import atexit
 import contextlib
 import gc
@@ -46,14 +45,17 @@ import threading
 import traceback
 from typing import IO, Any
 
-from policies.onboard.cli import add_arguments
+from hil.link.memory import MemoryTransport
+from policies.onboard.cli import parser
+from policies.onboard.command_links import COMMAND_LINKS
 from policies.onboard.pilots import PILOTS
+from policies.onboard.program import EventLog, OnboardProgram, ProgramConfig, warm_kernels
 from policies.vehicle import DEFAULT_VEHICLE, load_vehicle
 
 #: the program the children run (as ``python -m MODULE``)
 MODULE = "policies.onboard"
 #: the modules the server imports before it forks (the pilots: see `_preload`)
-PRELOAD = ("numpy", "serial", "policies.onboard.cli")
+PRELOAD = ("numpy", "serial", "hil.link.serial_port", "policies.onboard.cli")
 MAX_MESSAGE_BYTES = 1 << 16
 #: the server's messages on a run's channel ({"pid": N}, {"exit": code}) are far shorter (polled each tick)
 CHANNEL_MESSAGE_BYTES = 256
@@ -78,14 +80,24 @@ def _preload(pilot: str | None) -> None:
     _preloaded.add(key)
     for name in PRELOAD:
         importlib.import_module(name)
-    if not key:  # what the program loads on its first use of them: its options, vehicle files, kernels
-        add_arguments(argparse.ArgumentParser())
+    if not key:  # what the program makes on its first use of them: its parser, vehicle files, kernels
+        parser()
         load_vehicle(DEFAULT_VEHICLE)
-        importlib.import_module("policies.onboard.program").warm_kernels()
+        warm_kernels()
+        _build_programs()
     if pilot:
         with contextlib.suppress(Exception):  # an unknown pilot is the program's to refuse, cold or warm
             PILOTS.load(pilot)
     gc.collect()  # (no gc.freeze(): the children collect as a cold program does, so they run as fast)
+
+
+def _build_programs() -> None:
+    """Build (and close) a program on each command-link protocol over memory links, so that what a
+    program builds the same in every run is made here once, before the forks: its kernels' compiled
+    forms for its arguments' types (`policies.compiling.Kernel.entry`), its codec's tables."""
+    for protocol in COMMAND_LINKS:
+        (command, _), (mocap, _) = MemoryTransport.pair(), MemoryTransport.pair()
+        OnboardProgram(command, mocap, ProgramConfig(fc_protocol=protocol), events=EventLog()).close()
 
 
 def serve(control_fd: int) -> int:

@@ -75,7 +75,7 @@ from policies.gap_planning import (
     Segment,
     VehicleLimits,
     poly_packed,
-    start_height,
+    start_plan,
 )
 from policies.mocap_reader import MocapReader
 from policies.onboard.command_link import NED_FRD_QUAT
@@ -243,8 +243,8 @@ def pre_takeoff_check(cfg: ProgramConfig, pos_m: object, gap: GapPose) -> float:
     start = np.array(pos_m, dtype=float)
     start[2] = max(start[2], cfg.takeoff_height_m)
     request = mission_request(cfg, start, np.zeros(3), gap)
-    z = start_height(request)
-    replace(request, start_pos_m=(float(start[0]), float(start[1]), z)).checked_plan()
+    z, plan = start_plan(request)  # (from the start itself: the plan `start_height` made, not planned again)
+    replace(request, start_pos_m=(float(start[0]), float(start[1]), z)).checked(plan)
     return z
 
 
