@@ -130,8 +130,9 @@ class MocapLinkServer:
         self._bytes_refused = 0
         #: the frames exposed, not yet on the radio (a heap: its head ``[0][0]`` the next ready time)
         self._pending = self.mocap.pending
-        #: the frames sent on their way: (when off the UART (s), arrival (s), sent (s), the frame), in order
-        #: (both times increase); the first ``_n_arrived`` of them have arrived (counted as delivered)
+        #: the frames sent on their way: (when off the UART (s), arrival (s), whether late, the frame), in
+        #: order (both times increase); each counted as delivered when it leaves, or by `stats` as it is
+        #: read, which counts the first ``_n_arrived`` of them ahead
         self._on_way: list[tuple[float, float, float, bytes]] = []
         self._n_arrived = 0
         self._now_s = -math.inf  # the latest time the chain was advanced to
@@ -139,6 +140,7 @@ class MocapLinkServer:
         #: `update` and `_forward`, the only ones that change the queues: when the chain next has to move
         self._next_move_s = math.inf
         self._expose_values, self._released = self.mocap.expose_values, self.mocap.released
+        self._late_after_s = uwb.late_after_s
 
     @property
     def module_id(self) -> int:
@@ -196,13 +198,14 @@ class MocapLinkServer:
         frames, on_way = self._pending, self._on_way
         limit = now + 1e-12
         if frames and frames[0][0] <= limit:
-            carry, stats = self._carry, self.radio.stats
+            carry, stats, late_after = self._carry, self.radio.stats, self._late_after_s
             for ready_s, _, frame in self._released(now):
                 n = len(frame)
                 if carry is None:  # (a channel that can lose: the radio's steps, which count the packet)
                     arrival = self.radio.carry(ready_s, n - ONE_NODE_EXTRA_BYTES)[1]
                     if arrival is not None:
-                        on_way.append((self.uart.finish_s(arrival, n), arrival, ready_s, frame))
+                        done = self.uart.finish_s(arrival, n)
+                        on_way.append((done, arrival, arrival - ready_s > late_after, frame))
                     continue
                 stats.sent += 1
                 code, arrival, done = carry(self._state, ready_s, n - ONE_NODE_EXTRA_BYTES, n)
@@ -210,18 +213,22 @@ class MocapLinkServer:
                     self.radio.channel.draw_block()
                     code, arrival, done = carry(self._state, ready_s, n - ONE_NODE_EXTRA_BYTES, n)
                 if code == SENT:
-                    on_way.append((done, arrival, ready_s, frame))
+                    on_way.append((done, arrival, arrival - ready_s > late_after, frame))
                 else:
                     stats.oversize += code == OVERSIZE
                     stats.overflow += code == OVERFLOW
         written = 0
         if on_way and on_way[0][0] <= limit:
-            self._count_arrivals(limit)  # (before they leave the list: every frame off the wire has arrived)
             n = 1
             while n < len(on_way) and on_way[n][0] <= limit:
                 n += 1
-            transport = self.transport
-            for _, _, _, chunk in on_way[:n]:
+            transport, stats, counted = self.transport, self.radio.stats, self._n_arrived
+            for _, _, late, chunk in on_way[:n]:
+                if counted:  # (counted by `stats` already)
+                    counted -= 1
+                else:
+                    stats.delivered += 1
+                    stats.late += late
                 if transport.closed:
                     self._bytes_refused += len(chunk)
                     continue
@@ -230,7 +237,7 @@ class MocapLinkServer:
                 self._bytes_refused += len(chunk) - sent
                 self.frames_written += 1
             del on_way[:n]
-            self._n_arrived -= n
+            self._n_arrived = counted
             self._bytes_written += written
         nxt = on_way[0][0] if on_way else math.inf
         if frames and frames[0][0] < nxt:
@@ -239,17 +246,14 @@ class MocapLinkServer:
         return written
 
     def _count_arrivals(self, limit_s: float) -> None:
-        """Count the frames on their way that have arrived by ``limit_s`` as the radio's deliveries."""
-        on_way, k = self._on_way, self._n_arrived
-        if k < len(on_way) and on_way[k][1] <= limit_s:
-            stats, late_after = self.radio.stats, self.radio.config.late_after_s
-            while k < len(on_way) and on_way[k][1] <= limit_s:
-                _, arrival_s, sent_s, _ = on_way[k]
-                stats.delivered += 1
-                if arrival_s - sent_s > late_after:
-                    stats.late += 1
-                k += 1
-            self._n_arrived = k
+        """Count the frames on their way that have arrived by ``limit_s`` (and are not counted yet) as the
+        radio's deliveries (the rest are counted as they leave the wire)."""
+        on_way, k, stats = self._on_way, self._n_arrived, self.radio.stats
+        while k < len(on_way) and on_way[k][1] <= limit_s:
+            stats.delivered += 1
+            stats.late += on_way[k][2]
+            k += 1
+        self._n_arrived = k
 
     def next_event_s(self) -> float:
         """When ``update`` next has something to do (s, on the clock)."""

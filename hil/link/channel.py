@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -178,6 +179,7 @@ class UartWire:
         st = [0.0] * UART_STATE_LEN if state is None else state
         st[UART_BITS], st[UART_BAUD], st[UART_BUSY_UNTIL] = bits_per_byte, baud, -math.inf
         self.state = st
+        self.finish_s = partial(wire_finish_s, st)  # (`finish_s` bound to the state: no call of its own)
         #: (done_s, bytes) of the chunks on the line, in order
         self.queue: list[tuple[float, bytes]] = []
         self.bytes_written = 0
