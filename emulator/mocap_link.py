@@ -133,7 +133,7 @@ class MocapLinkServer:
         #: the frames sent on their way: (when off the UART (s), arrival (s), whether late, the frame), in
         #: order (both times increase); each counted as delivered when it leaves, or by `stats` as it is
         #: read, which counts the first ``_n_arrived`` of them ahead
-        self._on_way: list[tuple[float, float, float, bytes]] = []
+        self._on_way: list[tuple[float, float, bool, bytes]] = []
         self._n_arrived = 0
         self._now_s = -math.inf  # the latest time the chain was advanced to
         #: the earlier of the next ready time and the first frame's time off the UART (inf: none), kept by
