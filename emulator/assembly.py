@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from emulator.fc import FcConfig
-from emulator.mocap import MocapConfig, MocapSystem
+from emulator.mocap import MocapConfig
 from emulator.mocap_link import MocapLinkServer
+from emulator.mocap_link import compile_kernels as compile_mocap_link
 from emulator.physics.state import VehicleState
 from emulator.profile import VehicleProfile
 from emulator.servers.registry import FC_SERVERS, FcServer, ServerOptions, make_server
@@ -43,7 +44,7 @@ def warm_up(profile: VehicleProfile) -> None:
     started afterwards does not pay for them."""
     EmulatedVehicle(profile).compile_kernels()
     World.for_profile(Gap(), LabVolume(), profile).compile_kernels()
-    MocapSystem(MocapConfig(), np.random.default_rng(0))  # (its exposure kernel, built with the tracker)
+    compile_mocap_link()  # (its exposure kernel and its radio's step, built with the link)
     for server in FC_SERVERS.values():  # (a server compiles its kernels as it is built, after the clock)
         if server.warm_up is not None:
             server.warm_up()

@@ -32,7 +32,12 @@ _F64 = np.dtype(np.float64)
 #: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0), as
 #: the LinkTrack packer takes it
 _VALUES_PER_BODY = PACKED_VALUES
-_NOT_OCCLUDED = np.zeros(0, np.uint8)  # (no body occluded: the tracker without occlusion)
+
+
+def _noise_room(n: int) -> int:
+    """How many standard normal draws the exposure kernel's buffer holds for ``n`` bodies: a block drawn
+    ahead, or one frame's draws (at most 6 a body)."""
+    return max(_BLOCK, 6 * n)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -198,33 +203,43 @@ class MocapSystem:
         self.stats = MocapStats()
         self._period_s = config.period_s
         self._latency_s = config.camera_latency_s
-        #: standard normal draws taken ahead (without occlusion the noise is the generator's only use
-        #: besides the processing latency's: one call per block, not per frame), and the next one to use
-        self._normal_block = np.zeros(0)
+        #: how many standard normal draws the kernel's buffer holds (without occlusion: a block taken ahead,
+        #: the noise being the generator's only use besides the processing latency's, one call per block,
+        #: not per frame), and the next one to use
+        self._noise_len = 0
         self._normal_next = 0
+        self._noise = np.zeros(0)
         self._exp_block: list[float] = []
         self._exp_next = 0
         self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
         self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
         self._buffers_for(2)
-        # the exposure kernel's form for its buffer and the block of draws (uint8 bytes and occlusion flags,
-        # float64 draws, whatever their size), compiled or loaded from numba's cache now, not at the first
-        # exposure, and called without numba's type dispatch
-        self._expose = entry(_expose_kernel, self._mem, 0, 0.0, 0.0, _NOT_OCCLUDED, self._normal_block, 0, 0,
-                             0)
+        # the exposure kernel's form for its buffer (uint8 bytes, whatever their size), compiled or loaded
+        # from numba's cache now, not at the first exposure, and called without numba's type dispatch
+        self._expose = entry(_expose_kernel, self._mem, 0, 0.0, 0.0, 0, 0, 0, 0, 0)
 
     def _buffers_for(self, n: int) -> None:
         """The kernel's buffer for exposures of ``n`` bodies (`_expose_kernel`'s ``mem``), and its structs:
         the true poses in (7 doubles each) then the measured values out (`_VALUES_PER_BODY` doubles
-        each), each written and read by Python in one call; then the frame's fields and its bytes."""
+        each), each written and read by Python in one call; then the frame's fields, the standard normal
+        draws (how many it has room for, then `_noise_room` or more), the occlusion flags and the frame's
+        bytes. The draws not yet used are kept."""
         if self._frames is not None and n > MAX_BODIES:
             raise ValueError(f"a LinkTrack mocap frame holds at most {MAX_BODIES} bodies, got {n}")
         self._n_bodies = n
         fields_at = (7 + _VALUES_PER_BODY) * 8 * n  # (the frame's fields, then its bytes: `_expose_kernel`)
-        frame_at = fields_at + 16 * n
+        noise_at = fields_at + 16 * n + 8
+        kept = self._noise[: self._noise_len].copy()  # (the draws of a block not used yet stay)
+        room = max(_noise_room(n), len(kept))
+        occluded_at = noise_at + 8 * room
+        frame_at = occluded_at + n
         frame_len = mocap_frame_len(n) if self._frames is not None else 0
         self._io_buf = bytearray(frame_at + frame_len)
         self._mem = np.frombuffer(self._io_buf, np.uint8)
+        np.frombuffer(self._io_buf, np.int64, 1, noise_at - 8)[0] = room
+        self._noise = np.frombuffer(self._io_buf, np.float64, room, noise_at)
+        self._noise[: len(kept)] = kept
+        self._occluded = np.frombuffer(self._io_buf, np.uint8, n, occluded_at)
         self._put_poses = struct.Struct(f"<{7 * n}d").pack_into
         self._get_values = struct.Struct(f"<{7 * 8 * n}x{_VALUES_PER_BODY * n}d").unpack_from
         #: each body's index and its first value's
@@ -331,19 +346,21 @@ class MocapSystem:
                 # the draws keep the order of one body after the other (occlusion, position noise,
                 # attitude noise): taken here, the noise handed to the kernel in that order
                 occluded, noise = self._occlusions(t_s, body_ids, poses)
-                n_invalid = expose(mem, n, pos_sd, att_sd, occluded, noise, 0, k & 0xFFFFFFFF,
+                self._occluded[:] = occluded
+                self._noise[: len(noise)] = noise
+                n_invalid = expose(mem, n, pos_sd, att_sd, 1, len(noise), 0, k & 0xFFFFFFFF,
                                    round(t_s * 1e6))[0]
                 extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
             else:
                 # without occlusion the noise of the whole frame comes from the block drawn ahead; a
                 # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
                 frame_no, stamp_us = k & 0xFFFFFFFF, round(t_s * 1e6)
-                n_invalid, nxt = expose(mem, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block,
-                                        self._normal_next, frame_no, stamp_us)
+                n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, self._noise_len, self._normal_next,
+                                        frame_no, stamp_us)
                 if n_invalid < 0:
-                    self._normal_block = self._rng.standard_normal(max(_BLOCK, nxt))
-                    n_invalid, nxt = expose(mem, n, pos_sd, att_sd, _NOT_OCCLUDED, self._normal_block, 0,
-                                            frame_no, stamp_us)
+                    size = self._noise_len = max(_BLOCK, nxt)
+                    self._noise[:size] = self._rng.standard_normal(size)
+                    n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, size, 0, frame_no, stamp_us)
                 self._normal_next = nxt
                 extra = 0.0
                 if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
@@ -445,13 +462,14 @@ _pack_mocap_frame = njit(cache=True)(pack_mocap_frame)
 
 
 @njit(cache=True)
-def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occluded: np.ndarray,
-                   noise: np.ndarray, k: int, frame_no: int, stamp_us: int) -> tuple[int, int]:
+def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlusion: int, noise_len: int,
+                   k: int, frame_no: int, stamp_us: int) -> tuple[int, int]:
     """One exposure of ``n`` bodies on the bytes ``mem`` (one array: numba unboxes each array argument on
-    every call), which hold ``io`` (float64, (7 + `_VALUES_PER_BODY`) ``n``), ``ints`` (int64, 2 ``n``)
-    and the rest ``frame``: the bodies' true poses (``io``'s first 7 ``n``, 7 each: x, y, z, qw, qx,
-    qy, qz) as the tracker measures them, into the values after them (`_VALUES_PER_BODY` each: the 7,
-    then 1.0 if valid else 0.0): `trackable` and not ``occluded`` (1 per body; empty: none), then
+    every call), which hold ``io`` (float64, (7 + `_VALUES_PER_BODY`) ``n``), ``ints`` (int64, 2 ``n``),
+    ``room`` (int64), ``noise`` (float64, ``room``, of which the first ``noise_len`` are drawn), ``occluded``
+    (uint8, ``n``: read when ``occlusion`` is 1) and the rest ``frame``: the bodies' true poses (``io``'s
+    first 7 ``n``, 7 each: x, y, z, qw, qx, qy, qz) as the tracker measures them, into the values after them
+    (`_VALUES_PER_BODY` each: the 7, then 1.0 if valid else 0.0): `trackable` and not ``occluded``, then
     `measured_pose` with the standard normal draws ``noise[k:]``, 3 for the position when ``pos_sd`` > 0
     (m), then 3 for the attitude when ``att_sd`` > 0 (rad), body after body; an invalid body gets zeros
     and the identity.
@@ -463,7 +481,11 @@ def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlud
     fields_at = (7 + _VALUES_PER_BODY) * 8 * n
     io = mem[:fields_at].view(np.float64)
     ints = mem[fields_at : fields_at + 16 * n].view(np.int64)
-    frame = mem[fields_at + 16 * n :]
+    noise_at = fields_at + 16 * n + 8
+    occluded_at = noise_at + 8 * mem[noise_at - 8 : noise_at].view(np.int64)[0]
+    noise = mem[noise_at : occluded_at].view(np.float64)[:noise_len]
+    occluded = mem[occluded_at : occluded_at + n]
+    frame = mem[occluded_at + n :]
     poses, values = io[: 7 * n], io[7 * n :]
     n_noise = (3 if pos_sd > 0 else 0) + (3 if att_sd > 0 else 0)
     seen = 0
@@ -471,7 +493,7 @@ def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlud
         o = 7 * b
         qw, qx, qy, qz = poses[o + 3], poses[o + 4], poses[o + 5], poses[o + 6]
         ok = _trackable(poses[o], poses[o + 1], poses[o + 2], qw * qw + qx * qx + qy * qy + qz * qz)
-        if occluded.size and occluded[b]:
+        if occlusion and occluded[b]:
             ok = False
         values[_VALUES_PER_BODY * b + 7] = 1.0 if ok else 0.0
         seen += ok

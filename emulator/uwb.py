@@ -10,10 +10,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.link.channel import BITS_PER_BYTE, Channel, ChannelModel, UartWire
+from hil.link.channel import (
+    BITS_PER_BYTE,
+    CHANNEL_STATE_LEN,
+    UART_STATE_LEN,
+    Channel,
+    ChannelModel,
+    UartWire,
+)
 from hil.link.linktrack import MAX_NODE_DATA
 
 _heappush, _heappop = heapq.heappush, heapq.heappop
+
+#: a radio's state, the numbers `UwbRadio` keeps for the air (a list, or a float64 array a compiled caller
+#: shares): its packet and queue limits (bytes, packets), overhead (bytes) and rate (bit/s), when the air is
+#: free (s), then how many packets are queued or on the air and, from ``RADIO_ENDS``, when each leaves it
+#: (s, increasing)
+RADIO_MAX_PACKET, RADIO_QUEUE, RADIO_OVERHEAD, RADIO_RATE = 0, 1, 2, 3
+RADIO_BUSY_UNTIL, RADIO_N_ENDS, RADIO_ENDS = 4, 5, 6
+#: what `book_air` says of a packet: booked, or refused (larger than the limit, the queue full)
+SENT, OVERSIZE, OVERFLOW = 0, 1, 2
 
 __all__ = ["Delivery", "UartWire", "UwbConfig", "UwbRadio", "UwbStats"]
 
@@ -56,6 +72,43 @@ class UwbConfig(ChannelModel):
         return n_bytes * self.uart_bits_per_byte / self.uart_baud
 
 
+def radio_state_len(queue_packets: int) -> int:
+    """The length of a radio's state (``RADIO_*``) for a queue of ``queue_packets``."""
+    return RADIO_ENDS + queue_packets
+
+
+def link_state_len(queue_packets: int) -> int:
+    """The length of the state of the radio, its channel and the UART behind it as one float64 array
+    (`UwbRadio` ``state``: the UART's, the channel's, the radio's, in that order)."""
+    return UART_STATE_LEN + CHANNEL_STATE_LEN + radio_state_len(queue_packets)
+
+
+def book_air(st: list[float] | np.ndarray, now_s: float, n_bytes: int) -> tuple[int, float]:
+    """A packet of ``n_bytes`` handed to the radio at ``now_s``, on its state ``st`` (``RADIO_*``):
+    (`SENT`, when it has left the air (s)), or (`OVERSIZE` or `OVERFLOW`, 0.0) with the air not booked.
+    Plain arithmetic: `UwbRadio` runs it, the mocap link compiled in its radio's step."""
+    if n_bytes > st[RADIO_MAX_PACKET]:
+        return OVERSIZE, 0.0
+    n = int(st[RADIO_N_ENDS])  # the packets leave the air in order: those gone by now are the first ones
+    gone = 0
+    while gone < n and st[RADIO_ENDS + gone] <= now_s:
+        gone += 1
+    if gone:
+        for i in range(gone, n):
+            st[RADIO_ENDS + i - gone] = st[RADIO_ENDS + i]
+        n -= gone
+        st[RADIO_N_ENDS] = n
+    if n >= st[RADIO_QUEUE]:
+        return OVERFLOW, 0.0
+    busy = st[RADIO_BUSY_UNTIL]
+    air_s = (n_bytes + st[RADIO_OVERHEAD]) * 8.0 / st[RADIO_RATE]
+    busy = (now_s if now_s > busy else busy) + air_s
+    st[RADIO_BUSY_UNTIL] = busy
+    st[RADIO_ENDS + n] = busy
+    st[RADIO_N_ENDS] = n + 1
+    return SENT, busy
+
+
 @dataclass
 class UwbStats:
     """Packet counters. sent = delivered + lost + oversize + overflow + in flight."""
@@ -81,22 +134,26 @@ class Delivery:
 class UwbRadio:
     """One-way radio: ``send(now_s, data)`` then ``update(now_s)`` returns what has arrived by then,
     in sending order. ``next_event_s()`` is the next arrival (inf when nothing is in flight).
-    The radio may draw ahead from ``rng``: give it a generator of its own (``rng.spawn``)."""
+    The radio may draw ahead from ``rng``: give it a generator of its own (``rng.spawn``).
+    ``state``: a float64 array of `link_state_len` where the radio, its channel and a UART behind it keep
+    their numbers (the UART's first: `UartWire` ``state``), for a compiled caller that carries packets
+    through all three; else each keeps its own."""
 
-    def __init__(self, config: UwbConfig, rng: np.random.Generator) -> None:
+    def __init__(self, config: UwbConfig, rng: np.random.Generator, state: np.ndarray | None = None) -> None:
         self.config = config
-        self.channel = Channel(config, rng)
-        self._air_busy_until_s = -math.inf
-        self._air_ends: list[float] = []  # when the packets queued or on the air will have left
+        at = UART_STATE_LEN + CHANNEL_STATE_LEN
+        self.channel = Channel(config, rng, None if state is None else state[UART_STATE_LEN:at])
+        st = [0.0] * radio_state_len(config.queue_packets) if state is None else state[at:]
+        st[RADIO_MAX_PACKET], st[RADIO_QUEUE] = config.max_packet_bytes, config.queue_packets
+        st[RADIO_OVERHEAD], st[RADIO_RATE] = config.air_overhead_bytes, config.air_rate_bps
+        st[RADIO_BUSY_UNTIL], st[RADIO_N_ENDS] = -math.inf, 0
+        self.state = st
         #: (arrival_s, sequence number, data, sent_s) of the packets on their way, a heap (its head the
         #: next arrival; read, never changed, by the mocap link)
         self.in_flight: list[tuple[float, int, bytes, float]] = []
         self._seq = 0
         self.stats = UwbStats()
-        # the settings a packet reads, looked up once (the config is frozen)
-        self._max_packet_bytes, self._queue_packets = config.max_packet_bytes, config.queue_packets
-        self._air_overhead_bytes, self._air_rate_bps = config.air_overhead_bytes, config.air_rate_bps
-        self._late_after_s = config.late_after_s
+        self._late_after_s = config.late_after_s  # (the config is frozen)
         self._arrival_s, self._can_lose = self.channel.arrival_s, self.channel.can_lose
 
     def send(self, now_s: float, data: bytes, n_bytes: int | None = None) -> bool:
@@ -104,34 +161,35 @@ class UwbRadio:
         A packet the channel will lose is accepted (True) and simply never arrives. ``n_bytes``: the
         packet's size on the air when ``data`` is what the far side makes of it rather than the packet
         (the mocap link hands over the frame the vehicle's module writes for it)."""
-        stats = self.stats
-        stats.sent += 1
         if n_bytes is None:
             n_bytes = len(data)
-        if n_bytes > self._max_packet_bytes:
-            stats.oversize += 1
-            return False
-        ends = self._air_ends  # increasing: the packets leave the air in order
-        while ends and ends[0] <= now_s:
-            del ends[0]
-        if len(ends) >= self._queue_packets:
-            stats.overflow += 1
-            return False
-        busy = self._air_busy_until_s
-        air_s = (n_bytes + self._air_overhead_bytes) * 8.0 / self._air_rate_bps
-        busy = (now_s if now_s > busy else busy) + air_s
-        self._air_busy_until_s = busy
-        ends.append(busy)
+        accepted, arrival_s = self.carry(now_s, n_bytes)
+        if arrival_s is None:
+            return accepted
+        self._seq += 1
+        data = data if data.__class__ is bytes else bytes(data)
+        _heappush(self.in_flight, (arrival_s, self._seq, data, now_s))
+        return True
+
+    def carry(self, now_s: float, n_bytes: int) -> tuple[bool, float | None]:
+        """`send` of a packet of ``n_bytes`` without keeping it: (whether the radio took it, its arrival
+        (s) or None when it is refused or lost), counted as `send` counts it."""
+        stats = self.stats
+        stats.sent += 1
+        code, busy = book_air(self.state, now_s, n_bytes)
+        if code != SENT:
+            if code == OVERSIZE:
+                stats.oversize += 1
+            else:
+                stats.overflow += 1
+            return False, None
         if self._can_lose:
             lost = self.channel.drop()
             if lost is not None:
                 stats.lost += 1
                 stats.burst_lost += lost == "burst"
-                return True
-        self._seq += 1
-        _heappush(self.in_flight, (self._arrival_s(busy), self._seq,
-                                   data if data.__class__ is bytes else bytes(data), now_s))
-        return True
+                return True, None
+        return True, self._arrival_s(busy)
 
     def next_event_s(self) -> float:
         return self.in_flight[0][0] if self.in_flight else math.inf

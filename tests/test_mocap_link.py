@@ -8,13 +8,13 @@ import time
 import numpy as np
 import pytest
 
-from emulator.mocap import MocapConfig, pose_of
+from emulator.mocap import MocapConfig, MocapSystem, pose_of
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import VehicleState
-from emulator.uwb import UwbConfig
+from emulator.uwb import UartWire, UwbConfig, UwbRadio
 from emulator.world.geometry import Gap
 from hil.link.clock import SimClock, WallClock
-from hil.link.linktrack import mocap_frame_len
+from hil.link.linktrack import ONE_NODE_EXTRA_BYTES, ROLE_ANCHOR, ROLE_TAG, MocapFrameEncoder, mocap_frame_len
 from hil.link.memory import MemoryTransport
 from hil.link.pty import PtyTransport
 from hil.link.transport import Transport
@@ -210,3 +210,37 @@ def test_udp_socket_carries_the_same_frames():
     assert reader.counters.frames_ok == server.stats.frames_written > 50
     assert reader.latest("gap") is not None
     reader.close()
+
+
+@pytest.mark.parametrize("uwb", [
+    UwbConfig(jitter_s=0.004, latency_s=0.01),  # the compiled step, several jitter blocks
+    UwbConfig(jitter_s=0.004, latency_s=0.01, loss_prob=0.1, late_after_s=0.012),  # the radio's own steps
+    UwbConfig(jitter_s=0.0, air_rate_bps=5e4, queue_packets=1, uart_baud=115200),  # refusals, a busy wire
+])
+def test_the_links_radio_and_wire_are_the_radio_and_the_uart_sent_to_by_hand(uwb):
+    """The link carries each frame through the radio, its channel and the UART in one step (compiled where
+    the channel cannot lose): the same bytes at the same times, and the same counts, as `UwbRadio` and
+    `UartWire` driven one frame at a time."""
+    ours, theirs = MemoryTransport.pair(1 << 20)
+    clock = SimClock()
+    server = MocapLinkServer(ours, clock, np.random.default_rng(6), MocapConfig(), uwb)
+    # the hand-driven chain: the tracker, the radio and the UART on the generators the link spawns
+    tracker_rng, radio_rng = np.random.default_rng(6).spawn(2)
+    tracker = MocapSystem(MocapConfig(), tracker_rng, MocapFrameEncoder(ROLE_TAG, 0, ROLE_ANCHOR, 0))
+    radio, uart = UwbRadio(uwb, radio_rng), UartWire(uwb.uart_baud, uwb.uart_bits_per_byte)
+    gap = pose_of(GAP)
+    gap_values = (*gap.pos_m.tolist(), *gap.quat_wxyz.tolist())
+    for k in range(3000):
+        t = k * 7e-4
+        v = _vehicle(t)
+        vehicle = (*v.pos_m.tolist(), *v.quat_wxyz.tolist())
+        server.update(t, vehicle, gap_values)
+        tracker.expose_values(t, (1, 2), vehicle + gap_values)
+        for ready_s, _, frame in tracker.released(t):
+            radio.send(ready_s, frame, len(frame) - ONE_NODE_EXTRA_BYTES)
+        for arrival_s, frame, _ in radio.arrived(t):
+            uart.write(arrival_s, frame)
+        assert theirs.recv(0.0) == b"".join(chunk for _, chunk in uart.update(t))
+        if k % 3 == 0:  # (the counts read while frames are on their way, and not read)
+            assert server.stats.radio == radio.stats
+    assert server.stats.radio == radio.stats and server.stats.frames_written > 50

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -68,20 +69,47 @@ def delivery_s(ready_s: float, latency_s: float, jitter_s: float, last_arrival_s
     return last_arrival_s if last_arrival_s > arrival_s else arrival_s
 
 
+#: a channel's state, the numbers `Channel` keeps (a list, or a float64 array a compiled caller shares):
+#: its latency and jitter (s), the last arrival (s), the next of its jitter draws drawn ahead, the draws
+CH_LATENCY, CH_JITTER, CH_LAST_ARRIVAL, CH_NEXT, CH_BLOCK = 0, 1, 2, 3, 4
+CHANNEL_STATE_LEN = CH_BLOCK + JITTER_BLOCK
+
+
+def block_arrival_s(st: list[float] | np.ndarray, ready_s: float) -> float:
+    """`Channel.arrival_s` of a channel that cannot lose, on its state ``st`` (``CH_*``): the jitter the
+    next of the standard normal draws drawn ahead (none when the jitter is 0), the arrival (s) kept as the
+    last; NaN, with nothing changed, when the draws are spent (draw the next block into ``st`` first).
+    Plain arithmetic: `Channel` runs it, the mocap link compiled in its radio's step."""
+    jitter_s = st[CH_JITTER]
+    jitter = 0.0
+    if jitter_s > 0:
+        k = int(st[CH_NEXT])
+        if k >= JITTER_BLOCK:
+            return math.nan
+        st[CH_NEXT] = k + 1
+        jitter = 0.0 + jitter_s * st[CH_BLOCK + k]  # what normal(0, jitter_s) makes of the same draw
+    arrival = delivery_s(ready_s, st[CH_LATENCY], jitter, st[CH_LAST_ARRIVAL])
+    st[CH_LAST_ARRIVAL] = arrival
+    return arrival
+
+
 class Channel:
     """One direction of a link on ``model``: `drop()` says whether a message is lost, `arrival_s()`
     when one ready at a time arrives (latency, jitter, order kept). Draws only from ``rng`` (and may
-    draw ahead: give it a generator of its own)."""
+    draw ahead: give it a generator of its own). ``state``: where it keeps its numbers (``CH_*``; a
+    float64 array of `CHANNEL_STATE_LEN` that a compiled caller shares), else a list of its own."""
 
-    def __init__(self, model: ChannelModel, rng: np.random.Generator) -> None:
+    def __init__(self, model: ChannelModel, rng: np.random.Generator,
+                 state: np.ndarray | None = None) -> None:
         self.model = model
         self.rng = rng
         self.can_lose = model.can_lose
         self._latency_s, self._jitter_s = model.latency_s, model.jitter_s  # (the model is frozen)
         self._bad = False
-        self._last_arrival_s = -math.inf
-        self._jitter_block: list[float] = []
-        self._jitter_next = 0
+        st = [0.0] * CHANNEL_STATE_LEN if state is None else state
+        st[CH_LATENCY], st[CH_JITTER], st[CH_LAST_ARRIVAL] = model.latency_s, model.jitter_s, -math.inf
+        st[CH_NEXT] = JITTER_BLOCK  # (none drawn yet)
+        self.state = st
 
     def drop(self) -> str | None:
         """Whether the next message is lost: "burst" (in the bad state), "loss" (independent) or None.
@@ -95,24 +123,42 @@ class Channel:
             return "loss"
         return None
 
+    def draw_block(self) -> None:
+        """The next `JITTER_BLOCK` standard normal draws into the state (`block_arrival_s` spent them)."""
+        st = self.state
+        st[CH_BLOCK:] = self.rng.standard_normal(JITTER_BLOCK).tolist()
+        st[CH_NEXT] = 0
+
     def arrival_s(self, ready_s: float) -> float:
         """When a message whose last byte is out at ``ready_s`` arrives: after the latency with its
         jitter, a draw of N(0, jitter_s) (in blocks when nothing else draws: the same numbers), never
         before the one before it (s)."""
-        jitter_s = self._jitter_s
-        if jitter_s <= 0:
-            jitter = 0.0
-        elif self.can_lose:
-            jitter = self.rng.normal(0.0, jitter_s)
-        else:
-            k, block = self._jitter_next, self._jitter_block
-            if k >= len(block):
-                block = self._jitter_block = self.rng.standard_normal(JITTER_BLOCK).tolist()
-                k = 0
-            self._jitter_next = k + 1
-            jitter = 0.0 + jitter_s * block[k]  # what normal(0, jitter_s) makes of the same draw
-        arrival = self._last_arrival_s = delivery_s(ready_s, self._latency_s, jitter, self._last_arrival_s)
-        return arrival
+        st = self.state
+        if self.can_lose and self._jitter_s > 0:
+            arrival = delivery_s(ready_s, self._latency_s, self.rng.normal(0.0, self._jitter_s),
+                                 st[CH_LAST_ARRIVAL])
+            st[CH_LAST_ARRIVAL] = arrival
+            return float(arrival)
+        arrival = block_arrival_s(st, ready_s)
+        if arrival != arrival:  # (NaN: the draws are spent)
+            self.draw_block()
+            arrival = block_arrival_s(st, ready_s)
+        return float(arrival)
+
+
+#: a UART's state, the numbers `UartWire` keeps: bits a byte, the baud (bit/s), when the line is free (s)
+UART_BITS, UART_BAUD, UART_BUSY_UNTIL = 0, 1, 2
+UART_STATE_LEN = 3
+
+
+def wire_finish_s(st: list[float] | np.ndarray, now_s: float, n_bytes: int) -> float:
+    """`UartWire.finish_s` on its state ``st`` (``UART_*``): ``n_bytes`` handed over at ``now_s`` booked
+    behind what is on the line; when their last bit is out (s). Plain arithmetic: `UartWire` runs it, the
+    mocap link compiled in its radio's step."""
+    busy = st[UART_BUSY_UNTIL]
+    done = (busy if busy > now_s else now_s) + n_bytes * st[UART_BITS] / st[UART_BAUD]
+    st[UART_BUSY_UNTIL] = done
+    return done
 
 
 class UartWire:
@@ -122,12 +168,18 @@ class UartWire:
     `finish_s` only books the line (for a caller that queues the chunks itself).
     """
 
-    def __init__(self, baud: int, bits_per_byte: int = BITS_PER_BYTE) -> None:
+    def __init__(self, baud: int, bits_per_byte: int = BITS_PER_BYTE,
+                 state: np.ndarray | None = None) -> None:
+        """``state``: where the wire keeps its numbers (``UART_*``; a float64 array of `UART_STATE_LEN` that
+        a compiled caller shares), else a list of its own."""
         if not baud > 0 or bits_per_byte < 1:
             raise ValueError(f"UART needs baud > 0 and bits_per_byte >= 1, got {baud}, {bits_per_byte}")
         self.baud = baud
         self.bits_per_byte = bits_per_byte
-        self._busy_until_s = -math.inf
+        st = [0.0] * UART_STATE_LEN if state is None else state
+        st[UART_BITS], st[UART_BAUD], st[UART_BUSY_UNTIL] = bits_per_byte, baud, -math.inf
+        self.state = st
+        self.finish_s = partial(wire_finish_s, st)  # (`finish_s` bound to the state: no call of its own)
         #: (done_s, bytes) of the chunks on the line, in order
         self.queue: list[tuple[float, bytes]] = []
         self.bytes_written = 0
@@ -139,14 +191,11 @@ class UartWire:
     def finish_s(self, now_s: float, n_bytes: int) -> float:
         """Book ``n_bytes`` handed over at ``now_s`` behind what is on the line; when their last bit
         is out (s)."""
-        busy = self._busy_until_s
-        done = (busy if busy > now_s else now_s) + n_bytes * self.bits_per_byte / self.baud
-        self._busy_until_s = done
-        return done
+        return wire_finish_s(self.state, now_s, n_bytes)
 
     def write(self, now_s: float, data: bytes) -> float:
         """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
-        done = self.finish_s(now_s, len(data))
+        done = wire_finish_s(self.state, now_s, len(data))
         self.queue.append((done, data if data.__class__ is bytes else bytes(data)))
         return done
 
