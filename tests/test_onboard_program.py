@@ -317,3 +317,34 @@ def test_estimator_follows_a_mocap_clock_that_went_back_once_it_has_taken_nothin
         assert est.update(t, np.array([t, 0.0, 0.0]), q, t + 0.02) is (t + 0.02 > est.config.reset_after_s)
     now = 59 / 120 + 0.02
     assert est.age_s(now) == 0.0 and est.estimate(now).pos_m[0] == pytest.approx(59 / 120, abs=0.05)
+
+
+def test_the_traditional_pilots_compiled_step_flies_the_mission_its_command_flies():
+    """The program runs the traditional pilot's step as one compiled call (`compiled_step`: the state,
+    the command, the tilt-step limit); a pilot offering only `command` goes the long way. Both fly the
+    same mission to the bit."""
+    pilot = make_pilot("traditional")
+
+    class CommandOnly:
+        flies = pilot.flies
+
+        def command(self, obs: Observation) -> AttitudeThrustCommand:
+            return pilot.command(obs)
+
+    def commands(r_pilot: object) -> tuple[list[tuple[float, ...]], object]:
+        seen: list[tuple[float, ...]] = []
+
+        def probe(t: float, vehicle: object, program: OnboardProgram) -> None:
+            c = program._last_cmd
+            if c is not None:
+                seen.append((c.roll_rad, c.pitch_rad, c.yaw_rad, c.thrust_n))
+
+        r = run_mission(30.0, 2.0, pilot=r_pilot, probe=probe)  # type: ignore[arg-type]
+        return seen, r
+
+    fast, r_fast = commands(make_pilot("traditional"))
+    slow, r_slow = commands(CommandOnly())
+    assert r_fast.program._pilot_step is not None and r_slow.program._pilot_step is None
+    assert r_fast.program.exit_code == r_slow.program.exit_code == 0
+    assert len(fast) > 500 and fast == slow
+    assert np.array_equal(r_fast.vehicle.state.pos_m, r_slow.vehicle.state.pos_m)

@@ -82,6 +82,7 @@ from policies.onboard.command_link import NED_FRD_QUAT
 from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
 from policies.onboard.dji_command_link import NED_EULER
 from policies.onboard.estimator import (
+    STATE_FLOATS,
     EstimatorConfig,
     PoseEstimator,
     StaticPoseCheck,
@@ -89,7 +90,12 @@ from policies.onboard.estimator import (
 )
 from policies.onboard.mocap_intake import mocap_intake
 from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
-from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND, plan_with_gains
+from policies.onboard.pilots.traditional import (
+    TRACKING_COMMAND,
+    TRADITIONAL_COMMAND,
+    TRADITIONAL_STEP,
+    plan_with_gains,
+)
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
@@ -332,6 +338,7 @@ def warm_kernels() -> None:
     for t in (-1.0, 0.0, 1.0):
         PLAN_REFERENCE.get()(plan, t)
         TRADITIONAL_COMMAND.get()(plan_with_gains(plan, g), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9)
+        TRADITIONAL_STEP.get()(plan_with_gains(plan, g), 0.9, np.zeros(STATE_FLOATS), t, t, 0.0, 0.0, 0.1)
         TRACKING_COMMAND.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                                0.0, 0.9, g)
     est = PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)
@@ -404,6 +411,10 @@ class OnboardProgram:
         self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
+        #: the pilot's control step on the plan as one compiled call (`Pilot.compiled_step`), when it offers
+        #: one; with the estimator's state array it reads
+        self._pilot_step: Callable[..., tuple[float, float, float, float]] | None = None
+        self._estimator_state = self.estimator.state
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
         self._handlers = {ph: getattr(self, name) for ph, name in _PHASE_HANDLERS.items()}  # (bound once)
@@ -655,6 +666,9 @@ class OnboardProgram:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
         self.plan, self.gap = plan, gap
+        # (a pilot that offers it: the control step on this plan as one compiled call)
+        compiled_step = getattr(self.pilot, "compiled_step", None)
+        self._pilot_step = compiled_step(plan) if compiled_step is not None else None
         self._mission_start_s = now_s
         self.segment = None
         self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
@@ -747,8 +761,17 @@ class OnboardProgram:
             self._send_safe_hover()
             return
         lead = self._lead_s
-        pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         t_s += lead
+        step, last = self._pilot_step, self._last_cmd
+        if step is not None and last is not None and ph in _PILOTED:
+            # the pilot's whole step in one call (the state, its command, the tilt-step limit below); a
+            # command that is not finite goes the long way, whose checks name it
+            roll, pitch, yaw, thrust = step(self._estimator_state, now_s + lead, t_s - self._mission_start_s,
+                                            last.roll_rad, last.pitch_rad, self._tilt_step_rad)
+            if math.isfinite(roll + pitch + thrust):
+                self._send(_new_command(roll, pitch, thrust, yaw))
+                return
+        pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         if ph in _LEVEL:
             armed = self._fc("armed")
             thrust = self.config.hover_thrust_n if armed else 0.0
