@@ -19,6 +19,7 @@ from policies.controller import AttitudeThrustCommand
 from policies.onboard import OnboardProgram, PoseEstimator, ProgramConfig, make_pilot, pilot_names
 from policies.onboard.command_link import CommandLink
 from policies.onboard.pilots import Observation, UnknownPilot
+from policies.onboard.pilots.traditional import takeoff_heading
 
 
 def test_mission_runs_its_phases_in_order_and_hands_back_to_hold():
@@ -348,3 +349,9 @@ def test_the_traditional_pilots_compiled_step_flies_the_mission_its_command_flie
     assert r_fast.program.exit_code == r_slow.program.exit_code == 0
     assert len(fast) > 500 and fast == slow
     assert np.array_equal(r_fast.vehicle.state.pos_m, r_slow.vehicle.state.pos_m)
+
+
+def test_the_take_off_turns_from_its_first_heading_to_the_missions_within_its_duration():
+    assert takeoff_heading(0.5, 1.0, 2.0, 0.2, 1.0) == (0.0, 0.2)  # before the start: at the start
+    assert takeoff_heading(2.0, 1.0, 2.0, 0.2, 1.0) == (1.0, 0.2 + 0.8 * 0.5)  # halfway: half turned
+    assert takeoff_heading(9.0, 1.0, 2.0, 0.2, 1.0) == (2.0, 1.0)  # after the end: held at the end

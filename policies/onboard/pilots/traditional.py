@@ -125,6 +125,33 @@ def tracking_command(poly: np.ndarray, t_s: float, yaw: float, px: float, py: fl
                       gains)
 
 
+def takeoff_heading(t_s: float, t0_s: float, duration_s: float, yaw0_rad: float,
+                    yaw1_rad: float) -> tuple[float, float]:
+    """The onboard program's take-off at ``t_s`` (s) of one started at ``t0_s`` (s) lasting ``duration_s``
+    (s): the time along its trajectory (s, within [0, duration_s]) and its heading (rad), from ``yaw0_rad``
+    to ``yaw1_rad`` on a smoothstep of that time."""
+    tau = t_s - t0_s
+    tau = 0.0 if tau < 0.0 else tau  # (as min(max(t_s - t0_s, 0), duration_s), without the two calls)
+    tau = duration_s if duration_s < tau else tau
+    x = tau / duration_s
+    x = 0.0 if x < 0.0 else x
+    x = 1.0 if x > 1.0 else x
+    return tau, yaw0_rad + (yaw1_rad - yaw0_rad) * (x * x * (3 - 2 * x))
+
+
+def takeoff_step(poly: np.ndarray, gains: np.ndarray, mass_kg: float, st: np.ndarray, now_s: float,
+                 t_s: float, t0_s: float, duration_s: float, yaw0_rad: float,
+                 yaw1_rad: float) -> tuple[float, float, float, float]:
+    """The onboard program's take-off step in one compiled call: the state predicted to ``now_s`` (s, reader
+    clock) from the estimator's state ``st`` (`predicted_state`), `tracking_command` on the trajectory
+    packed in ``poly`` at the time and heading `takeoff_heading` gives for ``t_s`` (s). Roll, pitch, yaw
+    (rad), thrust (N); a command that is not finite is returned as it is (the caller's checks name it)."""
+    px, py, pz, vx, vy, vz, _, _, _ = predicted_state(st, now_s)
+    tau, yaw = takeoff_heading(t_s, t0_s, duration_s, yaw0_rad, yaw1_rad)
+    roll, pitch, thrust = tracking_command(poly, tau, yaw, px, py, pz, vx, vy, vz, mass_kg, gains)
+    return roll, pitch, yaw, thrust
+
+
 def make_pilot(context: PilotContext) -> TraditionalPilot:
     return TraditionalPilot(context.mass_kg, context.max_tilt_deg)
 
@@ -137,3 +164,6 @@ TRADITIONAL_STEP = Kernel(traditional_step, predicted_state=PREDICTED_STATE,
                           tilt_step_limited=TILT_STEP_LIMITED)
 #: the take-off's command, compiled: `tracking_command`
 TRACKING_COMMAND = Kernel(tracking_command, _poly_axes=POLY_AXES, expert_law=EXPERT_LAW)
+#: the onboard program's take-off step, compiled: `takeoff_step`
+TAKEOFF_STEP = Kernel(takeoff_step, predicted_state=PREDICTED_STATE, takeoff_heading=Kernel(takeoff_heading),
+                      tracking_command=TRACKING_COMMAND)
