@@ -185,14 +185,21 @@ def limit_tilt_step(cmd: AttitudeThrustCommand, last: AttitudeThrustCommand,
     """``cmd`` with its roll and pitch each moved at most ``max_step_rad`` (rad) from ``last``'s: a
     command that turns no faster than the FC can (its body rate times the control period); yaw and
     thrust as they are."""
-    r, p, lr, lp = cmd.roll_rad, cmd.pitch_rad, last.roll_rad, last.pitch_rad
-    hi, lo = lr + max_step_rad, lr - max_step_rad
-    r2 = hi if r > hi else (lo if r < lo else r)
-    hi, lo = lp + max_step_rad, lp - max_step_rad
-    p2 = hi if p > hi else (lo if p < lo else p)
+    r, p = cmd.roll_rad, cmd.pitch_rad
+    r2, p2 = tilt_step_limited(r, p, last.roll_rad, last.pitch_rad, max_step_rad)
     if r2 == r and p2 == p:
         return cmd
     return _new_command(r2, p2, cmd.thrust_n, cmd.yaw_rad)
+
+
+def tilt_step_limited(roll_rad: float, pitch_rad: float, last_roll_rad: float, last_pitch_rad: float,
+                      max_step_rad: float) -> tuple[float, float]:
+    """`limit_tilt_step`'s roll and pitch (rad) on floats: each moved at most ``max_step_rad`` (rad) from the
+    last command's (compiled into the traditional pilot's control step, `policies.compiling`)."""
+    hi, lo = last_roll_rad + max_step_rad, last_roll_rad - max_step_rad
+    r = hi if roll_rad > hi else (lo if roll_rad < lo else roll_rad)
+    hi, lo = last_pitch_rad + max_step_rad, last_pitch_rad - max_step_rad
+    return r, (hi if pitch_rad > hi else (lo if pitch_rad < lo else pitch_rad))
 
 
 _CLIP = Kernel(_clip)
@@ -200,3 +207,5 @@ _CLIP = Kernel(_clip)
 EXPERT_LAW = Kernel(expert_law, _clip=_CLIP)
 #: `expert_law` row by row, compiled: `expert_law_rows`
 EXPERT_LAW_ROWS = Kernel(expert_law_rows, expert_law=EXPERT_LAW)
+#: `tilt_step_limited` compiled
+TILT_STEP_LIMITED = Kernel(tilt_step_limited)

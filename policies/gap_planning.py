@@ -648,8 +648,10 @@ def plan_reference(k: np.ndarray, t: float) -> tuple[float, ...]:
 _POLY_STATE = Kernel(_poly_state)
 #: `_poly_axes` compiled (the take-off's command reads its polynomial with it too)
 POLY_AXES = Kernel(_poly_axes, _poly_state=_POLY_STATE)
+#: `segment_index` compiled
+SEGMENT_INDEX = Kernel(segment_index)
 #: `plan_reference` compiled
-PLAN_REFERENCE = Kernel(plan_reference, segment_index=Kernel(segment_index), _poly_axes=POLY_AXES,
+PLAN_REFERENCE = Kernel(plan_reference, segment_index=SEGMENT_INDEX, _poly_axes=POLY_AXES,
                         ballistic_state=Kernel(ballistic_state))
 
 

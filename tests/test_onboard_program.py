@@ -19,6 +19,7 @@ from policies.controller import AttitudeThrustCommand
 from policies.onboard import OnboardProgram, PoseEstimator, ProgramConfig, make_pilot, pilot_names
 from policies.onboard.command_link import CommandLink
 from policies.onboard.pilots import Observation, UnknownPilot
+from policies.onboard.pilots.traditional import takeoff_heading
 
 
 def test_mission_runs_its_phases_in_order_and_hands_back_to_hold():
@@ -317,3 +318,40 @@ def test_estimator_follows_a_mocap_clock_that_went_back_once_it_has_taken_nothin
         assert est.update(t, np.array([t, 0.0, 0.0]), q, t + 0.02) is (t + 0.02 > est.config.reset_after_s)
     now = 59 / 120 + 0.02
     assert est.age_s(now) == 0.0 and est.estimate(now).pos_m[0] == pytest.approx(59 / 120, abs=0.05)
+
+
+def test_the_traditional_pilots_compiled_step_flies_the_mission_its_command_flies():
+    """The program runs the traditional pilot's step as one compiled call (`compiled_step`: the state,
+    the command, the tilt-step limit); a pilot offering only `command` goes the long way. Both fly the
+    same mission to the bit."""
+    pilot = make_pilot("traditional")
+
+    class CommandOnly:
+        flies = pilot.flies
+
+        def command(self, obs: Observation) -> AttitudeThrustCommand:
+            return pilot.command(obs)
+
+    def commands(r_pilot: object) -> tuple[list[tuple[float, ...]], object]:
+        seen: list[tuple[float, ...]] = []
+
+        def probe(t: float, vehicle: object, program: OnboardProgram) -> None:
+            c = program._last_cmd
+            if c is not None:
+                seen.append((c.roll_rad, c.pitch_rad, c.yaw_rad, c.thrust_n))
+
+        r = run_mission(30.0, 2.0, pilot=r_pilot, probe=probe)  # type: ignore[arg-type]
+        return seen, r
+
+    fast, r_fast = commands(make_pilot("traditional"))
+    slow, r_slow = commands(CommandOnly())
+    assert r_fast.program._pilot_step is not None and r_slow.program._pilot_step is None
+    assert r_fast.program.exit_code == r_slow.program.exit_code == 0
+    assert len(fast) > 500 and fast == slow
+    assert np.array_equal(r_fast.vehicle.state.pos_m, r_slow.vehicle.state.pos_m)
+
+
+def test_the_take_off_turns_from_its_first_heading_to_the_missions_within_its_duration():
+    assert takeoff_heading(0.5, 1.0, 2.0, 0.2, 1.0) == (0.0, 0.2)  # before the start: at the start
+    assert takeoff_heading(2.0, 1.0, 2.0, 0.2, 1.0) == (1.0, 0.2 + 0.8 * 0.5)  # halfway: half turned
+    assert takeoff_heading(9.0, 1.0, 2.0, 0.2, 1.0) == (2.0, 1.0)  # after the end: held at the end

@@ -102,6 +102,12 @@ class PoseEstimator:
         self._predict = PREDICTED_STATE.entry(self._state, 0.0)
 
     @property
+    def state(self) -> np.ndarray:
+        """The array `take_pose` keeps and `predicted_state` reads (`STATE_FLOATS`): a compiled step's
+        argument, not to be written by its callers."""
+        return self._state
+
+    @property
     def ready(self) -> bool:
         return self._state.item(_READY) != 0.0
 

@@ -82,6 +82,7 @@ from policies.onboard.command_link import NED_FRD_QUAT
 from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
 from policies.onboard.dji_command_link import NED_EULER
 from policies.onboard.estimator import (
+    STATE_FLOATS,
     EstimatorConfig,
     PoseEstimator,
     StaticPoseCheck,
@@ -89,7 +90,13 @@ from policies.onboard.estimator import (
 )
 from policies.onboard.mocap_intake import mocap_intake
 from policies.onboard.pilots import FloatObservation, Pilot, PilotContext, make_pilot
-from policies.onboard.pilots.traditional import TRACKING_COMMAND, TRADITIONAL_COMMAND, plan_with_gains
+from policies.onboard.pilots.traditional import (
+    TAKEOFF_STEP,
+    TRADITIONAL_COMMAND,
+    TRADITIONAL_STEP,
+    plan_with_gains,
+    takeoff_heading,
+)
 from policies.primitives import solve
 from policies.vehicle import TRAVERSE_LEAD_M
 
@@ -332,8 +339,9 @@ def warm_kernels() -> None:
     for t in (-1.0, 0.0, 1.0):
         PLAN_REFERENCE.get()(plan, t)
         TRADITIONAL_COMMAND.get()(plan_with_gains(plan, g), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9)
-        TRACKING_COMMAND.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                               0.0, 0.9, g)
+        TRADITIONAL_STEP.get()(plan_with_gains(plan, g), 0.9, np.zeros(STATE_FLOATS), t, t, 0.0, 0.0, 0.1)
+        TAKEOFF_STEP.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), g, 0.9, np.zeros(STATE_FLOATS), t, t,
+                           0.0, 2.5, 0.0, 1.0)
     est = PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
@@ -386,8 +394,12 @@ class OnboardProgram:
         self._mission_start_s = 0.0
         #: trajectory, its `poly_packed` form, yaw0, yaw1, start
         self._takeoff: tuple[Any, np.ndarray, float, float, float] | None = None
-        # (the compiled form for a packed trajectory, floats and the expert's gains: no dispatch a step)
-        self._track = TRACKING_COMMAND.entry(np.zeros(PLAN_POLY_FLOATS), *(0.0,) * 9, self.expert.gains_array)
+        # (the take-off's step compiled for a packed trajectory, the expert's gains, the estimator's state
+        # array and floats: no dispatch a step)
+        self._gains, self._mass_kg = self.expert.gains_array, self.expert.mass_kg
+        self._takeoff_step = TAKEOFF_STEP.entry(np.zeros(PLAN_POLY_FLOATS), self._gains, 0.0,
+                                                self.estimator.state, *(0.0,) * 6)
+        self._takeoff_duration_s = cfg.takeoff_duration_s
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
         # the most the commanded roll and pitch move in a control step from the traverse on (rad; the
         # vehicle's body rate times the period), so that the pull-out asks no faster turn than the FC makes:
@@ -404,6 +416,10 @@ class OnboardProgram:
         self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
         self._last_cmd: AttitudeThrustCommand | None = None
+        #: the pilot's control step on the plan as one compiled call (`Pilot.compiled_step`), when it offers
+        #: one; with the estimator's state array it reads
+        self._pilot_step: Callable[..., tuple[float, float, float, float]] | None = None
+        self._estimator_state = self.estimator.state
         self._last_tick_s = -math.inf  # the latest lockstep tick acted on (s)
         self._summary_logged = False
         self._handlers = {ph: getattr(self, name) for ph, name in _PHASE_HANDLERS.items()}  # (bound once)
@@ -655,6 +671,9 @@ class OnboardProgram:
             self._abort(now_s, "planning_failed", detail=str(exc))
             return
         self.plan, self.gap = plan, gap
+        # (a pilot that offers it: the control step on this plan as one compiled call)
+        compiled_step = getattr(self.pilot, "compiled_step", None)
+        self._pilot_step = compiled_step(plan) if compiled_step is not None else None
         self._mission_start_s = now_s
         self.segment = None
         self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
@@ -747,25 +766,37 @@ class OnboardProgram:
             self._send_safe_hover()
             return
         lead = self._lead_s
-        pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         t_s += lead
+        if ph is _TAKEOFF:
+            # the take-off's step in one call (the state, the heading, the reference and the expert law)
+            assert self._takeoff is not None
+            traj, poly, yaw0, yaw1, t0 = self._takeoff
+            duration = self._takeoff_duration_s
+            roll, pitch, yaw, thrust = self._takeoff_step(poly, self._gains, self._mass_kg,
+                                                          self._estimator_state, now_s + lead, t_s, t0,
+                                                          duration, yaw0, yaw1)
+            if math.isfinite(roll + pitch + thrust):
+                self._send(_new_command(roll, pitch, thrust, yaw))
+            else:  # a bad input: the controller's checks name it
+                pos, vel, _ = self.estimator.state_tuples(now_s + lead)
+                tau, yaw = takeoff_heading(t_s, t0, duration, yaw0, yaw1)
+                p, v, a = traj.state_tuples(tau)
+                self._send(self.expert.command(p, v, a, yaw, pos, vel))
+            return
+        step, last = self._pilot_step, self._last_cmd
+        if step is not None and last is not None and ph in _PILOTED:
+            # the pilot's whole step in one call (the state, its command, the tilt-step limit below); a
+            # command that is not finite goes the long way, whose checks name it
+            roll, pitch, yaw, thrust = step(self._estimator_state, now_s + lead, t_s - self._mission_start_s,
+                                            last.roll_rad, last.pitch_rad, self._tilt_step_rad)
+            if math.isfinite(roll + pitch + thrust):
+                self._send(_new_command(roll, pitch, thrust, yaw))
+                return
+        pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         if ph in _LEVEL:
             armed = self._fc("armed")
             thrust = self.config.hover_thrust_n if armed else 0.0
             self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, thrust))
-        elif ph is _TAKEOFF:
-            assert self._takeoff is not None
-            traj, poly, yaw0, yaw1, t0 = self._takeoff
-            tau = min(max(t_s - t0, 0.0), self.config.takeoff_duration_s)
-            yaw = yaw0 + (yaw1 - yaw0) * _smoothstep(tau / self.config.takeoff_duration_s)
-            (px, py, pz), (vx, vy, vz) = pos, vel
-            roll, pitch, thrust = self._track(poly, tau, yaw, px, py, pz, vx, vy, vz, self.expert.mass_kg,
-                                              self.expert.gains_array)
-            if math.isfinite(roll + pitch + thrust):
-                self._send(_new_command(roll, pitch, thrust, yaw))
-            else:  # a bad input: the controller's checks name it
-                p, v, a = traj.state_tuples(tau)
-                self._send(self.expert.command(p, v, a, yaw, pos, vel))
         elif ph in _PILOTED:
             plan = self.plan
             assert plan is not None and self.gap is not None
@@ -907,7 +938,3 @@ def _fds(*transports: Transport) -> list[int]:
 def _wrap(angle_rad: float) -> float:
     return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
-
-def _smoothstep(x: float) -> float:
-    x = min(max(x, 0.0), 1.0)
-    return x * x * (3 - 2 * x)

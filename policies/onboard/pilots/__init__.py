@@ -115,7 +115,11 @@ class Pilot(Protocol):
     """Observation -> attitude-thrust command. Must not block (it runs inside the control loop).
 
     ``flies`` says, per segment (`SEGMENTS`), what computes the commands (see `flown_by`): the onboard
-    program reports it, so a run says which segments a network flew and which the expert did."""
+    program reports it, so a run says which segments a network flew and which the expert did.
+
+    A pilot may also offer ``compiled_step(plan)``: the program's whole control step on ``plan`` as one
+    compiled call (the traditional pilot's `traditional_step`), which the program then runs instead of
+    building an observation and calling ``command``; it must give ``command``'s numbers."""
 
     flies: dict[str, str]
 
