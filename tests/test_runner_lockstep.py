@@ -142,7 +142,8 @@ def _offboard_vehicle(height_m: float, thrust_pct: float, hold: bool = False) ->
 def _fc_trace(v: EmulatedVehicle) -> tuple[object, ...]:
     fc = v.fc
     # (since when it is landed: the auto-disarm's clock in a landing state)
-    return (fc.state, fc.landed, fc._landed_since_s, tuple((e.to_state, e.time_s) for e in fc.events), v.steps)
+    events = tuple((e.to_state, e.time_s) for e in fc.events)
+    return (fc.state, fc.landed, fc._landed_since_s, events, v.steps)
 
 
 @pytest.mark.parametrize(("height_m", "thrust_pct", "hold", "ks", "n_after"), [
