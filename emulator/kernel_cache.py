@@ -100,7 +100,10 @@ def entry(kernel: Any, *args: Any) -> Any:
     writability must be the example's). Each kernel's forms are kept by the argument types' key
     (`hil.link.kernel_types.types_key`): a second run of a process asks numba nothing."""
     from numba import typeof  # (numba is configured by `configure` before its first import)
-    from numba._dispatcher import compute_fingerprint
+    try:  # (numba's own type key; a private name, so a numba without it is served uncached)
+        from numba._dispatcher import compute_fingerprint
+    except ImportError:
+        compute_fingerprint = None
 
     key = types_key(args, compute_fingerprint)
     forms = _entries.setdefault(kernel, {})

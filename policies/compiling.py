@@ -105,7 +105,10 @@ class Kernel:
         argument types' key (`hil.link.kernel_types.types_key`): a program forked from a process that
         made them asks numba nothing."""
         from numba import typeof  # (numba loaded with the first kernel: see the module's docstring)
-        from numba._dispatcher import compute_fingerprint
+        try:  # (numba's own type key; a private name, so a numba without it is served uncached)
+            from numba._dispatcher import compute_fingerprint
+        except ImportError:
+            compute_fingerprint = None
 
         key = types_key(args, compute_fingerprint)
         form = self._entries.get(key) if key is not None else None

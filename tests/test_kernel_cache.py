@@ -100,3 +100,21 @@ def test_a_kernels_entry_is_kept_by_its_argument_types_and_never_mixes_two_types
              kernel_cache.entry(first, row.astype(np.float32), 1), kernel_cache.entry(first, row, 1.0)}
     assert len(forms) == 5
     assert kernel_cache.entry(first, row, 1 << 63)(row, 1 << 63) == float(1 << 63)  # (uint64, not int64)
+
+
+def test_a_numba_without_its_fingerprint_function_still_gives_each_kernels_form(monkeypatch):
+    """numba's type key is a private name of its dispatcher: where a numba has none, an entry is asked of
+    numba each time (slower) and still gives the form compiled for the arguments' types."""
+    import numba
+    import numba._dispatcher
+    import numpy as np
+
+    @numba.njit
+    def second(a, k):
+        return a[0] * k
+
+    monkeypatch.delattr(numba._dispatcher, "compute_fingerprint")
+    row = np.arange(1.0, 4.0)
+    one = kernel_cache.entry(second, row, 3)
+    assert one(row, 3) == 3.0
+    assert kernel_cache.entry(second, row.astype(np.float32), 2.5)(row.astype(np.float32), 2.5) == 2.5

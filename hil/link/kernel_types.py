@@ -11,11 +11,14 @@ from typing import Any
 import numpy as np
 
 
-def types_key(args: tuple[Any, ...], fingerprint: Callable[[Any], bytes]) -> tuple[bytes, ...] | None:
+def types_key(args: tuple[Any, ...], fingerprint: Callable[[Any], bytes] | None) -> tuple[bytes, ...] | None:
     """``fingerprint`` (numba's ``compute_fingerprint``, what its dispatcher keys its type cache on: a
     fraction of a microsecond where ``numba.typeof`` takes 2-20) of each of ``args``, or None where
     that does not fix the numba type: a value numba has no fingerprint for, an int beyond int64 (an
-    int's type depends on its value), an array that is not a plain aligned native-order ndarray."""
+    int's type depends on its value), an array that is not a plain aligned native-order ndarray, or
+    no ``fingerprint`` at all (a numba without it: the caller then asks numba each time)."""
+    if fingerprint is None:
+        return None
     try:
         key = tuple(map(fingerprint, args))
     except (NotImplementedError, ValueError, TypeError):
