@@ -9,6 +9,7 @@ time. A link's own defaults are data of this model (`ChannelModel` field values)
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
@@ -179,7 +180,9 @@ class UartWire:
         st = [0.0] * UART_STATE_LEN if state is None else state
         st[UART_BITS], st[UART_BAUD], st[UART_BUSY_UNTIL] = bits_per_byte, baud, -math.inf
         self.state = st
-        self.finish_s = partial(wire_finish_s, st)  # (`finish_s` bound to the state: no call of its own)
+        #: ``finish_s(now_s, n_bytes)``: book ``n_bytes`` handed over at ``now_s`` behind what is on the
+        #: line; when their last bit is out (s). `wire_finish_s` bound to the state (no call of its own)
+        self.finish_s: Callable[[float, int], float] = partial(wire_finish_s, st)
         #: (done_s, bytes) of the chunks on the line, in order
         self.queue: list[tuple[float, bytes]] = []
         self.bytes_written = 0
@@ -187,11 +190,6 @@ class UartWire:
     def wire_time_s(self, n_bytes: int) -> float:
         """Time ``n_bytes`` take on the wire (s)."""
         return n_bytes * self.bits_per_byte / self.baud
-
-    def finish_s(self, now_s: float, n_bytes: int) -> float:
-        """Book ``n_bytes`` handed over at ``now_s`` behind what is on the line; when their last bit
-        is out (s)."""
-        return wire_finish_s(self.state, now_s, n_bytes)
 
     def write(self, now_s: float, data: bytes) -> float:
         """Queue ``data`` at ``now_s``; returns when its last byte is on the far side (s)."""
