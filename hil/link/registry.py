@@ -22,13 +22,18 @@ class Registry:
             raise ValueError("a registry takes either a package and an attribute, or explicit entries")
         self.kind, self.package, self.attr, self.error = kind, package, attr, error
         self._entries = dict(entries or {})
+        self._names: list[str] | None = None  # a package's, listed on first use
 
     def names(self) -> list[str]:
-        """The known names, sorted."""
-        if self.package is None:
-            return sorted(self._entries)
-        path = importlib.import_module(self.package).__path__
-        return sorted(m.name for m in pkgutil.iter_modules(path) if not m.name.startswith("_"))
+        """The known names, sorted. A package's modules are listed once a process (a process forked
+        after it, a warm-started program, finds them listed): a module added while it runs is not seen."""
+        if self._names is None:
+            if self.package is None:
+                self._names = sorted(self._entries)
+            else:
+                path = importlib.import_module(self.package).__path__
+                self._names = sorted(m.name for m in pkgutil.iter_modules(path) if not m.name.startswith("_"))
+        return list(self._names)
 
     def check(self, name: str) -> None:
         """``error`` naming the known names unless ``name`` is one."""

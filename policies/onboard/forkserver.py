@@ -3,8 +3,9 @@ fresh copy of itself per run (one kept forked ahead, waiting for its run's argum
 pays a hand-over (milliseconds) instead of an interpreter start and the imports of numpy, pymavlink and
 the pilots (about 0.3-0.5 s).
 
-Each child runs ``python -m policies.onboard`` exactly as a cold start does (the same ``__main__``, on
-the arguments and the stderr it is given, stdin and stdout on /dev/null), in a copy of the server's
+Each child runs ``python -m policies.onboard`` as a cold start does (what its ``__main__`` runs,
+`policies.onboard.cli.main_and_leave`, on the arguments and the stderr it is given, stdin and stdout on
+/dev/null), in a copy of the server's
 memory as it was after the imports: the server never runs a program itself, so no state passes from
 one run to the next. The server forks, reaps and reports; `ForkServer.spawn` returns a `ForkedProcess`,
 which a harness watches, signals (through a pidfd: never a recycled pid) and waits on as it would a
@@ -34,7 +35,6 @@ import importlib
 import json
 import math
 import os
-import runpy
 import select
 import selectors
 import signal
@@ -46,7 +46,7 @@ import traceback
 from typing import IO, Any
 
 from hil.link.memory import MemoryTransport
-from policies.onboard.cli import parser
+from policies.onboard.cli import main_and_leave, parser
 from policies.onboard.command_links import COMMAND_LINKS
 from policies.onboard.pilots import PILOTS
 from policies.onboard.program import EventLog, OnboardProgram, ProgramConfig, warm_kernels
@@ -269,7 +269,8 @@ def _end(pidfd: int) -> None:
 
 
 def _child(args: list[str], stderr_fd: int) -> int:
-    """Run the program in this fresh child, as ``python -m MODULE ARGS`` would; its exit code."""
+    """Run the program in this fresh child, as ``python -m MODULE ARGS`` would; its exit code (when it
+    did not leave by itself)."""
     signal.signal(signal.SIGINT, signal.default_int_handler)  # (the server ignores it; Python's own)
     devnull = os.open(os.devnull, os.O_RDWR)
     os.dup2(devnull, 0)
@@ -279,7 +280,9 @@ def _child(args: list[str], stderr_fd: int) -> int:
     os.close(stderr_fd)
     sys.argv = [MODULE, *args]
     try:
-        runpy.run_module(MODULE, run_name="__main__", alter_sys=True)  # (its __main__ leaves by os._exit)
+        # what the module's __main__ runs, called here: finding and loading that file again in each
+        # child (runpy) would be ~2 ms of its start
+        main_and_leave(args)  # (leaves by os._exit)
     except SystemExit as exc:
         code = exc.code
         if code is None or isinstance(code, int):
