@@ -5,11 +5,11 @@ the pilots (about 0.3-0.5 s).
 
 Each child runs ``python -m policies.onboard`` as a cold start does (what its ``__main__`` runs,
 `policies.onboard.cli.main_and_leave`, on the arguments and the stderr it is given, stdin and stdout on
-/dev/null), in a copy of the server's
-memory as it was after the imports: the server never runs a program itself, so no state passes from
-one run to the next. The server forks, reaps and reports; `ForkServer.spawn` returns a `ForkedProcess`,
-which a harness watches, signals (through a pidfd: never a recycled pid) and waits on as it would a
-`subprocess.Popen`: a killed or stopped child is killed or stopped as a cold one is.
+/dev/null), in a copy of the server's memory as it was after the imports: the server never runs a
+program itself, so no state passes from one run to the next. The server forks, reaps and reports;
+`ForkServer.spawn` returns a `ForkedProcess`, which a harness watches, signals (through a pidfd: never a
+recycled pid) and waits on as it would a `subprocess.Popen`: a killed or stopped child is killed or
+stopped as a cold one is.
 
 The protocol, on AF_UNIX SOCK_SEQPACKET sockets (one message per send, descriptors beside it):
     control socket (one per server; harness processes forked after it started share it): the request
