@@ -341,11 +341,17 @@ class EmulatorSide:
                         t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
                         if t_vehicle is None:
                             t_vehicle = vehicle.time_s
-                advance_clock(t_next)
+                # the clock reads a stop's time where something there reads the clock: the FC's poll,
+                # a fault switching; at every stop with faults on the mocap link (the frames reaching
+                # the link) or another stepper (the ESC bus's messages to the FC); the mocap chain, the
+                # batched stepper and the recorder take the time as an argument
+                if fast is None:
+                    advance_clock(t_next)
                 t = t_next
                 if t >= boundary - 1e-12:
                     # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
                     # fault ending there would still read as active and never be switched off
+                    advance_clock(t)
                     self._switch_faults(max(t, boundary))
                     boundary = self._next_boundary_s
                     m_next, arrival, t_vehicle = next_mocap(), next_arrival(), vehicle.time_s
@@ -355,6 +361,7 @@ class EmulatorSide:
                     update(t, pose_values() if frozen is None else frozen, gap_pose)
                     m_next = next_mocap()
                 if t >= arrival - 1e-12:
+                    advance_clock(t)
                     poll(t)
                     arrival = next_arrival()
                 if t >= next_sample - 1e-12:
@@ -364,6 +371,7 @@ class EmulatorSide:
                             m_next = next_mocap()
                     next_sample = sample(t, state_row if state_row is not None else state_vector())
             self._m_next, self._t_vehicle, self._steps_at = m_next, t_vehicle, vehicle.steps
+            advance_clock(t)  # (the last stop's time, as the loop leaves the clock)
             deliver(t_end_s)
             poll(t_end_s)
             if not self.hold_mocap:
@@ -373,7 +381,8 @@ class EmulatorSide:
             # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
             # the physics diverged, which a run reports as such instead of crashing
             # (an exposure taken after its step: its own time and pose, as at a stop of its own)
-            t_bad, pose = (self.clock.now_s(), pose_values()) if exposing is None else exposing
+            advance_clock(t)  # (the stop's time, where the clock is read from now on)
+            t_bad, pose = (t, pose_values()) if exposing is None else exposing
             if all(abs(v) < DIVERGED_LIMIT for v in pose):
                 raise
             self._overflow_s = t_bad
