@@ -55,6 +55,9 @@ class EmulatedVehicle:
         self.backend.reset(initial_state or resting_state(profile, ground_z_m=self.fc.config.ground_z_m))
         self._state: VehicleState | None = self.backend.state
         self.steps = 0
+        #: the step count ``_state`` was built at: a state of another count is stale (a batched stepper
+        #: that steps the backend itself counts its steps here and needs no `invalidate_state` a batch)
+        self._state_steps = 0
         #: steps the vehicle instead of `step`'s own loop when set (the motors behind an ESC bus,
         #: `emulator.esc.bus.EscBusStepper`); it counts ``steps`` itself
         self.motor_path: MotorPath | None = None
@@ -71,8 +74,9 @@ class EmulatedVehicle:
     def state(self) -> VehicleState:
         """The state after the last step (built from the backend when first asked for)."""
         st = self._state
-        if st is None:
+        if st is None or self._state_steps != self.steps:
             st = self._state = self.backend.state
+            self._state_steps = self.steps
         return st
 
     def pose_values(self) -> tuple[float, ...]:
@@ -89,10 +93,11 @@ class EmulatedVehicle:
     @property
     def time_s(self) -> float:
         st = self._state
-        return self.backend.time_s if st is None else st.time_s
+        return self.backend.time_s if st is None or self._state_steps != self.steps else st.time_s
 
     def invalidate_state(self) -> None:
-        """The backend was stepped behind this object's back (a batched stepper): rebuild on demand."""
+        """The backend was stepped or changed behind this object's back: rebuild on demand (a stepper
+        that adds the steps it took to ``steps`` needs no call)."""
         self._state = None
 
     @property
@@ -124,7 +129,7 @@ class EmulatedVehicle:
         for _ in range(n_steps):
             backend.step(fc.update(self.state), 1)
             self._state = backend.state
-        self.steps += n_steps
+        self.steps = self._state_steps = self.steps + n_steps
 
     def step_to(self, time_s: float) -> int:
         """Step until simulated time reaches ``time_s`` (to the step below); returns the steps taken."""

@@ -139,10 +139,11 @@ class FlightController:
         self._idle = np.full(4, self.gains.inner.idle_throttle)
         self.motor_cmd = self._off
         #: the offboard attitude target a batched stepper may fly outside `update`: (roll, pitch, yaw
-        #: (NED, rad), thrust (N), the setpoint-loss failsafe's time (s)), None when none may be; made
-        #: again where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`;
+        #: (NED, rad), thrust (N), the setpoint-loss failsafe's time (s), and the landed test's resting
+        #: height and margin (m, `landed_test`'s, as plain numbers)), None when none may be; made again
+        #: where its inputs change (a setpoint, a change of state, `reconfigure`), see `batch_target`;
         #: while there is one, its yaw is the heading the FC steers to (`heading_setpoint_rad`)
-        self.batch_plan: tuple[float, float, float, float, float] | None = None
+        self.batch_plan: tuple[float, float, float, float, float, float, float] | None = None
 
     def _pack_hold(self) -> np.ndarray:
         cfg = self.config
@@ -368,7 +369,7 @@ class FlightController:
         plan = self.batch_plan
         if plan is None:
             return None
-        roll, pitch, yaw, thrust_n, until_s = plan
+        roll, pitch, yaw, thrust_n, until_s, _, _ = plan
         return roll, pitch, yaw, thrust_n, steps_before(until_s - time_s, dt_s, n_max)
 
     def _plan_batch(self) -> None:
@@ -379,8 +380,10 @@ class FlightController:
             self.batch_plan = None
             return
         # the setpoint-loss failsafe's time (`quiet_until_s` in OFFBOARD)
-        until_s = self.last_setpoint_s + self.config.failsafe_timeout_s
-        self.batch_plan = (tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n, until_s)  # type: ignore[union-attr]
+        cfg = self.config
+        until_s = self.last_setpoint_s + cfg.failsafe_timeout_s
+        self.batch_plan = (tg.roll_rad, tg.pitch_rad, tg.yaw_rad, tg.thrust_n,  # type: ignore[union-attr]
+                           until_s, self.rest_height_m, cfg.landed_margin_m)
 
     def quiet_steps(self, time_s: float, dt_s: float, n_max: int) -> int:
         """How many of the next ``n_max`` steps of ``dt_s`` (s) from ``time_s`` (s) begin before a timed

@@ -2,10 +2,10 @@
 hovers or lands in the air on its own velocity controller, its controller and the native physics run
 together in one numba call for a whole batch of 1 kHz steps (the lockstep runner's fast path).
 
-It steps through the public contract of its parts: the backend's `NativeBackend.kernel_buffer` and
-`advance_clock`, the inner loop's `control` kernel with its ``params``, ``mix_inv`` and ``motor_cmd`` (its
-``buffer``, split by `loop_views`),
-the FC's `hold_command` parameters, `landed_test`, `batch_plan`, `quiet_steps` and `flew_outside`.
+It steps through the public contract of its parts: the backend's `NativeBackend.kernel_buffer` (its
+clock counted there, `KERNEL_CLOCK`), the inner loop's `control` kernel with its ``params``, ``mix_inv``
+and ``motor_cmd`` (its ``buffer``, split by `loop_views`), the FC's `hold_command` parameters,
+`landed_test` (the hold's), `batch_plan`, `quiet_steps` and `flew_outside`.
 Same arithmetic as `EmulatedVehicle.step` (the FC's controller, then one physics step, each
 millisecond); a batch stops before anything the FC's own step would act on: the setpoint-loss timeout,
 the failsafe hover's end, the body reaching the ground. Anything else (other FC states, other backends,
@@ -28,7 +28,7 @@ from emulator.fc.inner_loop import control, control_quat, loop_views, target_qua
 from emulator.fc.landed import body_landed
 from emulator.kernel_cache import entry
 from emulator.physics.kernels import step_vehicle
-from emulator.physics.native import KERNEL_PARAMS, KERNEL_POSE, NativeBackend
+from emulator.physics.native import KERNEL_CLOCK, KERNEL_PARAMS, KERNEL_POSE, NativeBackend
 from emulator.physics.state import QUAT, STATE_SIZE
 from emulator.vehicle import EmulatedVehicle
 from emulator.world.box_kernel import check_packed, quat_to_rot_into
@@ -37,14 +37,14 @@ _steps_before = njit(cache=True, nogil=True)(steps_before)  # (the FC's count, c
 
 
 @njit(cache=True, nogil=True)
-def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt_s, landed_test, capture_at,
-               landed_now):  # pragma: no cover
+def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, rest_z, margin, loop, n_max, time_s, dt_s,
+               capture_at, landed_now):  # pragma: no cover
     """The steps of a held attitude target (the FC's `batch_plan`: ``until_s`` its setpoint-loss
-    failsafe's time (s)) that begin before ``until_s``, of the next ``n_max`` steps of ``dt_s`` from
-    ``time_s`` (s) (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf`` with the inner
-    loop's ``buffer`` ``loop``; returns
-    (the steps flown, the FC's landed test of the body after them: `FlightController.detect_landed`,
-    ``landed_test`` its `FlightController.landed_test`).
+    failsafe's time (s), ``rest_z`` and ``margin`` its landed test's resting height and margin (m)) that
+    begin before ``until_s``, of the next ``n_max`` steps of ``dt_s`` from ``time_s`` (s)
+    (`steps_before`), on the backend's `NativeBackend.kernel_buffer` ``buf`` with the inner loop's
+    ``buffer`` ``loop``, the steps counted on its clock; returns (the steps flown, the FC's landed test of
+    the body after them: `FlightController.detect_landed`, the backend's time after them (s)).
 
     ``capture_at`` (1 to ``n_max``; 0: none): the pose after that many steps is copied into ``buf``'s
     captured pose (`NativeBackend.captured_pose`) and the batch flies on, as two batches split there would
@@ -56,7 +56,7 @@ def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt
         n_max = capture_at
     n_steps = _steps_before(until_s - time_s, dt_s, n_max)
     if n_steps <= 0:
-        return 0, False
+        return 0, False, time_s
     x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:KERNEL_POSE]
     gains, mix_inv, out = loop_views(loop)
     d0, d1, d2, d3 = target_quat_floats(roll, pitch, yaw)  # the target is held: its quaternion once
@@ -64,14 +64,23 @@ def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, loop, n_max, time_s, dt
     for i in range(n_steps):
         if i == at:
             _capture(x, buf)
-            landed = body_landed(x[2], x[5], landed_test[0], landed_test[1])
+            landed = body_landed(x[2], x[5], rest_z, margin)
             if landed != landed_now:
-                return i, landed
+                return i, landed, _count(buf, i, dt_s)
         control_quat(x[6:10], x[10:13], d0, d1, d2, d3, thrust_n, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
     if n_steps == capture_at:
         _capture(x, buf)
-    return n_steps, body_landed(x[2], x[5], landed_test[0], landed_test[1])
+    return n_steps, body_landed(x[2], x[5], rest_z, margin), _count(buf, n_steps, dt_s)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _count(buf, n_steps, dt_s):  # pragma: no cover
+    """Count ``n_steps`` steps of ``dt_s`` (s) taken on ``buf``'s clock (`KERNEL_CLOCK`); returns the
+    backend's time after them (s), as `NativeBackend.advance_clock` gives it."""
+    steps = buf[KERNEL_CLOCK] + n_steps
+    buf[KERNEL_CLOCK] = steps
+    return buf[KERNEL_CLOCK + 1] + steps * dt_s
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -140,22 +149,23 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
 
 
 @njit(cache=True, nogil=True)
-def _hold_batch(buf, climb, yaw, landed_test, hold_params, loop, n_steps):  # pragma: no cover
-    """Velocity-hold steps (`FlightController._velocity_hold` per step) at climb rate ``climb`` (m/s,
-    up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as landed
-    (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`), on the
-    backend's `NativeBackend.kernel_buffer` ``buf`` with the inner loop's ``buffer`` ``loop``; returns the
-    steps taken."""
+def _hold_batch(buf, climb, yaw, landed_test, hold_params, loop, n_steps, dt_s):  # pragma: no cover
+    """Velocity-hold steps (`FlightController._velocity_hold` per step) of ``dt_s`` (s) at climb rate
+    ``climb`` (m/s, up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as
+    landed (`FlightController.detect_landed`, ``landed_test``: its `FlightController.landed_test`), on
+    the backend's `NativeBackend.kernel_buffer` ``buf`` with the inner loop's ``buffer`` ``loop``, the
+    steps counted on its clock; returns (the steps taken, the backend's time after them (s))."""
     x, aux, p = buf[:STATE_SIZE], buf[STATE_SIZE:KERNEL_PARAMS], buf[KERNEL_PARAMS:KERNEL_POSE]
     gains, mix_inv, out = loop_views(loop)
     rest_z, margin = landed_test[0], landed_test[1]
     for k in range(n_steps):
         if body_landed(x[2], x[5], rest_z, margin):
-            return k  # the FC would see the landing at this step: its own step takes over
+            # the FC would see the landing at this step: its own step takes over
+            return k, _count(buf, k, dt_s)
         roll, pitch, thrust = hold_command(x[3], x[4], x[5], climb, yaw, hold_params, 0.0, 0.0)
         control(x[6:10], x[10:13], roll, pitch, yaw, thrust, gains, mix_inv, out)
         step_vehicle(x, aux, p, out, 1)
-    return n_steps
+    return n_steps, _count(buf, n_steps, dt_s)
 
 
 class FastStepper:
@@ -181,14 +191,13 @@ class FastStepper:
             self._x = vehicle.backend.kernel_arrays[0]  # type: ignore[attr-defined]
             self._loop = loop = inner.buffer
             self._landed_test = landed_test = fc.landed_test
-            self._advance_clock = vehicle.backend.advance_clock  # type: ignore[attr-defined]
             # the kernels' forms for these arrays, floats and ints (compiled or loaded from the cache
             # now, not inside the timed loop), called without numba's type dispatch
-            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, loop, 0, 0.0, 0.0, landed_test,
-                                    0, False)
+            self._fly_batch = entry(_fly_batch, buf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, loop, 0, 0.0, 0.0, 0,
+                                    False)
             self._captured_pose = vehicle.backend.captured_pose  # type: ignore[attr-defined]
             self._pose_values = vehicle.backend.pose_values  # type: ignore[attr-defined]
-            self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, loop, 0)
+            self._hold_batch = entry(_hold_batch, buf, 0.0, 0.0, landed_test, fc.hold_params, loop, 0, 0.0)
 
     @classmethod
     def for_vehicle(cls, vehicle: EmulatedVehicle) -> FastStepper:
@@ -210,25 +219,25 @@ class FastStepper:
             self.single_steps += n_steps + capture_at
             return None
         fc, v, dt = self._fc, self.vehicle, self._dt_s
-        advance_clock = self._advance_clock
         if time_s is None:
             time_s = self._backend.time_s
         capture = capture_at  # (the steps still before the capture; 0: none, or taken)
         while n_steps > 0:
-            n, landed = 0, None
+            n = 0
             plan = fc.batch_plan  # (an offboard attitude target: flown in batches, `batch_target`)
             if plan is not None:
-                n, landed = self._fly_batch(self._buffer, *plan, self._loop, n_steps, time_s, dt,
-                                            self._landed_test, capture, fc.landed)
+                # (the kernel counts the steps on the backend's clock and hands back its time)
+                n, landed, t_after = self._fly_batch(self._buffer, *plan, self._loop, n_steps, time_s, dt,
+                                                     capture, fc.landed)
             if n == 0:
                 landed = None  # (the hold batch stops before a landing: the flag stays as it is)
-                n = self._hold_steps(capture or n_steps, time_s)
+                n, t_after = self._hold_steps(capture or n_steps, time_s)
             if n > 0:
-                # the counts and the FC's bookkeeping as its own per-step update would have left them
-                time_s = advance_clock(n)
+                # the counts and the FC's bookkeeping as its own per-step update would have left them (the
+                # vehicle builds its state anew once its step count has moved)
+                time_s = t_after
                 v.steps += n
                 self.batched_steps += n
-                v.invalidate_state()  # no VehicleState per batch: built only when someone reads it
                 fc.flew_outside(time_s - dt, landed)
             else:
                 v.step(1)
@@ -244,19 +253,21 @@ class FastStepper:
                     capture = 0
         return time_s
 
-    def _hold_steps(self, n_steps: int, time_s: float) -> int:
+    def _hold_steps(self, n_steps: int, time_s: float) -> tuple[int, float]:
         """Up to ``n_steps`` batched steps of the FC's velocity hold (hold, hover, land in the air) from
-        the backend's time ``time_s`` (s); returns the steps taken (0: take the per-step path). Every
-        step taken began in the air: the FC's landed flag stays as it was."""
+        the backend's time ``time_s`` (s); returns (the steps taken (0: take the per-step path), the
+        backend's time after them (s)). Every step taken began in the air: the FC's landed flag stays as
+        it was."""
         fc = self._fc
         st = fc.machine.state
         if st not in HOLD_STATES or fc.landed:
-            return 0
+            return 0, time_s
         if st is FcState.HOLD and fc.offboard_selected and not fc.stream_ok(time_s):
-            return 0
-        n_steps = fc.quiet_steps(time_s, self._dt_s, n_steps)
+            return 0, time_s
+        dt = self._dt_s
+        n_steps = fc.quiet_steps(time_s, dt, n_steps)
         if n_steps <= 0:
-            return 0
+            return 0, time_s
         yaw = fc.hold_heading_rad(self._x[QUAT])  # latched at the first hold step, as the FC's own
         return self._hold_batch(self._buffer, fc.hold_climb_m_s(), yaw, self._landed_test, fc.hold_params,
-                                self._loop, n_steps)
+                                self._loop, n_steps, dt)

@@ -34,6 +34,11 @@ KERNEL_PARAMS = STATE_SIZE + AUX_SIZE
 #: stepper's copy of the pose at a step inside its batch (x, y, z (m), qw, qx, qy, qz: `pose_values`)
 KERNEL_POSE = KERNEL_PARAMS + N_PARAMS
 POSE_SIZE = 7
+#: where the clock is in `NativeBackend.kernel_buffer` (after the captured pose): the steps taken since the
+#: last reset (a whole number, as a float) and the time then (s); ``time_s`` is ``t0 + steps * dt_s``. A
+#: batched stepper's kernel counts the steps it takes there itself (no `advance_clock` call a batch)
+KERNEL_CLOCK = KERNEL_POSE + POSE_SIZE
+KERNEL_SIZE = KERNEL_CLOCK + 2
 
 
 def hover_state(profile: VehicleProfile, pos_m: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> VehicleState:
@@ -109,24 +114,22 @@ class NativeBackend:
         self.profile = profile
         params = pack_params(profile, dt_s)
         self.dt_s = float(dt_s)
-        # the state row, the auxiliary row and the parameters one after another in one array
-        # and a pose captured mid-batch (`kernel_buffer`), each a view of it
-        self._buffer = np.zeros(KERNEL_POSE + POSE_SIZE)
+        # the state row, the auxiliary row and the parameters one after another in one array, a pose
+        # captured mid-batch and the clock (`kernel_buffer`), each a view of it
+        self._buffer = np.zeros(KERNEL_SIZE)
         self._x = self._buffer[:STATE_SIZE]
         self._aux = self._buffer[STATE_SIZE:KERNEL_PARAMS]
         self._params = self._buffer[KERNEL_PARAMS:KERNEL_POSE]
-        self._pose = self._buffer[KERNEL_POSE:]
+        self._pose = self._buffer[KERNEL_POSE:KERNEL_CLOCK]
+        self._clock = self._buffer[KERNEL_CLOCK:]  # (steps, t0 (s)): the only count of the steps taken
         self._params[:] = params
-        self._t0_s = 0.0
-        self._steps = 0
         self.reset(VehicleState())
 
     def reset(self, state: VehicleState) -> None:
         """Put the vehicle in ``state``; its ``time_s`` becomes the clock. The external force is kept."""
         self._x[:] = _check_state_vector(state.to_vector(), "reset")
         self._aux[AUX_ACCEL] = state.accel_m_s2
-        self._t0_s = float(state.time_s)
-        self._steps = 0
+        self._clock[:] = (0.0, float(state.time_s))
 
     def step(self, motor_cmd: np.ndarray, n_steps: int = 1) -> None:
         """Hold throttle ``motor_cmd`` (4,) in [0, 1] for ``n_steps`` steps of ``dt_s``."""
@@ -136,7 +139,7 @@ class NativeBackend:
         if n_steps.__class__ is not int or n_steps < 0:
             n_steps = _check_steps(n_steps)
         step_vehicle(self._x, self._aux, self._params, cmd, n_steps)
-        self._steps += n_steps
+        self._clock[0] += n_steps
 
     @property
     def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -149,26 +152,33 @@ class NativeBackend:
     def kernel_buffer(self) -> np.ndarray:
         """`kernel_arrays` as one array, of which they are views: the state row ``[:STATE_SIZE]``, the
         auxiliary row ``[STATE_SIZE:KERNEL_PARAMS]``, the parameters ``[KERNEL_PARAMS:KERNEL_POSE]``, a
-        captured pose ``[KERNEL_POSE:]`` (`captured_pose`); a compiled caller called often takes this
-        one argument instead of three (numba unboxes each array argument of each call)."""
+        captured pose ``[KERNEL_POSE:KERNEL_CLOCK]`` (`captured_pose`), the clock ``[KERNEL_CLOCK:]``
+        (`KERNEL_CLOCK`: a compiled caller that counts its steps there needs no `advance_clock`); a
+        compiled caller called often takes this one argument instead of three (numba unboxes each array
+        argument of each call)."""
         return self._buffer
 
     @property
     def clock(self) -> tuple[float, int]:
         """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s``, for a compiled caller that keeps the time
         of the steps it takes through `kernel_arrays`."""
-        return self._t0_s, self._steps
+        steps, t0 = self._clock.tolist()
+        return t0, int(steps)
 
     def advance_clock(self, n_steps: int) -> float:
         """Count ``n_steps`` steps taken through `kernel_arrays` by another caller; returns ``time_s``
-        (its sum, without the property's call: a batched stepper calls this about three times a tick)."""
-        steps = self._steps = self._steps + n_steps
-        return self._t0_s + steps * self.dt_s
+        (its sum, without the property's call)."""
+        c = self._clock
+        steps, t0 = c.tolist()
+        steps += n_steps
+        c[0] = steps
+        return t0 + steps * self.dt_s
 
     def time_after_s(self, n_steps: int) -> float:
         """``time_s`` after ``n_steps`` more steps (s), as `advance_clock` will count them, without
         counting them."""
-        return self._t0_s + (self._steps + n_steps) * self.dt_s
+        steps, t0 = self._clock.tolist()
+        return t0 + (steps + n_steps) * self.dt_s
 
     def captured_pose(self) -> tuple[float, ...]:
         """The pose a batched stepper last captured in `kernel_buffer` (``[KERNEL_POSE:]``), as
@@ -186,7 +196,8 @@ class NativeBackend:
     @property
     def time_s(self) -> float:
         """Simulated time (s)."""
-        return self._t0_s + self._steps * self.dt_s
+        steps, t0 = self._clock.tolist()
+        return t0 + steps * self.dt_s
 
     @property
     def state(self) -> VehicleState:

@@ -245,6 +245,23 @@ class EmulatorSide:
         self._next_boundary_s = self.faults.next_boundary_s(-1.0)
         self._overflow_s: float | None = None  # when the state grew past what the wire formats hold
         self.recorder.sample(0.0, self.vehicle.state_vector())
+        # what `advance_to` reads at every call, the same objects for the run's life, bound once. The loop
+        # stops at mocap exposures only (the radio and the UART are caught up at the next stop, each frame
+        # keeping its own times); with faults on the mocap link it stops at every mocap event, as the
+        # faults act at the time a frame reaches the link, and captures no exposure inside a batch
+        exact = self.faults.has_mocap_faults
+        mocap, vehicle, rec = self.mocap, self.vehicle, self.recorder
+        next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
+        fast, time_after = self._capturing
+        self._loop_parts = (
+            exact, next_mocap, self.wire.next_arrival_s, self._step, clock.advance_to, mocap.update,
+            mocap.deliver, rec.sample, self.server.poll, vehicle.pose_values, vehicle.state_vector,
+            self._state_row, self._dt_s, None if exact else fast, time_after, self._exposure_period_s,
+            self._gap_pose, rec, vehicle)
+        #: as the last `advance_to` left them: the next exposure's time (s; asked again with faults on the
+        #: mocap link, where it is the next mocap event), the vehicle's time (s) and its step count then (the
+        #: time is asked again when something else stepped it since)
+        self._m_next, self._t_vehicle, self._steps_at = next_mocap(), vehicle.time_s, vehicle.steps
 
     @property
     def time_s(self) -> float:
@@ -263,33 +280,21 @@ class EmulatorSide:
         if self._overflow_s is not None:
             return
         t = self.clock.now_s()
-        rec, mocap, wire, vehicle = self.recorder, self.mocap, self.wire, self.vehicle
-        # the loop stops at mocap exposures only (the radio and the UART are caught up at the next
-        # stop, each frame keeping its own times); with faults on the mocap link it stops at every
-        # mocap event, as the faults act at the time a frame reaches the link
-        exact = self.faults.has_mocap_faults
-        next_mocap = mocap.next_event_s if exact else mocap.mocap.next_exposure_s
-        next_arrival = wire.next_arrival_s
-        server, step, advance_clock = self.server, self._step, self.clock.advance_to
-        update, deliver, sample, poll = mocap.update, mocap.deliver, rec.sample, server.poll
-        gap_pose, pose_values, state_vector = self._gap_pose, vehicle.pose_values, vehicle.state_vector
-        state_row = self._state_row
-        dt = self._dt_s
+        (exact, next_mocap, next_arrival, step, advance_clock, update, deliver, sample, poll, pose_values,
+         state_vector, state_row, dt, fast, time_after, period, gap_pose, rec, vehicle) = self._loop_parts
         floor = math.floor
         boundary = self._next_boundary_s  # (changed only where a fault switches, below)
         t_stop = t_end_s - 1e-12
-        # an exposure between two other stops needs only the pose at its step: the stepper captures it
-        # while it flies on to the next stop (`FastStepper.step`'s ``capture_at``), and the exposure is
-        # taken there, before anything else of that stop, as a stop of its own would have taken it
-        # first; not with faults on the mocap link, a frozen mocap, or another stepper
-        fast, time_after = self._capturing
-        if exact:
-            fast = None
-        period = self._exposure_period_s
-        # the next mocap event, command frame's arrival and sample change only where the loop acts on
-        # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there
-        m_next, arrival, next_sample = next_mocap(), next_arrival(), rec.next_sample_s
-        t_vehicle = vehicle.time_s  # (moved by the steps only)
+        # an exposure between two other stops needs only the pose at its step: the stepper (``fast``)
+        # captures it while it flies on to the next stop (`FastStepper.step`'s ``capture_at``), and the
+        # exposure is taken there, before anything else of that stop, as a stop of its own would have
+        # taken it first; not with faults on the mocap link, a frozen mocap, or another stepper.
+        # The next mocap event, command frame's arrival and sample change only where the loop acts on
+        # them (an exposure or a delivery, the FC's poll, a sample, a fault switching): asked there (the
+        # next exposure and the vehicle's time kept from the last call, see ``__init__``)
+        m_next = next_mocap() if exact else self._m_next
+        arrival, next_sample = next_arrival(), rec.next_sample_s
+        t_vehicle = self._t_vehicle if vehicle.steps == self._steps_at else vehicle.time_s
         #: an exposure taken at a stop after its own, while it is taken: its time (s) and pose
         exposing: tuple[float, tuple[float, ...]] | None = None
         try:
@@ -336,11 +341,17 @@ class EmulatorSide:
                         t_vehicle = step(n, t_vehicle)  # (the stepper's time, or None: the vehicle's)
                         if t_vehicle is None:
                             t_vehicle = vehicle.time_s
-                advance_clock(t_next)
+                # the clock reads a stop's time where something there reads the clock: the FC's poll,
+                # a fault switching; at every stop with faults on the mocap link (the frames reaching
+                # the link) or another stepper (the ESC bus's messages to the FC); the mocap chain, the
+                # batched stepper and the recorder take the time as an argument
+                if fast is None:
+                    advance_clock(t_next)
                 t = t_next
                 if t >= boundary - 1e-12:
                     # switch at the boundary itself: ``t`` may sit a rounding error before it, where the
                     # fault ending there would still read as active and never be switched off
+                    advance_clock(t)
                     self._switch_faults(max(t, boundary))
                     boundary = self._next_boundary_s
                     m_next, arrival, t_vehicle = next_mocap(), next_arrival(), vehicle.time_s
@@ -350,6 +361,7 @@ class EmulatorSide:
                     update(t, pose_values() if frozen is None else frozen, gap_pose)
                     m_next = next_mocap()
                 if t >= arrival - 1e-12:
+                    advance_clock(t)
                     poll(t)
                     arrival = next_arrival()
                 if t >= next_sample - 1e-12:
@@ -358,16 +370,19 @@ class EmulatorSide:
                         if exact:
                             m_next = next_mocap()
                     next_sample = sample(t, state_row if state_row is not None else state_vector())
+            self._m_next, self._t_vehicle, self._steps_at = m_next, t_vehicle, vehicle.steps
+            advance_clock(t)  # (the last stop's time, as the loop leaves the clock)
             deliver(t_end_s)
             poll(t_end_s)
             if not self.hold_mocap:
                 self.mocap_link.flush()
-            wire.pump()
+            self.wire.pump()
         except OverflowError:
             # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
             # the physics diverged, which a run reports as such instead of crashing
             # (an exposure taken after its step: its own time and pose, as at a stop of its own)
-            t_bad, pose = (self.clock.now_s(), pose_values()) if exposing is None else exposing
+            advance_clock(t)  # (the stop's time, where the clock is read from now on)
+            t_bad, pose = (t, pose_values()) if exposing is None else exposing
             if all(abs(v) < DIVERGED_LIMIT for v in pose):
                 raise
             self._overflow_s = t_bad

@@ -64,7 +64,6 @@ _S_T, _S_WALL, _S_APPLIED, _S_FRAMES, _S_CMD_LOST, _S_MOCAP_LOST, _S_YAW_SP, _S_
 _S_STATE, _S_CMD, _S_MOTORS = 8, 9, 13  # (the target's columns and the motors: four each)
 _S_SIZE = _S_MOTORS + 4
 _NO_COMMAND = (math.nan,) * 4  # no FC target yet
-_FIXED_CMD = 6  # where the FC target's columns begin in the pending block's first row (`_take_sample`)
 _OBSTACLES = tuple(World.obstacle(code) for code in range(4))  # by `ObstacleCode`
 #: the `fc_state` column's code of each FC state: its place in `FcState`
 FC_STATE_CODES = {st.value: i for i, st in enumerate(FcState)}
@@ -151,13 +150,13 @@ def _sample_columns(s: np.ndarray, ht: np.ndarray, ha: np.ndarray, hf: np.ndarra
 @njit(cache=True, nogil=True)
 def _take_sample(pending: np.ndarray, k: int, x: np.ndarray, t: float, applied: int, frames: int,
                  cmd_lost: int, mocap_lost: int, yaw_sp: float, setpoint_s: float, state_code: int,
-                 motors: np.ndarray) -> float:
+                 cmd0: float, cmd1: float, cmd2: float, cmd3: float, motors: np.ndarray) -> float:
     """Keep the sample at ``t`` (s) of the state ``x`` (STATE_SIZE,) as pending sample ``k``, row
     ``1 + k`` of ``pending`` (its `_S_T` ... columns, then the state's: the offset along the gap normal
-    from the gap's centre (m) and normal, ``pending[0, :6]``, then the other arguments in their order,
-    the FC target's four columns ``pending[0, 6:10]`` and the four motor commands ``motors``); returns
+    from the gap's centre (m) and normal, ``pending[0, :6]``, then the other arguments in their order:
+    the FC target's four columns ``cmd0`` .. ``cmd3`` and the four motor commands ``motors``); returns
     the next sample's time (s), sooner within `NEAR_WALL_M` of the gap plane. (Arrays are few: numba
-    unboxes each array of each call.)"""
+    unboxes each array of each call; a float costs a fraction of one.)"""
     fixed = pending[0]
     row = pending[1 + k]
     for j in range(x.shape[0]):
@@ -166,8 +165,8 @@ def _take_sample(pending: np.ndarray, k: int, x: np.ndarray, t: float, applied: 
     row[_S_T], row[_S_WALL], row[_S_APPLIED], row[_S_FRAMES] = t, n_wall, applied, frames
     row[_S_CMD_LOST], row[_S_MOCAP_LOST], row[_S_YAW_SP] = cmd_lost, mocap_lost, yaw_sp
     row[_S_SETPOINT_S], row[_S_STATE] = setpoint_s, state_code
+    row[_S_CMD], row[_S_CMD + 1], row[_S_CMD + 2], row[_S_CMD + 3] = cmd0, cmd1, cmd2, cmd3
     for j in range(4):
-        row[_S_CMD + j] = fixed[_FIXED_CMD + j]
         row[_S_MOTORS + j] = motors[j]
     return t + (NEAR_WALL_SAMPLE_S if abs(n_wall) < NEAR_WALL_M else SAMPLE_S)
 
@@ -264,8 +263,7 @@ class Recorder:
         self.first_crossing_seen_s: float | None = None
         #: samples taken and not yet checked and recorded (see `sample`): rows 1 .. ``_n_pending``, each
         #: its `_S_T` ... columns and then its state (grown when full); row 0 holds what a sample's row
-        #: takes that changes seldom: the gap's centre (m) and normal (c_x, c_y, c_z, e1_x, e1_y, e1_z),
-        #: then the FC target's four columns (`_command`, made again when the target changes)
+        #: takes that never changes: the gap's centre (m) and normal (c_x, c_y, c_z, e1_x, e1_y, e1_z)
         self._pending = np.empty((1 + PENDING_ROWS, _S_SIZE + STATE_SIZE))
         self._pending_room = PENDING_ROWS
         self._n_pending = 0
@@ -273,8 +271,7 @@ class Recorder:
         self._lab_min = np.asarray(world.lab.min_m, dtype=np.float64)
         self._lab_max = np.asarray(world.lab.max_m, dtype=np.float64)
         _nonfinite_and_outside(level, self._lab_min, self._lab_max)  # (compiled now, not in a run's loop)
-        self._pending[0, :_FIXED_CMD] = (*world.gap.centre_m, *self._gap_axes[1])
-        self._pending[0, _FIXED_CMD : _FIXED_CMD + 4] = _NO_COMMAND
+        self._pending[0, :6] = (*world.gap.centre_m, *self._gap_axes[1])
         self._thrust_coeff = float(profile.thrust_coeff_n_s2)
         self._full_thrust_n = profile.n3_full_thrust_n
         # what a sample reads besides the state, the same objects for the run's life
@@ -283,11 +280,12 @@ class Recorder:
         self._radio_stats = mocap.radio.stats
         # the FC target's columns and the FC state's code, made again when the target or state changes
         self._target: object = self  # (no target seen yet)
+        self._cmd = _NO_COMMAND
         self._state: FcState | None = None
         self._state_code = -1
         # the sample's kernel for these arrays, ints and floats, called without numba's type dispatch
         self._take_sample = entry(_take_sample, self._pending, 0, level[0], 0.0, 0, 0, 0, 0, 0.0, 0.0, 0,
-                                  fc.motor_cmd)
+                                  0.0, 0.0, 0.0, 0.0, fc.motor_cmd)
 
     # --- results (what is pending is processed first) --------------------------------------------
     @property
@@ -333,7 +331,8 @@ class Recorder:
         tg = fc.target  # (the same target object for every sample until the next setpoint)
         if tg is not self._target:
             self._target = tg
-            self._pending[0, _FIXED_CMD : _FIXED_CMD + 4] = _command(tg, self._full_thrust_n)
+            self._cmd = _command(tg, self._full_thrust_n)
+        c0, c1, c2, c3 = self._cmd
         st = self._machine.state  # (the same state for long stretches: its code looked up on a change)
         if st is not self._state:
             self._state, self._state_code = st, FC_STATE_CODES.get(st.value, -1)
@@ -342,7 +341,7 @@ class Recorder:
             self._pending, k, x, t, self._server_stats.setpoints_applied,
             self._mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
             self._radio_stats.lost, fc.heading_setpoint_rad() if plan is None else plan[2],
-            fc.last_setpoint_s, self._state_code, fc.motor_cmd)
+            fc.last_setpoint_s, self._state_code, c0, c1, c2, c3, fc.motor_cmd)
         self._n_pending = k + 1
         return nxt
 
