@@ -53,3 +53,31 @@ def test_streamed_payloads_decode_to_the_state_and_mode_in_every_fc_state():
     assert (att.roll, att.pitch, att.yaw) == pytest.approx((0.0, 0.0, math.pi / 2), abs=1e-3)
     assert (att.rollspeed, att.pitchspeed, att.yawspeed) == pytest.approx(
         (s.omega_rad_s[0], -s.omega_rad_s[1], -s.omega_rad_s[2]), abs=1e-6)
+
+
+def test_battery_drains_with_the_time_armed_between_polls():
+    """Each poll counts the time since the poll before it when the FC is armed at that poll: the
+    battery's charge falls with that time only, in both MAVLink's SYS_STATUS and the model."""
+    vehicle = EmulatedVehicle(PROFILE, initial_state=hover_state(PROFILE, (0.0, 0.0, 1.5)))
+    codec = MavlinkCodec(MemoryTransport.pair()[0], SimClock(), 1, 1)
+    server = MavlinkServer(vehicle, codec)
+    t, fc = server.telemetry, vehicle.fc
+    for now in (0.0, 1.0, 2.0):
+        server.poll(now)
+    full = t.battery(2.0)
+    assert t.armed_time_s(2.0) == 0.0 and full[1] == 100
+    fc.arm(2.5)
+    server.poll(3.0)  # armed at this poll: counted from the poll before (2.0)
+    assert t.armed_time_s(3.0) == pytest.approx(1.0)
+    server.poll(92.0)
+    assert t.armed_time_s(92.0) == pytest.approx(90.0)
+    volts, pct = t.battery(92.0)
+    assert pct == 90 and volts < full[0]
+    ground = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    status = ground.decode(bytearray(codec.pack(t.sys_status(92.0, 0))))
+    assert status.battery_remaining == 90 and status.voltage_battery == round(volts * 1000)
+    fc.landed = True
+    assert fc.disarm(95.0).accepted
+    server.poll(101.0)  # disarmed at this poll: the time since 92.0 not counted
+    server.poll(500.0)
+    assert t.armed_time_s(500.0) == pytest.approx(90.0) and t.battery(500.0) == (volts, pct)
