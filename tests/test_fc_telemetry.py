@@ -11,7 +11,7 @@ from emulator.fc import FcState
 from emulator.physics.native import hover_state
 from emulator.profile import load_profile
 from emulator.servers.mavlink_server import MavlinkServer
-from emulator.servers.telemetry import CUSTOM_MODE
+from emulator.servers.telemetry import BATTERY_CELLS, CUSTOM_MODE
 from emulator.vehicle import EmulatedVehicle
 from hil.link import MemoryTransport, SimClock
 from hil.link.mavlink import PX4_MAIN_OFFBOARD, MavlinkCodec, mav, px4_custom_mode
@@ -64,20 +64,20 @@ def test_battery_drains_with_the_time_armed_between_polls():
     t, fc = server.telemetry, vehicle.fc
     for now in (0.0, 1.0, 2.0):
         server.poll(now)
-    full = t.battery(2.0)
-    assert t.armed_time_s(2.0) == 0.0 and full[1] == 100
+    full_v, full_pct = t.battery(2.0)
+    assert full_pct == 100 and full_v == pytest.approx(BATTERY_CELLS * 4.2)
     fc.arm(2.5)
     server.poll(3.0)  # armed at this poll: counted from the poll before (2.0)
-    assert t.armed_time_s(3.0) == pytest.approx(1.0)
+    server.poll(11.0)
+    assert t.battery(11.0) == (pytest.approx(BATTERY_CELLS * (3.5 + 0.7 * (1 - 9.0 / 900))), 99)
     server.poll(92.0)
-    assert t.armed_time_s(92.0) == pytest.approx(90.0)
     volts, pct = t.battery(92.0)
-    assert pct == 90 and volts < full[0]
+    assert pct == 90 and volts == pytest.approx(BATTERY_CELLS * (3.5 + 0.7 * 0.9))
     ground = mav.MAVLink(None, srcSystem=255, srcComponent=190)
     status = ground.decode(bytearray(codec.pack(t.sys_status(92.0, 0))))
     assert status.battery_remaining == 90 and status.voltage_battery == round(volts * 1000)
     fc.landed = True
     assert fc.disarm(95.0).accepted
-    server.poll(101.0)  # disarmed at this poll: the time since 92.0 not counted
+    server.poll(101.0)  # disarmed at this poll: the time since the poll at 92.0 not counted
     server.poll(500.0)
-    assert t.armed_time_s(500.0) == pytest.approx(90.0) and t.battery(500.0) == (volts, pct)
+    assert t.battery(500.0) == (volts, pct)

@@ -84,7 +84,7 @@ class TelemetryEncoder:
         #: the battery model's armed time: each poll counts the time since the poll before it when the
         #: FC's state at that poll is armed. The state changes only with an FC event, so the server says
         #: when events came (`state_changed`) and the time is kept in stretches: the sum of those settled
-        #: (s) and the poll the current one counts from (s; None while disarmed)
+        #: (s) and the poll the current one counts from (s; None while disarmed), read by `battery`
         self._armed_sum_s = 0.0
         self._armed_from_s: float | None = None
         self._machine = vehicle.fc.machine  # (the FC's state machine)
@@ -103,12 +103,6 @@ class TelemetryEncoder:
                 self._armed_sum_s += at_s - from_s
             self._armed_from_s = None
 
-    def armed_time_s(self, now_s: float) -> float:
-        """The battery model's armed time (s) as of the poll at ``now_s`` (s)."""
-        from_s = self._armed_from_s
-        if from_s is None or now_s <= from_s:
-            return self._armed_sum_s
-        return self._armed_sum_s + (now_s - from_s)
 
     # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
     # ``unpacker``, for `MavlinkCodec.pack_payload`), built without message objects
@@ -249,8 +243,12 @@ class TelemetryEncoder:
         return lat, lon
 
     def battery(self, now_s: float) -> tuple[float, int]:
-        """(pack voltage (V), charge (%)) of the battery model at the poll at ``now_s`` (s)."""
-        frac = max(0.0, 1.0 - self.armed_time_s(now_s) / BATTERY_ENDURANCE_S)
+        """(pack voltage (V), charge (%)) of the battery model at the poll at ``now_s`` (s): full less the
+        armed time as a share of `BATTERY_ENDURANCE_S`."""
+        armed_s, from_s = self._armed_sum_s, self._armed_from_s
+        if from_s is not None and now_s > from_s:  # (armed now: the current stretch so far too)
+            armed_s += now_s - from_s
+        frac = max(0.0, 1.0 - armed_s / BATTERY_ENDURANCE_S)
         volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
         return volts, round(100 * frac)
 
