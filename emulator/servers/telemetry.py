@@ -103,7 +103,6 @@ class TelemetryEncoder:
                 self._armed_sum_s += at_s - from_s
             self._armed_from_s = None
 
-
     # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
     # ``unpacker``, for `MavlinkCodec.pack_payload`), built without message objects
     def state_values(self) -> list[float]:
