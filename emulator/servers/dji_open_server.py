@@ -155,6 +155,8 @@ class DjiOpenServer:
         self.on_untold: Callable[[str], None] | None = None
         self._last_ack: dict[int, tuple[int, bytes]] = {}  # session -> (seq, ACK frame) of reliable ones
         self._events_seen = 0
+        #: the last poll's time (s; None before the first): what the pushes' battery is read at
+        self.now_s: float | None = None
         self._statustexts: list[str] = []
         #: called with (flag, roll, pitch, thrust, yaw, now_s) after a setpoint is applied
         self.on_setpoint: Callable[..., None] | None = None
@@ -179,6 +181,7 @@ class DjiOpenServer:
     # --- the loop ------------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
         """Parse and act on what arrived, then push what is due at ``now_s``."""
+        prev_s, self.now_s = self.now_s, now_s
         codec = self.codec
         if codec.transport is not self._timed_transport:  # (looked up once per transport)
             self._timed_transport = codec.transport
@@ -187,8 +190,8 @@ class DjiOpenServer:
             for f in codec.receive():
                 self.handle(f, now_s)
         if self._events_seen != len(self._fc_events):
+            self.telemetry.state_changed(prev_s, now_s)  # (the battery's armed time)
             self._on_events(now_s)
-        self.telemetry.track_battery(now_s)
         if self.activated and now_s >= self._next_push_s:
             self._push(now_s)
         if now_s >= self.subscriptions.next_s - 1e-9:  # (never without packages: inf)

@@ -180,7 +180,7 @@ def rc(server: DjiOpenServer, x: list) -> tuple:
 
 @_state_free
 def battery(server: DjiOpenServer, x: list) -> tuple:
-    volts, pct = server.telemetry.battery()
+    volts, pct = server.telemetry.battery(server.now_s)
     current = HOVER_CURRENT_MA if server.fc.machine.state.armed else 0
     return BATTERY_CAPACITY_MAH * pct // 100, round(volts * 1000), current, pct
 

@@ -125,6 +125,7 @@ class MavlinkServer:
         self.telemetry = TelemetryEncoder(vehicle, codec.mav, self.config.home)
         self._requested = dict(self.config.stream_intervals_s)  # intervals asked for (s)
         self._now_s = 0.0  # the last poll's time (s)
+        self._polled_s: float | None = None  # the same, None before the first poll
         #: the link's data-rate budget (None: none, every stream at the rate asked)
         self.budget: LinkBudget | None = None
         if self.config.link_baud is not None:
@@ -149,8 +150,8 @@ class MavlinkServer:
             mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self.telemetry.attitude_quaternion,
             mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.telemetry.global_position_int,
             mav.MAVLINK_MSG_ID_HIGHRES_IMU: self.telemetry.highres_imu,
-            mav.MAVLINK_MSG_ID_SYS_STATUS: lambda t: self.telemetry.sys_status(self.codec.stats.errors),
-            mav.MAVLINK_MSG_ID_BATTERY_STATUS: lambda t: self.telemetry.battery_status(),
+            mav.MAVLINK_MSG_ID_SYS_STATUS: lambda t: self.telemetry.sys_status(t, self.codec.stats.errors),
+            mav.MAVLINK_MSG_ID_BATTERY_STATUS: self.telemetry.battery_status,
             mav.MAVLINK_MSG_ID_HOME_POSITION: self.telemetry.home_position,
             mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda t: self.telemetry.autopilot_version(
                 self.codec.system_id
@@ -202,6 +203,7 @@ class MavlinkServer:
         A transport that models arrival times is read only when something has arrived
         (`emulator.servers.arrivals`)."""
         self._now_s = now_s
+        prev_s, self._polled_s = self._polled_s, now_s
         codec = self.codec
         if codec.transport is not self._timed_transport:  # (looked up once per transport)
             self._timed_transport = codec.transport
@@ -220,8 +222,8 @@ class MavlinkServer:
         if self._param_list:
             self._send_param_list()
         if self._events_seen != len(self._fc_events):
+            self.telemetry.state_changed(prev_s, now_s)  # (the battery's armed time)
             self._report_events(now_s)
-        self.telemetry.track_battery(now_s)
         if now_s >= self._due_s:  # (most polls: nothing streamed, no flush check)
             self._send_due(now_s)
 

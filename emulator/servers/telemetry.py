@@ -81,17 +81,27 @@ class TelemetryEncoder:
         self.vehicle = vehicle
         self.mav = mav_obj
         self.home = home
-        self.armed_time_s = 0.0
-        self._last_t: float | None = None
-        self._machine = vehicle.fc.machine  # (the FC's state machine: its state read per poll)
+        #: the battery model's armed time: each poll counts the time since the poll before it when the
+        #: FC's state at that poll is armed. The state changes only with an FC event, so the server says
+        #: when events came (`state_changed`) and the time is kept in stretches: the sum of those settled
+        #: (s) and the poll the current one counts from (s; None while disarmed), read by `battery`
+        self._armed_sum_s = 0.0
+        self._armed_from_s: float | None = None
+        self._machine = vehicle.fc.machine  # (the FC's state machine)
 
-    def track_battery(self, now_s: float) -> None:
-        """Count armed time for the battery model (every poll: the time since the last one, if armed)."""
-        last, self._last_t = self._last_t, now_s
-        if last is not None and self._machine.state is not _DISARMED:
-            dt = now_s - last
-            if dt > 0.0:  # (never backwards; adding nothing leaves the sum as it is)
-                self.armed_time_s += dt
+    def state_changed(self, prev_poll_s: float | None, now_s: float) -> None:
+        """The FC's state may have changed since the poll at ``prev_poll_s`` (s; None: the poll at
+        ``now_s`` is the first): the armed time's stretch before it settled, or one started there (the
+        state now counts from the poll before). Called at the polls that see new FC events."""
+        at_s = now_s if prev_poll_s is None else prev_poll_s
+        from_s = self._armed_from_s
+        if self._machine.state is not _DISARMED:
+            if from_s is None:
+                self._armed_from_s = at_s
+        elif from_s is not None:
+            if at_s > from_s:  # (never backwards)
+                self._armed_sum_s += at_s - from_s
+            self._armed_from_s = None
 
     # --- the streamed state and status: payloads (fields in wire order, packed by the message's own
     # ``unpacker``, for `MavlinkCodec.pack_payload`), built without message objects
@@ -170,8 +180,8 @@ class TelemetryEncoder:
             _us(now_s), *acc, *gyro, *mag, pressure_hpa, 0.0, alt, 25.0, 0x1FFF, 0
         )
 
-    def sys_status(self, errors_comm: int) -> MAVLinkMessage:
-        volts, pct = self.battery()
+    def sys_status(self, now_s: float, errors_comm: int) -> MAVLinkMessage:
+        volts, pct = self.battery(now_s)
         return self.mav.sys_status_encode(
             SENSORS,
             SENSORS,
@@ -188,8 +198,8 @@ class TelemetryEncoder:
             0,
         )
 
-    def battery_status(self) -> MAVLinkMessage:
-        volts, pct = self.battery()
+    def battery_status(self, now_s: float) -> MAVLinkMessage:
+        volts, pct = self.battery(now_s)
         cell_mv = round(volts * 1000 / BATTERY_CELLS)
         cells = [cell_mv] * BATTERY_CELLS + [65535] * (10 - BATTERY_CELLS)
         return self.mav.battery_status_encode(
@@ -231,9 +241,13 @@ class TelemetryEncoder:
         lon = self.home.lon_deg + math.degrees(pos_enu_m[0] / (EARTH_RADIUS_M * math.cos(math.radians(lat))))
         return lat, lon
 
-    def battery(self) -> tuple[float, int]:
-        """(pack voltage (V), charge (%)) of the battery model now."""
-        frac = max(0.0, 1.0 - self.armed_time_s / BATTERY_ENDURANCE_S)
+    def battery(self, now_s: float) -> tuple[float, int]:
+        """(pack voltage (V), charge (%)) of the battery model at the poll at ``now_s`` (s): full less the
+        armed time as a share of `BATTERY_ENDURANCE_S`."""
+        armed_s, from_s = self._armed_sum_s, self._armed_from_s
+        if from_s is not None and now_s > from_s:  # (armed now: the current stretch so far too)
+            armed_s += now_s - from_s
+        frac = max(0.0, 1.0 - armed_s / BATTERY_ENDURANCE_S)
         volts = BATTERY_CELLS * (3.5 + 0.7 * frac)
         return volts, round(100 * frac)
 

@@ -371,15 +371,25 @@ def read_setpoint(payload: bytes) -> tuple[int, float, float, float, float] | No
     return None
 
 
+#: what `frame_size` says of bytes that start no frame: no SOF or a bad header, or a good header whose LEN
+#: is under `MIN_FRAME_BYTES`
+NO_FRAME, SHORT_FRAME = -1, -2
+
+
 def frame_size(buf: bytes | bytearray, i: int) -> int:
     """The LEN of the frame that starts at ``buf[i]``, by its header: 0 when the header is not complete
-    in ``buf``, -1 when ``buf[i]`` starts no frame (no SOF, a bad header, a LEN under 16)."""
+    in ``buf``; below 0 when ``buf[i]`` starts no frame: `NO_FRAME` (no SOF, or a header whose CRC16 is
+    bad, whose VER is not 0 or whose reserved bits and bytes are not 0), `SHORT_FRAME` (a good header, a
+    LEN under 16). The one check of a header: the parser and the splitter both ask it."""
     if buf[i] != SOF:
-        return -1
+        return NO_FRAME
     if i + HEADER_BYTES > len(buf):
         return 0
+    if not (buf[i + 2] >> 2 == 0 and buf[i + 3] & 0xC0 == 0 and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
+            and _ARC(buf[i : i + HEADER_BYTES], CRC_INIT) == 0):  # (`crc16` of the header with its CRC: 0)
+        return NO_FRAME
     size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
-    return size if size >= MIN_FRAME_BYTES and _header_ok(buf, i) else -1
+    return size if size >= MIN_FRAME_BYTES else SHORT_FRAME
 
 
 @dataclass
@@ -405,16 +415,6 @@ class OpenStats:
         return self.garbage_bytes + self.bad_header + self.bad_length + self.bad_crc
 
 
-def _header_ok(buf: bytes | bytearray, i: int) -> bool:
-    """Whether the 12 bytes at ``buf[i]`` are a header: CRC16 good, VER 0, reserved bits and bytes 0."""
-    return (
-        buf[i + 2] >> 2 == 0
-        and buf[i + 3] & 0xC0 == 0
-        and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
-        and _ARC(buf[i : i + HEADER_BYTES], CRC_INIT) == 0  # (`crc16` of the header with its own CRC: 0)
-    )
-
-
 class FrameParser:
     """Cuts a byte stream into good frames, counting the rest in ``stats``.
 
@@ -438,21 +438,20 @@ class FrameParser:
         st = self.stats
         i, n = 0, len(buf)
         while i < n:
-            if buf[i] != SOF:
-                j = buf.find(SOF, i + 1)
-                j = n if j < 0 else j
-                st.garbage_bytes += j - i
-                i = j
-                continue
-            if i + HEADER_BYTES > n:
-                break
-            if not _header_ok(buf, i):
-                st.bad_header += 1
-                i += 1
-                continue
-            size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
-            if size < MIN_FRAME_BYTES:
-                st.bad_length += 1
+            size = frame_size(buf, i)
+            if size <= 0:
+                if size == 0:  # (a header not complete yet)
+                    break
+                if buf[i] != SOF:
+                    j = buf.find(SOF, i + 1)
+                    j = n if j < 0 else j
+                    st.garbage_bytes += j - i
+                    i = j
+                    continue
+                if size == SHORT_FRAME:
+                    st.bad_length += 1
+                else:
+                    st.bad_header += 1
                 i += 1
                 continue
             if i + size > n:
@@ -536,12 +535,18 @@ class OpenCodec:
 
     def pack_command(self, cmd_set: int, cmd_id: int, payload: bytes, session: int = SESSION_NO_ACK) -> bytes:
         """A command frame on ``session`` (0 or 1) with the next SEQ, counted and recorded as sent."""
-        seq = self.next_seq()
+        # (`next_seq`, `encode_command` and `_sent` without their calls: two or three frames a tick)
+        self._seq = seq = (self._seq + 1) & 0xFFFF
         if session == SESSION_ACK_ONCE:
             self._once[seq] = (cmd_set, cmd_id)
             if len(self._once) > 64:
                 self._once.pop(next(iter(self._once)))
-        return self._sent(encode_command(cmd_set, cmd_id, payload, session, seq))
+        frame = encode(session, seq, bytes((cmd_set, cmd_id)) + payload)
+        self.stats.frames_sent += 1
+        rec = self.recorder
+        if rec is not None:
+            rec.record(frame, self.clock.now_s())  # type: ignore[attr-defined]
+        return frame
 
     def send_command(self, cmd_set: int, cmd_id: int, payload: bytes, *, reliable: bool = True,
                      session: int | None = None) -> bytes:

@@ -134,10 +134,14 @@ DJI_RESEND_FILLER = bytes(dji_open.MAX_FRAME_BYTES)
 _DJI_ANSWER_LEN = dji_open.MIN_FRAME_BYTES + 2 + _DJI_ANSWER.size
 
 
+_DJI_TICK_COMMAND = bytes((dji_open.SET_HIL, dji_open.CMD_HIL_TICK))  # (how the tick frame's data starts)
+
+
 def dji_tick_frames(t_s: float, mocap_total: int) -> bytes:
-    """The tick at ``t_s`` (s) as one OPEN-protocol frame (session 0, SEQ 0)."""
+    """The tick at ``t_s`` (s) as one OPEN-protocol frame (session 0, SEQ 0): the command
+    (`dji_open.encode_command`'s data, framed by `dji_open.encode` without the call between)."""
     payload = _DJI_TICK.pack(round(t_s * NS_PER_S), mocap_total & MOCAP_COUNT_MASK)
-    return dji_open.encode_command(dji_open.SET_HIL, dji_open.CMD_HIL_TICK, payload, 0, 0)
+    return dji_open.encode(0, 0, _DJI_TICK_COMMAND + payload)
 
 
 def dji_read_tick(payload: bytes) -> tuple[float | None, int | None]:

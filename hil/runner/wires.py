@@ -17,8 +17,23 @@ from collections import deque
 from dataclasses import dataclass, fields
 
 import numpy as np
+from numba import njit
+from numba.extending import register_jitable
 
-from hil.link.channel import Channel, ChannelModel, UartWire
+from emulator.kernel_cache import entry
+from hil.link.channel import (
+    CH_JITTER,
+    CH_NEXT,
+    CHANNEL_STATE_LEN,
+    JITTER_BLOCK,
+    UART_STATE_LEN,
+    Channel,
+    ChannelModel,
+    UartWire,
+    block_arrival_s,
+    delivery_s,
+    wire_finish_s,
+)
 from hil.link.clock import SimClock
 from hil.link.lockstep import Framing
 from hil.link.protocols import framing
@@ -54,18 +69,51 @@ class DirectionStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
+for _plain in (delivery_s, block_arrival_s, wire_finish_s):  # (compiled into `_arrival_kernel`)
+    register_jitable(_plain)
+
+
+@njit(cache=True)
+def _arrival_kernel(st: np.ndarray, now_s: float, n_bytes: int) -> float:
+    """`_Direction.arrival_s` of a channel that cannot lose, on the direction's state ``st`` (its UART's
+    numbers, then its channel's): the frame booked on the UART (`wire_finish_s`), then carried by the
+    channel (`block_arrival_s`); its arrival (s), or NaN with nothing done when the channel's jitter draws
+    are spent (draw the next block, then call again)."""
+    chan = st[UART_STATE_LEN:]
+    if chan[CH_JITTER] > 0 and chan[CH_NEXT] >= JITTER_BLOCK:
+        return math.nan
+    return block_arrival_s(chan, wire_finish_s(st[:UART_STATE_LEN], now_s, n_bytes))
+
+
 class _Direction:
-    """One direction: the channel (loss, latency, jitter, order) behind the UART at the link's baud."""
+    """One direction: the channel (loss, latency, jitter, order) behind the UART at the link's baud. A
+    channel that cannot lose keeps its and its UART's numbers in one array, and a frame goes through both
+    in one compiled call (`_arrival_kernel`); one that can draws per frame from its generator."""
 
     def __init__(self, model: ChannelModel, baud: int, rng: np.random.Generator) -> None:
-        self.channel = Channel(model, rng)
-        self.uart = UartWire(baud)
-        self._can_lose, self._drop = self.channel.can_lose, self.channel.drop
-        self._arrival_s, self._finish_s = self.channel.arrival_s, self.uart.finish_s
+        self.state: np.ndarray | None = None
+        self._kernel = None
+        if not model.can_lose:
+            self.state = np.zeros(UART_STATE_LEN + CHANNEL_STATE_LEN)
+            self.channel = Channel(model, rng, self.state[UART_STATE_LEN:])
+            self.uart = UartWire(baud, state=self.state[:UART_STATE_LEN])
+            self._kernel = entry(_arrival_kernel, self.state, 0.0, 0)
+        else:
+            self.channel = Channel(model, rng)
+            self.uart = UartWire(baud)
+        self._drop, self._arrival_s, self._finish_s = self.channel.drop, self.channel.arrival_s, \
+            self.uart.finish_s
 
     def arrival_s(self, now_s: float, n_bytes: int) -> float | None:
         """When a frame of ``n_bytes`` handed over at ``now_s`` arrives, or None if the link loses it."""
-        if self._can_lose and self._drop() is not None:
+        kernel = self._kernel
+        if kernel is not None:
+            arrival = kernel(self.state, now_s, n_bytes)
+            if arrival == arrival:
+                return arrival
+            self.channel.draw_block()  # (NaN: the jitter draws are spent)
+            return kernel(self.state, now_s, n_bytes)
+        if self._drop() is not None:
             return None
         return self._arrival_s(self._finish_s(now_s, n_bytes))
 
