@@ -208,8 +208,12 @@ class DjiCommandLink(CommandLink):
         self._flight_status, self._display_mode = payload[1], payload[2]
         self._device = payload[4]
         self._last_data_s = now_s
-        self.status = DjiStatus(self._flight_status, self._device, now_s,  # type: ignore[assignment]
-                                self._display_mode)
+        # (`DjiStatus(...)` made without the frozen dataclass's per-field __setattr__ calls: a package
+        # every other tick)
+        status = object.__new__(DjiStatus)
+        status.__dict__.update(flight_status=self._flight_status, device=self._device, time_s=now_s,
+                               display_mode=self._display_mode)
+        self.status = status  # type: ignore[assignment]
 
     def heartbeat_age_s(self, now_s: float) -> float:
         """Seconds since the FC's last flight data (inf if none yet): the OPEN protocol's sign of life."""
@@ -264,7 +268,11 @@ class DjiCommandLink(CommandLink):
                              f"yaw {yaw_rad} rad, thrust {thrust}")
         roll, pitch, percent, yaw = self._setpoint_angles(roll_rad, pitch_rad, yaw_rad, thrust)  # (compiled)
         payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, roll, pitch, percent, yaw)
-        self._send_frame(self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload))
+        frame = self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload)
+        if self._open_ticks > 0:  # held for the tick's answer (`_send_frame`, without the call: per tick)
+            self._held.append(frame)
+        else:
+            self._send_frame(frame)
         self.setpoints_sent += 1
 
     def _answer_frame(self, tick_s: float) -> bytes:

@@ -893,14 +893,23 @@ class OnboardProgram:
         """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick
         ends the program with an error."""
         fds = _fds(self.link.transport)  # ticks come on the command link; the mocap waits for them
+        spin_s = self.config.lockstep_spin_s
+        poll = self.lockstep_poll
+        # (asleep at once, without a spin: a poll object made once, no descriptor lists built a tick)
+        waiter = select.poll()
+        for fd in fds:
+            waiter.register(fd, select.POLLIN)
         last_tick_wall = time.monotonic()
-        while not self.finished:
-            if self.lockstep_poll():
+        while self.phase not in FINAL_PHASES:  # (`finished`, without the property's call: per tick)
+            if poll():
                 # answered: the next tick is not there yet (the FC waits for this answer), so wait for
                 # it rather than reading the link again at once
                 last_tick_wall = time.monotonic()
-                if fds and not self.finished:
-                    wait_readable(fds, 0.05, self.config.lockstep_spin_s)
+                if fds and self.phase not in FINAL_PHASES:
+                    if spin_s > 0.0:
+                        wait_readable(fds, 0.05, spin_s)
+                    else:
+                        waiter.poll(50)  # (ms: `wait_readable`'s 0.05 s)
                 continue
             if time.monotonic() - last_tick_wall > tick_timeout_s:
                 self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"no tick for {tick_timeout_s} s")
