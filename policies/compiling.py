@@ -4,8 +4,8 @@ or a pose instead of a few hundred interpreted float operations.
 A `Kernel` is numba's compilation of a plain-Python function of the module that owns the computation
 (`policies.controller.expert_law`, `policies.gap_planning.plan_reference`, the traditional pilot's
 `traditional_command` and the program's control steps `traditional_step` and `takeoff_step`, the
-estimator's `take_pose` and `predicted_state`, the command links' setpoint
-attitude `hil.link.mavlink.quat_ned_frd_from_euler`, the OPEN link's `ned_euler` and the mocap intake's
+estimator's `take_pose` and `predicted_state`, the command links' setpoint numbers `setpoint_wire`
+(MAVLink) and `setpoint_angles` (OPEN) and the mocap intake's
 `intake_frames`): that function is
 the only definition, run compiled; the classes' methods (`ExpertController.command`,
 `MissionPlan.reference_tuples`, `PoseEstimator.take`, ...) are views of it. A function a kernel calls

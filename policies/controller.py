@@ -180,13 +180,13 @@ def _new_command(roll_rad: float, pitch_rad: float, thrust_n: float, yaw_rad: fl
     return cmd
 
 
-def limit_tilt_step(cmd: AttitudeThrustCommand, last: AttitudeThrustCommand,
+def limit_tilt_step(cmd: AttitudeThrustCommand, last_roll_rad: float, last_pitch_rad: float,
                     max_step_rad: float) -> AttitudeThrustCommand:
-    """``cmd`` with its roll and pitch each moved at most ``max_step_rad`` (rad) from ``last``'s: a
-    command that turns no faster than the FC can (its body rate times the control period); yaw and
-    thrust as they are."""
+    """``cmd`` with its roll and pitch each moved at most ``max_step_rad`` (rad) from the last command's
+    (``last_roll_rad``, ``last_pitch_rad``): a command that turns no faster than the FC can (its body rate
+    times the control period); yaw and thrust as they are."""
     r, p = cmd.roll_rad, cmd.pitch_rad
-    r2, p2 = tilt_step_limited(r, p, last.roll_rad, last.pitch_rad, max_step_rad)
+    r2, p2 = tilt_step_limited(r, p, last_roll_rad, last_pitch_rad, max_step_rad)
     if r2 == r and p2 == p:
         return cmd
     return _new_command(r2, p2, cmd.thrust_n, cmd.yaw_rad)

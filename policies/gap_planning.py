@@ -542,6 +542,12 @@ class MissionPlan:
         i = segment_index(t, self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s)
         return _SEGMENTS[i]
 
+    def segment_end_s(self, t: float) -> float:
+        """When the segment at mission time ``t`` (s) ends (s; inf for the hover): until then `segment_at`
+        gives the same segment, so a caller stepping through time asks it again only from there."""
+        i = segment_index(t, self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s)
+        return (self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s, math.inf)[i]
+
     def reference(self, t: float) -> Reference:
         """The reference at mission time ``t`` (s); before 0 the start state, after the end hover."""
         p, v, a, yaw = self.reference_tuples(t)

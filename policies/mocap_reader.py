@@ -26,6 +26,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -117,6 +118,16 @@ class ReaderCounters:
     clock_jumps: int = 0  # new mocap clocks believed (CLOCK_JUMP_FRAMES frames agreeing on it)
 
 
+class Intake(Protocol):
+    """A compiled consumer of a reader's usual bytes (`MocapReader`'s ``intake``; the onboard program's is
+    `policies.onboard.mocap_intake.MocapIntake`)."""
+
+    #: the array (`READER_FLOATS`) the reader keeps its pose state in, which ``take`` reads and writes
+    reader_state: np.ndarray
+    #: called with the bytes and the time they are stamped with (s): where it stopped, the frames taken
+    take: Callable[[bytes, float], tuple[int, int]]
+
+
 class MocapReader:
     """Reads mocap frames from ``transport``; keeps the latest valid pose of each body (the checks a pose
     passes are in the module docstring).
@@ -127,9 +138,10 @@ class MocapReader:
     unset, a PoseSample is made only when `latest` asks for it): body id, mocap time ``stamp_s``,
     position (m), unit quaternion (w, x, y, z) and arrival time (s), as the PoseSample would hold them.
     ``intake``: the same consumer compiled, for the usual bytes (whole good frames whose bodies pass the
-    checks): called with the reader's pose state (`READER_FLOATS`), the bytes and the time they are
-    stamped with, it takes the frames from the start that it can, keeps their poses as this reader's
-    own path would (`keep_pose`) and hands them on, and returns where it stopped and the frames taken;
+    checks): its ``reader_state`` is the array (`READER_FLOATS`) this reader keeps its pose state in, and
+    its ``take``, called with the bytes and the time they are stamped with, takes the frames from the
+    start that it can, keeps their poses there as this reader's own path would (`keep_pose`) and hands
+    them on, and returns where it stopped and the frames taken;
     the reader reads the rest itself (``on_pose`` then gets those poses). It is used only while it has
     followed every clock jump the reader believed (``intake_jumps``, set by its owner) and never with
     ``on_sample``.
@@ -142,7 +154,7 @@ class MocapReader:
         stale_after_s: float = DEFAULT_STALE_AFTER_S,
         on_sample: Callable[[PoseSample], None] | None = None,
         on_pose: Callable[[int, float, _Vec3, _Quat, float], None] | None = None,
-        intake: Callable[[np.ndarray, bytes, float], tuple[int, int]] | None = None,
+        intake: Intake | None = None,
     ) -> None:
         if not (math.isfinite(stale_after_s) and stale_after_s > 0):
             raise ValueError(f"stale_after_s must be > 0, got {stale_after_s}")
@@ -161,7 +173,8 @@ class MocapReader:
         self._refused = dict.fromkeys(("bodies_invalid", "bodies_non_finite", "bodies_bad_quat",
                                        "bodies_stamp_future", "bodies_stamp_backwards", "clock_jumps"), 0)
         #: the poses' state (`READER_FLOATS`): the reference delay, each body's latest stamp and pose
-        self._rd = np.full(READER_FLOATS, -math.inf)
+        self._rd = np.empty(READER_FLOATS) if intake is None else intake.reader_state
+        self._rd[:] = -math.inf
         self._rd[_MIN_DELAY] = math.inf
         self._rows = self._rd[_POSES:].reshape(BODY_ID_COUNT, POSE_FLOATS)  # (a view: a body's pose)
         #: body id -> the run of refused stamps agreeing on a new clock: frames, delay (s), last stamp
@@ -170,7 +183,7 @@ class MocapReader:
         #: body id -> the PoseSample of its latest pose, once made (`latest`)
         self._samples: dict[int, PoseSample] = {}
         #: the poses' consumer compiled (`intake`), and the clock jumps it has followed
-        self._intake = intake
+        self._intake = None if intake is None else intake.take
         self.intake_jumps = 0
         self.lockstep_short_reads = 0  # `poll_to` calls that got fewer bytes than announced
         self._lockstep_read = 0  # bytes read by `poll_to` (mod 2^31)
@@ -226,7 +239,7 @@ class MocapReader:
         intake = self._intake
         if (intake is not None and data.__class__ is bytes and self.on_sample is None
                 and self.intake_jumps == self._refused["clock_jumps"] and not self._decoder_holds):
-            end, accepted = intake(rd, data, now_s)  # (the usual case: all of it)
+            end, accepted = intake(data, now_s)  # (the usual case: all of it; the state is ``rd``)
             if accepted:
                 self._frames_ok += accepted
                 self._decoder.count_good(end, accepted)

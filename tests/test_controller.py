@@ -164,9 +164,9 @@ def test_a_tilt_step_limit_moves_roll_and_pitch_at_most_the_step_and_keeps_the_r
     the last one, each of roll and pitch; yaw and thrust as commanded; one within the step as it is."""
     last = AttitudeThrustCommand(math.radians(-65.0), math.radians(-2.0), 0.3, 5.0)
     swing = AttitudeThrustCommand(math.radians(40.0), math.radians(-30.0), 0.4, 12.0)
-    out = limit_tilt_step(swing, last, 0.06)
+    out = limit_tilt_step(swing, last.roll_rad, last.pitch_rad, 0.06)
     assert out.roll_rad == pytest.approx(last.roll_rad + 0.06)
     assert out.pitch_rad == pytest.approx(last.pitch_rad - 0.06)
     assert (out.yaw_rad, out.thrust_n) == (0.4, 12.0)
     near = AttitudeThrustCommand(last.roll_rad + 0.05, last.pitch_rad - 0.01, 0.3, 6.0)
-    assert limit_tilt_step(near, last, 0.06) is near
+    assert limit_tilt_step(near, last.roll_rad, last.pitch_rad, 0.06) is near

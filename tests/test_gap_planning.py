@@ -100,6 +100,12 @@ def test_paper_case_plans_and_segments_join() -> None:
             np.testing.assert_allclose(x, y, atol=1e-6)
     assert [plan.segment_at(t) for t in (-1.0, 1.0, plan.t_gap_s, plan.t_hover_start_s + 5)] == [
         Segment.APPROACH, Segment.APPROACH, Segment.TRAVERSE, Segment.HOVER]
+    # a segment holds until its end, where the next begins (the hover never ends)
+    for t in np.linspace(-1.0, plan.t_hover_start_s + 5, 400):
+        end = plan.segment_end_s(t)
+        assert end > t and plan.segment_at(np.nextafter(end, -np.inf)) == plan.segment_at(t)
+        seg = plan.segment_at(t)
+        assert end == np.inf if seg is Segment.HOVER else plan.segment_at(end) != seg
     np.testing.assert_allclose(plan.reference(plan.t_gap_s).pos_m, [0.0, 0.5, 2.1], atol=1e-12)
     np.testing.assert_allclose(plan.reference(-1.0).pos_m, PAPER_START)
 

@@ -336,9 +336,9 @@ def test_the_traditional_pilots_compiled_step_flies_the_mission_its_command_flie
         seen: list[tuple[float, ...]] = []
 
         def probe(t: float, vehicle: object, program: OnboardProgram) -> None:
-            c = program._last_cmd
+            c = program._last_setpoint  # (roll, pitch, yaw, thrust)
             if c is not None:
-                seen.append((c.roll_rad, c.pitch_rad, c.yaw_rad, c.thrust_n))
+                seen.append(c)
 
         r = run_mission(30.0, 2.0, pilot=r_pilot, probe=probe)  # type: ignore[arg-type]
         return seen, r

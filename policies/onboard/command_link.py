@@ -75,6 +75,21 @@ def clipped_thrust(fraction: float) -> float:
     return (fraction if fraction < 1.0 else 1.0) if fraction > 0.0 else 0.0
 
 
+def setpoint_wire(roll_rad: float, pitch_rad: float, yaw_rad: float, thrust_fraction: float
+                  ) -> tuple[float, float, float, float, float]:
+    """A setpoint's numbers as SET_ATTITUDE_TARGET carries them: the attitude of ZYX Euler angles of body
+    FLU -> world ENU (rad) as body FRD -> world NED (w, x, y, z: `quat_ned_frd_from_euler`), and the
+    thrust fraction clipped to 0..1 (`clipped_thrust`; a finite one). Compiled (`SETPOINT_WIRE`): one
+    call a setpoint."""
+    w, x, y, z = quat_ned_frd_from_euler(roll_rad, pitch_rad, yaw_rad)
+    return w, x, y, z, clipped_thrust(thrust_fraction)
+
+
+CLIPPED_THRUST = Kernel(clipped_thrust)
+#: the setpoint's numbers on the wire, compiled: `setpoint_wire`
+SETPOINT_WIRE = Kernel(setpoint_wire, quat_ned_frd_from_euler=NED_FRD_QUAT, clipped_thrust=CLIPPED_THRUST)
+
+
 @dataclass(frozen=True)
 class CommandAck:
     """The FC's answer to a COMMAND_LONG: result code (MAV_RESULT) and our clock time (s)."""
@@ -139,13 +154,16 @@ class CommandLink:
         #: lockstep: messages (or frames of `RAW_MSG_IDS`) parsed but not yet acted on (those after a
         #: tick wait for it to be done)
         self._backlog: deque[MAVLinkMessage | bytes] = deque()
+        #: lockstep: whether messages read are still waiting for their tick (the next `read` acts on them
+        #: without new bytes; a plain attribute, set by each read: asked once a tick)
+        self.backlogged = False
         #: lockstep: the mocap bytes the harness has written in all, as of the last tick handled (mod
         #: 2^31; None: it never said)
         self.mocap_announced: int | None = None
         #: messages ignored for not coming from the FC: heartbeats, acks, ticks (TIMESYNC requests and
         #: mocap byte counts)
         self.foreign = {"heartbeats": 0, "acks": 0, "ticks": 0}
-        self._ned_frd_quat = NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (compiled for floats: no dispatch a call)
+        self._setpoint_wire = SETPOINT_WIRE.entry(0.0, 0.0, 0.0, 0.0)  # (compiled for floats: no dispatch)
 
     @property
     def transport(self) -> Transport:
@@ -198,6 +216,7 @@ class CommandLink:
                 if tick_s is not None:
                     tick_list.append(tick_s)
             handled.append(m)
+        self.backlogged = bool(backlog)
         return handled
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
@@ -232,15 +251,17 @@ class CommandLink:
         elif kind == "STATUSTEXT":
             self.status_texts.append(str(m.text))
 
-    @property
-    def backlogged(self) -> bool:
-        """Lockstep: whether messages read are still waiting for their tick (the next `read` acts on
-        them without new bytes)."""
-        return bool(self._backlog)
-
     def take_ticks(self) -> list[float]:
         """The TIMESYNC tick times (s) received since the last call, oldest first."""
         ticks, self._ticks = self._ticks, []
+        if self.lockstep:
+            self._open_ticks = len(ticks)
+        return ticks
+
+    def read_ticks(self) -> list[float]:
+        """`read`, then `take_ticks`: the lockstep's read of its command link, one call a tick."""
+        self._poll(0.0)
+        ticks, self._ticks = self._ticks, []  # (`take_ticks`, without its call)
         if self.lockstep:
             self._open_ticks = len(ticks)
         return ticks
@@ -283,10 +304,9 @@ class CommandLink:
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        q = self._ned_frd_quat(roll_rad, pitch_rad, yaw_rad)  # (`quat_ned_frd_from_euler`, compiled)
-        thrust = clipped_thrust(thrust)
+        w, x, y, z, thrust = self._setpoint_wire(roll_rad, pitch_rad, yaw_rad, thrust)  # (`setpoint_wire`)
         now_ms = int(self.clock.now_s() * 1000) & 0xFFFFFFFF
-        payload = _ATTITUDE_TARGET.pack(now_ms, *q, 0.0, 0.0, 0.0, thrust, self.target_system,
+        payload = _ATTITUDE_TARGET.pack(now_ms, w, x, y, z, 0.0, 0.0, 0.0, thrust, self.target_system,
                                         FC_COMPONENT_ID, ATTITUDE_THRUST_TYPE_MASK)
         frame = self.codec.pack_payload(_ATTITUDE_TARGET_ID, payload)
         if self._open_ticks > 0:  # held for the tick's answer (`_send_frame`, without the call: per tick)
@@ -331,10 +351,15 @@ class CommandLink:
             answers[tick_s] = frame
         open_ticks = self._open_ticks
         if open_ticks > 0:  # held with the tick's other frames (`_send_frame`, without the call: per tick)
-            self._held.append(frame)
+            held = self._held
+            held.append(frame)
             self._open_ticks = open_ticks = open_ticks - 1
-            if open_ticks == 0:  # the last tick taken is answered: its frames go in one write
-                self.flush()
+            if open_ticks == 0:  # the last tick taken is answered: its frames go in one write (`flush`,
+                data = b"".join(held)  # without its call: per tick)
+                held.clear()
+                transport = self.codec.transport
+                if not transport.closed:
+                    transport.send(data)
         else:
             self._send_frame(frame)
             self.flush()

@@ -55,12 +55,14 @@ class OnboardLink(Protocol):
     def read(self, timeout_s: float = 0.0) -> int:
         """Act on what arrived (waiting up to ``timeout_s``); how many messages."""
 
-    @property
-    def backlogged(self) -> bool:
-        """Lockstep: whether messages read are still waiting for their tick."""
+    #: lockstep: whether messages read are still waiting for their tick
+    backlogged: bool
 
     def take_ticks(self) -> list[float]:
         """The lockstep tick times (s) received since the last call."""
+
+    def read_ticks(self) -> list[float]:
+        """`read`, then `take_ticks` (the lockstep's read a tick)."""
 
     def answer_tick(self, tick_s: float) -> None:
         """Lockstep: done with the tick at ``tick_s`` (s)."""

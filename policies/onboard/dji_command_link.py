@@ -26,7 +26,13 @@ from hil.link.lockstep import dji_answer_payload, dji_read_tick
 from hil.link.mavlink import euler_from_quat, mav, quat_ned_frd_from_euler
 from hil.link.transport import Transport
 from policies.compiling import Kernel
-from policies.onboard.command_link import NED_FRD_QUAT, CommandAck, CommandLink, clipped_thrust
+from policies.onboard.command_link import (
+    CLIPPED_THRUST,
+    NED_FRD_QUAT,
+    CommandAck,
+    CommandLink,
+    clipped_thrust,
+)
 
 #: the Onboard SDK app's activation: app id, reserved, the FC's version (as OSDK sends it), the bundle id
 APP_ID = 1069806
@@ -69,6 +75,20 @@ def ned_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float,
 #: the setpoint's angles on the wire, compiled: `ned_euler`
 NED_EULER = Kernel(ned_euler, quat_ned_frd_from_euler=NED_FRD_QUAT,
                    euler_from_quat=Kernel(euler_from_quat))
+
+
+def setpoint_angles(roll_rad: float, pitch_rad: float, yaw_rad: float, thrust_fraction: float
+                    ) -> tuple[float, float, float, float]:
+    """A setpoint's numbers as the OPEN setpoint (0x01 0x03) carries them: the N3's roll, pitch (deg;
+    `ned_euler` of ZYX Euler angles of body FLU -> world ENU, rad), the thrust fraction as 0..100 %
+    (`clipped_thrust`; a finite one) and the heading (deg). Compiled (`SETPOINT_ANGLES`): one call a
+    setpoint."""
+    roll, pitch, yaw = ned_euler(roll_rad, pitch_rad, yaw_rad)
+    return math.degrees(roll), math.degrees(pitch), 100.0 * clipped_thrust(thrust_fraction), math.degrees(yaw)
+
+
+#: the setpoint's numbers on the wire, compiled: `setpoint_angles`
+SETPOINT_ANGLES = Kernel(setpoint_angles, ned_euler=NED_EULER, clipped_thrust=CLIPPED_THRUST)
 
 
 @dataclass(frozen=True)
@@ -114,7 +134,7 @@ class DjiCommandLink(CommandLink):
         self._display_mode = dj.MODE_P_GPS
         self._last_data_s: float | None = None
         self.control_lost = 0  # times the FC pushed "control lost"
-        self._ned_euler = NED_EULER.entry(0.0, 0.0, 0.0)  # (compiled for floats: no dispatch a call)
+        self._setpoint_angles = SETPOINT_ANGLES.entry(0.0, 0.0, 0.0, 0.0)  # (compiled: no dispatch)
 
     # --- input --------------------------------------------------------------------------------
     def _poll(self, timeout_s: float) -> list:
@@ -188,8 +208,12 @@ class DjiCommandLink(CommandLink):
         self._flight_status, self._display_mode = payload[1], payload[2]
         self._device = payload[4]
         self._last_data_s = now_s
-        self.status = DjiStatus(self._flight_status, self._device, now_s,  # type: ignore[assignment]
-                                self._display_mode)
+        # (`DjiStatus(...)` made without the frozen dataclass's per-field __setattr__ calls: a package
+        # every other tick)
+        status = object.__new__(DjiStatus)
+        status.__dict__.update(flight_status=self._flight_status, device=self._device, time_s=now_s,
+                               display_mode=self._display_mode)
+        self.status = status  # type: ignore[assignment]
 
     def heartbeat_age_s(self, now_s: float) -> float:
         """Seconds since the FC's last flight data (inf if none yet): the OPEN protocol's sign of life."""
@@ -242,11 +266,13 @@ class DjiCommandLink(CommandLink):
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust):
             raise ValueError(f"setpoint not finite: roll {roll_rad} rad, pitch {pitch_rad} rad, "
                              f"yaw {yaw_rad} rad, thrust {thrust}")
-        roll, pitch, yaw = self._ned_euler(roll_rad, pitch_rad, yaw_rad)  # (`ned_euler`, compiled)
-        percent = 100.0 * clipped_thrust(thrust)
-        payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, math.degrees(roll), math.degrees(pitch),
-                                      percent, math.degrees(yaw))
-        self._send_frame(self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload))
+        roll, pitch, percent, yaw = self._setpoint_angles(roll_rad, pitch_rad, yaw_rad, thrust)  # (compiled)
+        payload = dj.setpoint_payload(dj.ATTITUDE_THRUST_YAW_ANGLE, roll, pitch, percent, yaw)
+        frame = self.codec.pack_command(dj.SET_CONTROL, dj.CMD_SETPOINT, payload)
+        if self._open_ticks > 0:  # held for the tick's answer (`_send_frame`, without the call: per tick)
+            self._held.append(frame)
+        else:
+            self._send_frame(frame)
         self.setpoints_sent += 1
 
     def _answer_frame(self, tick_s: float) -> bytes:

@@ -107,6 +107,13 @@ class PoseEstimator:
         argument, not to be written by its callers."""
         return self._state
 
+    def keep_state_in(self, view: np.ndarray) -> None:
+        """Keep the state in ``view`` from now on (float64, `STATE_FLOATS`, C-contiguous: a part of a larger
+        array that a compiled call takes whole, one array argument instead of several); the state so far is
+        copied there, and `state` is ``view`` (ask for it after this)."""
+        view[:] = self._state
+        self._state = view
+
     @property
     def ready(self) -> bool:
         return self._state.item(_READY) != 0.0
@@ -226,6 +233,12 @@ class StaticPoseCheck:
             self._pose = (st[_G_POSE:_G_POSE + 3].copy(), st[_G_POSE + 3:_G_POSE + 7].copy())
             self._pose_at = taken
         return self._pose
+
+    def keep_state_in(self, view: np.ndarray) -> None:
+        """Keep the state in ``view`` from now on (float64, `GAP_FLOATS`, C-contiguous; as
+        `PoseEstimator.keep_state_in`); the state so far is copied there."""
+        view[:] = self._state
+        self._state = view
 
     @property
     def received_s(self) -> float:

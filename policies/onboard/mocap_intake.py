@@ -8,7 +8,9 @@ estimator (`take_pose`) and the gap's into its pose check (`static_pose_update`)
 ``_on_pose`` hands them on. It stops at the first frame that is not so (a bad checksum, a body refused or
 to be looked at closer, a frame cut by the read): the reader reads from there on its own path, which
 counts what it refuses (`MocapReader`'s ``intake``). Each function it calls is the only definition of its
-computation, run as plain Python on the reader's path and compiled here (`policies.compiling`).
+computation, run as plain Python on the reader's path and compiled here (`policies.compiling`). The
+estimator's, the gap check's and the reader's states live in one array (`MocapIntake`), so that a call
+unpacks one array argument, not three.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from policies.mocap_reader import (
     pose_passes,
 )
 from policies.onboard.estimator import (
+    GAP_FLOATS,
+    STATE_FLOATS,
     STATIC_POSE_UPDATE,
     TAKE_POSE,
     PoseEstimator,
@@ -103,19 +107,45 @@ def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes, 
     return start, frames
 
 
+#: where the gap check's and the reader's states start in the intake's one array (`intake_state`)
+_GAP_AT = STATE_FLOATS
+_READER_AT = _GAP_AT + GAP_FLOATS
+INTAKE_FLOATS = _READER_AT + READER_FLOATS
+
+
+def intake_state(state: np.ndarray, buf: bytes, now_s: float) -> tuple[int, int]:
+    """`intake_frames` on the estimator's, the gap check's and the reader's states kept in the one array
+    ``state`` (`INTAKE_FLOATS`: `STATE_FLOATS`, `GAP_FLOATS`, then `READER_FLOATS`), so that a call unpacks
+    one array argument instead of three. Run compiled (`MOCAP_INTAKE`)."""
+    return intake_frames(state[:_GAP_AT], state[_GAP_AT:_READER_AT], state[_READER_AT:], buf, now_s)
+
+
 _U32_AT = Kernel(u32_at)
-#: the mocap chunk into the reader's, the estimator's and the gap check's state, compiled: `intake_frames`
-MOCAP_INTAKE = Kernel(
+#: the mocap chunk into the reader's, the estimator's and the gap check's state, compiled: `intake_state`
+MOCAP_INTAKE = Kernel(intake_state, intake_frames=Kernel(
     intake_frames, good_mocap_frame=Kernel(good_mocap_frame, crc16_at=Kernel(crc16_at)), u32_at=_U32_AT,
     body_at=Kernel(body_at, u32_at=_U32_AT, f32_at=Kernel(f32_at, u32_at=_U32_AT)),
     pose_passes=Kernel(pose_passes), keep_pose=Kernel(keep_pose), take_pose=TAKE_POSE,
-    static_pose_update=STATIC_POSE_UPDATE)
+    static_pose_update=STATIC_POSE_UPDATE))
 
 
-def mocap_intake(estimator: PoseEstimator, gap_check: StaticPoseCheck
-                 ) -> Callable[[np.ndarray, bytes, float], tuple[int, int]]:
-    """The intake of `MocapReader` for ``estimator`` and ``gap_check``: called with the reader's state, the
-    bytes and their time, `intake_frames` compiled for them (no dispatch a call)."""
-    est, gap = estimator._state, gap_check._state
-    entry = MOCAP_INTAKE.entry(est, gap, np.zeros(READER_FLOATS), b"", 0.0)
-    return functools.partial(entry, est, gap)
+class MocapIntake:
+    """The intake of a `MocapReader` for an estimator and a gap check (`mocap_intake`): the three states in
+    one array (`intake_state`), the reader's part of it (``reader_state``, where the reader given this
+    intake keeps its poses) and ``take``, called with the bytes and their time (s): `intake_state` compiled
+    for that array (no dispatch a call)."""
+
+    def __init__(self, estimator: PoseEstimator, gap_check: StaticPoseCheck) -> None:
+        self.state = np.zeros(INTAKE_FLOATS)
+        estimator.keep_state_in(self.state[:_GAP_AT])
+        gap_check.keep_state_in(self.state[_GAP_AT:_READER_AT])
+        #: the reader's pose state (`READER_FLOATS`), which the reader sets up
+        self.reader_state = self.state[_READER_AT:]
+        entry = MOCAP_INTAKE.entry(self.state, b"", 0.0)
+        self.take: Callable[[bytes, float], tuple[int, int]] = functools.partial(entry, self.state)
+
+
+def mocap_intake(estimator: PoseEstimator, gap_check: StaticPoseCheck) -> MocapIntake:
+    """The intake of `MocapReader` for ``estimator`` and ``gap_check``, whose states move into its array
+    (`MocapIntake`; ask for ``estimator.state`` after this)."""
+    return MocapIntake(estimator, gap_check)

@@ -55,7 +55,6 @@ from policies.controller import (
     AttitudeThrustCommand,
     ExpertController,
     ExpertGains,
-    _new_command,
     gains_array,
     limit_tilt_step,
 )
@@ -78,9 +77,9 @@ from policies.gap_planning import (
     start_plan,
 )
 from policies.mocap_reader import MocapReader
-from policies.onboard.command_link import NED_FRD_QUAT
+from policies.onboard.command_link import SETPOINT_WIRE
 from policies.onboard.command_links import COMMAND_LINKS, OnboardLink
-from policies.onboard.dji_command_link import NED_EULER
+from policies.onboard.dji_command_link import SETPOINT_ANGLES
 from policies.onboard.estimator import (
     STATE_FLOATS,
     EstimatorConfig,
@@ -347,8 +346,8 @@ def warm_kernels() -> None:
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
     est.state_tuples(0.05)
     mocap_intake(est, StaticPoseCheck(0.1, 0.1))  # (the mocap intake, for the estimator's and the check's)
-    NED_FRD_QUAT.entry(0.0, 0.0, 0.0)  # (the command links' setpoint attitude)
-    NED_EULER.entry(0.0, 0.0, 0.0)
+    SETPOINT_WIRE.entry(0.0, 0.0, 0.0, 0.0)  # (the command links' setpoint numbers)
+    SETPOINT_ANGLES.entry(0.0, 0.0, 0.0, 0.0)
 
 
 class OnboardProgram:
@@ -380,6 +379,7 @@ class OnboardProgram:
         self.plan: MissionPlan | None = None
         self.gap: GapPose | None = None
         self.segment: Segment | None = None
+        self._segment_end_s = -math.inf  # (mission time, s) until which `segment` holds
         self.control_steps = 0
         self.skipped_steps = 0
         self.commands_refused = 0  # setpoints not sent for not being finite
@@ -415,7 +415,9 @@ class OnboardProgram:
         self._send_attitude_target = self.link.send_attitude_target
         self._gap_update, self._estimator_take = self.gap_check.update, self.estimator.take  # (per pose)
         self._abort_yaw = 0.0  # heading (rad, ENU) of the level setpoints: as first seen, or at an abort
-        self._last_cmd: AttitudeThrustCommand | None = None
+        #: the latest setpoint sent: roll, pitch, yaw (rad), thrust (N) (the tilt-step limit's start); None
+        #: before one
+        self._last_setpoint: tuple[float, float, float, float] | None = None
         #: the pilot's control step on the plan as one compiled call (`Pilot.compiled_step`), when it offers
         #: one; with the estimator's state array it reads
         self._pilot_step: Callable[..., tuple[float, float, float, float]] | None = None
@@ -675,7 +677,7 @@ class OnboardProgram:
         compiled_step = getattr(self.pilot, "compiled_step", None)
         self._pilot_step = compiled_step(plan) if compiled_step is not None else None
         self._mission_start_s = now_s
-        self.segment = None
+        self.segment, self._segment_end_s = None, -math.inf
         self.events.emit("plan", now_s, start_m=est.pos_m, gap_centre_m=gap.centre,
                          t_gap_s=round(plan.t_gap_s, 3), t_hover_s=round(plan.t_hover_start_s, 3),
                          hover_m=np.array(plan.hover_m), crossing_speed_m_s=plan.traverse.crossing_speed_m_s,
@@ -688,12 +690,14 @@ class OnboardProgram:
         plan = self.plan
         assert plan is not None
         t = now_s - self._mission_start_s
-        seg = plan.segment_at(t)
-        if seg is not self.segment:
-            self.segment = seg
-            est = self.estimator.estimate(now_s)
-            self.events.emit("segment", now_s, segment=str(seg), mission_t_s=round(t, 3), pos_m=est.pos_m,
-                             vel_m_s=est.vel_m_s)
+        if t >= self._segment_end_s:  # (the program's time never goes back: no segment lookup a tick)
+            seg = plan.segment_at(t)
+            self._segment_end_s = plan.segment_end_s(t)
+            if seg is not self.segment:
+                self.segment = seg
+                est = self.estimator.estimate(now_s)
+                self.events.emit("segment", now_s, segment=str(seg), mission_t_s=round(t, 3),
+                                 pos_m=est.pos_m, vel_m_s=est.vel_m_s)
         if t >= plan.t_hover_start_s + self.config.hover_s:
             est = self.estimator.estimate(now_s)
             err = float(np.linalg.norm(est.pos_m - np.array(self.plan.hover_m)))
@@ -741,22 +745,26 @@ class OnboardProgram:
                      **({} if done else {"reason": "FC did not confirm HOLD"}))
 
     # --- control ------------------------------------------------------------------------------
-    def _send(self, cmd: AttitudeThrustCommand) -> None:
-        """Send ``cmd``; one that is not finite is refused (counted in ``commands_refused``) and, unless
-        the program is aborting already, aborts to the safe hover."""
+    def _send(self, roll_rad: float, pitch_rad: float, yaw_rad: float, thrust_n: float) -> None:
+        """Send the setpoint (the angles in rad, thrust in N, as `AttitudeThrustCommand`'s, given as floats:
+        no command object a control step); one that is not finite is refused (counted in
+        ``commands_refused``) and, unless the program is aborting already, aborts to the safe hover."""
         try:
-            self._send_attitude_target(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad,
-                                       cmd.thrust_n / self._full_thrust_n)
+            self._send_attitude_target(roll_rad, pitch_rad, yaw_rad, thrust_n / self._full_thrust_n)
         except ValueError as exc:
             self.commands_refused += 1
             if self.phase is not _ABORTING:
                 self._abort(self.clock.now_s(), "bad_command", detail=str(exc))
             return
-        self._last_cmd = cmd
+        self._last_setpoint = (roll_rad, pitch_rad, yaw_rad, thrust_n)
         self.control_steps += 1
 
+    def _send_command(self, cmd: AttitudeThrustCommand) -> None:
+        """`_send` of a command object (a pilot's or the expert's)."""
+        self._send(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad, cmd.thrust_n)
+
     def _send_safe_hover(self) -> None:
-        self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, self.config.hover_thrust_n))
+        self._send(0.0, 0.0, self._abort_yaw, self.config.hover_thrust_n)
 
     def _control(self, t_s: float, now_s: float) -> None:
         """One control step scheduled at ``t_s`` (s), with the estimate at ``now_s``; the pilot and the
@@ -776,27 +784,27 @@ class OnboardProgram:
                                                           self._estimator_state, now_s + lead, t_s, t0,
                                                           duration, yaw0, yaw1)
             if math.isfinite(roll + pitch + thrust):
-                self._send(_new_command(roll, pitch, thrust, yaw))
+                self._send(roll, pitch, yaw, thrust)
             else:  # a bad input: the controller's checks name it
                 pos, vel, _ = self.estimator.state_tuples(now_s + lead)
                 tau, yaw = takeoff_heading(t_s, t0, duration, yaw0, yaw1)
                 p, v, a = traj.state_tuples(tau)
-                self._send(self.expert.command(p, v, a, yaw, pos, vel))
+                self._send_command(self.expert.command(p, v, a, yaw, pos, vel))
             return
-        step, last = self._pilot_step, self._last_cmd
+        step, last = self._pilot_step, self._last_setpoint
         if step is not None and last is not None and ph in _PILOTED:
             # the pilot's whole step in one call (the state, its command, the tilt-step limit below); a
             # command that is not finite goes the long way, whose checks name it
             roll, pitch, yaw, thrust = step(self._estimator_state, now_s + lead, t_s - self._mission_start_s,
-                                            last.roll_rad, last.pitch_rad, self._tilt_step_rad)
+                                            last[0], last[1], self._tilt_step_rad)
             if math.isfinite(roll + pitch + thrust):
-                self._send(_new_command(roll, pitch, thrust, yaw))
+                self._send(roll, pitch, yaw, thrust)
                 return
         pos, vel, acc = self.estimator.state_tuples(now_s + lead)  # (`estimate`'s numbers, no arrays)
         if ph in _LEVEL:
             armed = self._fc("armed")
             thrust = self.config.hover_thrust_n if armed else 0.0
-            self._send(AttitudeThrustCommand(0.0, 0.0, self._abort_yaw, thrust))
+            self._send(0.0, 0.0, self._abort_yaw, thrust)
         elif ph in _PILOTED:
             plan = self.plan
             assert plan is not None and self.gap is not None
@@ -806,10 +814,10 @@ class OnboardProgram:
             # the command turns at most at the FC's body rate from the traverse on (the traverse, the
             # pull-out, the hover), not in the approach, which rolls the body into the gap's tilt before
             # the wall (the planner lets it ask up to twice the rate there)
-            last = self._last_cmd
+            last = self._last_setpoint
             if last is not None and plan.segment_at(t_mission) is not _APPROACH:
-                cmd = limit_tilt_step(cmd, last, self._tilt_step_rad)
-            self._send(cmd)
+                cmd = limit_tilt_step(cmd, last[0], last[1], self._tilt_step_rad)
+            self._send_command(cmd)
 
     def _on_pose(self, body_id: int, stamp_s: float, pos_m: tuple[float, float, float],
                  quat_wxyz: tuple[float, float, float, float], received_s: float) -> None:
@@ -853,8 +861,7 @@ class OnboardProgram:
         link = self.link
         while self.phase not in FINAL_PHASES:  # (`finished`, without the property's call: per tick)
             try:
-                link.read()  # in lockstep: the messages up to the next tick
-                ticks = link.take_ticks()
+                ticks = link.read_ticks()  # in lockstep: the messages up to the next tick, and the ticks
                 # the mocap link is read at the ticks only: bytes read between ticks would be stamped
                 # with the previous tick's time, and how many there are depends on process scheduling
             except LinkError as exc:
@@ -886,14 +893,23 @@ class OnboardProgram:
         """Run on the FC's TIMESYNC ticks until finished; ``tick_timeout_s`` of wall time without a tick
         ends the program with an error."""
         fds = _fds(self.link.transport)  # ticks come on the command link; the mocap waits for them
+        spin_s = self.config.lockstep_spin_s
+        poll = self.lockstep_poll
+        # (asleep at once, without a spin: a poll object made once, no descriptor lists built a tick)
+        waiter = select.poll()
+        for fd in fds:
+            waiter.register(fd, select.POLLIN)
         last_tick_wall = time.monotonic()
-        while not self.finished:
-            if self.lockstep_poll():
+        while self.phase not in FINAL_PHASES:  # (`finished`, without the property's call: per tick)
+            if poll():
                 # answered: the next tick is not there yet (the FC waits for this answer), so wait for
                 # it rather than reading the link again at once
                 last_tick_wall = time.monotonic()
-                if fds and not self.finished:
-                    wait_readable(fds, 0.05, self.config.lockstep_spin_s)
+                if fds and self.phase not in FINAL_PHASES:
+                    if spin_s > 0.0:
+                        wait_readable(fds, 0.05, spin_s)
+                    else:
+                        waiter.poll(50)  # (ms: `wait_readable`'s 0.05 s)
                 continue
             if time.monotonic() - last_tick_wall > tick_timeout_s:
                 self._finish(Phase.FAILED, EXIT_ERROR, "error", reason=f"no tick for {tick_timeout_s} s")
