@@ -584,6 +584,8 @@ class MocapLinkServer:
 
 
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) the kernels a link builds with itself (the tracker's exposure,
-    the radio's step), for a caller whose wall clock starts afterwards."""
-    MocapLinkServer(MemoryTransport.pair()[0], SimClock(), np.random.default_rng(0))
+    """Compile (or load from numba's cache) the kernels a link builds with itself (the exposure and the
+    radio's step in one kernel; each alone, for a link whose bodies can be occluded), for a caller whose
+    wall clock starts afterwards."""
+    for mocap in (MocapConfig(), MocapConfig(occlusion_prob=0.5)):
+        MocapLinkServer(MemoryTransport.pair()[0], SimClock(), np.random.default_rng(0), mocap)
