@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import select
-import termios
 import time
 from collections.abc import Callable, Iterator
 
@@ -316,31 +315,6 @@ def test_pty_without_a_reader_drops_and_counts_once_the_kernel_buffer_is_full() 
         assert fc.stats.bytes_dropped == 64 * 4096 - accepted
         fc.discard_pending()
         assert fc.send(b"after discard") == len(b"after discard")
-
-
-@pytest.mark.parametrize("baud", [921600, 250000])  # a rate termios names; one only pyserial sets
-def test_serial_port_is_raw_8n1_whatever_the_device_was_left_as(baud: int) -> None:
-    """A device left cooked (echo, line editing, CR/NL translation, signal and XON/XOFF characters) carries
-    every byte unchanged both ways once opened, and at the rate asked."""
-    garbage = b"\r\n\x03\x04\x11\x13\x1a\x7f" + bytes(range(256))
-    with PtyTransport.create() as fc:
-        fd = os.open(fc.endpoint, os.O_RDWR | os.O_NOCTTY)
-        try:
-            iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
-            cooked = [iflag | termios.ICRNL | termios.IXON, oflag | termios.OPOST | termios.ONLCR, cflag,
-                      lflag | termios.ICANON | termios.ECHO | termios.ISIG, termios.B9600, termios.B9600, cc]
-            termios.tcsetattr(fd, termios.TCSANOW, cooked)
-            port = SerialTransport(fc.endpoint, baud)
-        finally:
-            os.close(fd)
-        with port:
-            fc.send(garbage)
-            assert recv_exactly(port, len(garbage)) == garbage
-            port.send(garbage)
-            assert recv_exactly(fc, len(garbage)) == garbage
-            assert fc.recv(0.05) == b""  # nothing echoed back
-            if hasattr(termios, f"B{baud}"):
-                assert termios.tcgetattr(port.fileno())[4] == getattr(termios, f"B{baud}")
 
 
 def test_serial_open_of_a_missing_device_is_a_link_error() -> None:

@@ -3,7 +3,7 @@
 Specs, for either side of the cable (``role`` "fc" is the flight-controller side, "onboard" the
 companion computer):
     pty[:BAUD]              new pseudo-terminal, fc side only; peers open its slave path
-    serial:DEVICE[:BAUD]    a serial device, raw 8N1 (also a pty slave path); on the fc side
+    serial:DEVICE[:BAUD]    a serial device through pyserial (also a pty slave path); on the fc side
                             it survives the device vanishing (an adapter unplugged) and reopens it
     udp:HOST:PORT           bind and reply to the last sender (autopilot style)
     udpout:HOST:PORT        send to a fixed peer from an ephemeral port
@@ -121,7 +121,7 @@ def _open_pty(ep: EndpointSpec, role: str) -> Transport:
 
 
 def _open_serial(ep: EndpointSpec, role: str) -> Transport:
-    from hil.link.serial_port import SerialTransport  # (here: termios, POSIX only, only for its users)
+    from hil.link.serial_port import SerialTransport  # (here: pyserial, optional, only for its users)
 
     # the fc side outlives its cable: a USB-serial adapter unplugged and plugged back in is silence,
     # then the link again (the FC's link-loss failsafe acts meanwhile); the onboard side is told
@@ -134,7 +134,7 @@ def _open_socket(ep: EndpointSpec, role: str) -> Transport:
     return cls(ep.host, ep.port, server=ep.kind in ("udp", "tcp"))
 
 
-#: link kind -> opener (the serial one imports its module only when used: a driver missing fails only
+#: link kind -> opener (the serial one imports pyserial only when used: an optional driver fails only
 #: for its users)
 OPENERS: dict[str, Callable[[EndpointSpec, str], Transport]] = {
     "pty": _open_pty,

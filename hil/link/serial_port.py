@@ -1,10 +1,8 @@
-"""Serial-port transport: a real UART (/dev/ttyUSB0, /dev/ttyTHS2) or a pty slave.
+"""Serial-port transport through pyserial: a real UART (/dev/ttyUSB0, /dev/ttyTHS2) or a pty slave.
 
-The port is opened and configured here through termios as pyserial configures it (raw, 8N1, no flow
-control, the baud, DTR and RTS raised, pending input dropped): its own object would take a warm-started
-program ~0.4 ms a port, most of it the first touch of pyserial's objects in a freshly forked process. A
-rate termios has no constant for (e.g. 250000) goes through pyserial, which sets any rate. Reads and
-writes go straight to the file descriptor without blocking. What does not fit is dropped and counted.
+pyserial opens and configures the port (raw, 8N1, baud); reads and writes then go straight to its
+file descriptor without blocking, because pyserial's own zero-timeout write spins while the
+kernel buffer is full. What does not fit is dropped and counted.
 
 When the device goes away (USB unplugged, or the pty's master side closed) the next `recv` or
 `send` raises LinkError naming the device, unless the transport reconnects (``reconnect_s``, what the
@@ -16,14 +14,11 @@ adapter is back. ``fileno()`` stays the same number throughout, so a loop waitin
 from __future__ import annotations
 
 import contextlib
-import errno
-import fcntl
 import os
 import select
-import struct
-import sys
-import termios
 import time
+
+import serial
 
 from hil.link.transport import LinkError, Transport, write_nonblocking
 
@@ -66,24 +61,6 @@ class SerialTransport(Transport):
 
     def _open_fd(self) -> int:
         """Open and configure the device (raw, 8N1, baud); returns a file descriptor of our own."""
-        speed = getattr(termios, f"B{self.baud}", None)
-        if speed is None:
-            return self._open_fd_pyserial()
-        try:
-            fd = os.open(self.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        except OSError as e:
-            raise LinkError(f"cannot open serial device {self.device!r} at {self.baud} baud: {e}") from e
-        try:
-            _configure(fd, speed, self.exclusive)
-        except (OSError, termios.error) as e:
-            os.close(fd)
-            raise LinkError(f"cannot configure serial device {self.device!r} at {self.baud} baud: {e}") from e
-        return fd
-
-    def _open_fd_pyserial(self) -> int:
-        """`_open_fd` through pyserial, for a rate termios has no constant for."""
-        import serial  # (here: only such a rate needs it)
-
         try:
             port = serial.Serial(self.device, self.baud, timeout=0, write_timeout=0,
                                  exclusive=self.exclusive or None)
@@ -161,35 +138,3 @@ class SerialTransport(Transport):
         for fd in (self._fd, *(self._idle or ())):
             with contextlib.suppress(OSError):
                 os.close(fd)
-
-
-#: mark/space parity (Linux's CMSPAR, which Python's termios does not name): cleared with the parity
-_CMSPAR = 0o10000000000 if sys.platform.startswith("linux") else 0
-_CFLAG_OFF = (termios.CSIZE | termios.CSTOPB | termios.PARENB | termios.PARODD | _CMSPAR
-              | getattr(termios, "CRTSCTS", 0))
-_LFLAG_OFF = (termios.ICANON | termios.ECHO | termios.ECHOE | termios.ECHOK | termios.ECHONL | termios.ISIG
-              | termios.IEXTEN | getattr(termios, "ECHOCTL", 0) | getattr(termios, "ECHOKE", 0))
-_IFLAG_OFF = (termios.INLCR | termios.IGNCR | termios.ICRNL | termios.IGNBRK | getattr(termios, "IUCLC", 0)
-              | getattr(termios, "PARMRK", 0) | termios.INPCK | termios.ISTRIP | termios.IXON
-              | termios.IXOFF | getattr(termios, "IXANY", 0))
-_MODEM_LINES = struct.pack("I", termios.TIOCM_DTR | termios.TIOCM_RTS)
-
-
-def _configure(fd: int, speed: int, exclusive: bool) -> None:
-    """Set an open port as pyserial sets it for 8N1 without flow control at termios rate ``speed``: an
-    exclusive lock if asked, raw mode, reads that return at once (VMIN = VTIME = 0), DTR and RTS raised
-    (where the device has them), pending input dropped. OSError or termios.error when it cannot."""
-    if exclusive:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
-    cflag = (cflag & ~_CFLAG_OFF) | termios.CLOCAL | termios.CREAD | termios.CS8
-    oflag &= ~(termios.OPOST | termios.ONLCR | termios.OCRNL)
-    cc[termios.VMIN] = cc[termios.VTIME] = 0
-    attrs = [iflag & ~_IFLAG_OFF, oflag, cflag, lflag & ~_LFLAG_OFF, speed, speed, cc]
-    termios.tcsetattr(fd, termios.TCSANOW, attrs)
-    try:
-        fcntl.ioctl(fd, termios.TIOCMBIS, _MODEM_LINES)
-    except OSError as e:  # a pty has no modem lines
-        if e.errno not in (errno.EINVAL, errno.ENOTTY):
-            raise
-    termios.tcflush(fd, termios.TCIFLUSH)
