@@ -9,8 +9,17 @@ as the public modules of a package, each module one entry whose factory is the a
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 from collections.abc import Mapping
+
+
+def _mtime_ns(folder: str) -> int:
+    """A folder's modification time (ns; -1 if it cannot be read): it changes when a file is added."""
+    try:
+        return os.stat(folder).st_mtime_ns
+    except OSError:
+        return -1
 
 
 class Registry:
@@ -22,18 +31,20 @@ class Registry:
             raise ValueError("a registry takes either a package and an attribute, or explicit entries")
         self.kind, self.package, self.attr, self.error = kind, package, attr, error
         self._entries = dict(entries or {})
-        self._names: list[str] | None = None  # a package's, listed on first use
+        self._listed: tuple[tuple[tuple[str, int], ...], list[str]] | None = None  # (where, names)
 
     def names(self) -> list[str]:
-        """The known names, sorted. A package's modules are listed once a process (a process forked
-        after it, a warm-started program, finds them listed): a module added while it runs is not seen."""
-        if self._names is None:
-            if self.package is None:
-                self._names = sorted(self._entries)
-            else:
-                path = importlib.import_module(self.package).__path__
-                self._names = sorted(m.name for m in pkgutil.iter_modules(path) if not m.name.startswith("_"))
-        return list(self._names)
+        """The known names, sorted. A package's modules are listed again only when its folders (or their
+        modification times) change: a module added while a process runs is seen, and a process forked
+        after the listing (a warm-started program) stats the folders instead of reading them."""
+        if self.package is None:
+            return sorted(self._entries)
+        path = importlib.import_module(self.package).__path__
+        where = tuple((p, _mtime_ns(p)) for p in path)
+        if self._listed is None or self._listed[0] != where:
+            found = sorted(m.name for m in pkgutil.iter_modules(path) if not m.name.startswith("_"))
+            self._listed = (where, found)
+        return list(self._listed[1])
 
     def check(self, name: str) -> None:
         """``error`` naming the known names unless ``name`` is one."""
