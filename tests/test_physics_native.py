@@ -174,6 +174,9 @@ def test_batch_equals_single_runs_exactly() -> None:
     same.set_external_force(forces[0])
     same.step(cmds[0], 200)
     assert np.all(same.states == batch.states[0])
+    # Its clock tells the time of the steps taken, as a compiled caller that steps it reads it.
+    t0_s, steps = same.clock
+    assert steps == 200 and t0_s + steps * same.dt_s == same.time_s
 
 
 def test_batch_rows_are_independent() -> None:

@@ -264,9 +264,10 @@ class BatchPhysics:
 
     @property
     def clock(self) -> tuple[float, int]:
-        """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s``, for a compiled caller that keeps the time
-        of the steps it takes through `kernel_arrays`."""
-        return self._t0_s, self._steps
+        """(t0 (s), steps): ``time_s`` is ``t0 + steps * dt_s`` (a batch's time starts at 0 s at its
+        construction or full reset), for a compiled caller that keeps the time of the steps it takes
+        through `kernel_arrays`."""
+        return 0.0, self._steps
 
     def advance_clock(self, n_steps: int) -> None:
         """Count ``n_steps`` steps taken through `kernel_arrays` by another caller."""
