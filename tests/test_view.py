@@ -420,3 +420,28 @@ def test_a_replay_stops_the_vehicle_where_it_hit_names_the_phases_and_the_failed
     refused = load_replay(tmp_path / "small")
     assert refused["verdict"] == "REFUSED" and refused["frames"] == []
     assert "0.20 x 0.10 m opening is too small" in refused["refused"]
+
+
+def test_the_live_rows_of_a_velocity_target_leave_attitude_and_thrust_uncommanded():
+    # DJI's motion control (OSDK's moveByPositionOffset, velocity commands) gives the FC a target with no
+    # attitude or thrust in it: the live view's row (and a recorded sample's) says so instead of failing
+    import math
+
+    import numpy as np
+
+    from emulator.fc.n3 import AttitudeThrustTarget, MotionTarget
+    from emulator.physics.state import VehicleState
+    from emulator.profile import load_profile
+    from hil.runner.recorder import state_values
+
+    profile = load_profile("n3_tx2")
+    x = VehicleState().to_vector()
+    motion = MotionTarget(1.0, 0.0, 0.5, horizontal_position=False, vertical_position=False,
+                          body_frame=False, yaw_rad=math.radians(30.0), yaw_rate_rad_s=None)
+    row = state_values(2.0, x, motion, profile)
+    assert math.isnan(row["roll_cmd_deg"]) and math.isnan(row["pitch_cmd_deg"])
+    assert math.isnan(row["thrust_cmd_pct"]) and row["yaw_cmd_deg"] == pytest.approx(30.0)
+    attitude = AttitudeThrustTarget(math.radians(10.0), 0.0, 0.0, None, profile.n3_full_thrust_n / 2)
+    row = state_values(2.0, x, attitude, profile)
+    assert row["roll_cmd_deg"] == pytest.approx(10.0) and row["thrust_cmd_pct"] == pytest.approx(50.0)
+    assert np.isfinite(row["pos_m_x"])

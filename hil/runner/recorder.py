@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 from emulator.fc import FcState, FlightController
-from emulator.fc.n3 import AttitudeThrustTarget
+from emulator.fc.n3 import AttitudeThrustTarget, MotionTarget
 from emulator.kernel_cache import entry
 from emulator.mocap_link import MocapLinkServer
 from emulator.physics.state import POS, QUAT, STATE_SIZE, VEL
@@ -79,12 +79,16 @@ assert COLUMNS[_POS_X : _POS_X + 6] == tuple(f"{q}_{a}" for q in ("pos_m", "vel_
 assert COLUMNS[_CMD] == ("roll_cmd_deg", "pitch_cmd_deg", "yaw_cmd_deg", "thrust_cmd_pct")
 
 
-def _command(tg: AttitudeThrustTarget | None, full_thrust_n: float) -> tuple[float, float, float, float]:
-    """The FC target's columns: roll, pitch, yaw (deg; NaN when it flies a yaw rate), thrust (%)."""
+def _command(tg: AttitudeThrustTarget | MotionTarget | None, full_thrust_n: float,
+             ) -> tuple[float, float, float, float]:
+    """The FC target's columns: roll, pitch, yaw (deg; NaN when it flies a yaw rate), thrust (%); a
+    velocity or position target (DJI's motion control) commands neither attitude nor thrust: NaN."""
     if tg is None:
         return _NO_COMMAND
     degrees = math.degrees
     yaw = degrees(tg.yaw_rad) if tg.yaw_rate_rad_s is None else math.nan
+    if isinstance(tg, MotionTarget):
+        return math.nan, math.nan, yaw, math.nan
     return degrees(tg.roll_rad), degrees(tg.pitch_rad), yaw, 100.0 * tg.thrust_n / full_thrust_n
 
 
@@ -208,8 +212,8 @@ _STATE_VALUES = (*COLUMNS[_T : _POS_X + 6], "roll_deg", "pitch_deg", "yaw_deg", 
                  "body_rate_rad_s")
 
 
-def state_values(t_s: float, x: np.ndarray, target: AttitudeThrustTarget | None, profile: VehicleProfile,
-                 ) -> dict[str, float]:
+def state_values(t_s: float, x: np.ndarray, target: AttitudeThrustTarget | MotionTarget | None,
+                 profile: VehicleProfile) -> dict[str, float]:
     """One state's columns that need neither the world nor the history (a live view's): time,
     position, velocity, roll/pitch/yaw (deg), the FC target's four columns and the thrust (N)."""
     out = np.full((1, len(COLUMNS)), np.nan)
