@@ -6,7 +6,7 @@ from __future__ import annotations
 import heapq
 import math
 import struct
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -27,7 +27,7 @@ MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
-DRAW_BLOCK = 256  # random draws taken ahead at once
+_BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
 #: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0), as
 #: the LinkTrack packer takes it
@@ -37,7 +37,7 @@ _VALUES_PER_BODY = PACKED_VALUES
 def _noise_room(n: int) -> int:
     """How many standard normal draws the exposure kernel's buffer holds for ``n`` bodies: a block drawn
     ahead, or one frame's draws (at most 6 a body)."""
-    return max(DRAW_BLOCK, 6 * n)
+    return max(_BLOCK, 6 * n)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -153,18 +153,6 @@ def frame_of(rows: FrameRows) -> MocapFrame:
     )
 
 
-class ExposureBuffer(NamedTuple):
-    """The exposure kernel's buffer for some bodies (`MocapSystem.lay_out`): ``mem`` (uint8, what
-    `expose_kernel` takes) over the bytes ``io_buf``, ``put_poses(io_buf, 0, *values)`` writing the true
-    poses into it (7 values a body), the frame's bytes from ``frame_at`` to its end, and the bodies' ids."""
-
-    mem: np.ndarray
-    io_buf: bytearray
-    put_poses: Callable[..., None]
-    frame_at: int
-    body_ids: tuple[int, ...]
-
-
 @dataclass
 class MocapStats:
     frames: int = 0
@@ -207,9 +195,7 @@ class MocapSystem:
         self.config = config
         self._frames = frames
         self._rng = rng
-        #: the number of the next exposure (taken at this x the period): moved by the exposures, here or
-        #: in a caller's kernel that takes them (`lay_out`)
-        self.exposure_k = 0
+        self._next_exposure_k = 0
         #: the frames exposed and not yet released: (ready_s, frame number, rows or the frame's bytes), a
         #: heap (its head the next release; read, never changed, by the mocap link)
         self.pending: list[tuple[float, int, list[_Row] | bytes]] = []
@@ -230,10 +216,10 @@ class MocapSystem:
         self._buffers_for(2)
         # the exposure kernel's form for its buffer (uint8 bytes, whatever their size), compiled or loaded
         # from numba's cache now, not at the first exposure, and called without numba's type dispatch
-        self._expose = entry(expose_kernel, self._mem, 0, 0.0, 0.0, 0, 0, 0, 0, 0)
+        self._expose = entry(_expose_kernel, self._mem, 0, 0.0, 0.0, 0, 0, 0, 0, 0)
 
     def _buffers_for(self, n: int) -> None:
-        """The kernel's buffer for exposures of ``n`` bodies (`expose_kernel`'s ``mem``), and its structs:
+        """The kernel's buffer for exposures of ``n`` bodies (`_expose_kernel`'s ``mem``), and its structs:
         the true poses in (7 doubles each) then the measured values out (`_VALUES_PER_BODY` doubles
         each), each written and read by Python in one call; then the frame's fields, the standard normal
         draws (how many it has room for, then `_noise_room` or more), the occlusion flags and the frame's
@@ -241,14 +227,12 @@ class MocapSystem:
         if self._frames is not None and n > MAX_BODIES:
             raise ValueError(f"a LinkTrack mocap frame holds at most {MAX_BODIES} bodies, got {n}")
         self._n_bodies = n
-        fields_at = (7 + _VALUES_PER_BODY) * 8 * n  # (the frame's fields, then its bytes: `expose_kernel`)
+        fields_at = (7 + _VALUES_PER_BODY) * 8 * n  # (the frame's fields, then its bytes: `_expose_kernel`)
         noise_at = fields_at + 16 * n + 8
         kept = self._noise[: self._noise_len].copy()  # (the draws of a block not used yet stay)
         room = max(_noise_room(n), len(kept))
         occluded_at = noise_at + 8 * room
         frame_at = occluded_at + n
-        # (where the frame's bytes start in the buffer: they run to its end)
-        self._frame_at = frame_at
         frame_len = mocap_frame_len(n) if self._frames is not None else 0
         self._io_buf = bytearray(frame_at + frame_len)
         self._mem = np.frombuffer(self._io_buf, np.uint8)
@@ -271,12 +255,12 @@ class MocapSystem:
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
-        t = self.exposure_k * self._period_s
+        t = self._next_exposure_k * self._period_s
         return min(t, self.pending[0][0]) if self.pending else t
 
     def next_exposure_s(self) -> float:
         """When the next exposure is taken (s): the only event that needs the true poses."""
-        return self.exposure_k * self._period_s
+        return self._next_exposure_k * self._period_s
 
     def next_release_s(self) -> float:
         """When the next frame already exposed is ready (s; inf when none is waiting)."""
@@ -316,13 +300,8 @@ class MocapSystem:
 
     def expose(self, now_s: float, truth: Mapping[int, object]) -> None:
         """Take the exposures due by ``now_s`` from ``truth`` (as `update`), releasing none."""
-        if self.exposure_k * self._period_s > now_s + 1e-12:
+        if self._next_exposure_k * self._period_s > now_s + 1e-12:
             return  # none due (nor any to catch up: that needs ``now_s`` past the next)
-        self.expose_values(now_s, *self.values_of(truth))
-
-    def values_of(self, truth: Mapping[int, object]) -> tuple[list[int], list[float]]:
-        """``truth`` (as `update` takes it) as `expose_values` takes it: the body ids in increasing order
-        and their 7 values each."""
         body_ids = sorted(truth)
         poses: list[float] = []
         for body_id in body_ids:
@@ -335,24 +314,26 @@ class MocapSystem:
                 pos, quat = _pose_arrays(obj)
                 poses += pos.tolist()
                 poses += quat.tolist()
-        return body_ids, poses
+        self.expose_values(now_s, body_ids, poses)
 
     def expose_values(self, now_s: float, body_ids: Sequence[int], poses: Sequence[float]) -> None:
         """`expose` of true poses as plain values: ``body_ids`` in increasing order and ``poses`` their
         7 values each, one body after the other (x, y, z (m), qw, qx, qy, qz)."""
         period = self._period_s
-        k = self.exposure_k
+        k = self._next_exposure_k
         if now_s - k * period > MAX_CATCH_UP_S:
             # called after a long gap (or first at a late time): do not replay frames nobody could see
             skip_to = math.floor(now_s / period)
             self.stats.frames_skipped += skip_to - k
-            k = self.exposure_k = skip_to
+            k = self._next_exposure_k = skip_to
         if k * period > now_s + 1e-12:
             return  # none due
-        frames = self._frames is not None
         n = len(body_ids)
-        if n != self._n_bodies or (frames and body_ids is not self._frame_ids):
-            self.lay_out(body_ids)
+        if n != self._n_bodies:
+            self._buffers_for(n)
+        frames = self._frames is not None
+        if frames and body_ids is not self._frame_ids:
+            self._frame_ids_for(body_ids)
         self._put_poses(self._io_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
         mem, at = self._mem, self._rows_at
         pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
@@ -360,7 +341,7 @@ class MocapSystem:
         while k * period <= now_s + 1e-12:
             # frame ``k``, exposed at ``t_s``, queued for its ready time
             t_s = k * period
-            self.exposure_k = k + 1
+            self._next_exposure_k = k + 1
             if self._occlusion_prob > 0:
                 # the draws keep the order of one body after the other (occlusion, position noise,
                 # attitude noise): taken here, the noise handed to the kernel in that order
@@ -377,14 +358,15 @@ class MocapSystem:
                 n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, self._noise_len, self._normal_next,
                                         frame_no, stamp_us)
                 if n_invalid < 0:
-                    size = self.draw_normals(nxt)
+                    size = self._noise_len = max(_BLOCK, nxt)
+                    self._noise[:size] = self._rng.standard_normal(size)
                     n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, size, 0, frame_no, stamp_us)
                 self._normal_next = nxt
                 extra = 0.0
                 if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
                     j, block = self._exp_next, self._exp_block
                     if j >= len(block):
-                        block = self._exp_block = self.draw_exponentials().tolist()
+                        block = self._exp_block = self._rng.standard_exponential(_BLOCK).tolist()
                         j = 0
                     self._exp_next = j + 1
                     extra = processing_s * block[j]
@@ -399,29 +381,6 @@ class MocapSystem:
                     rows.append((body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]))
                 heapq.heappush(self.pending, (t_s + latency_s + extra, k, rows))
             k += 1
-
-    def lay_out(self, body_ids: Sequence[int]) -> ExposureBuffer:
-        """The exposure kernel's buffer and the frame's ids for the bodies ``body_ids`` (in increasing
-        order; the buffer kept when their number is the same), for `expose_values` or a caller that runs
-        `expose_kernel` in a kernel of its own (the mocap link), moving `exposure_k` and drawing with
-        `draw_normals` and `draw_exponentials` as `expose_values` does."""
-        if len(body_ids) != self._n_bodies:
-            self._buffers_for(len(body_ids))
-        if self._frames is not None and body_ids is not self._frame_ids:
-            self._frame_ids_for(body_ids)
-        return ExposureBuffer(self._mem, self._io_buf, self._put_poses, self._frame_at, self._frame_ids)
-
-    def draw_normals(self, needed: int) -> int:
-        """A block of standard normal draws (at least ``needed``, `DRAW_BLOCK` or more) into the exposure
-        kernel's buffer, from its first place; returns how many."""
-        size = self._noise_len = max(DRAW_BLOCK, needed)
-        self._noise[:size] = self._rng.standard_normal(size)
-        return size
-
-    def draw_exponentials(self) -> np.ndarray:
-        """The next block of standard exponential draws (`DRAW_BLOCK` of them), of which the processing
-        latency takes one a frame."""
-        return self._rng.standard_exponential(DRAW_BLOCK)
 
     def _frame_ids_for(self, body_ids: Sequence[int]) -> None:
         """Put ``body_ids`` into the frame's fields (checked: one byte each)."""
@@ -503,8 +462,8 @@ _pack_mocap_frame = njit(cache=True)(pack_mocap_frame)
 
 
 @njit(cache=True)
-def expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlusion: int, noise_len: int,
-                  k: int, frame_no: int, stamp_us: int) -> tuple[int, int]:
+def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlusion: int, noise_len: int,
+                   k: int, frame_no: int, stamp_us: int) -> tuple[int, int]:
     """One exposure of ``n`` bodies on the bytes ``mem`` (one array: numba unboxes each array argument on
     every call), which hold ``io`` (float64, (7 + `_VALUES_PER_BODY`) ``n``), ``ints`` (int64, 2 ``n``),
     ``room`` (int64), ``noise`` (float64, ``room``, of which the first ``noise_len`` are drawn), ``occluded``
