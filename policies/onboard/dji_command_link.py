@@ -208,12 +208,8 @@ class DjiCommandLink(CommandLink):
         self._flight_status, self._display_mode = payload[1], payload[2]
         self._device = payload[4]
         self._last_data_s = now_s
-        # (`DjiStatus(...)` made without the frozen dataclass's per-field __setattr__ calls: a package
-        # every other tick)
-        status = object.__new__(DjiStatus)
-        status.__dict__.update(flight_status=self._flight_status, device=self._device, time_s=now_s,
-                               display_mode=self._display_mode)
-        self.status = status  # type: ignore[assignment]
+        self.status = DjiStatus(self._flight_status, self._device, now_s,  # type: ignore[assignment]
+                                self._display_mode)
 
     def heartbeat_age_s(self, now_s: float) -> float:
         """Seconds since the FC's last flight data (inf if none yet): the OPEN protocol's sign of life."""
