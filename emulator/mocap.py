@@ -3,7 +3,6 @@ processing latency, position and attitude noise and occlusion dropouts. Seeded; 
 
 from __future__ import annotations
 
-import heapq
 import math
 import struct
 from collections.abc import Mapping, Sequence
@@ -27,17 +26,45 @@ MIN_RATE_HZ = 100.0
 MAX_RATE_HZ = 360.0
 MAX_CATCH_UP_S = 0.5  # exposures further behind than this are skipped, not replayed
 TRACKED_LIMIT_M = 1000.0  # a body further than this from the origin on any axis is not seen (m)
-_BLOCK = 256  # random draws taken ahead at once
+DRAW_BLOCK = 256  # random draws taken ahead at once
 _F64 = np.dtype(np.float64)
 #: a measured body as the exposure kernel writes it: x, y, z (m), qw, qx, qy, qz, valid (1.0 or 0.0), as
 #: the LinkTrack packer takes it
 _VALUES_PER_BODY = PACKED_VALUES
+#: the tracker's numbers in its state (`tracker_step`): the next exposure's number, its stage (``FRESH``,
+#: ``SUPPLIED`` with an occluded frame's draws given, ``MEASURED`` and not queued yet), the standard normal
+#: draws in the exposure buffer (how many, the next), the exponential ones in the state (how many, the
+#: next), the period, camera latency, mean processing latency (s), position and attitude noise (m, rad), an
+#: occluded frame's processing latency (s), whether the generator draws each frame (occlusion: 1.0),
+#: whether each frame queued is handed back (rows: 1.0), where the frame's bytes start in the exposure
+#: buffer, the frames the queue has room for, the float64 words of a frame's bytes in it, then the counts
+#: (frames, bodies invalid, exposures skipped)
+TK_K, TK_STAGE, TK_NOISE_LEN, TK_NOISE_NEXT, TK_EXP_LEN, TK_EXP_NEXT = range(6)
+TK_PERIOD, TK_LATENCY, TK_PROCESSING, TK_POS_SD, TK_ATT_SD, TK_EXTRA = range(6, 12)
+TK_OCCLUSION, TK_HAND_BACK, TK_FRAME_AT, TK_ROOM, TK_SLOT_WORDS = range(12, 17)
+TK_FRAMES, TK_INVALID, TK_SKIPPED = range(17, 20)
+TK_LEN = 20
+FRESH, SUPPLIED, MEASURED = 0.0, 1.0, 2.0
+#: a queued frame's place: its status (`FREE`, `PENDING`), ready time (s), number, length (bytes)
+Q_STATUS, Q_READY, Q_K, Q_BYTES = range(4)
+SLOT_LEN = 4
+FREE, PENDING = 0.0, 1.0
+#: what `tracker_step` says: done, a frame queued (its rows to take), or what it needs to go on: a block of
+#: standard normal draws, a block of exponential ones, an occluded frame's draws, room in the queue
+DONE, QUEUED, NEED_NORMALS, NEED_EXPONENTIALS, NEED_OCCLUSION, NEED_ROOM = 0, 1, -1, -2, -3, -4
+_FIRST_ROOM = 8  # frames the queue has room for at first (doubled when full)
+
+
+def tracker_state_len(room: int, slot_words: int) -> int:
+    """The length of a tracker's state (float64): its numbers (``TK_*``), the exponential draws taken ahead,
+    ``room`` queued frames' places and as many frames' bytes of ``slot_words`` words each."""
+    return TK_LEN + DRAW_BLOCK + room * (SLOT_LEN + slot_words)
 
 
 def _noise_room(n: int) -> int:
     """How many standard normal draws the exposure kernel's buffer holds for ``n`` bodies: a block drawn
     ahead, or one frame's draws (at most 6 a body)."""
-    return max(_BLOCK, 6 * n)
+    return max(DRAW_BLOCK, 6 * n)
 
 
 def optitrack_latency_s(rate_hz: float) -> float:
@@ -184,6 +211,12 @@ class MocapSystem:
     Scheduler-friendly: call ``update(now_s, truth)`` at any times; each exposure due by ``now_s`` is
     taken from the truth given in that call (sample and hold), and frames whose latency has passed are
     returned. ``next_event_s()`` says when to call next.
+
+    The tracker's rules for a frame (the catch-up after a long gap, the exposures due, their noise and
+    processing latency from the draws taken ahead, the queue of frames by ready time and their release)
+    are one compiled step on the tracker's state (`tracker_step`, `queue_take`): the methods here run it
+    and answer what it asks for (draws, an occlusion's draws, room), as a caller that composes the same
+    step into a kernel of its own does (the mocap link: `answer`).
     """
 
     def __init__(self, config: MocapConfig, rng: np.random.Generator,
@@ -195,28 +228,53 @@ class MocapSystem:
         self.config = config
         self._frames = frames
         self._rng = rng
-        self._next_exposure_k = 0
-        #: the frames exposed and not yet released: (ready_s, frame number, rows or the frame's bytes), a
-        #: heap (its head the next release; read, never changed, by the mocap link)
-        self.pending: list[tuple[float, int, list[_Row] | bytes]] = []
-        self._occluded_until: dict[int, float] = {}
-        self.stats = MocapStats()
+        #: the number of the next exposure (taken at this x the period), as the tracker's step left it in
+        #: its state (set by whoever runs the step: here, or the mocap link's kernel)
+        self.exposure_k = 0
         self._period_s = config.period_s
-        self._latency_s = config.camera_latency_s
-        #: how many standard normal draws the kernel's buffer holds (without occlusion: a block taken ahead,
-        #: the noise being the generator's only use besides the processing latency's, one call per block,
-        #: not per frame), and the next one to use
-        self._noise_len = 0
-        self._normal_next = 0
+        #: the frames' rows by their place in the queue (a tracker without an encoder)
+        self._rows: dict[int, list[_Row]] = {}
+        self._occluded_until: dict[int, float] = {}
         self._noise = np.zeros(0)
-        self._exp_block: list[float] = []
-        self._exp_next = 0
-        self._pos_sd, self._att_sd = float(config.pos_noise_m), float(config.att_noise_rad)
-        self._occlusion_prob, self._processing_s = config.occlusion_prob, config.processing_s
+        self._slot_words = -(-mocap_frame_len(MAX_BODIES) // 8) if frames is not None else 0
+        self._grow(_FIRST_ROOM)
+        tk = self.state
+        tk[TK_PERIOD], tk[TK_LATENCY], tk[TK_PROCESSING] = (
+            self._period_s, config.camera_latency_s, config.processing_s)
+        tk[TK_POS_SD], tk[TK_ATT_SD] = config.pos_noise_m, config.att_noise_rad
+        tk[TK_OCCLUSION] = 1.0 if config.occlusion_prob > 0 else 0.0
+        tk[TK_HAND_BACK] = 0.0 if frames is not None else 1.0
         self._buffers_for(2)
-        # the exposure kernel's form for its buffer (uint8 bytes, whatever their size), compiled or loaded
-        # from numba's cache now, not at the first exposure, and called without numba's type dispatch
-        self._expose = entry(_expose_kernel, self._mem, 0, 0.0, 0.0, 0, 0, 0, 0, 0)
+        # the tracker's compiled step and release for its buffer and state, compiled or loaded from numba's
+        # cache now, not at the first exposure, and called without numba's type dispatch
+        self._step = entry(tracker_step, self._mem, tk, 0.0, 0)
+        self._take = entry(queue_take, tk, 0.0)
+        self._next_ready = entry(queue_next_ready, tk)
+
+    @property
+    def stats(self) -> MocapStats:
+        """The tracker's counts so far (a snapshot)."""
+        tk = self.state
+        return MocapStats(frames=int(tk[TK_FRAMES]), bodies_occluded=int(tk[TK_INVALID]),
+                          frames_skipped=int(tk[TK_SKIPPED]))
+
+    def _grow(self, room: int) -> None:
+        """The tracker's state (`tracker_state_len`) with room for ``room`` frames exposed and not yet
+        released, what it held kept."""
+        new = np.zeros(tracker_state_len(room, self._slot_words))
+        old = getattr(self, "state", None)
+        if old is not None:
+            old_room = int(old[TK_ROOM])
+            at = TK_LEN + DRAW_BLOCK
+            new[: at + old_room * SLOT_LEN] = old[: at + old_room * SLOT_LEN]
+            bytes_at, old_bytes_at = at + room * SLOT_LEN, at + old_room * SLOT_LEN
+            n_words = old_room * self._slot_words
+            new[bytes_at : bytes_at + n_words] = old[old_bytes_at : old_bytes_at + n_words]
+        new[TK_ROOM], new[TK_SLOT_WORDS] = room, self._slot_words
+        #: the tracker's state (float64, `tracker_state_len`): its numbers (``TK_*``), the exponential draws
+        #: taken ahead, the frames queued (their places, then their bytes)
+        self.state = new
+        self._frame_bytes = memoryview(new[TK_LEN + DRAW_BLOCK + room * SLOT_LEN :].view(np.uint8))
 
     def _buffers_for(self, n: int) -> None:
         """The kernel's buffer for exposures of ``n`` bodies (`_expose_kernel`'s ``mem``), and its structs:
@@ -229,13 +287,14 @@ class MocapSystem:
         self._n_bodies = n
         fields_at = (7 + _VALUES_PER_BODY) * 8 * n  # (the frame's fields, then its bytes: `_expose_kernel`)
         noise_at = fields_at + 16 * n + 8
-        kept = self._noise[: self._noise_len].copy()  # (the draws of a block not used yet stay)
+        kept = self._noise[: int(self.state[TK_NOISE_LEN])].copy()  # (the draws of a block not used yet stay)
         room = max(_noise_room(n), len(kept))
         occluded_at = noise_at + 8 * room
         frame_at = occluded_at + n
         frame_len = mocap_frame_len(n) if self._frames is not None else 0
         self._io_buf = bytearray(frame_at + frame_len)
         self._mem = np.frombuffer(self._io_buf, np.uint8)
+        self.state[TK_FRAME_AT] = frame_at
         np.frombuffer(self._io_buf, np.int64, 1, noise_at - 8)[0] = room
         self._noise = np.frombuffer(self._io_buf, np.float64, room, noise_at)
         self._noise[: len(kept)] = kept
@@ -255,16 +314,17 @@ class MocapSystem:
 
     def next_event_s(self) -> float:
         """The next time something happens: an exposure or a frame leaving (s)."""
-        t = self._next_exposure_k * self._period_s
-        return min(t, self.pending[0][0]) if self.pending else t
+        t = self.exposure_k * self._period_s
+        r = self._next_ready(self.state)
+        return r if r < t else t
 
     def next_exposure_s(self) -> float:
         """When the next exposure is taken (s): the only event that needs the true poses."""
-        return self._next_exposure_k * self._period_s
+        return self.exposure_k * self._period_s
 
     def next_release_s(self) -> float:
         """When the next frame already exposed is ready (s; inf when none is waiting)."""
-        return self.pending[0][0] if self.pending else math.inf
+        return self._next_ready(self.state)
 
     def release_rows(self, now_s: float) -> list[FrameRows]:
         """The frames already exposed that are ready by ``now_s``, oldest first (no new exposure)."""
@@ -276,16 +336,19 @@ class MocapSystem:
     def released(self, now_s: float) -> list[tuple[float, int, list[_Row] | bytes]]:
         """`release_rows` as (ready_s, frame number, rows) (the frame's stamp is its number x the
         period), without a `FrameRows` per frame; with an encoder (see ``__init__``) the frame's
-        LinkTrack bytes in place of its rows (what the mocap link sends)."""
-        pending = self.pending
-        limit = now_s + 1e-12
-        if not pending or pending[0][0] > limit:
-            return []  # nothing ready yet (most calls)
-        pop = heapq.heappop
-        out = [pop(pending)]
-        while pending and pending[0][0] <= limit:
-            out.append(pop(pending))
-        return out
+        LinkTrack bytes in place of its rows (what the mocap link sends). The earliest ready first (of
+        two ready at the same time, the lower number)."""
+        out: list[tuple[float, int, list[_Row] | bytes]] = []
+        take, tk = self._take, self.state
+        while True:
+            slot, ready_s, k, n_bytes = take(tk, now_s)
+            if slot < 0:
+                return out
+            if self._frames is not None:
+                at = slot * 8 * self._slot_words
+                out.append((ready_s, k, self._frame_bytes[at : at + n_bytes].tobytes()))
+            else:
+                out.append((ready_s, k, self._rows.pop(slot)))
 
     def update(self, now_s: float, truth: Mapping[int, object]) -> list[MocapFrame]:
         """Take the exposures due by ``now_s`` from ``truth`` (body id -> anything ``pose_of`` reads, or
@@ -300,8 +363,14 @@ class MocapSystem:
 
     def expose(self, now_s: float, truth: Mapping[int, object]) -> None:
         """Take the exposures due by ``now_s`` from ``truth`` (as `update`), releasing none."""
-        if self._next_exposure_k * self._period_s > now_s + 1e-12:
+        if self.exposure_k * self._period_s > now_s + 1e-12:
             return  # none due (nor any to catch up: that needs ``now_s`` past the next)
+        self.expose_values(now_s, *self.values_of(truth))
+
+    @staticmethod
+    def values_of(truth: Mapping[int, object]) -> tuple[list[int], list[float]]:
+        """``truth`` (as `update` takes it) as `expose_values` takes it: the body ids in increasing order
+        and their 7 values each."""
         body_ids = sorted(truth)
         poses: list[float] = []
         for body_id in body_ids:
@@ -314,73 +383,61 @@ class MocapSystem:
                 pos, quat = _pose_arrays(obj)
                 poses += pos.tolist()
                 poses += quat.tolist()
-        self.expose_values(now_s, body_ids, poses)
+        return body_ids, poses
 
     def expose_values(self, now_s: float, body_ids: Sequence[int], poses: Sequence[float]) -> None:
         """`expose` of true poses as plain values: ``body_ids`` in increasing order and ``poses`` their
         7 values each, one body after the other (x, y, z (m), qw, qx, qy, qz)."""
-        period = self._period_s
-        k = self._next_exposure_k
-        if now_s - k * period > MAX_CATCH_UP_S:
-            # called after a long gap (or first at a late time): do not replay frames nobody could see
-            skip_to = math.floor(now_s / period)
-            self.stats.frames_skipped += skip_to - k
-            k = self._next_exposure_k = skip_to
-        if k * period > now_s + 1e-12:
-            return  # none due
-        n = len(body_ids)
-        if n != self._n_bodies:
-            self._buffers_for(n)
-        frames = self._frames is not None
-        if frames and body_ids is not self._frame_ids:
+        if self.exposure_k * self._period_s > now_s + 1e-12:
+            return  # none due (nor any to catch up: that needs ``now_s`` past the next)
+        mem = self.lay_out(body_ids, poses)
+        step, tk, n = self._step, self.state, len(body_ids)
+        code, self.exposure_k, aux = step(mem, tk, now_s, n)
+        while code != DONE:
+            self.answer(code, self.exposure_k, aux, body_ids, poses)
+            mem, tk = self._mem, self.state
+            code, self.exposure_k, aux = step(mem, tk, now_s, n)
+
+    def lay_out(self, body_ids: Sequence[int], poses: Sequence[float]) -> np.ndarray:
+        """The exposure kernel's buffer (what `tracker_step` takes as ``mem``) for ``body_ids`` (in
+        increasing order), holding the true poses ``poses`` (7 values a body)."""
+        if len(body_ids) != self._n_bodies:
+            self._buffers_for(len(body_ids))
+        if self._frames is not None and body_ids is not self._frame_ids:
             self._frame_ids_for(body_ids)
         self._put_poses(self._io_buf, 0, *poses)  # (held for every exposure due: the kernel only reads it)
-        mem, at = self._mem, self._rows_at
-        pos_sd, att_sd, processing_s = self._pos_sd, self._att_sd, self._processing_s
-        stats, latency_s, expose = self.stats, self._latency_s, self._expose
-        while k * period <= now_s + 1e-12:
-            # frame ``k``, exposed at ``t_s``, queued for its ready time
-            t_s = k * period
-            self._next_exposure_k = k + 1
-            if self._occlusion_prob > 0:
-                # the draws keep the order of one body after the other (occlusion, position noise,
-                # attitude noise): taken here, the noise handed to the kernel in that order
-                occluded, noise = self._occlusions(t_s, body_ids, poses)
-                self._occluded[:] = occluded
-                self._noise[: len(noise)] = noise
-                n_invalid = expose(mem, n, pos_sd, att_sd, 1, len(noise), 0, k & 0xFFFFFFFF,
-                                   round(t_s * 1e6))[0]
-                extra = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
-            else:
-                # without occlusion the noise of the whole frame comes from the block drawn ahead; a
-                # block that cannot give it all is drawn anew (the kernel says how many draws it takes)
-                frame_no, stamp_us = k & 0xFFFFFFFF, round(t_s * 1e6)
-                n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, self._noise_len, self._normal_next,
-                                        frame_no, stamp_us)
-                if n_invalid < 0:
-                    size = self._noise_len = max(_BLOCK, nxt)
-                    self._noise[:size] = self._rng.standard_normal(size)
-                    n_invalid, nxt = expose(mem, n, pos_sd, att_sd, 0, size, 0, frame_no, stamp_us)
-                self._normal_next = nxt
-                extra = 0.0
-                if processing_s > 0:  # an exponential draw from the block of standard ones drawn ahead
-                    j, block = self._exp_next, self._exp_block
-                    if j >= len(block):
-                        block = self._exp_block = self._rng.standard_exponential(_BLOCK).tolist()
-                        j = 0
-                    self._exp_next = j + 1
-                    extra = processing_s * block[j]
-            stats.bodies_occluded += n_invalid
-            stats.frames += 1
-            if frames:
-                heapq.heappush(self.pending, (t_s + latency_s + extra, k, bytes(self._frame_buf)))
-            else:
-                v = self._get_values(self._io_buf)
-                rows = []
-                for i, r in at:
-                    rows.append((body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]))
-                heapq.heappush(self.pending, (t_s + latency_s + extra, k, rows))
-            k += 1
+        return self._mem
+
+    def answer(self, code: int, k: int, aux: int, body_ids: Sequence[int], poses: Sequence[float]) -> None:
+        """Give the tracker's step what it asked for (``code``, of ``NEED_*``, or `QUEUED`), before frame
+        ``k``, as `tracker_step` says: standard normal draws (a block, at least ``aux``), exponential
+        draws (a block), an occluded frame's draws (its occlusions, noise and processing latency, from
+        the generator body after body), more room, or the rows of the frame just queued in place
+        ``aux``. The buffer (`lay_out`) and the state may be new ones after it."""
+        tk = self.state
+        if code == NEED_NORMALS:
+            size = max(DRAW_BLOCK, aux)
+            self._noise[:size] = self._rng.standard_normal(size)
+            tk[TK_NOISE_LEN], tk[TK_NOISE_NEXT] = size, 0
+        elif code == NEED_EXPONENTIALS:
+            tk[TK_LEN : TK_LEN + DRAW_BLOCK] = self._rng.standard_exponential(DRAW_BLOCK)
+            tk[TK_EXP_LEN], tk[TK_EXP_NEXT] = DRAW_BLOCK, 0
+        elif code == NEED_OCCLUSION:
+            # the draws keep the order of one body after the other (occlusion, position noise, attitude
+            # noise), then the processing latency's
+            occluded, noise = self._occlusions(k * self._period_s, body_ids, poses)
+            self._occluded[:] = occluded
+            self._noise[: len(noise)] = noise
+            processing_s = self.config.processing_s
+            tk[TK_EXTRA] = self._rng.exponential(processing_s) if processing_s > 0 else 0.0
+            tk[TK_NOISE_LEN], tk[TK_NOISE_NEXT], tk[TK_STAGE] = len(noise), 0, SUPPLIED
+        elif code == NEED_ROOM:
+            self._grow(2 * int(tk[TK_ROOM]))
+        elif code == QUEUED:  # (frame ``k - 1``, exposed at its time, its values still in the buffer)
+            t_s, v = (k - 1) * self._period_s, self._get_values(self._io_buf)
+            self._rows[aux] = [(body_ids[i], v[r + 7] != 0.0, t_s, v[r : r + 7]) for i, r in self._rows_at]
+        else:
+            raise ValueError(f"the tracker's step asked for {code}")
 
     def _frame_ids_for(self, body_ids: Sequence[int]) -> None:
         """Put ``body_ids`` into the frame's fields (checked: one byte each)."""
@@ -524,3 +581,118 @@ def _expose_kernel(mem: np.ndarray, n: int, pos_sd: float, att_sd: float, occlus
             ints[2 * b + 1] = stamp_us
         _pack_mocap_frame(frame, frame_no, n, ints, values)
     return invalid, k
+
+
+@njit(cache=True)
+def tracker_step(mem: np.ndarray, tk: np.ndarray, now_s: float, n: int) -> tuple[int, int, int]:
+    """The tracker's rules for its frames up to ``now_s`` (s), on its state ``tk`` (`tracker_state_len`:
+    ``TK_*``, the exponential draws, the queue) and the exposure kernel's buffer ``mem`` (the true poses of
+    ``n`` bodies there, `MocapSystem.lay_out`): an exposure more than `MAX_CATCH_UP_S` behind is skipped to
+    the last one due (not replayed); each exposure due is measured (`_expose_kernel`, its standard normal
+    draws from those taken ahead, or an occluded frame's given) and queued in a free place, ready after
+    the camera latency and a processing latency (the mean x an exponential draw taken ahead, or an occluded
+    frame's given). Returns (`DONE`, the next exposure's number, 0), or (one of ``NEED_*`` with what was
+    done kept: call again once answered (`MocapSystem.answer`), the next exposure's number, the normal
+    draws needed), or (`QUEUED`, the next exposure's number, the place of the frame just queued) where the
+    caller takes each frame's rows (``TK_HAND_BACK``)."""
+    period = tk[TK_PERIOD]
+    k = int(tk[TK_K])
+    if now_s - k * period > MAX_CATCH_UP_S:
+        # called after a long gap (or first at a late time): do not replay frames nobody could see
+        skip_to = math.floor(now_s / period)
+        tk[TK_SKIPPED] += skip_to - k
+        k = skip_to
+        tk[TK_K] = k
+    room, words = int(tk[TK_ROOM]), int(tk[TK_SLOT_WORDS])
+    at = TK_LEN + DRAW_BLOCK
+    slots = tk[at : at + room * SLOT_LEN]
+    frames = tk[at + room * SLOT_LEN : at + room * (SLOT_LEN + words)].view(np.uint8)
+    frame_at = int(tk[TK_FRAME_AT])
+    n_bytes = mem.size - frame_at
+    occlusion = tk[TK_OCCLUSION] != 0.0
+    limit = now_s + 1e-12
+    while k * period <= limit:
+        # frame ``k``, exposed at ``t_s``, queued for its ready time
+        t_s = k * period
+        free = -1
+        for s in range(room):
+            if slots[s * SLOT_LEN + Q_STATUS] == FREE:
+                free = s
+                break
+        if free < 0:
+            return NEED_ROOM, k, 0
+        stage = tk[TK_STAGE]
+        if stage != MEASURED:
+            if occlusion and stage == FRESH:
+                return NEED_OCCLUSION, k, 0
+            invalid, nxt = _expose_kernel(mem, n, tk[TK_POS_SD], tk[TK_ATT_SD], 1 if occlusion else 0,
+                                          int(tk[TK_NOISE_LEN]), int(tk[TK_NOISE_NEXT]), k & 0xFFFFFFFF,
+                                          round(t_s * 1e6))
+            if invalid < 0:  # (a block that cannot give the frame's draws is drawn anew)
+                return NEED_NORMALS, k, nxt
+            tk[TK_NOISE_NEXT] = nxt
+            tk[TK_INVALID] += invalid
+            tk[TK_FRAMES] += 1
+            tk[TK_STAGE] = MEASURED
+        extra = 0.0
+        if occlusion:
+            extra = tk[TK_EXTRA]
+        elif tk[TK_PROCESSING] > 0:  # an exponential draw from the block of standard ones drawn ahead
+            j = int(tk[TK_EXP_NEXT])
+            if j >= tk[TK_EXP_LEN]:
+                return NEED_EXPONENTIALS, k, 0
+            tk[TK_EXP_NEXT] = j + 1
+            extra = tk[TK_PROCESSING] * tk[TK_LEN + j]
+        o = free * SLOT_LEN
+        slots[o + Q_STATUS], slots[o + Q_READY] = PENDING, t_s + tk[TK_LATENCY] + extra
+        slots[o + Q_K], slots[o + Q_BYTES] = k, n_bytes
+        if words:
+            frames[free * 8 * words : free * 8 * words + n_bytes] = mem[frame_at:]
+        tk[TK_STAGE] = FRESH
+        k += 1
+        tk[TK_K] = k
+        if tk[TK_HAND_BACK] != 0.0:
+            return QUEUED, k, free
+    return DONE, k, 0
+
+
+@njit(cache=True)
+def queue_head(tk: np.ndarray, limit_s: float) -> int:
+    """The place of the frame the tracker releases next by ``limit_s`` (s) (the earliest ready; of two
+    ready at the same time, the lower number), or -1 when none is ready by then."""
+    room = int(tk[TK_ROOM])
+    at = TK_LEN + DRAW_BLOCK
+    best, best_ready, best_k = -1, 0.0, 0.0
+    for s in range(room):
+        o = at + s * SLOT_LEN
+        if tk[o + Q_STATUS] == PENDING:
+            ready = tk[o + Q_READY]
+            if ready <= limit_s and (best < 0 or ready < best_ready
+                                     or (ready == best_ready and tk[o + Q_K] < best_k)):
+                best, best_ready, best_k = s, ready, tk[o + Q_K]
+    return best
+
+
+@njit(cache=True)
+def queue_take(tk: np.ndarray, now_s: float) -> tuple[int, float, int, int]:
+    """The frame the tracker releases next by ``now_s`` (s), taken off its queue: (its place, ready time
+    (s), number, length (bytes)), or (-1, 0.0, 0, 0) when none is ready (its bytes stay in its place
+    until the next exposure)."""
+    s = queue_head(tk, now_s + 1e-12)
+    if s < 0:
+        return -1, 0.0, 0, 0
+    o = TK_LEN + DRAW_BLOCK + s * SLOT_LEN
+    tk[o + Q_STATUS] = FREE
+    return s, tk[o + Q_READY], int(tk[o + Q_K]), int(tk[o + Q_BYTES])
+
+
+@njit(cache=True)
+def queue_next_ready(tk: np.ndarray) -> float:
+    """When the next frame already exposed is ready (s; inf when none is waiting)."""
+    at = TK_LEN + DRAW_BLOCK
+    nxt = math.inf
+    for s in range(int(tk[TK_ROOM])):
+        o = at + s * SLOT_LEN
+        if tk[o + Q_STATUS] == PENDING and tk[o + Q_READY] < nxt:
+            nxt = tk[o + Q_READY]
+    return nxt

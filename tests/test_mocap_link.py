@@ -212,21 +212,27 @@ def test_udp_socket_carries_the_same_frames():
     reader.close()
 
 
-@pytest.mark.parametrize("uwb", [
-    UwbConfig(jitter_s=0.004, latency_s=0.01),  # the compiled step, several jitter blocks
-    UwbConfig(jitter_s=0.004, latency_s=0.01, loss_prob=0.1, late_after_s=0.012),  # the radio's own steps
-    UwbConfig(jitter_s=0.0, air_rate_bps=5e4, queue_packets=1, uart_baud=115200),  # refusals, a busy wire
+@pytest.mark.parametrize("mocap, uwb", [
+    (MocapConfig(), UwbConfig(jitter_s=0.004, latency_s=0.01)),  # the compiled step, several jitter blocks
+    # the radio's own steps
+    (MocapConfig(), UwbConfig(jitter_s=0.004, latency_s=0.01, loss_prob=0.1, late_after_s=0.012)),
+    # refusals, a busy wire
+    (MocapConfig(), UwbConfig(jitter_s=0.0, air_rate_bps=5e4, queue_packets=1, uart_baud=115200)),
+    # occlusions (drawn per frame and body) through the compiled step
+    (MocapConfig(occlusion_prob=0.1, occlusion_mean_s=0.02), UwbConfig(jitter_s=0.004, latency_s=0.01)),
+    # frames ready out of their order, more on their way than the first room holds
+    (MocapConfig(rate_hz=360, processing_s=0.006), UwbConfig(jitter_s=0.004, latency_s=0.15)),
 ])
-def test_the_links_radio_and_wire_are_the_radio_and_the_uart_sent_to_by_hand(uwb):
-    """The link carries each frame through the radio, its channel and the UART in one step (compiled where
-    the channel cannot lose): the same bytes at the same times, and the same counts, as `UwbRadio` and
-    `UartWire` driven one frame at a time."""
+def test_the_links_radio_and_wire_are_the_radio_and_the_uart_sent_to_by_hand(mocap, uwb):
+    """The link carries each frame from the tracker through the radio, its channel and the UART in one
+    step (compiled where the channel cannot lose): the same bytes at the same times, and the same counts,
+    as a tracker, `UwbRadio` and `UartWire` driven one frame at a time."""
     ours, theirs = MemoryTransport.pair(1 << 20)
     clock = SimClock()
-    server = MocapLinkServer(ours, clock, np.random.default_rng(6), MocapConfig(), uwb)
+    server = MocapLinkServer(ours, clock, np.random.default_rng(6), mocap, uwb)
     # the hand-driven chain: the tracker, the radio and the UART on the generators the link spawns
     tracker_rng, radio_rng = np.random.default_rng(6).spawn(2)
-    tracker = MocapSystem(MocapConfig(), tracker_rng, MocapFrameEncoder(ROLE_TAG, 0, ROLE_ANCHOR, 0))
+    tracker = MocapSystem(mocap, tracker_rng, MocapFrameEncoder(ROLE_TAG, 0, ROLE_ANCHOR, 0))
     radio, uart = UwbRadio(uwb, radio_rng), UartWire(uwb.uart_baud, uwb.uart_bits_per_byte)
     gap = pose_of(GAP)
     gap_values = (*gap.pos_m.tolist(), *gap.quat_wxyz.tolist())
@@ -244,3 +250,4 @@ def test_the_links_radio_and_wire_are_the_radio_and_the_uart_sent_to_by_hand(uwb
         if k % 3 == 0:  # (the counts read while frames are on their way, and not read)
             assert server.stats.radio == radio.stats
     assert server.stats.radio == radio.stats and server.stats.frames_written > 50
+    assert server.stats.mocap == tracker.stats

@@ -156,6 +156,27 @@ def test_a_tracker_with_an_encoder_keeps_each_frame_as_the_linktrack_frame_of_it
         by_frames.expose_values(10.0, tuple(range(6)), gap * 6)
 
 
+def test_frames_ready_out_of_their_order_leave_earliest_first_however_many_wait():
+    """The tracker's queue (its room doubled when full): frames whose processing latency puts them out of
+    their exposure order leave the earliest ready first (of two ready together, the lower number),
+    released as they come or hundreds at once."""
+    cfg = MocapConfig(rate_hz=360, processing_s=0.02)
+    encoder = MocapFrameEncoder()
+    as_they_come, at_once = (MocapSystem(cfg, np.random.default_rng(7), encoder) for _ in range(2))
+    got: list = []
+    for k in range(2000):
+        t = k * 1e-3
+        pose = (t, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0)
+        as_they_come.expose_values(t, (1,), pose)
+        at_once.expose_values(t, (1,), pose)
+        got += as_they_come.released(t)
+    assert [k for _, k, _ in got] != sorted(k for _, k, _ in got)  # (out of their exposure order)
+    everything = at_once.released(10.0)
+    assert len(everything) == at_once.stats.frames == 720
+    assert everything == sorted(everything, key=lambda f: (f[0], f[1])) and everything[: len(got)] == got
+    assert as_they_come.next_release_s() == everything[len(got)][0] and at_once.next_release_s() == np.inf
+
+
 def test_a_late_first_update_does_not_replay_the_past():
     system = MocapSystem(MocapConfig(latency_s=0.0, processing_s=0.0), np.random.default_rng(0))
     frames = system.update(100.0, {1: BodyPose(np.zeros(3), LEVEL)})
