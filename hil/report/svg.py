@@ -23,7 +23,9 @@ def colormaps(xs: np.ndarray) -> list[str]:
     x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
     i = np.minimum(x.astype(int), len(_CMAP) - 2)
     c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
-    return ["#{:02x}{:02x}{:02x}".format(*rgb) for rgb in np.round(c).astype(int).tolist()]
+    rgb = np.round(c).astype(int).ravel().tolist()
+    text = ("#%02x%02x%02x" * len(x)) % tuple(rgb)  # (one format call: each colour 7 characters)
+    return [text[k : k + 7] for k in range(0, len(text), 7)]
 
 
 def colormap(x: float) -> str:
@@ -50,7 +52,8 @@ def downsample(n: int, max_points: int = 800) -> np.ndarray:
     """Indices of at most ``max_points`` evenly spread samples, first and last included."""
     if n <= max_points:
         return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, max_points).round().astype(int))
+    idx = np.linspace(0, n - 1, max_points).round().astype(int)  # (non-decreasing: its repeats adjacent)
+    return idx[np.concatenate(([True], idx[1:] != idx[:-1]))]
 
 
 @dataclass(frozen=True)
@@ -95,12 +98,18 @@ def _path(xs: np.ndarray, ys: np.ndarray) -> str:
         return ""
     # each run of finite points, one line: M at its first point, L before each of the others
     edges = np.flatnonzero(np.diff(np.concatenate(([False], ok, [False])).astype(np.int8)))
-    x, y = xs.tolist(), ys.tolist()
-    return "".join("M" + "L".join(map(_POINT.__mod__, zip(x[a:b], y[a:b], strict=True)))
+    xy = np.column_stack((xs, ys)).ravel().tolist()
+    return "".join("M" + _points(xy[2 * a : 2 * b], "L")
                    for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 _POINT = "%.1f,%.1f"  # (x, y) with one decimal, as the charts and scenes draw it
+
+
+def _points(xy: list[float], sep: str) -> str:
+    """The points ``xy`` (x0, y0, x1, y1, ...) as `_POINT` each, ``sep`` between them: one format call
+    for them all (a call a point took most of a report's time)."""
+    return sep.join([_POINT] * (len(xy) // 2)) % tuple(xy)
 
 
 def line_chart(chart: Chart) -> str:
@@ -247,6 +256,10 @@ class Scene:
         )
 
 
+#: a segment of the trajectory: its ends (x0, y0, x1, y1) and colour
+_SEGMENT = '<line x1="%.1f" y1="%.1f" x2="%.1f" y2="%.1f" stroke="%s" class="traj"/>'
+
+
 def scene_svg(
     scene: Scene, view: View, title: str, width: int = 620, height: int = 460, legend: bool = True
 ) -> str:
@@ -287,8 +300,7 @@ def scene_svg(
         )
 
     def poly(points: np.ndarray) -> str:
-        xy = to_screen(points)
-        return " ".join(map(_POINT.__mod__, zip(xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True)))
+        return _points(to_screen(points).ravel().tolist(), " ")
 
     out = [
         f'<svg class="scene" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
@@ -328,21 +340,15 @@ def scene_svg(
     points = screen.tolist()
     sides = in_front.tolist()
 
-    def segments(front: bool) -> list[str]:
-        segs = []
+    def segments(front: bool) -> str:
+        """The trajectory's segments with an end on the ``front`` side, a line each (one format call)."""
+        values: list[float | str] = []
         for k in range(len(idx) - 1):
-            if sides[k] != front and sides[k + 1] != front:
-                continue
-            (x0, y0), (x1, y1) = points[k], points[k + 1]
-            c = colours[k]
-            segs.append(
-                f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{c}" class="traj"/>'
-            )
-        return segs
+            if sides[k] == front or sides[k + 1] == front:
+                values += (*points[k], *points[k + 1], colours[k])
+        return (_SEGMENT * (len(values) // 5)) % tuple(values)
 
-    out += segments(front=False)
-    out += [wall_path, gap_outline]
-    out += segments(front=True)
+    out += [segments(front=False), wall_path, gap_outline, segments(front=True)]
     if len(idx):
         (sx0, sy0), (ex, ey) = screen[0], screen[-1]
         out.append(f'<circle cx="{sx0:.1f}" cy="{sy0:.1f}" r="6" class="start"><title>start</title></circle>')
