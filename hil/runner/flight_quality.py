@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
 from hil.runner.recorder import FC_STATE_CODES
@@ -202,7 +203,16 @@ def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active:
     """The command ``cmd`` through a first-order lag of ``lag_s`` (s; the command held between samples),
     started from the measured value where ``active`` begins; NaN where not ``active``."""
     out = np.full(len(t), np.nan)
-    ts, c, m, on = t.tolist(), np.asarray(cmd).tolist(), np.asarray(measured).tolist(), active.tolist()
+    _lag(np.asarray(t, dtype=np.float64), np.asarray(cmd, dtype=np.float64),
+         np.asarray(measured, dtype=np.float64), np.asarray(active, dtype=np.bool_), float(lag_s), out)
+    return out
+
+
+@njit(cache=True)
+def _lag(ts: np.ndarray, c: np.ndarray, m: np.ndarray, on: np.ndarray, lag_s: float,
+         out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """`lagged_command`'s recurrence, sample by sample (a sample's loop in Python took most of `measure`),
+    into ``out`` (its NaN left where not ``on``)."""
     r = math.nan
     for i in range(len(ts)):
         if not on[i] or not math.isfinite(c[i]):
@@ -214,7 +224,6 @@ def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active:
             a = math.exp(-(ts[i] - ts[i - 1]) / lag_s)
             r = c[i - 1] + (r - c[i - 1]) * a
         out[i] = r
-    return out
 
 
 def position_errors(
