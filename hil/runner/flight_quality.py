@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -233,8 +234,11 @@ def position_errors(
     mission time 0) to ``t_end_s``, where ``offboard`` (the program flying)."""
     out: dict[str, Figure] = {}
     idx = np.flatnonzero(offboard & (t >= t_plan_s) & (t < t_end_s))
-    segs = [plan.segment_at(tm) for tm in (t[idx] - t_plan_s).tolist()]
-    ref = np.array([plan.reference_tuples(tm)[0] for tm in (t[idx] - t_plan_s).tolist()]).reshape(-1, 3)
+    times = (t[idx] - t_plan_s).tolist()
+    segs = [plan.segment_at(tm) for tm in times]
+    # (the reference positions' numbers in one go: an array of a list of tuples is made element by element)
+    ref = np.fromiter(chain.from_iterable(plan.reference_tuples(tm)[0] for tm in times), dtype=np.float64,
+                      count=3 * len(times)).reshape(-1, 3)
     err = np.linalg.norm(pos[idx] - ref, axis=1)
     for seg in PLAN_SEGMENTS:
         mask = np.array([s is seg for s in segs], dtype=bool)
