@@ -5,6 +5,7 @@ Everything returns an ``<svg>`` string (no external references); NaN values brea
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -23,8 +24,8 @@ def colormaps(xs: np.ndarray) -> list[str]:
     x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
     i = np.minimum(x.astype(int), len(_CMAP) - 2)
     c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
-    rgb = np.round(c).astype(int).ravel().tolist()
-    text = ("#%02x%02x%02x" * len(x)) % tuple(rgb)  # (one format call: each colour 7 characters)
+    rgb = np.round(c).astype(int) @ np.array([1 << 16, 1 << 8, 1])  # (each 0..255: 0xrrggbb)
+    text = ("#%06x" * len(x)) % tuple(rgb.tolist())  # (one format call: each colour 7 characters)
     return [text[k : k + 7] for k in range(0, len(text), 7)]
 
 
@@ -246,6 +247,19 @@ class Scene:
             [c + hw * e0 + hh * e2, c - hw * e0 + hh * e2, c - hw * e0 - hh * e2, c + hw * e0 - hh * e2]
         )
 
+    @functools.cached_property
+    def drawn(self) -> tuple[np.ndarray, list[str], float]:
+        """The trajectory as every view draws it: the indices of its points drawn (at most 700, finite),
+        their colours by speed, and the speed of the scale's top (m/s)."""
+        pos = np.asarray(self.pos_m, dtype=float)
+        ok = np.all(np.isfinite(pos), axis=1)
+        idx = downsample(len(pos), 700)
+        idx = idx[ok[idx]]
+        speed = np.asarray(self.speed_m_s, dtype=float)
+        vmax = float(np.nanmax(speed)) if np.any(np.isfinite(speed)) else 1.0
+        vmax = max(vmax, 1e-6)
+        return idx, colormaps(speed[idx] / vmax) if len(idx) else [], vmax
+
     def wall_corners(self) -> np.ndarray:
         """The wall's four corners: a rectangle in the gap's plane, sides along e0 and e2 (4, 3)."""
         e0, e2 = self.gap_rotation[:, 1], self.gap_rotation[:, 2]
@@ -265,9 +279,7 @@ def scene_svg(
 ) -> str:
     """The trajectory through the wall's opening, seen by ``view``; coloured by speed."""
     pos = np.asarray(scene.pos_m, dtype=float)
-    ok = np.all(np.isfinite(pos), axis=1)
-    idx = downsample(len(pos), 700)
-    idx = idx[ok[idx]]
+    idx, colours, vmax = scene.drawn
     # the floor shown: the lab's floor cut to 1 m around the trajectory and the wall
     wall, gap = scene.wall_corners(), scene.gap_corners()
     seen = np.vstack([wall, pos[idx]]) if len(idx) else wall
@@ -310,14 +322,14 @@ def scene_svg(
     # floor grid (1 m) inside the lab
     out.append(f'<polygon points="{poly(floor)}" class="floor"/>')
     z0 = floor[0, 2]
-    for gx in np.arange(math.ceil(lab_lo[0]), math.floor(lab_hi[0]) + 1):
-        out.append(
-            f'<polyline points="{poly(np.array([[gx, lab_lo[1], z0], [gx, lab_hi[1], z0]]))}" class="fgrid"/>'
-        )
-    for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1):
-        out.append(
-            f'<polyline points="{poly(np.array([[lab_lo[0], gy, z0], [lab_hi[0], gy, z0]]))}" class="fgrid"/>'
-        )
+    lines = [[[gx, lab_lo[1], z0], [gx, lab_hi[1], z0]]
+             for gx in np.arange(math.ceil(lab_lo[0]), math.floor(lab_hi[0]) + 1)]
+    lines += [[[lab_lo[0], gy, z0], [lab_hi[0], gy, z0]]
+              for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1)]
+    if lines:  # (all the grid's ends projected at once, a line's two points each)
+        ends = to_screen(np.array(lines).reshape(-1, 3)).ravel().tolist()
+        out += [f'<polyline points="{_points(ends[k : k + 4], " ")}" class="fgrid"/>'
+                for k in range(0, len(ends), 4)]
     # the trajectory's shadow on the floor
     if len(idx) > 1:
         shadow = pos[idx].copy()
@@ -332,11 +344,7 @@ def scene_svg(
     side = (pos[idx] - scene.gap_centre_m) @ e1 if len(idx) else np.array([])
     viewer_side = 1.0 if float(e1 @ towards) > 0 else -1.0
     in_front = side * viewer_side > 0
-    vmax = float(np.nanmax(scene.speed_m_s)) if np.any(np.isfinite(scene.speed_m_s)) else 1.0
-    vmax = max(vmax, 1e-6)
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
-
-    colours = colormaps(np.asarray(scene.speed_m_s, dtype=float)[idx] / vmax) if len(idx) else []
     points = screen.tolist()
     sides = in_front.tolist()
 
