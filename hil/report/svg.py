@@ -345,16 +345,15 @@ def scene_svg(
     viewer_side = 1.0 if float(e1 @ towards) > 0 else -1.0
     in_front = side * viewer_side > 0
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
-    points = screen.tolist()
-    sides = in_front.tolist()
+    ends = np.hstack([screen[:-1], screen[1:]])  # each segment's (x0, y0, x1, y1)
+    colour = np.array(colours, dtype=object)
 
     def segments(front: bool) -> str:
         """The trajectory's segments with an end on the ``front`` side, a line each (one format call)."""
-        values: list[float | str] = []
-        for k in range(len(idx) - 1):
-            if sides[k] == front or sides[k + 1] == front:
-                values += (*points[k], *points[k + 1], colours[k])
-        return (_SEGMENT * (len(values) // 5)) % tuple(values)
+        drawn = np.flatnonzero((in_front[:-1] == front) | (in_front[1:] == front))
+        values = np.empty((len(drawn), 5), dtype=object)  # (the ends as Python floats, then the colour)
+        values[:, :4], values[:, 4] = ends[drawn], colour[drawn]
+        return (_SEGMENT * len(drawn)) % tuple(values.ravel().tolist())
 
     out += [segments(front=False), wall_path, gap_outline, segments(front=True)]
     if len(idx):
