@@ -27,6 +27,13 @@ SUMMARY_NAME = "summary.json"
 
 def to_jsonable(value: Any) -> Any:
     """Plain JSON types: numpy scalars/arrays -> numbers/lists, dataclasses -> dicts, NaN/inf -> None."""
+    kind = type(value)  # (the plain types first, as most of a summary is: the same answers, fewer checks)
+    if kind is str or kind is int or kind is bool or value is None:
+        return value
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind is dict:
+        return {str(k): to_jsonable(v) for k, v in value.items()}
     if is_dataclass(value) and not isinstance(value, type):
         to_dict = getattr(value, "to_dict", None)
         if callable(to_dict):

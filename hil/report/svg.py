@@ -5,6 +5,7 @@ Everything returns an ``<svg>`` string (no external references); NaN values brea
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -23,7 +24,9 @@ def colormaps(xs: np.ndarray) -> list[str]:
     x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
     i = np.minimum(x.astype(int), len(_CMAP) - 2)
     c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
-    return ["#{:02x}{:02x}{:02x}".format(*rgb) for rgb in np.round(c).astype(int).tolist()]
+    rgb = np.round(c).astype(int) @ np.array([1 << 16, 1 << 8, 1])  # (each 0..255: 0xrrggbb)
+    text = ("#%06x" * len(x)) % tuple(rgb.tolist())  # (one format call: each colour 7 characters)
+    return [text[k : k + 7] for k in range(0, len(text), 7)]
 
 
 def colormap(x: float) -> str:
@@ -50,7 +53,8 @@ def downsample(n: int, max_points: int = 800) -> np.ndarray:
     """Indices of at most ``max_points`` evenly spread samples, first and last included."""
     if n <= max_points:
         return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, max_points).round().astype(int))
+    idx = np.linspace(0, n - 1, max_points).round().astype(int)  # (non-decreasing: its repeats adjacent)
+    return idx[np.concatenate(([True], idx[1:] != idx[:-1]))]
 
 
 @dataclass(frozen=True)
@@ -95,12 +99,18 @@ def _path(xs: np.ndarray, ys: np.ndarray) -> str:
         return ""
     # each run of finite points, one line: M at its first point, L before each of the others
     edges = np.flatnonzero(np.diff(np.concatenate(([False], ok, [False])).astype(np.int8)))
-    x, y = xs.tolist(), ys.tolist()
-    return "".join("M" + "L".join(map(_POINT.__mod__, zip(x[a:b], y[a:b], strict=True)))
+    xy = np.column_stack((xs, ys)).ravel().tolist()
+    return "".join("M" + _points(xy[2 * a : 2 * b], "L")
                    for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 _POINT = "%.1f,%.1f"  # (x, y) with one decimal, as the charts and scenes draw it
+
+
+def _points(xy: list[float], sep: str) -> str:
+    """The points ``xy`` (x0, y0, x1, y1, ...) as `_POINT` each, ``sep`` between them: one format call
+    for them all (a call a point took most of a report's time)."""
+    return sep.join([_POINT] * (len(xy) // 2)) % tuple(xy)
 
 
 def line_chart(chart: Chart) -> str:
@@ -237,6 +247,19 @@ class Scene:
             [c + hw * e0 + hh * e2, c - hw * e0 + hh * e2, c - hw * e0 - hh * e2, c + hw * e0 - hh * e2]
         )
 
+    @functools.cached_property
+    def drawn(self) -> tuple[np.ndarray, list[str], float]:
+        """The trajectory as every view draws it: the indices of its points drawn (at most 700, finite),
+        their colours by speed, and the speed of the scale's top (m/s)."""
+        pos = np.asarray(self.pos_m, dtype=float)
+        ok = np.all(np.isfinite(pos), axis=1)
+        idx = downsample(len(pos), 700)
+        idx = idx[ok[idx]]
+        speed = np.asarray(self.speed_m_s, dtype=float)
+        vmax = float(np.nanmax(speed)) if np.any(np.isfinite(speed)) else 1.0
+        vmax = max(vmax, 1e-6)
+        return idx, colormaps(speed[idx] / vmax) if len(idx) else [], vmax
+
     def wall_corners(self) -> np.ndarray:
         """The wall's four corners: a rectangle in the gap's plane, sides along e0 and e2 (4, 3)."""
         e0, e2 = self.gap_rotation[:, 1], self.gap_rotation[:, 2]
@@ -247,14 +270,16 @@ class Scene:
         )
 
 
+#: a segment of the trajectory: its ends (x0, y0, x1, y1) and colour
+_SEGMENT = '<line x1="%.1f" y1="%.1f" x2="%.1f" y2="%.1f" stroke="%s" class="traj"/>'
+
+
 def scene_svg(
     scene: Scene, view: View, title: str, width: int = 620, height: int = 460, legend: bool = True
 ) -> str:
     """The trajectory through the wall's opening, seen by ``view``; coloured by speed."""
     pos = np.asarray(scene.pos_m, dtype=float)
-    ok = np.all(np.isfinite(pos), axis=1)
-    idx = downsample(len(pos), 700)
-    idx = idx[ok[idx]]
+    idx, colours, vmax = scene.drawn
     # the floor shown: the lab's floor cut to 1 m around the trajectory and the wall
     wall, gap = scene.wall_corners(), scene.gap_corners()
     seen = np.vstack([wall, pos[idx]]) if len(idx) else wall
@@ -287,8 +312,7 @@ def scene_svg(
         )
 
     def poly(points: np.ndarray) -> str:
-        xy = to_screen(points)
-        return " ".join(map(_POINT.__mod__, zip(xy[:, 0].tolist(), xy[:, 1].tolist(), strict=True)))
+        return _points(to_screen(points).ravel().tolist(), " ")
 
     out = [
         f'<svg class="scene" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
@@ -298,14 +322,14 @@ def scene_svg(
     # floor grid (1 m) inside the lab
     out.append(f'<polygon points="{poly(floor)}" class="floor"/>')
     z0 = floor[0, 2]
-    for gx in np.arange(math.ceil(lab_lo[0]), math.floor(lab_hi[0]) + 1):
-        out.append(
-            f'<polyline points="{poly(np.array([[gx, lab_lo[1], z0], [gx, lab_hi[1], z0]]))}" class="fgrid"/>'
-        )
-    for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1):
-        out.append(
-            f'<polyline points="{poly(np.array([[lab_lo[0], gy, z0], [lab_hi[0], gy, z0]]))}" class="fgrid"/>'
-        )
+    lines = [[[gx, lab_lo[1], z0], [gx, lab_hi[1], z0]]
+             for gx in np.arange(math.ceil(lab_lo[0]), math.floor(lab_hi[0]) + 1)]
+    lines += [[[lab_lo[0], gy, z0], [lab_hi[0], gy, z0]]
+              for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1)]
+    if lines:  # (all the grid's ends projected at once, a line's two points each)
+        ends = to_screen(np.array(lines).reshape(-1, 3)).ravel().tolist()
+        out += [f'<polyline points="{_points(ends[k : k + 4], " ")}" class="fgrid"/>'
+                for k in range(0, len(ends), 4)]
     # the trajectory's shadow on the floor
     if len(idx) > 1:
         shadow = pos[idx].copy()
@@ -320,29 +344,18 @@ def scene_svg(
     side = (pos[idx] - scene.gap_centre_m) @ e1 if len(idx) else np.array([])
     viewer_side = 1.0 if float(e1 @ towards) > 0 else -1.0
     in_front = side * viewer_side > 0
-    vmax = float(np.nanmax(scene.speed_m_s)) if np.any(np.isfinite(scene.speed_m_s)) else 1.0
-    vmax = max(vmax, 1e-6)
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
+    ends = np.hstack([screen[:-1], screen[1:]])  # each segment's (x0, y0, x1, y1)
+    colour = np.array(colours, dtype=object)
 
-    colours = colormaps(np.asarray(scene.speed_m_s, dtype=float)[idx] / vmax) if len(idx) else []
-    points = screen.tolist()
-    sides = in_front.tolist()
+    def segments(front: bool) -> str:
+        """The trajectory's segments with an end on the ``front`` side, a line each (one format call)."""
+        drawn = np.flatnonzero((in_front[:-1] == front) | (in_front[1:] == front))
+        values = np.empty((len(drawn), 5), dtype=object)  # (the ends as Python floats, then the colour)
+        values[:, :4], values[:, 4] = ends[drawn], colour[drawn]
+        return (_SEGMENT * len(drawn)) % tuple(values.ravel().tolist())
 
-    def segments(front: bool) -> list[str]:
-        segs = []
-        for k in range(len(idx) - 1):
-            if sides[k] != front and sides[k + 1] != front:
-                continue
-            (x0, y0), (x1, y1) = points[k], points[k + 1]
-            c = colours[k]
-            segs.append(
-                f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{c}" class="traj"/>'
-            )
-        return segs
-
-    out += segments(front=False)
-    out += [wall_path, gap_outline]
-    out += segments(front=True)
+    out += [segments(front=False), wall_path, gap_outline, segments(front=True)]
     if len(idx):
         (sx0, sy0), (ex, ey) = screen[0], screen[-1]
         out.append(f'<circle cx="{sx0:.1f}" cy="{sy0:.1f}" r="6" class="start"><title>start</title></circle>')

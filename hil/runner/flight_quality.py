@@ -28,9 +28,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from itertools import chain
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
 from hil.runner.recorder import FC_STATE_CODES
@@ -202,7 +204,16 @@ def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active:
     """The command ``cmd`` through a first-order lag of ``lag_s`` (s; the command held between samples),
     started from the measured value where ``active`` begins; NaN where not ``active``."""
     out = np.full(len(t), np.nan)
-    ts, c, m, on = t.tolist(), np.asarray(cmd).tolist(), np.asarray(measured).tolist(), active.tolist()
+    _lag(np.asarray(t, dtype=np.float64), np.asarray(cmd, dtype=np.float64),
+         np.asarray(measured, dtype=np.float64), np.asarray(active, dtype=np.bool_), float(lag_s), out)
+    return out
+
+
+@njit(cache=True)
+def _lag(ts: np.ndarray, c: np.ndarray, m: np.ndarray, on: np.ndarray, lag_s: float,
+         out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """`lagged_command`'s recurrence, sample by sample (a sample's loop in Python took most of `measure`),
+    into ``out`` (its NaN left where not ``on``)."""
     r = math.nan
     for i in range(len(ts)):
         if not on[i] or not math.isfinite(c[i]):
@@ -214,7 +225,6 @@ def lagged_command(t: np.ndarray, cmd: np.ndarray, measured: np.ndarray, active:
             a = math.exp(-(ts[i] - ts[i - 1]) / lag_s)
             r = c[i - 1] + (r - c[i - 1]) * a
         out[i] = r
-    return out
 
 
 def position_errors(
@@ -224,8 +234,11 @@ def position_errors(
     mission time 0) to ``t_end_s``, where ``offboard`` (the program flying)."""
     out: dict[str, Figure] = {}
     idx = np.flatnonzero(offboard & (t >= t_plan_s) & (t < t_end_s))
-    segs = [plan.segment_at(tm) for tm in (t[idx] - t_plan_s).tolist()]
-    ref = np.array([plan.reference_tuples(tm)[0] for tm in (t[idx] - t_plan_s).tolist()]).reshape(-1, 3)
+    times = (t[idx] - t_plan_s).tolist()
+    segs = [plan.segment_at(tm) for tm in times]
+    # (the reference positions' numbers in one go: an array of a list of tuples is made element by element)
+    ref = np.fromiter(chain.from_iterable(plan.reference_tuples(tm)[0] for tm in times), dtype=np.float64,
+                      count=3 * len(times)).reshape(-1, 3)
     err = np.linalg.norm(pos[idx] - ref, axis=1)
     for seg in PLAN_SEGMENTS:
         mask = np.array([s is seg for s in segs], dtype=bool)
