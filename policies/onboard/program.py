@@ -135,7 +135,9 @@ _PHASE_HANDLERS = {
 }
 
 
-FINAL_PHASES = (Phase.DONE, Phase.ABORTED, Phase.FAILED)
+#: (a set: the per-tick paths ask whether the phase is one of them five times a tick, and a tuple compares
+#: the phase with each member as strings)
+FINAL_PHASES = frozenset({Phase.DONE, Phase.ABORTED, Phase.FAILED})
 # the members the per-tick paths compare with, as module constants (Python 3.11 reads a member through its
 # class with a descriptor call, about 0.4 us: a dozen a tick)
 _WAIT, _ABORTING, _TAKEOFF = Phase.WAIT, Phase.ABORTING, Phase.TAKEOFF
