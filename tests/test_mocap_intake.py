@@ -10,7 +10,7 @@ import numpy as np
 from onboard_rig import rewrite_mocap
 
 from hil.link.clock import SimClock
-from hil.link.linktrack import BodySample, MocapPacket, encode_mocap_frame
+from hil.link.linktrack import MAX_BODIES, BodySample, MocapPacket, encode_mocap_frame
 from hil.link.memory import MemoryTransport
 from policies.mocap_reader import CLOCK_JUMP_FRAMES, MocapReader
 from policies.onboard.estimator import PoseEstimator, StaticPoseCheck
@@ -67,7 +67,10 @@ def test_the_intake_gives_the_program_what_the_readers_own_path_gives_it():
         if k % 3 == 0:  # two frames in one read
             data += _frame(k, extra=(BodySample(9, k / 120, (1.0, 1.0, 1.0), (1.0, 0.0, 0.0, 0.0)),))
         kind = k % 41
-        if kind == 5:
+        if kind == 3:  # as many bodies as a frame holds (the intake keeps each for its second pass)
+            data = _frame(k, extra=tuple(BodySample(9 + j, k / 120, (1.0, 1.0 + j, 1.0), (1.0, 0.0, 0.0, 0.0))
+                                         for j in range(MAX_BODIES - 2)))
+        elif kind == 5:
             data = rewrite_mocap(data, pos_m=(nan, 0.0, 0.0), body_ids=(1,))
         elif kind == 9:
             data = rewrite_mocap(data, quat_wxyz=(1.2, 0.0, 0.0, 0.0), body_ids=(2,))

@@ -24,6 +24,7 @@ import numpy as np
 from hil.link.linktrack import (
     BODY_IDS,
     BODY_LEN,
+    MAX_BODIES,
     MOCAP_BODIES_AT,
     MOCAP_PAYLOAD_AT,
     crc16_at,
@@ -55,6 +56,9 @@ _MIN_DELAY, _LAST_STAMP = 0, 1  # (`policies.mocap_reader`'s state: the referenc
 #: a stamp of 2^53 us or more (its high u32 this or more) is not a float's exact integer: left to the
 #: reader's own path
 _STAMP_HIGH_LIMIT = 1 << 21
+#: a body as the intake's first pass over a frame read it, for the second (`intake_frames`): id, stamp (s),
+#: position (m), quaternion (w, x, y, z) as sent and its squared norm
+BODY_FLOATS = 10
 
 
 def body_at(buf: bytes, at: int) -> tuple[int, int, float, float, float, float, float, float, float, float]:
@@ -67,12 +71,14 @@ def body_at(buf: bytes, at: int) -> tuple[int, int, float, float, float, float, 
             f32_at(buf, at + 34))
 
 
-def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes, now_s: float
-                  ) -> tuple[int, int]:
+def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, bodies: np.ndarray, buf: bytes,
+                  now_s: float) -> tuple[int, int]:
     """Take the mocap frames at the start of ``buf``, read at ``now_s`` (s), as far as they are whole, good
     and their bodies pass the quick checks: each body kept in the reader's state ``rd``, the vehicle's
     pose into the estimator's state ``est`` (with its settings), the gap's into its check's
-    ``gap``. Returns where it stopped in ``buf`` and the frames taken. Run compiled (`MOCAP_INTAKE`)."""
+    ``gap``. Returns where it stopped in ``buf`` and the frames taken. ``bodies`` (`MAX_BODIES` x
+    `BODY_FLOATS`) holds a frame's bodies from the checks to their taking: each body's bytes are decoded
+    once. Run compiled (`MOCAP_INTAKE`)."""
     n = len(buf)
     start = 0
     frames = 0
@@ -92,10 +98,16 @@ def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes, 
             norm2 = qw * qw + qx * qx + qy * qy + qz * qz
             if not pose_passes(flags, px + py + pz, norm2, stamp_s, rd[_LAST_STAMP + body_id], newest_s):
                 return start, frames
+            b = k * BODY_FLOATS  # (kept for the second pass: no second decoding)
+            bodies[b], bodies[b + 1], bodies[b + 2], bodies[b + 3], bodies[b + 4] = \
+                body_id, stamp_s, px, py, pz
+            bodies[b + 5], bodies[b + 6], bodies[b + 7], bodies[b + 8], bodies[b + 9] = qw, qx, qy, qz, norm2
         frame_no = u32_at(buf, start + MOCAP_PAYLOAD_AT + 2)
         for k in range(count):
-            body_id, flags, stamp_s, px, py, pz, qw, qx, qy, qz = body_at(buf, first + k * BODY_LEN)
-            norm2 = qw * qw + qx * qx + qy * qy + qz * qz
+            b = k * BODY_FLOATS
+            body_id, stamp_s, px, py, pz = int(bodies[b]), bodies[b + 1], bodies[b + 2], bodies[b + 3], \
+                bodies[b + 4]
+            qw, qx, qy, qz, norm2 = bodies[b + 5], bodies[b + 6], bodies[b + 7], bodies[b + 8], bodies[b + 9]
             qw, qx, qy, qz = keep_pose(rd, body_id, px, py, pz, qw, qx, qy, qz, norm2, stamp_s, now_s,
                                        frame_no)
             if body_id == VEHICLE_BODY_ID:
@@ -107,17 +119,21 @@ def intake_frames(est: np.ndarray, gap: np.ndarray, rd: np.ndarray, buf: bytes, 
     return start, frames
 
 
-#: where the gap check's and the reader's states start in the intake's one array (`intake_state`)
+#: where the gap check's and the reader's states and the frame's bodies start in the intake's one array
+#: (`intake_state`)
 _GAP_AT = STATE_FLOATS
 _READER_AT = _GAP_AT + GAP_FLOATS
-INTAKE_FLOATS = _READER_AT + READER_FLOATS
+_BODIES_AT = _READER_AT + READER_FLOATS
+INTAKE_FLOATS = _BODIES_AT + MAX_BODIES * BODY_FLOATS
 
 
 def intake_state(state: np.ndarray, buf: bytes, now_s: float) -> tuple[int, int]:
-    """`intake_frames` on the estimator's, the gap check's and the reader's states kept in the one array
-    ``state`` (`INTAKE_FLOATS`: `STATE_FLOATS`, `GAP_FLOATS`, then `READER_FLOATS`), so that a call unpacks
-    one array argument instead of three. Run compiled (`MOCAP_INTAKE`)."""
-    return intake_frames(state[:_GAP_AT], state[_GAP_AT:_READER_AT], state[_READER_AT:], buf, now_s)
+    """`intake_frames` on the estimator's, the gap check's and the reader's states and the frame's bodies
+    kept in the one array ``state`` (`INTAKE_FLOATS`: `STATE_FLOATS`, `GAP_FLOATS`, `READER_FLOATS`, then
+    `MAX_BODIES` x `BODY_FLOATS`), so that a call unpacks one array argument instead of four. Run compiled
+    (`MOCAP_INTAKE`)."""
+    return intake_frames(state[:_GAP_AT], state[_GAP_AT:_READER_AT], state[_READER_AT:_BODIES_AT],
+                         state[_BODIES_AT:], buf, now_s)
 
 
 _U32_AT = Kernel(u32_at)
@@ -140,7 +156,7 @@ class MocapIntake:
         estimator.keep_state_in(self.state[:_GAP_AT])
         gap_check.keep_state_in(self.state[_GAP_AT:_READER_AT])
         #: the reader's pose state (`READER_FLOATS`), which the reader sets up
-        self.reader_state = self.state[_READER_AT:]
+        self.reader_state = self.state[_READER_AT:_BODIES_AT]
         entry = MOCAP_INTAKE.entry(self.state, b"", 0.0)
         self.take: Callable[[bytes, float], tuple[int, int]] = functools.partial(entry, self.state)
 

@@ -135,7 +135,9 @@ _PHASE_HANDLERS = {
 }
 
 
-FINAL_PHASES = (Phase.DONE, Phase.ABORTED, Phase.FAILED)
+#: (a set: the per-tick paths ask whether the phase is one of them five times a tick, and a tuple compares
+#: the phase with each member as strings)
+FINAL_PHASES = frozenset({Phase.DONE, Phase.ABORTED, Phase.FAILED})
 # the members the per-tick paths compare with, as module constants (Python 3.11 reads a member through its
 # class with a descriptor call, about 0.4 us: a dozen a tick)
 _WAIT, _ABORTING, _TAKEOFF = Phase.WAIT, Phase.ABORTING, Phase.TAKEOFF
@@ -339,8 +341,8 @@ def warm_kernels() -> None:
         PLAN_REFERENCE.get()(plan, t)
         TRADITIONAL_COMMAND.get()(plan_with_gains(plan, g), t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9)
         TRADITIONAL_STEP.get()(plan_with_gains(plan, g), 0.9, np.zeros(STATE_FLOATS), t, t, 0.0, 0.0, 0.1)
-        TAKEOFF_STEP.get()(plan[_PLAN_APPROACH:_PLAN_RECOVERY].copy(), g, 0.9, np.zeros(STATE_FLOATS), t, t,
-                           0.0, 2.5, 0.0, 1.0)
+        TAKEOFF_STEP.get()(plan_with_gains(plan[_PLAN_APPROACH:_PLAN_RECOVERY], g), 0.9,
+                           np.zeros(STATE_FLOATS), t, t, 0.0, 2.5, 0.0, 1.0)
     est = PoseEstimator(max_accel_m_s2=30.0)  # (its arrays: the program's argument types)
     for k in range(3):
         est.take(k * 0.01, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), k * 0.01 + 0.03)
@@ -392,12 +394,13 @@ class OnboardProgram:
         self._clock_zero_monotonic_s: float | None = None  # on the wall clock only (`run_realtime`)
         self._request: _Request | None = None
         self._mission_start_s = 0.0
-        #: trajectory, its `poly_packed` form, yaw0, yaw1, start
+        #: trajectory, its `poly_packed` form followed by the expert's gains (`plan_with_gains`), yaw0, yaw1,
+        #: start
         self._takeoff: tuple[Any, np.ndarray, float, float, float] | None = None
-        # (the take-off's step compiled for a packed trajectory, the expert's gains, the estimator's state
-        # array and floats: no dispatch a step)
+        # (the take-off's step compiled for a packed trajectory with the expert's gains, the estimator's
+        # state array and floats: no dispatch a step)
         self._gains, self._mass_kg = self.expert.gains_array, self.expert.mass_kg
-        self._takeoff_step = TAKEOFF_STEP.entry(np.zeros(PLAN_POLY_FLOATS), self._gains, 0.0,
+        self._takeoff_step = TAKEOFF_STEP.entry(plan_with_gains(np.zeros(PLAN_POLY_FLOATS), self._gains), 0.0,
                                                 self.estimator.state, *(0.0,) * 6)
         self._takeoff_duration_s = cfg.takeoff_duration_s
         self._start_height_m = 0.0  # the mission's start height (m, world z) chosen before the take-off
@@ -653,7 +656,7 @@ class OnboardProgram:
         # as the start of the turn and swing on past it
         yaw0 = self._abort_yaw
         yaw1 = yaw0 + _wrap(self._mission_yaw(est.pos_m, gap) - yaw0)
-        self._takeoff = (traj, poly_packed(traj), yaw0, yaw1, now_s)
+        self._takeoff = (traj, plan_with_gains(poly_packed(traj), self._gains), yaw0, yaw1, now_s)
         self.events.emit("takeoff", now_s, target_m=target, yaw_deg=round(math.degrees(yaw1), 1),
                          duration_s=cfg.takeoff_duration_s)
         self._go(Phase.TAKEOFF, now_s)
@@ -780,9 +783,8 @@ class OnboardProgram:
             assert self._takeoff is not None
             traj, poly, yaw0, yaw1, t0 = self._takeoff
             duration = self._takeoff_duration_s
-            roll, pitch, yaw, thrust = self._takeoff_step(poly, self._gains, self._mass_kg,
-                                                          self._estimator_state, now_s + lead, t_s, t0,
-                                                          duration, yaw0, yaw1)
+            roll, pitch, yaw, thrust = self._takeoff_step(poly, self._mass_kg, self._estimator_state,
+                                                          now_s + lead, t_s, t0, duration, yaw0, yaw1)
             if math.isfinite(roll + pitch + thrust):
                 self._send(roll, pitch, yaw, thrust)
             else:  # a bad input: the controller's checks name it

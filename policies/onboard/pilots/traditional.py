@@ -22,6 +22,7 @@ from policies.controller import (
 )
 from policies.gap_planning import (
     PLAN_FLOATS,
+    PLAN_POLY_FLOATS,
     PLAN_REFERENCE,
     POLY_AXES,
     SEGMENT_INDEX,
@@ -81,7 +82,8 @@ class TraditionalPilot:
 
 def plan_with_gains(plan: np.ndarray, gains: np.ndarray) -> np.ndarray:
     """The plan packed in ``plan`` (`MissionPlan.packed`, `PLAN_FLOATS`) followed by the gains ``gains``
-    (`policies.controller.gains_array`), as `traditional_command` reads them (read-only)."""
+    (`policies.controller.gains_array`), as `traditional_command` reads them (read-only); or so a take-off
+    trajectory (`gap_planning.poly_packed`, `PLAN_POLY_FLOATS`), as `takeoff_step` reads it."""
     k = np.concatenate((plan, gains))
     k.flags.writeable = False
     return k
@@ -139,16 +141,18 @@ def takeoff_heading(t_s: float, t0_s: float, duration_s: float, yaw0_rad: float,
     return tau, yaw0_rad + (yaw1_rad - yaw0_rad) * (x * x * (3 - 2 * x))
 
 
-def takeoff_step(poly: np.ndarray, gains: np.ndarray, mass_kg: float, st: np.ndarray, now_s: float,
-                 t_s: float, t0_s: float, duration_s: float, yaw0_rad: float,
+def takeoff_step(poly_gains: np.ndarray, mass_kg: float, st: np.ndarray, now_s: float, t_s: float,
+                 t0_s: float, duration_s: float, yaw0_rad: float,
                  yaw1_rad: float) -> tuple[float, float, float, float]:
     """The onboard program's take-off step in one compiled call: the state predicted to ``now_s`` (s, reader
-    clock) from the estimator's state ``st`` (`predicted_state`), `tracking_command` on the trajectory
-    packed in ``poly`` at the time and heading `takeoff_heading` gives for ``t_s`` (s). Roll, pitch, yaw
-    (rad), thrust (N); a command that is not finite is returned as it is (the caller's checks name it)."""
+    clock) from the estimator's state ``st`` (`predicted_state`), `tracking_command` on the trajectory and
+    the gains packed in ``poly_gains`` (`plan_with_gains`: one array argument, not two) at the time and
+    heading `takeoff_heading` gives for ``t_s`` (s). Roll, pitch, yaw (rad), thrust (N); a command that is
+    not finite is returned as it is (the caller's checks name it)."""
     px, py, pz, vx, vy, vz, _, _, _ = predicted_state(st, now_s)
     tau, yaw = takeoff_heading(t_s, t0_s, duration_s, yaw0_rad, yaw1_rad)
-    roll, pitch, thrust = tracking_command(poly, tau, yaw, px, py, pz, vx, vy, vz, mass_kg, gains)
+    roll, pitch, thrust = tracking_command(poly_gains[:PLAN_POLY_FLOATS], tau, yaw, px, py, pz, vx, vy, vz,
+                                           mass_kg, poly_gains[PLAN_POLY_FLOATS:])
     return roll, pitch, yaw, thrust
 
 
