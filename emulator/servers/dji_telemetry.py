@@ -54,7 +54,8 @@ def _state_free(fn: Values) -> Values:
 # --- state -------------------------------------------------------------------------------------
 #: the FC's states read per push, as module names (an enum class's attribute goes through its
 #: metaclass's ``__getattr__`` hook: about 850 instructions a lookup, a module global's about 50)
-_DISARMED, _TAKEOFF, _OFFBOARD, _GO_HOME = FcState.DISARMED, FcState.TAKEOFF, FcState.OFFBOARD, FcState.GO_HOME
+_DISARMED, _TAKEOFF, _OFFBOARD = FcState.DISARMED, FcState.TAKEOFF, FcState.OFFBOARD
+_GO_HOME = FcState.GO_HOME
 _LANDING = (FcState.LAND, FcState.FAILSAFE_LAND)
 
 
