@@ -39,6 +39,9 @@ HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcS
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
 #: the states whose heading the FC holds itself (latched on entry, see `hold_heading_rad`)
 HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
+#: members the per-setpoint and per-batch checks read, as module names (an enum class's attribute goes
+#: through its metaclass's ``__getattr__`` hook: about 850 instructions a lookup, a module global's 50)
+_OFFBOARD, _FAILSAFE_HOVER = FcState.OFFBOARD, FcState.FAILSAFE_HOVER
 
 
 def steps_before(room_s: float, dt_s: float, n_max: int) -> int:
@@ -375,7 +378,7 @@ class FlightController:
     def _plan_batch(self) -> None:
         """Make `batch_plan` from the state, the target and the failsafe's timeout now."""
         tg = self.target
-        if (self.machine.state is not FcState.OFFBOARD or tg.__class__ is not AttitudeThrustTarget
+        if (self.machine.state is not _OFFBOARD or tg.__class__ is not AttitudeThrustTarget
                 or tg.yaw_rate_rad_s is not None):  # type: ignore[union-attr]
             self.batch_plan = None
             return
@@ -395,9 +398,9 @@ class FlightController:
         """When the next timed change of state is due (s; inf: none): the setpoint-loss failsafe in
         OFFBOARD, the failsafe hover's end (see `quiet_steps`)."""
         cfg, m = self.config, self.machine
-        if m.state is FcState.OFFBOARD:
+        if m.state is _OFFBOARD:
             return self.last_setpoint_s + cfg.failsafe_timeout_s
-        if m.state is FcState.FAILSAFE_HOVER:
+        if m.state is _FAILSAFE_HOVER:
             return m.since_s + cfg.failsafe_hover_s
         return math.inf
 

@@ -58,6 +58,7 @@ ON_REQUEST = (mav.MAVLINK_MSG_ID_HOME_POSITION, mav.MAVLINK_MSG_ID_AUTOPILOT_VER
 #: setpoints over as bytes, and `handle` reads them without a message object
 RAW_MSG_IDS: frozenset[int] = frozenset({mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET})
 _SET_ATTITUDE_TARGET = mav.MAVLink_set_attitude_target_message.unpacker  # its payload, in wire order
+_SET_ATTITUDE_TARGET_SIZE = _SET_ATTITUDE_TARGET.size  # (bytes; a Struct's size is a slow attribute)
 _SET_ATTITUDE_TARGET_ID = mav.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 #: streamed messages read from the vehicle's state (`TelemetryEncoder.state_values`, read once per send)
 _STATE_STREAMS = frozenset({mav.MAVLINK_MSG_ID_ATTITUDE, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED})
@@ -349,7 +350,7 @@ class MavlinkServer:
     def _on_set_attitude_target_frame(self, frame: bytes, now_s: float) -> None:
         """`_on_set_attitude_target` of the message in ``frame`` (unsigned, CRC checked), read from
         its payload (zero-padded or cut to the message's size, as pymavlink does)."""
-        size = _SET_ATTITUDE_TARGET.size
+        size = _SET_ATTITUDE_TARGET_SIZE
         if frame[1] == size:  # (the usual case: no trailing zeros trimmed)
             values = _SET_ATTITUDE_TARGET.unpack_from(frame, 10)
         else:
