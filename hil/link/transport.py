@@ -160,7 +160,8 @@ class Waiter:
             timeout_s -= spin_s
             if timeout_s <= 0:
                 return False
-        return bool(poll(timeout_s * 1e3))  # (ms, rounded up as select rounds its seconds)
+        # (ms, rounded up as select rounds its seconds; a negative timeout would block for good)
+        return bool(poll(timeout_s * 1e3 if timeout_s > 0 else 0))
 
 
 def wait_readable(fds: list[int], timeout_s: float, spin_s: float = 0.0) -> bool:
