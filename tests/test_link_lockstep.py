@@ -206,6 +206,28 @@ def test_the_fc_reads_the_wire_once_a_frame_has_arrived_and_when_it_is_closed():
     assert wire.input_due() is True  # the read then says the link is closed
 
 
+def test_the_answer_is_taken_with_what_the_program_has_written_by_now_in_one_call():
+    clock = SimClock()
+    raw, peer = MemoryTransport.pair()
+    wire = CommandWire(raw, clock, LinkSpec(), np.random.default_rng(7), FaultSchedule(()))
+    ob = MavlinkCodec(peer, clock, 1, 191)
+    hb = ob.mav.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    assert wire.take_until_answer(10_000_000, 0.02, True) is None  # nothing written yet
+    ob.send(hb)
+    assert wire.take_until_answer(10_000_000, 0.02) is False  # not read without ``read``
+    assert wire.take_until_answer(10_000_000, 0.02, True) is False  # read: a frame, no answer yet
+    assert wire.to_fc.frames_sent == 0  # (held until the answer says which tick it belongs to)
+    ob.send(hb)
+    ob.send(ob.mav.timesync_encode(10_000_000, 10_000_000))
+    ob.send(hb)  # the next tick's, stays
+    assert wire.take_until_answer(10_000_000, 0.02, True) is True
+    assert wire.to_fc.frames_sent == 2 and wire.next_arrival_s() >= 0.02
+    # an in-process run's reads find the bytes there: the memory link's wake-up pipe is never made
+    assert raw._rx.wake_r is None
+    assert not wire.read_raw(0.001)  # a wait asks for the descriptor (nothing more has come)
+    assert raw._rx.wake_r is not None and wire.take_until_answer(20_000_000, 0.03) is False
+
+
 @pytest.mark.parametrize("loss", [0.0, 0.02])
 def test_the_command_wire_delivers_frames_in_order_after_their_wire_time_and_latency(loss):
     # more frames than the jitter draws a channel that cannot lose draws at once (64): the next block

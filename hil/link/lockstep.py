@@ -24,6 +24,7 @@ through the same plain-value functions.
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -190,8 +191,8 @@ class Framing:
 
 def mavlink_framing(system_id: int = 1, component_id: int = mav.MAV_COMP_ID_AUTOPILOT1) -> Framing:
     """The lockstep's framing on MAVLink, the FC's ticks sent with its ids."""
-    return Framing(lambda t, n: tick_frames(t, n, system_id, component_id), answered_ns, RESEND_FILLER,
-                   FrameSplitter, is_mavlink_setpoint)
+    return Framing(functools.partial(tick_frames, system_id=system_id, component_id=component_id),
+                   answered_ns, RESEND_FILLER, FrameSplitter, is_mavlink_setpoint)
 
 
 def dji_framing(system_id: int = 1, component_id: int = 0) -> Framing:

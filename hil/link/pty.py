@@ -19,6 +19,7 @@ Behaviour a user can rely on:
 
 from __future__ import annotations
 
+import functools
 import os
 import termios
 import tty
@@ -51,6 +52,8 @@ class PtyTransport(Transport):
         self.baud = baud
         self.slave_path = os.ttyname(slave_fd)
         self.endpoint = self.slave_path
+        # a send goes straight to the write (no method of this class in between: two writes a tick)
+        self._send_internal = functools.partial(write_nonblocking, master_fd, what=self.endpoint)
 
     @classmethod
     def create(cls, baud: int = DEFAULT_BAUD) -> PtyTransport:

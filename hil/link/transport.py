@@ -131,25 +131,43 @@ class Transport(ABC):
         select.select([self.fileno()], [], [], timeout_s)
 
 
-def wait_readable(fds: list[int], timeout_s: float, spin_s: float = 0.0) -> bool:
-    """Wait until one of ``fds`` is readable or ``timeout_s`` (wall) has passed; True if readable.
+class Waiter:
+    """Waits until one of a few descriptors is readable: one poll object, made once, asked each wait
+    (no descriptor lists built a wait, as `select.select` needs)."""
 
-    With ``spin_s`` > 0 it first polls for that long, yielding the CPU between polls, before it
-    blocks: an answer expected within microseconds is then caught without a sleep and a wake-up (on a
-    virtual machine an idle CPU halts, and waking it costs tens to hundreds of microseconds), while
-    another process that needs the CPU still gets it."""
-    if spin_s > 0:
-        end = time.perf_counter() + min(spin_s, timeout_s)
-        while True:
-            if select.select(fds, [], [], 0)[0]:
-                return True
-            if time.perf_counter() >= end:
-                break
-            os.sched_yield()
-        timeout_s -= spin_s
-        if timeout_s <= 0:
-            return False
-    return bool(select.select(fds, [], [], timeout_s)[0])
+    def __init__(self, fds: list[int]) -> None:
+        poll = select.poll()
+        for fd in fds:
+            poll.register(fd, select.POLLIN)
+        self._poll = poll.poll
+
+    def wait(self, timeout_s: float, spin_s: float = 0.0) -> bool:
+        """Wait until a descriptor is readable or ``timeout_s`` (wall) has passed; True if readable.
+
+        With ``spin_s`` > 0 it first polls for that long, yielding the CPU between polls, before it
+        blocks: an answer expected within microseconds is then caught without a sleep and a wake-up (on a
+        virtual machine an idle CPU halts, and waking it costs tens to hundreds of microseconds), while
+        another process that needs the CPU still gets it."""
+        poll = self._poll
+        if spin_s > 0:
+            end = time.perf_counter() + min(spin_s, timeout_s)
+            while True:
+                if poll(0):
+                    return True
+                if time.perf_counter() >= end:
+                    break
+                os.sched_yield()
+            timeout_s -= spin_s
+            if timeout_s <= 0:
+                return False
+        # (ms, rounded up as select rounds its seconds; a negative timeout would block for good)
+        return bool(poll(timeout_s * 1e3 if timeout_s > 0 else 0))
+
+
+def wait_readable(fds: list[int], timeout_s: float, spin_s: float = 0.0) -> bool:
+    """Wait until one of ``fds`` is readable or ``timeout_s`` (wall) has passed; True if readable (a
+    `Waiter` of them, for one wait)."""
+    return Waiter(fds).wait(timeout_s, spin_s)
 
 
 def write_nonblocking(fd: int, data: bytes, what: str) -> int:

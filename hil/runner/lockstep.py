@@ -264,8 +264,9 @@ def _collect(
     if not (onboard.alive and not onboard.paused):
         return  # killed or stalled since the tick was sent: no answer will come
     ns = round(t * 1e9)
-    if emu.wire.take_until_answer(ns, stamp_s) or _await_answer(
-            emu, onboard, (t, ns, stamp_s, mocap_total), guard_s, resend_s):
+    # the answer read before, or in what the program has written by now (no wait), else waited for
+    read = emu.wire.take_until_answer(ns, stamp_s, True)
+    if read or _await_answer(emu, onboard, (t, ns, stamp_s, mocap_total), guard_s, resend_s, read):
         rep.answered += 1
         if emu.faults.waiting:  # faults timed after a mission event: the events up to this tick
             emu.mission_events(onboard.new_events(t))
@@ -279,13 +280,17 @@ def _collect(
 
 def _await_answer(
     emu: EmulatorSide, onboard: OnboardSide, tick: tuple[float, int, float, int], guard_s: float,
-    resend_s: float,
+    resend_s: float, read: bool | None = None,
 ) -> bool:
     """Queue the onboard program's outputs until its answer to ``tick`` (time (s), time (ns), outputs'
     stamp (s), mocap byte total), which has not come yet; False when no answer came within ``guard_s``
-    (wall)."""
+    (wall). ``read``: what the link's last read gave (`CommandWire.take_until_answer`'s False: bytes
+    without the answer, which the program is let act on first, as after each read here; None:
+    nothing)."""
     t, ns, stamp_s, mocap_total = tick
     wire = emu.wire
+    if read is False:
+        onboard.service()
     deadline = time.monotonic() + guard_s
     resend_at = time.monotonic() + resend_s
     lost = False
@@ -303,7 +308,7 @@ def _await_answer(
         # the process is asked whether it has exited each time it has been silent for EXIT_POLL_S: a
         # program that finished its mission while ticks were in flight leaves them unanswered
         wait = min(EXIT_POLL_S, resend_s, max(0.0, deadline - now))
-        if not wire.read_raw(wait) and onboard.exited():
+        if not wire.read_raw(wait, read_first=False) and onboard.exited():
             wire.read_raw(0.0)
             return wire.take_until_answer(ns, stamp_s)
         if wire.take_until_answer(ns, stamp_s):

@@ -76,6 +76,7 @@ class InProcessOnboard:
             command, mocap, config, events=EventLog(path=None if log_path is None else str(log_path))
         )
         self.program.link.lockstep = lockstep  # as `python -m policies.onboard --lockstep` runs
+        self._poll = self.program.lockstep_poll
         self.alive = True
         self.paused = False
         self._cursor = _EventCursor()
@@ -83,9 +84,8 @@ class InProcessOnboard:
 
     def service(self) -> None:
         """Read what arrived; act on each lockstep tick in it (as `run_lockstep` does, without waiting)."""
-        p = self.program
-        if self.alive and not self.paused and not p.finished:
-            p.lockstep_poll()
+        if self.alive and not self.paused:
+            self._poll()  # (it does nothing once the program has finished)
 
     def step_realtime(self, now_s: float) -> None:
         if self.alive and not self.paused and not self.program.finished:

@@ -37,7 +37,7 @@ from hil.link.channel import (
 from hil.link.clock import SimClock
 from hil.link.lockstep import Framing
 from hil.link.protocols import framing
-from hil.link.transport import Transport, wait_readable
+from hil.link.transport import Transport, Waiter
 from hil.runner.faults import FaultSchedule
 from hil.scenario.schema import LinkSpec
 
@@ -166,10 +166,10 @@ class CommandWire(Transport):
         #: hold pumped FC frames until the next `send_sync` / `flush` (lockstep: one write per tick)
         self.hold_output = False
         self._held = bytearray()
-        try:
-            self._fd: int | None = raw.fileno()
-        except (NotImplementedError, OSError, ValueError):
-            self._fd = None
+        #: the wait on the real link's descriptor (`_waiter`), made when a read first waits: a memory
+        #: link makes its wake-up pipe only then (an in-process run's reads find the bytes there, and
+        #: the pipe would cost a write and a read a tick); False: the link has no descriptor
+        self._wait: Waiter | bool | None = None
 
     # --- FC -> onboard --------------------------------------------------------------------------
     def _send_internal(self, data: bytes) -> int:
@@ -222,21 +222,34 @@ class CommandWire(Transport):
                 self.raw.send(data)
 
     # --- onboard -> FC --------------------------------------------------------------------------
-    def read_raw(self, timeout_s: float = 0.0) -> bool:
+    def _waiter(self) -> Waiter | None:
+        """The wait on the real link's descriptor (made at the first call), None where it has none."""
+        wait = self._wait
+        if wait is None:
+            try:
+                wait = Waiter([self.raw.fileno()])
+            except (NotImplementedError, OSError, ValueError):
+                wait = False
+            self._wait = wait
+        return wait or None
+
+    def read_raw(self, timeout_s: float = 0.0, *, read_first: bool = True) -> bool:
         """Read what the onboard program wrote into the backlog of frames not yet handed to the link;
-        False when nothing came within ``timeout_s`` (wall s)."""
-        fd = self._fd
+        False when nothing came within ``timeout_s`` (wall s). With a timeout the link is read once
+        first (the bytes are often there already: no wait for them), unless ``read_first`` is False (a
+        read has just found nothing), then waited on and read once."""
+        raw = self.raw
         data = b""
-        if timeout_s > 0 and fd is not None and not self.raw.closed:
-            # one read first (the bytes are often there already: no poll for them), else wait for
-            # them and read once
-            data = self.raw.recv(0.0)
+        waiter = self._waiter() if timeout_s > 0 and not raw.closed else None
+        if waiter is not None:
+            if read_first:
+                data = raw.recv(0.0)
             if not data:
-                if not wait_readable([fd], timeout_s, self.spin_s):
+                if not waiter.wait(timeout_s, self.spin_s):
                     return False
                 timeout_s = 0.0
         if not data:
-            data = self.raw.recv(timeout_s)
+            data = raw.recv(timeout_s)
         if not data:
             return False
         self._backlog.extend(self.splitter.feed(data))
@@ -255,33 +268,48 @@ class CommandWire(Transport):
                 self._queue_for_fc(frame, now)
         return got
 
-    def take_until_answer(self, tick_ns: int, stamp_s: float) -> bool:
+    def take_until_answer(self, tick_ns: int, stamp_s: float, read: bool = False) -> bool | None:
         """Queue for the FC, handed to the link at ``stamp_s`` (s), what the onboard program wrote for
         the tick at ``tick_ns`` (the frames before its answer); True once that answer has come. Frames
         answered for a later tick (this one's TIMESYNC was lost to corrupt bytes and sent again) wait
-        for their own tick; what follows the last answer (the next tick's outputs) stays."""
-        stashed = self._answered_later.pop(tick_ns, None) if self._answered_later else None
-        if stashed is not None:
-            for frame in stashed:
-                self._queue_for_fc(frame, stamp_s)
-            return True
-        backlog, frames = self._backlog, self._unanswered
-        while backlog:
-            frame = backlog.popleft()
-            answered = self._answered_ns(frame)
-            if answered is None:
-                frames.append(frame)
-                continue
-            self._unanswered = []
-            if answered > tick_ns:
-                self._answered_later[answered] = frames
-            else:  # this tick's answer, or one to a tick sent twice (nothing new in front of it)
-                for f in frames:
-                    self._queue_for_fc(f, stamp_s)
-                if answered == tick_ns:
-                    return True
-            frames = self._unanswered
-        return False
+        for their own tick; what follows the last answer (the next tick's outputs) stays.
+
+        With ``read``, where the frames read before hold neither that answer nor one to a later tick,
+        what the onboard program has written by now is read (no wait) and taken the same way: False
+        then when bytes came without the answer, None when nothing came (or nothing was read)."""
+        later = self._answered_later
+        if later:
+            stashed = later.pop(tick_ns, None)
+            if stashed is not None:
+                for frame in stashed:
+                    self._queue_for_fc(frame, stamp_s)
+                return True
+        backlog, frames, answered_ns = self._backlog, self._unanswered, self._answered_ns
+        while True:
+            while backlog:
+                frame = backlog.popleft()
+                answered = answered_ns(frame)
+                if answered is None:
+                    frames.append(frame)
+                    continue
+                self._unanswered = []
+                if answered > tick_ns:
+                    self._answered_later[answered] = frames
+                else:  # this tick's answer, or one to a tick sent twice (nothing new in front of it)
+                    for f in frames:
+                        self._queue_for_fc(f, stamp_s)
+                    if answered == tick_ns:
+                        return True
+                frames = self._unanswered
+            if not read:
+                return False
+            read = False
+            if self._answered_later and self.answered_later_than(tick_ns):
+                return None  # (the tick is to be sent again first)
+            data = self.raw.recv(0.0)
+            if not data:
+                return None
+            backlog.extend(self.splitter.feed(data))
 
     def answered_later_than(self, tick_ns: int) -> bool:
         """Whether the onboard program has answered a tick after ``tick_ns`` (so it never saw that one)."""
