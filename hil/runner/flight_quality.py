@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
+from hil.runner.over_time import hold_weights_s, window_figures
 from hil.runner.recorder import FC_STATE_CODES
 from policies.gap_planning import MissionPlan, MissionRequest, Segment
 
@@ -170,11 +170,10 @@ def segment_windows(events: Sequence[Mapping[str, Any]], end_s: float) -> dict[s
 
 def segment_figures(cols: Mapping[str, np.ndarray], window: tuple[float, float]) -> SegmentFigures:
     """Angular rate and thrust over ``window`` (s) of a run's columns, weighted by time."""
-    t, (t0, t1) = cols["t_s"], window
-    rate, thrust = cols["body_rate_rad_s"], cols["thrust_n"]
-    return SegmentFigures(t0, t1, time_mean(t, rate, t0, t1), time_max(t, rate, t0, t1),
-                          time_integral(t, rate, t0, t1), time_mean(t, thrust, t0, t1),
-                          time_max(t, thrust, t0, t1), time_integral(t, thrust, t0, t1))
+    t0, t1 = window
+    (rate_mean, rate_max, rate_int), (thrust_mean, thrust_max, thrust_int) = window_figures(
+        cols["t_s"], (cols["body_rate_rad_s"], cols["thrust_n"]), t0, t1)
+    return SegmentFigures(t0, t1, rate_mean, rate_max, rate_int, thrust_mean, thrust_max, thrust_int)
 
 
 def heading_errors(
