@@ -38,9 +38,10 @@ import dataclasses
 import functools
 import math
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -561,6 +562,20 @@ class MissionPlan:
         tuples and the yaw (rad); the same numbers, for the per-step paths (`plan_reference`)."""
         r = self._reference(self.packed, float(t))
         return (r[0], r[1], r[2]), (r[3], r[4], r[5]), (r[6], r[7], r[8]), r[9]
+
+    def reference_positions(self, times: Sequence[float]) -> np.ndarray:
+        """`reference_tuples`' positions (m) at each of the mission times ``times`` (s, floats): (N, 3), the
+        compiled reference and the packed plan looked up once for them all (a run's checks ask for a
+        reference a sample)."""
+        reference, k = self._reference, self.packed
+        return np.fromiter(chain.from_iterable(reference(k, t)[:3] for t in times), dtype=np.float64,
+                           count=3 * len(times)).reshape(-1, 3)
+
+    def segment_indices(self, times: Sequence[float]) -> np.ndarray:
+        """`segment_index` at each of the mission times ``times`` (s): (N,), the index of the segment
+        `segment_at` gives in `Segment`'s order (0 the approach .. 3 the hover)."""
+        starts = self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s
+        return np.array([segment_index(t, *starts) for t in times], dtype=np.int64)
 
     @functools.cached_property
     def _reference(self) -> Any:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hil.runner.flight_quality import segment_figures, segment_windows
-from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
+from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean, window_figures
 from hil.runner.run import RunOptions, run_scenario
 from hil.scenario import load_scenarios
 
@@ -97,3 +97,15 @@ def test_a_runs_summary_is_its_time_series_over_time(tmp_path: Path):
     assert not math.isclose(by_samples, crossing["mean_angular_rate_rad_s"], rel_tol=0.1)  # what it was
     page = (run.out_dir / "report.html").read_text()
     assert "Per segment, over time" in page and f"{segs['approach']['mean_thrust_n']:.4g}" in page
+
+
+def test_window_figures_are_the_time_figures_of_each_signal():
+    """One window's figures of several signals, its weights computed once: each signal's `time_mean`,
+    `time_max` and `time_integral` there (a non-finite sample left out of one signal only)."""
+    t, v = _variable_sampling()
+    other = v * 3.0 - 1.0
+    other[2] = np.nan
+    for window in ((0.0, 1.97), (0.1, 0.5), (5.0, 6.0)):
+        got = window_figures(t, (v, other), *window)
+        assert got == [(time_mean(t, x, *window), time_max(t, x, *window), time_integral(t, x, *window))
+                       for x in (v, other)]

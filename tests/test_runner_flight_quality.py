@@ -27,7 +27,7 @@ from hil.runner.flight_quality import (
 from hil.runner.run import RunOptions, run_scenario
 from hil.scenario import load_scenarios
 from hil.scenario.schema import QUALITY_CHECKS, QualityExpectations
-from policies.gap_planning import GapPose, LabVolume, MissionRequest
+from policies.gap_planning import GapPose, LabVolume, MissionRequest, Segment
 
 SCENARIOS = Path(__file__).parent.parent / "scenarios"
 
@@ -98,6 +98,20 @@ def test_the_plan_comes_back_from_the_event_the_program_writes():
         assert a.reference_tuples(tm) == b.reference_tuples(tm)
     events = [{"event": "plan", "t_s": 3.0, "request": {"start_pos_m": [0, 0]}}]
     assert measure(_flat_columns(), events).position_error_m == {}  # a malformed request: not measured
+
+
+def test_a_plans_references_and_segments_at_many_times_are_those_at_each():
+    """`reference_positions` and `segment_indices` (what the position errors read) give, time by time,
+    `reference_tuples`' position and `segment_at`'s segment (before 0 and past the end too)."""
+    gap = GapPose.from_deg((0.0, 0.5, 2.1), -60.0, width_m=0.8, height_m=0.45)
+    plan = MissionRequest((-2.0, -1.0, 0.5), (0.0, 0.0, 0.0), gap,
+                          LabVolume((-5.0, -5.0, 0.0), (5.0, 5.0, 4.0)), 2.6, 2.5, 0.25).plan()
+    times = np.linspace(-0.5, plan.t_hover_start_s + 1, 97).tolist()
+    ref, segs = plan.reference_positions(times), plan.segment_indices(times)
+    assert ref.shape == (97, 3) and set(segs.tolist()) == {0, 1, 2, 3}
+    for tm, r, k in zip(times, ref, segs, strict=True):
+        assert tuple(r.tolist()) == plan.reference_tuples(tm)[0]
+        assert list(Segment)[k] is plan.segment_at(tm)
 
 
 def _flat_columns(n: int = 10) -> dict[str, np.ndarray]:

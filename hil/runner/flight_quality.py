@@ -28,13 +28,12 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from itertools import chain
 from typing import Any
 
 import numpy as np
 from numba import njit
 
-from hil.runner.over_time import hold_weights_s, time_integral, time_max, time_mean
+from hil.runner.over_time import hold_weights_s, window_figures
 from hil.runner.recorder import FC_STATE_CODES
 from policies.gap_planning import MissionPlan, MissionRequest, Segment
 
@@ -46,6 +45,7 @@ OFFBOARD_CODE = FC_STATE_CODES["offboard"]
 #: stalled, its link down) and the FC flies the last one until its failsafe: not a flight to the plan
 FRESH_SETPOINT_S = 0.1
 PLAN_SEGMENTS = (Segment.APPROACH, Segment.TRAVERSE, Segment.RECOVERY)
+_SEGMENT_ORDER = list(Segment)  # (`MissionPlan.segment_indices`' indices)
 #: onboard events that end the mission (its plan no longer flown)
 _MISSION_ENDS = ("mission_done", "abort", "done", "error", "link_lost", "fc_lost")
 
@@ -170,11 +170,10 @@ def segment_windows(events: Sequence[Mapping[str, Any]], end_s: float) -> dict[s
 
 def segment_figures(cols: Mapping[str, np.ndarray], window: tuple[float, float]) -> SegmentFigures:
     """Angular rate and thrust over ``window`` (s) of a run's columns, weighted by time."""
-    t, (t0, t1) = cols["t_s"], window
-    rate, thrust = cols["body_rate_rad_s"], cols["thrust_n"]
-    return SegmentFigures(t0, t1, time_mean(t, rate, t0, t1), time_max(t, rate, t0, t1),
-                          time_integral(t, rate, t0, t1), time_mean(t, thrust, t0, t1),
-                          time_max(t, thrust, t0, t1), time_integral(t, thrust, t0, t1))
+    t0, t1 = window
+    (rate_mean, rate_max, rate_int), (thrust_mean, thrust_max, thrust_int) = window_figures(
+        cols["t_s"], (cols["body_rate_rad_s"], cols["thrust_n"]), t0, t1)
+    return SegmentFigures(t0, t1, rate_mean, rate_max, rate_int, thrust_mean, thrust_max, thrust_int)
 
 
 def heading_errors(
@@ -235,13 +234,10 @@ def position_errors(
     out: dict[str, Figure] = {}
     idx = np.flatnonzero(offboard & (t >= t_plan_s) & (t < t_end_s))
     times = (t[idx] - t_plan_s).tolist()
-    segs = [plan.segment_at(tm) for tm in times]
-    # (the reference positions' numbers in one go: an array of a list of tuples is made element by element)
-    ref = np.fromiter(chain.from_iterable(plan.reference_tuples(tm)[0] for tm in times), dtype=np.float64,
-                      count=3 * len(times)).reshape(-1, 3)
-    err = np.linalg.norm(pos[idx] - ref, axis=1)
+    segs = plan.segment_indices(times)
+    err = np.linalg.norm(pos[idx] - plan.reference_positions(times), axis=1)
     for seg in PLAN_SEGMENTS:
-        mask = np.array([s is seg for s in segs], dtype=bool)
+        mask = segs == _SEGMENT_ORDER.index(seg)
         out[str(seg)] = _worst(t[idx][mask], err[mask]) if mask.any() else NONE
     return out
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import signal
@@ -285,12 +286,19 @@ def onboard_options(s: Scenario) -> list[str]:
     ]
 
 
-def program_config(options: list[str]) -> ProgramConfig:
-    """The ProgramConfig the onboard program's own command line makes of ``options``."""
+@functools.cache
+def _options_parser() -> argparse.ArgumentParser:
+    """The onboard program's options as `program_config` parses them, built once a process (its ~140
+    options took most of a run's `program_config`; parsing leaves the parser as it was)."""
     parser = argparse.ArgumentParser(prog="onboard", exit_on_error=False)
     add_arguments(parser)
+    return parser
+
+
+def program_config(options: list[str]) -> ProgramConfig:
+    """The ProgramConfig the onboard program's own command line makes of ``options``."""
     try:
-        args = parser.parse_args(["--command-link", "memory", "--mocap-link", "memory", *options])
+        args = _options_parser().parse_args(["--command-link", "memory", "--mocap-link", "memory", *options])
     except (argparse.ArgumentError, SystemExit) as exc:
         raise ValueError(f"onboard options {options}: {exc}") from None
     return config_from_args(args)

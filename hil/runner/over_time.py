@@ -10,6 +10,7 @@ a window [start_s, end_s) weighs each sample by the part of its hold that lies i
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -37,21 +38,42 @@ def time_mean(t_s: np.ndarray, values: np.ndarray, start_s: float = -math.inf, e
               mask: np.ndarray | None = None) -> float | None:
     """Mean of ``values`` over time inside the window (`hold_weights_s`; non-finite values left out);
     None when no time is left."""
-    v, w = _finite(values, hold_weights_s(t_s, start_s, end_s, mask))
-    total = float(w.sum())
-    return float(np.dot(v, w) / total) if total > 0.0 else None
+    return _mean(*_finite(values, hold_weights_s(t_s, start_s, end_s, mask)))
 
 
 def time_integral(t_s: np.ndarray, values: np.ndarray, start_s: float = -math.inf, end_s: float = math.inf,
                   mask: np.ndarray | None = None) -> float | None:
     """Integral of ``values`` over time inside the window (value x s; non-finite values left out); None
     when no time is left."""
-    v, w = _finite(values, hold_weights_s(t_s, start_s, end_s, mask))
-    return float(np.dot(v, w)) if w.sum() > 0.0 else None
+    return _integral(*_finite(values, hold_weights_s(t_s, start_s, end_s, mask)))
 
 
 def time_max(t_s: np.ndarray, values: np.ndarray, start_s: float = -math.inf, end_s: float = math.inf,
              mask: np.ndarray | None = None) -> float | None:
     """Largest of ``values`` held for some time inside the window (non-finite left out); None when none."""
-    v, _ = _finite(values, hold_weights_s(t_s, start_s, end_s, mask))
+    return _max(*_finite(values, hold_weights_s(t_s, start_s, end_s, mask)))
+
+
+def window_figures(t_s: np.ndarray, signals: Sequence[np.ndarray], start_s: float = -math.inf,
+                   end_s: float = math.inf) -> list[tuple[float | None, float | None, float | None]]:
+    """`time_mean`, `time_max` and `time_integral` of each of ``signals`` (each (N,) against ``t_s``) over
+    one window [start_s, end_s) (s), its weights computed once for them all."""
+    w = hold_weights_s(t_s, start_s, end_s)
+    figures = []
+    for values in signals:
+        v, vw = _finite(values, w)
+        figures.append((_mean(v, vw), _max(v, vw), _integral(v, vw)))
+    return figures
+
+
+def _mean(v: np.ndarray, w: np.ndarray) -> float | None:
+    total = float(w.sum())
+    return float(np.dot(v, w) / total) if total > 0.0 else None
+
+
+def _integral(v: np.ndarray, w: np.ndarray) -> float | None:
+    return float(np.dot(v, w)) if w.sum() > 0.0 else None
+
+
+def _max(v: np.ndarray, _w: np.ndarray) -> float | None:
     return float(v.max()) if len(v) else None
