@@ -127,23 +127,10 @@ def link_kernel_state_len(queue_packets: int, room: int) -> int:
     return link_state_len(queue_packets) + LK_LEN + room * (WAY_LEN + 2 * WAY_WORDS + 1)
 
 
-@njit(cache=True)
-def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, n: int, expose: int
-                 ) -> tuple[int, int, int, float]:
-    """The tracker, the radio, its channel that cannot lose and the UART to ``now_s`` (s) in one call: the
-    tracker's step (`tracker_step` on its buffer ``mem`` with the true poses of ``n`` bodies and its state
-    ``tk``) when ``expose`` is 1, then the frames it releases by then (`queue_head`: the earliest ready
-    first) through the radio, its channel and onto the UART (`_carry_kernel`) onto the frames on their way
-    (in the link's state ``st``, `link_kernel_state_len`), then those off the UART by then, in order, into
-    the frames to hand over, counted as delivered. Returns (how many frames to hand over, or one of the
-    tracker's ``NEED_*``, `NEED_JITTER` or `NEED_WAY_ROOM` with what was done kept, the next exposure's
-    number, the bytes to hand over or the normal draws needed, when the chain next moves (s; inf: never))."""
-    if expose:
-        code, k, aux = tracker_step(mem, tk, now_s, n)
-        if code != DONE:
-            return code, k, aux, math.inf
-    else:
-        k = int(tk[TK_K])
+@register_jitable
+def _way_rows(st: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The link's part of its state ``st`` (`link_kernel_state_len`), as views: its numbers (``LK_*``), the
+    frames on their way (``W_*``), their bytes, the bytes to hand over and their lengths."""
     la = _RADIO_AT + RADIO_ENDS + int(st[_RADIO_AT + RADIO_QUEUE])
     lk = st[la : la + LK_LEN]
     room = int(lk[LK_ROOM])
@@ -153,38 +140,39 @@ def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, 
     out_at = bytes_at + room * WAY_WORDS
     out = st[out_at : out_at + room * WAY_WORDS].view(np.uint8)
     out_lens = st[out_at + room * WAY_WORDS : out_at + room * WAY_WORDS + room]
-    t_words, t_at = int(tk[TK_SLOT_WORDS]), TK_LEN + DRAW_BLOCK
-    t_room = int(tk[TK_ROOM])
-    frames = tk[t_at + t_room * SLOT_LEN : t_at + t_room * (SLOT_LEN + t_words)].view(np.uint8)
-    limit = now_s + 1e-12
+    return lk, ways, way_bytes, out, out_lens
+
+
+@register_jitable
+def _push_rows(lk: np.ndarray, ways: np.ndarray, way_bytes: np.ndarray, ready_s: float, arrival: float,
+               done: float, frame: np.ndarray) -> bool:
+    """A frame (its bytes ``frame``) ready at ``ready_s`` that arrives at ``arrival`` and is off the UART at
+    ``done`` (s) after the frames on their way (the link's numbers ``lk``, the rows ``ways`` and their
+    bytes, `_way_rows`; late when it arrives more than the radio's late limit after it was ready); False
+    with nothing done when there is no room."""
     n_way = int(lk[LK_N_WAY])
-    while True:  # the frames released by now onto the radio, in the tracker's order
-        s = queue_head(tk, limit)
-        if s < 0:
-            break
-        if n_way >= room:
-            return NEED_WAY_ROOM, k, 0, math.inf
-        o = t_at + s * SLOT_LEN
-        ready_s, n_bytes = tk[o + Q_READY], int(tk[o + Q_BYTES])
-        code, arrival, done = _carry_kernel(st, ready_s, n_bytes - ONE_NODE_EXTRA_BYTES, n_bytes)
-        if code == SPENT:
-            return NEED_JITTER, k, 0, math.inf
-        tk[o + Q_STATUS] = FREE
-        lk[LK_SENT] += 1
-        if code == SENT:
-            w = n_way * WAY_LEN
-            ways[w + W_DONE], ways[w + W_ARRIVAL], ways[w + W_BYTES] = done, arrival, n_bytes
-            ways[w + W_LATE] = 1.0 if arrival - ready_s > lk[LK_LATE_AFTER] else 0.0
-            b, f = n_way * 8 * WAY_WORDS, s * 8 * t_words
-            way_bytes[b : b + n_bytes] = frames[f : f + n_bytes]
-            n_way += 1
-            lk[LK_N_WAY] = n_way
-        elif code == OVERSIZE:
-            lk[LK_OVERSIZE] += 1
-        else:
-            lk[LK_OVERFLOW] += 1
+    if n_way >= int(lk[LK_ROOM]):
+        return False
+    n_bytes = len(frame)
+    w = n_way * WAY_LEN
+    ways[w + W_DONE], ways[w + W_ARRIVAL], ways[w + W_BYTES] = done, arrival, n_bytes
+    ways[w + W_LATE] = 1.0 if arrival - ready_s > lk[LK_LATE_AFTER] else 0.0
+    b = n_way * 8 * WAY_WORDS
+    way_bytes[b : b + n_bytes] = frame
+    lk[LK_N_WAY] = n_way + 1
+    return True
+
+
+@register_jitable
+def _hand_rows(lk: np.ndarray, ways: np.ndarray, way_bytes: np.ndarray, out: np.ndarray, out_lens: np.ndarray,
+               limit_s: float) -> tuple[int, int, float]:
+    """The frames on their way (`_way_rows`) that are off the UART by ``limit_s`` (s), in order, into the
+    frames to hand over (``out``, their lengths ``out_lens``), counted as delivered (and late); the rest to
+    the front. Returns (how many to hand over, their bytes, when the first left is off the UART (s; inf:
+    none))."""
+    n_way = int(lk[LK_N_WAY])
     n_out = n_bytes_out = 0
-    while n_out < n_way and ways[n_out * WAY_LEN + W_DONE] <= limit:  # off the UART by now, in order
+    while n_out < n_way and ways[n_out * WAY_LEN + W_DONE] <= limit_s:  # off the UART by now, in order
         w = n_out * WAY_LEN
         n_bytes, b = int(ways[w + W_BYTES]), n_out * 8 * WAY_WORDS
         out[n_bytes_out : n_bytes_out + n_bytes] = way_bytes[b : b + n_bytes]
@@ -201,10 +189,68 @@ def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, 
                 i * 8 * WAY_WORDS : (i + 1) * 8 * WAY_WORDS]
         n_way -= n_out
         lk[LK_N_WAY] = n_way
+    return n_out, n_bytes_out, ways[W_DONE] if n_way else math.inf
+
+
+@njit(cache=True)
+def _push_way(st: np.ndarray, ready_s: float, arrival: float, done: float, frame: np.ndarray) -> bool:
+    """`_push_rows` on the link's state ``st`` (`link_kernel_state_len`)."""
+    lk, ways, way_bytes, _, _ = _way_rows(st)
+    return _push_rows(lk, ways, way_bytes, ready_s, arrival, done, frame)
+
+
+@njit(cache=True)
+def _hand_way(st: np.ndarray, limit_s: float) -> tuple[int, int, float]:
+    """`_hand_rows` on the link's state ``st`` (`link_kernel_state_len`)."""
+    lk, ways, way_bytes, out, out_lens = _way_rows(st)
+    return _hand_rows(lk, ways, way_bytes, out, out_lens, limit_s)
+
+
+@njit(cache=True)
+def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, n: int, expose: int
+                 ) -> tuple[int, int, int, float]:
+    """The tracker, the radio, its channel that cannot lose and the UART to ``now_s`` (s) in one call: the
+    tracker's step (`tracker_step` on its buffer ``mem`` with the true poses of ``n`` bodies and its state
+    ``tk``) when ``expose`` is 1, then the frames it releases by then (`queue_head`: the earliest ready
+    first) through the radio, its channel and onto the UART (`_carry_kernel`) onto the frames on their way
+    (`_push_rows`, in the link's state ``st``, `link_kernel_state_len`), then those off the UART by then
+    handed over (`_hand_rows`). Returns (how many frames to hand over, or one of the tracker's ``NEED_*``,
+    `NEED_JITTER` or `NEED_WAY_ROOM` with what was done kept, the next exposure's number, the bytes to hand
+    over or the normal draws needed, when the chain next moves (s; inf: never))."""
+    if expose:
+        code, k, aux = tracker_step(mem, tk, now_s, n)
+        if code != DONE:
+            return code, k, aux, math.inf
+    else:
+        k = int(tk[TK_K])
+    lk, ways, way_bytes, out, out_lens = _way_rows(st)
+    t_words, t_at = int(tk[TK_SLOT_WORDS]), TK_LEN + DRAW_BLOCK
+    t_room = int(tk[TK_ROOM])
+    frames = tk[t_at + t_room * SLOT_LEN : t_at + t_room * (SLOT_LEN + t_words)].view(np.uint8)
+    limit = now_s + 1e-12
+    while True:  # the frames released by now onto the radio, in the tracker's order
+        s = queue_head(tk, limit)
+        if s < 0:
+            break
+        if lk[LK_N_WAY] >= lk[LK_ROOM]:
+            return NEED_WAY_ROOM, k, 0, math.inf
+        o = t_at + s * SLOT_LEN
+        ready_s, n_bytes = tk[o + Q_READY], int(tk[o + Q_BYTES])
+        code, arrival, done = _carry_kernel(st, ready_s, n_bytes - ONE_NODE_EXTRA_BYTES, n_bytes)
+        if code == SPENT:
+            return NEED_JITTER, k, 0, math.inf
+        tk[o + Q_STATUS] = FREE
+        lk[LK_SENT] += 1
+        if code == SENT:
+            f = s * 8 * t_words
+            _push_rows(lk, ways, way_bytes, ready_s, arrival, done, frames[f : f + n_bytes])
+        elif code == OVERSIZE:
+            lk[LK_OVERSIZE] += 1
+        else:
+            lk[LK_OVERFLOW] += 1
+    n_out, n_bytes_out, first = _hand_rows(lk, ways, way_bytes, out, out_lens, limit)
     nxt = queue_next_ready(tk)
-    if n_way and ways[W_DONE] < nxt:
-        nxt = ways[W_DONE]
-    return n_out, k, n_bytes_out, nxt
+    return n_out, k, n_bytes_out, first if first < nxt else nxt
 
 
 @dataclass(frozen=True)
@@ -227,7 +273,9 @@ class MocapLinkServer:
 
     Where the channel cannot lose, the tracker's step, the radio, its channel and the UART run in one
     compiled call (`_link_kernel`), which keeps the frames on their way and the radio's counts in the
-    link's state: the radio's ``stats`` are brought up to date by `stats`.
+    link's state: the radio's ``stats`` are brought up to date by `stats`. Where it can lose, the
+    tracker's and the radio's own steps carry each frame onto the same frames on their way (`_push_way`),
+    handed over as the kernel hands them (`_hand_way`).
     """
 
     def __init__(
@@ -253,11 +301,10 @@ class MocapLinkServer:
         # the radio, its channel and the UART behind it keep their numbers in one array: when the channel
         # cannot lose, the tracker's step and a frame's way through all three are one compiled call
         # (`_link_kernel`), the array holding the frames on their way (else the radio's own steps, which
-        # draw from the generator per packet)
+        # draw from the generator per packet, carry them onto the same frames on their way)
         lossless = not uwb.can_lose
-        self._room = _FIRST_WAY_ROOM if lossless else 0
-        self._state = np.zeros(link_kernel_state_len(uwb.queue_packets, self._room) if lossless
-                               else link_state_len(uwb.queue_packets))
+        self._room = _FIRST_WAY_ROOM
+        self._state = np.zeros(link_kernel_state_len(uwb.queue_packets, self._room))
         self.radio = UwbRadio(uwb, radio_rng, self._state)
         self.uart = UartWire(uwb.uart_baud, uwb.uart_bits_per_byte, self._state[:UART_STATE_LEN])
         self._ids = (module_id, station_node_id)
@@ -265,26 +312,23 @@ class MocapLinkServer:
         self.frames_written = 0
         self._bytes_written = 0
         self._bytes_refused = 0
-        #: (a channel that can lose) the frames sent on their way: (when off the UART (s), arrival (s),
-        #: whether late, the frame), in order (both times increase); each counted as delivered when it
-        #: leaves, or by `stats` as it is read, which counts the first ``_n_arrived`` of them ahead
-        self._on_way: list[tuple[float, float, bool, bytes]] = []
-        self._n_arrived = 0
         self._now_s = -math.inf  # the latest time the chain was advanced to
         #: the earlier of the next ready time and the first frame's time off the UART (inf: none), kept by
         #: `update` and `deliver`, the only ones that change the queues: when the chain next has to move
         self._next_move_s = math.inf
-        self._late_after_s = uwb.late_after_s
         self._period_s = mocap.period_s
         self._link_at = link_state_len(uwb.queue_packets)  # (where the link's numbers start: ``LK_*``)
         self._kernel = None
         self._mem = self.mocap.lay_out(_BOTH_IDS, (0.0,) * 14)
+        lk = self._link_numbers()
+        lk[LK_LATE_AFTER], lk[LK_ROOM] = uwb.late_after_s, self._room
+        self._views()
+        # compiled (or loaded from numba's cache) now, called without numba's type dispatch
+        self._hand = entry(_hand_way, self._state, 0.0)
         if lossless:
-            lk = self._link_numbers()
-            lk[LK_LATE_AFTER], lk[LK_ROOM] = uwb.late_after_s, self._room
-            self._views()
-            # compiled (or loaded from numba's cache) now, called without numba's type dispatch
             self._kernel = entry(_link_kernel, self._mem, self.mocap.state, self._state, 0.0, 0, 0)
+        else:  # (the frames the radio's own steps carry, read-only bytes)
+            self._push = entry(_push_way, self._state, 0.0, 0.0, 0.0, np.frombuffer(b"\0", np.uint8))
 
     @property
     def module_id(self) -> int:
@@ -368,6 +412,11 @@ class MocapLinkServer:
                 mocap.answer(n_out, mocap.exposure_k, aux, body_ids, poses)
             n_out, mocap.exposure_k, aux, self._next_move_s = self._kernel(
                 self._mem, mocap.state, self._state, now, n, expose)
+        return self._hand_out(n_out)
+
+    def _hand_out(self, n_out: int) -> int:
+        """The ``n_out`` frames the link's state holds to hand over, to the transport; returns bytes
+        written."""
         if not n_out:
             return 0
         out = self._out
@@ -421,56 +470,37 @@ class MocapLinkServer:
 
     def _forward(self, now: float) -> int:
         """(A channel that can lose.) The frames ready by ``now`` through the radio and onto the wire (each
-        one's arrival and time off the wire known as it is sent), those off the wire by then to the
-        transport (and when the chain next moves); returns bytes written."""
-        on_way, mocap = self._on_way, self.mocap
+        one's arrival and time off the wire known as it is sent) onto the frames on their way
+        (`_push_way`), those off the wire by then to the transport (`_hand_way`; and when the chain next
+        moves); returns bytes written."""
+        mocap = self.mocap
         limit = now + 1e-12
         if mocap.next_release_s() <= limit:
-            late_after = self._late_after_s
             for ready_s, _, frame in mocap.released(now):
                 n = len(frame)
                 arrival = self.radio.carry(ready_s, n - ONE_NODE_EXTRA_BYTES)[1]
                 if arrival is not None:
                     done = self.uart.finish_s(arrival, n)
-                    on_way.append((done, arrival, arrival - ready_s > late_after, frame))
-        written = 0
-        if on_way and on_way[0][0] <= limit:
-            n = 1
-            while n < len(on_way) and on_way[n][0] <= limit:
-                n += 1
-            stats, counted = self.radio.stats, self._n_arrived
-            for _, _, late, _ in on_way[:n]:
-                if counted:  # (counted by `stats` already)
-                    counted -= 1
-                else:
-                    stats.delivered += 1
-                    stats.late += late
-            written = self._hand_over([chunk for _, _, _, chunk in on_way[:n]])
-            del on_way[:n]
-            self._n_arrived = counted
-        nxt = on_way[0][0] if on_way else math.inf
+                    data = np.frombuffer(frame, np.uint8)
+                    while not self._push(self._state, ready_s, arrival, done, data):
+                        self._grow()
+        n_out, _, first = self._hand(self._state, limit)
         r = mocap.next_release_s()
-        self._next_move_s = r if r < nxt else nxt
-        return written
+        self._next_move_s = r if r < first else first
+        return self._hand_out(n_out)
 
     def _count_arrivals(self, limit_s: float) -> None:
-        """Count the frames on their way that have arrived by ``limit_s`` (and are not counted yet) as the
-        radio's deliveries (the rest are counted as they leave the wire)."""
-        if self._kernel is not None:  # (the kernel's counts, the frames arrived on the wire added)
-            lk, r = self._link_numbers(), self.radio.stats
-            n_way, ways_at = int(lk[LK_N_WAY]), self._link_at + LK_LEN
-            ways = self._state[ways_at : ways_at + n_way * WAY_LEN].reshape(n_way, WAY_LEN)
-            arrived = ways[ways[:, W_ARRIVAL] <= limit_s]
+        """The radio's counts from the link's: the frames delivered (those on their way that have arrived
+        by ``limit_s`` among them, the rest counted as they leave the wire) and late; where the channel
+        cannot lose, those sent and refused too (else the radio's own steps count them)."""
+        lk, r = self._link_numbers(), self.radio.stats
+        n_way, ways_at = int(lk[LK_N_WAY]), self._link_at + LK_LEN
+        ways = self._state[ways_at : ways_at + n_way * WAY_LEN].reshape(n_way, WAY_LEN)
+        arrived = ways[ways[:, W_ARRIVAL] <= limit_s]
+        if self._kernel is not None:
             r.sent, r.oversize, r.overflow = int(lk[LK_SENT]), int(lk[LK_OVERSIZE]), int(lk[LK_OVERFLOW])
-            r.delivered = int(lk[LK_DELIVERED]) + len(arrived)
-            r.late = int(lk[LK_LATE] + arrived[:, W_LATE].sum())
-            return
-        on_way, k, stats = self._on_way, self._n_arrived, self.radio.stats
-        while k < len(on_way) and on_way[k][1] <= limit_s:
-            stats.delivered += 1
-            stats.late += on_way[k][2]
-            k += 1
-        self._n_arrived = k
+        r.delivered = int(lk[LK_DELIVERED]) + len(arrived)
+        r.late = int(lk[LK_LATE] + arrived[:, W_LATE].sum())
 
     def next_event_s(self) -> float:
         """When ``update`` next has something to do (s, on the clock)."""

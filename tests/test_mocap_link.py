@@ -222,6 +222,8 @@ def test_udp_socket_carries_the_same_frames():
     (MocapConfig(occlusion_prob=0.1, occlusion_mean_s=0.02), UwbConfig(jitter_s=0.004, latency_s=0.01)),
     # frames ready out of their order, more on their way than the first room holds
     (MocapConfig(rate_hz=360, processing_s=0.006), UwbConfig(jitter_s=0.004, latency_s=0.15)),
+    # the radio's own steps onto the same frames on their way, more than the first room holds
+    (MocapConfig(rate_hz=360), UwbConfig(jitter_s=0.004, latency_s=0.15, loss_prob=0.1, late_after_s=0.152)),
 ])
 def test_the_links_radio_and_wire_are_the_radio_and_the_uart_sent_to_by_hand(mocap, uwb):
     """The link carries each frame from the tracker through the radio, its channel and the UART in one
