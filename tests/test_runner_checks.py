@@ -66,6 +66,17 @@ def test_a_diverged_simulation_ends_the_run_and_fails_it(force_n):
     assert not checks["stays_in_lab"].passed
 
 
+@pytest.mark.parametrize("force_n", [1e300, 1e308], ids=["past_float32", "to_inf_and_nan"])
+def test_advance_to_hands_back_where_the_state_diverged(force_n):
+    # the lockstep loop reads `diverged_s` from what each `advance_to` returns: the same, call by call
+    _, emu, _ = _rig()
+    emu.vehicle.backend.set_external_force(np.array([force_n, 0.0, 0.0]))
+    for k in range(1, 101):
+        assert emu.advance_to(k * 0.01) == emu.diverged_s
+        emu.recorder.flush()  # (where the recorder notes a state that is no number any more)
+    assert emu.diverged_s is not None and emu.advance_to(1.01) == emu.diverged_s
+
+
 def test_a_calm_run_keeps_a_finite_state_and_lockstep():
     s, emu, onboard = _rig()
     loop = run_lockstep(emu, onboard, s.duration_s)

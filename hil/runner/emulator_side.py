@@ -273,12 +273,13 @@ class EmulatorSide:
         format), as far as seen; None while it is one. A run ends there: nothing after it means anything."""
         return self._overflow_s if self._overflow_s is not None else self.recorder.nonfinite_seen_s
 
-    def advance_to(self, t_end_s: float) -> None:
+    def advance_to(self, t_end_s: float) -> float | None:
         """Run the emulator side from now to ``t_end_s`` (s), then let the FC answer and send what is
         due at ``t_end_s`` and put the command-link bytes that have arrived on the wire. Once the state
-        has diverged (`diverged_s`) it does nothing."""
+        has diverged (`diverged_s`) it does nothing. Returns `diverged_s` as it leaves it (a loop
+        checks it after every call: no property read a tick)."""
         if self._overflow_s is not None:
-            return
+            return self._overflow_s
         t = self.clock.now_s()
         (exact, next_mocap, next_arrival, step, advance_clock, update, deliver, sample, poll, pose_values,
          state_vector, state_row, dt, fast, time_after, period, gap_pose, rec, vehicle) = self._loop_parts
@@ -377,6 +378,7 @@ class EmulatorSide:
             if not self.hold_mocap:
                 self.mocap_link.flush()
             self.wire.pump()
+            return rec.nonfinite_seen_s  # (`diverged_s`: no overflow on this path)
         except OverflowError:
             # a pose or a velocity past float32's range cannot be put on the wire (mocap, telemetry):
             # the physics diverged, which a run reports as such instead of crashing
@@ -386,6 +388,7 @@ class EmulatorSide:
             if all(abs(v) < DIVERGED_LIMIT for v in pose):
                 raise
             self._overflow_s = t_bad
+            return t_bad
 
     def checks_open_until_s(self) -> float | None:
         """Until when (sim s) a check's window is still open, as far as recorded: the recovery check

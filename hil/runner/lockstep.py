@@ -182,8 +182,7 @@ def run_lockstep(
                 advance_to(pending[0] + compute)
             tick = pending.popleft()
             _collect(rep, emu, onboard, tick, tick + compute, mocap_total, guard_s)
-        advance_to(t)
-        if emu.diverged_s is not None:
+        if advance_to(t) is not None:  # (`EmulatorSide.diverged_s`, as the call leaves it)
             note_divergence(rep, emu)
             break
         rep.ticks += 1
@@ -203,7 +202,8 @@ def run_lockstep(
                 wire.discard_held()  # depends on how fast it started (warm or cold)
             wire.send_sync(tick_frames(t, mocap_total))
             onboard.service()
-            recorder.flush(RECORD_BATCH)  # checks and rows in batches, while the onboard works
+            if recorder.n_pending >= RECORD_BATCH:  # checks and rows in batches, while the onboard works
+                recorder.flush()
             if first:  # wait for the new process, then the loop proper starts
                 startup = (STARTUP_GUARD_S, STARTUP_RESEND_S)
                 _collect(rep, emu, onboard, t, t + compute, mocap_total, *startup)

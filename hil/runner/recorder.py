@@ -151,7 +151,7 @@ def _sample_columns(s: np.ndarray, ht: np.ndarray, ha: np.ndarray, hf: np.ndarra
         out[i, _SETPOINT_AGE] = t - s[i, _S_SETPOINT_S]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _take_sample(pending: np.ndarray, k: int, x: np.ndarray, t: float, applied: int, frames: int,
                  cmd_lost: int, mocap_lost: int, yaw_sp: float, setpoint_s: float, state_code: int,
                  cmd0: float, cmd1: float, cmd2: float, cmd3: float, motors: np.ndarray) -> float:
@@ -265,12 +265,12 @@ class Recorder:
         self.nonfinite_seen_s: float | None = None
         #: sim time of the first crossing of the gap plane as far as recorded (no flush), None before
         self.first_crossing_seen_s: float | None = None
-        #: samples taken and not yet checked and recorded (see `sample`): rows 1 .. ``_n_pending``, each
+        #: samples taken and not yet checked and recorded (see `sample`): rows 1 .. ``n_pending``, each
         #: its `_S_T` ... columns and then its state (grown when full); row 0 holds what a sample's row
         #: takes that never changes: the gap's centre (m) and normal (c_x, c_y, c_z, e1_x, e1_y, e1_z)
         self._pending = np.empty((1 + PENDING_ROWS, _S_SIZE + STATE_SIZE))
         self._pending_room = PENDING_ROWS
-        self._n_pending = 0
+        self.n_pending = 0
         self._gap_axes = world.gap.axes()
         self._lab_min = np.asarray(world.lab.min_m, dtype=np.float64)
         self._lab_max = np.asarray(world.lab.max_m, dtype=np.float64)
@@ -328,7 +328,7 @@ class Recorder:
         row, float64, copied now): what the row needs is copied now and ``next_sample_s`` set (and
         returned); the world checks and the row itself wait for `flush` (the lockstep loop calls it while
         the onboard program works on a tick; results and `columns` call it first)."""
-        k = self._n_pending
+        k = self.n_pending
         if k == self._pending_room:
             self._grow_pending()
         fc, to_fc = self._fc, self._to_fc
@@ -346,7 +346,7 @@ class Recorder:
             self._mocap.frames_written, to_fc.frames_lost + to_fc.frames_dropped_fault,
             self._radio_stats.lost, fc.heading_setpoint_rad() if plan is None else plan[2],
             fc.last_setpoint_s, self._state_code, c0, c1, c2, c3, fc.motor_cmd)
-        self._n_pending = k + 1
+        self.n_pending = k + 1
         return nxt
 
     def _grow_pending(self) -> None:
@@ -357,11 +357,11 @@ class Recorder:
     def flush(self, at_least: int = 1) -> None:
         """Check and record the samples taken since the last call, if there are ``at_least`` of them
         (the lockstep loop gathers a batch: the checks and rows are computed for all at once)."""
-        n = self._n_pending
+        n = self.n_pending
         if n >= at_least and n:
             pending = self._pending[1 : 1 + n]
             self._record(pending[:, :_S_SIZE].copy(), pending[:, _S_SIZE:].copy())
-            self._n_pending = 0
+            self.n_pending = 0
 
     def _record(self, rows: np.ndarray, x: np.ndarray) -> None:
         """World checks, the crossing tracker and the time-series rows of a batch of samples (their

@@ -301,10 +301,8 @@ def _run(
             onboard = ProcessOnboard(argv, log_path, out / ONBOARD_STDERR_NAME, warm=warm)
             spawn_s = time.perf_counter() - spawn0
 
-        def tell(t: float) -> None:
-            if progress is not None:
-                progress(t, s.duration_s)
-
+        # (no progress asked: none given to the loop, which then reads no wall clock a tick for it)
+        tell = None if progress is None else (lambda t: progress(t, s.duration_s))
         unwatch = None if watch is None else watch(emu, log_path)
         compute_s = None if s.onboard_compute_ms is None else s.onboard_compute_ms * 1e-3
         if realtime:  # the modelled compute time as lockstep's (default: one tick)
