@@ -12,6 +12,7 @@ import pytest
 
 from emulator.servers.arrivals import arrivals
 from hil.link.clock import SimClock
+from hil.link.lockstep import tick_frames
 from hil.link.mavlink import (
     MavlinkCodec,
     decode_frame,
@@ -167,6 +168,27 @@ def test_lockstep_tick_outputs_go_out_in_one_write():
     link.lockstep = False
     link.send_heartbeat()
     assert ob_end.stats.send_calls == calls + 2
+
+
+def test_in_lockstep_the_messages_after_a_tick_wait_for_that_tick():
+    """Two ticks read at once (the harness keeps two in flight): the messages after the first tick are
+    acted on with the second, in the order they came, and a read in between gets none of them."""
+    clock = SimClock()
+    fc_end, ob_end = MemoryTransport.pair()
+    fc = MavlinkCodec(fc_end, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
+    link = CommandLink(ob_end, clock)
+    link.lockstep = True
+    heartbeat = fc.pack(fc.mav.heartbeat_encode(2, 12, 129, 6 << 16, 4))
+    fc_end.send(b"".join([tick_frames(0.01, 100, 1, FC), heartbeat, tick_frames(0.02, 250, 1, FC),
+                          fc.pack(fc.mav.statustext_encode(4, b"after"))]))
+    assert link.read_ticks() == [0.01]
+    assert link.backlogged and link.mocap_announced == 100 and link.status is None
+    link.answer_tick(0.01)
+    assert link.read() == 3  # the heartbeat and the second tick's two frames, not the text after it
+    assert link.status is not None and link.mocap_announced == 250 and link.status_texts == []
+    assert link.backlogged and link.take_ticks() == [0.02]
+    assert [m.get_type() for m in link.poll()] == ["STATUSTEXT"]
+    assert not link.backlogged and link.status_texts == ["after"] and link.read_ticks() == []
 
 
 def test_the_fc_frames_of_a_lockstep_tick_go_out_with_the_tick():

@@ -196,15 +196,20 @@ class CommandLink:
         # lockstep: act on the messages up to the next tick only; what came after it (the FC's next
         # tick, already written when the harness keeps two ticks in flight) waits for that tick
         backlog = self._backlog
-        backlog.extend(msgs)
-        handled = []
+        if backlog:  # (those waiting first; usually none: the read's own list is walked as it is)
+            backlog.extend(msgs)
+            msgs = list(backlog)
+            backlog.clear()
         tick_list = self._ticks
         stop = len(tick_list) + 1 if self.lockstep else -1  # (the ticks at which it stops; -1: none)
         handle, target = self._handle, self.target_system
-        while backlog and len(tick_list) != stop:
-            m = backlog.popleft()
+        done = 0  # messages acted on
+        for m in msgs:
+            done += 1
             if m.__class__ is not bytes:
                 handle(m)
+                if len(tick_list) == stop:
+                    break
             # a good MAVLink 2 frame of one of `RAW_MSG_IDS`, read here (`_handle` of its message, two
             # calls less a frame: two a tick)
             elif m[5] != target or m[6] != FC_COMPONENT_ID:  # MAVLink 2: sender at 5, 6
@@ -215,9 +220,14 @@ class CommandLink:
                     self.mocap_announced = mocap_total
                 if tick_s is not None:
                     tick_list.append(tick_s)
-            handled.append(m)
-        self.backlogged = bool(backlog)
-        return handled
+                    if len(tick_list) == stop:
+                        break
+        if done < len(msgs):  # the rest waits for its tick
+            backlog.extend(msgs[done:])
+            self.backlogged = True
+            return msgs[:done]
+        self.backlogged = False
+        return msgs
 
     def _on_tick(self, tick_s: float | None, mocap_total: int | None) -> None:
         """The harness's mocap byte total, then a lockstep tick request at ``tick_s`` (s) (None: not

@@ -139,8 +139,10 @@ class DjiCommandLink(CommandLink):
     # --- input --------------------------------------------------------------------------------
     def _poll(self, timeout_s: float) -> list:
         out = super()._poll(timeout_s)
-        for frame in self.codec.service(self.clock.now_s()):  # reliable commands overdue: again
-            self._send_frame(frame)
+        codec = self.codec
+        if codec.waiting:  # reliable commands overdue: again (none waits on most reads: no clock read)
+            for frame in codec.service(self.clock.now_s()):
+                self._send_frame(frame)
         return out
 
     def _handle(self, f: dj.Frame) -> None:  # type: ignore[override]
