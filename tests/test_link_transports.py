@@ -226,6 +226,18 @@ def test_memory_full_buffer_drops_and_counts() -> None:
         assert a.send(b"room again") == 10
 
 
+def test_memory_reads_hand_over_what_was_written_in_order_whole_or_in_pieces() -> None:
+    a, b = MemoryTransport.pair(capacity_bytes=10)
+    with a, b:
+        fd = b.fileno()
+        assert a.send(b"abc") == 3 and a.send(bytearray(b"defg")) == 4 and a.send(b"hijkl") == 3
+        assert b.recv(0.0, max_bytes=5) == b"abcde"  # (across the chunks written)
+        assert select.select([fd], [], [], 0.0)[0] == [fd]  # the rest still waits
+        assert a.send(b"xyz") == 3  # room again for what was read
+        assert b.recv(0.0) == b"fghijxyz" and b.recv(0.0) == b""
+        assert select.select([fd], [], [], 0.0)[0] == []
+
+
 def test_memory_descriptor_asked_for_after_the_data_came_is_readable_until_it_is_read() -> None:
     a, b = MemoryTransport.pair()
     with a, b:

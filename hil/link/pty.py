@@ -53,7 +53,7 @@ class PtyTransport(Transport):
         self.slave_path = os.ttyname(slave_fd)
         self.endpoint = self.slave_path
         # a send goes straight to the write (no method of this class in between: two writes a tick)
-        self._send_internal = functools.partial(write_nonblocking, master_fd, what=self.endpoint)
+        self._send_internal = functools.partial(write_nonblocking, master_fd, self.endpoint)
 
     @classmethod
     def create(cls, baud: int = DEFAULT_BAUD) -> PtyTransport:
@@ -86,7 +86,7 @@ class PtyTransport(Transport):
             termios.tcflush(self._master, termios.TCIFLUSH)
 
     def _send_internal(self, data: bytes) -> int:
-        return write_nonblocking(self._master, data, self.endpoint)
+        return write_nonblocking(self._master, self.endpoint, data)
 
     def _recv_internal(self, max_bytes: int) -> bytes:
         try:

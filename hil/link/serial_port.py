@@ -80,7 +80,7 @@ class SerialTransport(Transport):
         if not self.connected and not self._try_reconnect():
             return 0  # unplugged: dropped, as a UART with no cable drops it
         try:
-            return write_nonblocking(self._fd, data, f"{self.device} (device gone?)")
+            return write_nonblocking(self._fd, f"{self.device} (device gone?)", data)
         except LinkError:
             if self.reconnect_s is None:
                 raise
