@@ -20,7 +20,6 @@ from hil.link.mavlink import (
 )
 from hil.link.mavlink import encode_frame as encode_mavlink
 from hil.link.memory import MemoryTransport
-from hil.link.transport import LinkError
 from hil.link.udp import UdpTransport
 from hil.runner.faults import FaultSchedule
 from hil.runner.wires import CommandWire
@@ -227,30 +226,6 @@ def test_the_fc_reads_the_wire_once_a_frame_has_arrived_and_when_it_is_closed():
     assert wire.input_due() is False
     wire.close()
     assert wire.input_due() is True  # the read then says the link is closed
-
-
-def test_the_command_wire_is_read_and_written_as_a_transport_is_and_refuses_once_closed():
-    clock = SimClock()
-    raw, peer = MemoryTransport.pair()
-    wire = CommandWire(raw, clock, LinkSpec(), np.random.default_rng(7), FaultSchedule(()))
-    fc = MavlinkCodec(wire, clock, 1, mav.MAV_COMP_ID_AUTOPILOT1)
-    frame = fc.send(fc.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 1, 2, 3))
-    assert wire.send(b"") == 0 and wire.send(bytearray(frame)) == len(frame)  # (a bytearray taken as bytes)
-    st = wire.stats
-    assert (st.send_calls, st.bytes_sent, wire.to_onboard.frames_sent) == (2, 2 * len(frame), 2)
-    ob = MavlinkCodec(peer, clock, 1, 191)
-    ob.send(ob.mav.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0))
-    assert wire.read_onboard()
-    assert wire.recv(0.5) == b""  # not arrived yet: a timeout brings nothing (simulated time stands still)
-    clock.advance_to(wire.next_arrival_s())
-    data = wire.recv(0.5)
-    assert data and (wire.stats.recv_calls, wire.stats.bytes_received) == (1, len(data))
-    assert wire.next_input_s == float("inf") and wire.recv() == b""
-    wire.close()
-    with pytest.raises(LinkError):
-        wire.recv()
-    with pytest.raises(LinkError):
-        wire.send(frame)
 
 
 def test_the_answer_is_taken_with_what_the_program_has_written_by_now_in_one_call():

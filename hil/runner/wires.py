@@ -37,7 +37,7 @@ from hil.link.channel import (
 from hil.link.clock import SimClock
 from hil.link.lockstep import Framing
 from hil.link.protocols import framing
-from hil.link.transport import LinkError, Transport, Waiter
+from hil.link.transport import Transport, Waiter
 from hil.runner.faults import FaultSchedule
 from hil.scenario.schema import LinkSpec
 
@@ -172,31 +172,15 @@ class CommandWire(Transport):
         self._wait: Waiter | bool | None = None
 
     # --- FC -> onboard --------------------------------------------------------------------------
-    def send(self, data: bytes) -> int:
-        """`Transport.send` of an FC frame in one call (no `_send_internal` under it): queued with its
-        arrival time, or lost to the link model (counted in ``to_onboard``); all of it is taken. Raises
-        LinkError once closed."""
-        if self.closed:
-            raise LinkError(f"{self.endpoint}: send on a closed link")
-        n = len(data)
-        if not n:
-            return 0
-        if data.__class__ is not bytes:
-            data = bytes(data)
+    def _send_internal(self, data: bytes) -> int:
         self.to_onboard.frames_sent += 1
-        arrival = self._out.arrival_s(self.clock.now_s(), n)
+        arrival = self._out.arrival_s(self.clock.now_s(), len(data))
         if arrival is None:
             self.to_onboard.frames_lost += 1
         else:
             self._seq += 1
             heapq.heappush(self._out_queue, (arrival, self._seq, data))
-        stats = self.stats
-        stats.send_calls += 1
-        stats.bytes_sent += n
-        return n
-
-    def _send_internal(self, data: bytes) -> int:
-        return self.send(data)  # (not called: `send` queues the frame itself)
+        return len(data)
 
     def pump(self) -> int:
         """Write to the real link the FC frames that have arrived by now; returns bytes written (or
@@ -354,24 +338,11 @@ class CommandWire(Transport):
         arrived, or the link is closed, which its read says."""
         return self.next_input_s <= self.clock.now_s() + 1e-12
 
-    def recv(self, timeout_s: float | None = 0.0, max_bytes: int = 65536) -> bytes:
-        """`Transport.recv` as the FC's codec polls it, in one call (no `_recv_internal` under it): the
-        onboard frames that have arrived by now, the link's faults applied (b"" when none). Simulated
-        time stands still within a call, so nothing more comes by waiting: ``timeout_s`` is not waited
-        for, and ``max_bytes`` is not cut at (frames whole). Raises LinkError once closed."""
-        if self.closed:
-            raise LinkError(f"{self.endpoint}: recv on a closed link")
+    def _recv_internal(self, max_bytes: int) -> bytes:
         q = self._in_queue
         data = self._drain(q, self.to_fc)
-        self.next_input_s = q[0][0] if q else math.inf
-        if data:
-            stats = self.stats
-            stats.recv_calls += 1
-            stats.bytes_received += len(data)
+        self.next_input_s = q[0][0] if q else math.inf  # (open: `recv` reads only an open link)
         return data
-
-    def _recv_internal(self, max_bytes: int) -> bytes:
-        return self.recv(0.0, max_bytes)  # (not called: `recv` reads the queue itself)
 
     def _drain(self, q: list, st: DirectionStats) -> bytes:
         """The frames of queue ``q`` that have arrived by now, with the link's faults applied."""
