@@ -22,6 +22,7 @@ from emulator.mocap import (
     DONE,
     DRAW_BLOCK,
     FREE,
+    PENDING,
     Q_BYTES,
     Q_READY,
     Q_STATUS,
@@ -34,7 +35,6 @@ from emulator.mocap import (
     MocapStats,
     MocapSystem,
     queue_head,
-    queue_next_ready,
     tracker_step,
 )
 from emulator.uwb import (
@@ -54,6 +54,7 @@ from hil.link.channel import (
     CH_NEXT,
     CHANNEL_STATE_LEN,
     JITTER_BLOCK,
+    UART_BUSY_UNTIL,
     UART_STATE_LEN,
     block_arrival_s,
     delivery_s,
@@ -101,15 +102,35 @@ def _carry_kernel(st: np.ndarray, ready_s: float, n_air: int, n_bytes: int) -> t
     return SENT, arrival, wire_finish_s(st[:UART_STATE_LEN], arrival, n_bytes)
 
 
+@register_jitable
+def _first_off_s(tk: np.ndarray, line: np.ndarray) -> float:
+    """The earliest time a frame still queued in the tracker's state ``tk`` can be off the UART (s; inf:
+    none queued): its ready time plus its bytes' time on a free line (`wire_finish_s` on ``line``, a free
+    UART's state, ``LK_LINE``). The air, the channel and the frames ahead of it on the UART only make it
+    later; until then the frames ready need not be taken through the radio (they are taken in the
+    tracker's order, each booked from its own ready time, whenever that is done)."""
+    at = TK_LEN + DRAW_BLOCK
+    first = math.inf
+    for s in range(int(tk[TK_ROOM])):
+        o = at + s * SLOT_LEN
+        if tk[o + Q_STATUS] == PENDING:
+            line[UART_BUSY_UNTIL] = -math.inf
+            off = wire_finish_s(line, tk[o + Q_READY], int(tk[o + Q_BYTES]))
+            if off < first:
+                first = off
+    return first
+
+
 #: what `_link_kernel` asks for besides the tracker's ``NEED_*`` (answered by `MocapSystem.answer`), having
 #: done what it could (call again once answered): the channel's jitter draws spent, no room for another
 #: frame on its way
 NEED_JITTER, NEED_WAY_ROOM = -5, -6
 #: the link's own numbers in its state, after the radio's: the radio's late limit (s), the frames its room
 #: holds on their way, how many are on their way, then the radio's counts (frames sent, delivered, late,
-#: refused as oversize, as overflow)
-LK_LATE_AFTER, LK_ROOM, LK_N_WAY, LK_SENT, LK_DELIVERED, LK_LATE, LK_OVERSIZE, LK_OVERFLOW = range(8)
-LK_LEN = 8
+#: refused as oversize, as overflow), then a free line of the UART (its state, ``UART_*``, as at its start:
+#: `_first_off_s` books a frame on it)
+LK_LATE_AFTER, LK_ROOM, LK_N_WAY, LK_SENT, LK_DELIVERED, LK_LATE, LK_OVERSIZE, LK_OVERFLOW, LK_LINE = range(9)
+LK_LEN = LK_LINE + UART_STATE_LEN
 #: a frame on its way: when its last byte is off the UART (s), its arrival (s), whether late (1.0), its
 #: length (bytes)
 W_DONE, W_ARRIVAL, W_LATE, W_BYTES = range(4)
@@ -216,7 +237,8 @@ def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, 
     (`_push_rows`, in the link's state ``st``, `link_kernel_state_len`), then those off the UART by then
     handed over (`_hand_rows`). Returns (how many frames to hand over, or one of the tracker's ``NEED_*``,
     `NEED_JITTER` or `NEED_WAY_ROOM` with what was done kept, the next exposure's number, the bytes to hand
-    over or the normal draws needed, when the chain next moves (s; inf: never))."""
+    over or the normal draws needed, the earliest a frame can next be handed over (s; inf: never): the
+    first on its way off the UART, or a frame still queued off it at the earliest, `_first_off_s`)."""
     if expose:
         code, k, aux = tracker_step(mem, tk, now_s, n)
         if code != DONE:
@@ -249,7 +271,7 @@ def _link_kernel(mem: np.ndarray, tk: np.ndarray, st: np.ndarray, now_s: float, 
         else:
             lk[LK_OVERFLOW] += 1
     n_out, n_bytes_out, first = _hand_rows(lk, ways, way_bytes, out, out_lens, limit)
-    nxt = queue_next_ready(tk)
+    nxt = _first_off_s(tk, lk[LK_LINE:])
     return n_out, k, n_bytes_out, first if first < nxt else nxt
 
 
@@ -313,8 +335,10 @@ class MocapLinkServer:
         self._bytes_written = 0
         self._bytes_refused = 0
         self._now_s = -math.inf  # the latest time the chain was advanced to
-        #: the earlier of the next ready time and the first frame's time off the UART (inf: none), kept by
-        #: `update` and `deliver`, the only ones that change the queues: when the chain next has to move
+        #: when the chain next has to move (inf: never), kept by `update` and `deliver`, the only ones that
+        #: change the queues: the first frame's time off the UART or, of the frames not yet taken through
+        #: the radio, the earliest off it (the link's kernel, `_first_off_s`) or the next ready time (a
+        #: channel that can lose)
         self._next_move_s = math.inf
         self._period_s = mocap.period_s
         self._link_at = link_state_len(uwb.queue_packets)  # (where the link's numbers start: ``LK_*``)
@@ -322,6 +346,7 @@ class MocapLinkServer:
         self._mem = self.mocap.lay_out(_BOTH_IDS, (0.0,) * 14)
         lk = self._link_numbers()
         lk[LK_LATE_AFTER], lk[LK_ROOM] = uwb.late_after_s, self._room
+        lk[LK_LINE:] = self._state[:UART_STATE_LEN]  # (the UART as it starts: free)
         self._views()
         # compiled (or loaded from numba's cache) now, called without numba's type dispatch
         self._hand = entry(_hand_way, self._state, 0.0)
@@ -514,6 +539,11 @@ class MocapLinkServer:
 
     @property
     def stats(self) -> MocapLinkStats:
+        if self._kernel is not None and self._now_s > -math.inf:
+            # (the frames ready by then that the kernel has not taken through the radio yet, as none of
+            # them could be off the UART: taken now, counted as sent, as they would be at any later move)
+            self._next_move_s = -math.inf
+            self.deliver(self._now_s)
         self._count_arrivals(self._now_s + 1e-12)
         return MocapLinkStats(
             mocap=self.mocap.stats,
