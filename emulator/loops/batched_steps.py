@@ -36,7 +36,7 @@ from emulator.world.box_kernel import check_packed, quat_to_rot_into
 _steps_before = njit(cache=True, nogil=True)(steps_before)  # (the FC's count, compiled for `_fly_batch`)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)  # (GIL kept: releasing and taking it around a few-us call costs more than it saves)
 def _fly_batch(buf, roll, pitch, yaw, thrust_n, until_s, rest_z, margin, loop, n_max, time_s, dt_s,
                capture_at, landed_now):  # pragma: no cover
     """The steps of a held attitude target (the FC's `batch_plan`: ``until_s`` its setpoint-loss
@@ -148,7 +148,7 @@ def fly_targets(xs, auxs, p, targets, gains, mix_inv, outs, n_steps, worlds, whi
             clearance[b] = least_b
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)  # (the GIL kept, as for `_fly_batch`)
 def _hold_batch(buf, climb, yaw, landed_test, hold_params, loop, n_steps, dt_s):  # pragma: no cover
     """Velocity-hold steps (`FlightController._velocity_hold` per step) of ``dt_s`` (s) at climb rate
     ``climb`` (m/s, up) and heading ``yaw`` (NED, rad) until ``n_steps`` or the body would count as
