@@ -178,3 +178,24 @@ def test_session_zero_gets_no_ack_and_session_one_is_matched_by_seq():
     assert (d.SET_ACTIVATION, d.CMD_VERSION) in client.acks
     client.transport.send(client.pack_command(d.SET_CONTROL, d.CMD_SETPOINT, bytes(17)))
     assert not fc.receive()[0].wants_ack
+
+
+def test_frame_size_refuses_each_fixed_header_bit_and_takes_the_free_ones():
+    """Every bit of VER, the two reserved bits and the three reserved bytes set alone (the header's CRC16
+    made good again) starts no frame; LEN's, SESSION's, ACK's, PADDING's, ENC's and SEQ's bits leave the
+    header good (its LEN read from bits 0-9 of bytes 1-2)."""
+    frame = d.encode(3, 0x1234, bytes(40))
+    fixed = ({(2, bit) for bit in range(2, 8)} | {(3, 6), (3, 7)}
+             | {(k, bit) for k in (5, 6, 7) for bit in range(8)})
+    for k in range(1, 10):
+        for bit in range(8):
+            b = bytearray(frame)
+            b[k] ^= 1 << bit
+            b[10:12] = struct.pack("<H", d.crc16(bytes(b[:10])))
+            size = d.frame_size(bytes(b), 0)
+            if (k, bit) in fixed:
+                assert size == d.NO_FRAME, (k, bit)
+            else:
+                length = (b[1] | b[2] << 8) & 0x3FF
+                assert size == (length if length >= d.MIN_FRAME_BYTES else d.SHORT_FRAME), (k, bit)
+    assert d.frame_size(frame, 0) == len(frame)

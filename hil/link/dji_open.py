@@ -290,6 +290,12 @@ _U16 = struct.Struct("<H")
 _HEAD = struct.Struct("<BHBB3xH")  # SOF, LEN | VER << 10, SESSION | ACK << 5, PADDING | ENC << 5, SEQ
 _CRC16 = struct.Struct("<H")
 _CRC32 = struct.Struct("<I")
+#: a header's first eight bytes as one little-endian number (`frame_size`): SOF (bits 0-7), LEN (8-17), VER
+#: (18-23), SESSION (24-28), ACK (29), 2 reserved bits (30-31), PADDING and ENC (32-39), 3 reserved bytes
+#: (40-63)
+_HEAD_WORD = struct.Struct("<Q")
+#: the bits of that number a good header fixes: SOF (0xAA), VER and the reserved bits and bytes (all 0)
+_HEAD_FIXED_BITS = 0xFFFFFF << 40 | 0xC0 << 24 | 0xFC << 16 | 0xFF
 
 
 class Frame(NamedTuple):
@@ -385,10 +391,11 @@ def frame_size(buf: bytes | bytearray, i: int) -> int:
         return NO_FRAME
     if i + HEADER_BYTES > len(buf):
         return 0
-    if not (buf[i + 2] >> 2 == 0 and buf[i + 3] & 0xC0 == 0 and buf[i + 5] == buf[i + 6] == buf[i + 7] == 0
-            and _ARC(buf[i : i + HEADER_BYTES], CRC_INIT) == 0):  # (`crc16` of the header with its CRC: 0)
+    (head,) = _HEAD_WORD.unpack_from(buf, i)  # (the header's first eight bytes, one number: one call)
+    # VER 0, the reserved bits and bytes 0; `crc16` of the header with its CRC: 0
+    if head & _HEAD_FIXED_BITS != SOF or _ARC(buf[i : i + HEADER_BYTES], CRC_INIT):
         return NO_FRAME
-    size = (buf[i + 1] | buf[i + 2] << 8) & 0x3FF
+    size = head >> 8 & 0x3FF  # LEN (bits 8-17)
     return size if size >= MIN_FRAME_BYTES else SHORT_FRAME
 
 

@@ -24,7 +24,6 @@ through the same plain-value functions.
 
 from __future__ import annotations
 
-import functools
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -61,9 +60,10 @@ def mocap_count(name: str | bytes, value: int) -> int | None:
     name as text, or as the wire's bytes up to the first NUL)."""
     if value < 0:
         return None
-    if name.__class__ is bytes:  # (the name up to its first NUL: all of it, or a prefix and a NUL)
-        return int(value) if name[:_MOCAP_COUNT_NUL_LEN] == _MOCAP_COUNT_NUL or name == _MOCAP_COUNT_RAW \
-            else None
+    if name.__class__ is bytes:  # (the name up to its first NUL: all of it, or a prefix and a NUL; the
+        # payload's whole field first, as the tick frames carry it)
+        return int(value) if name in (_MOCAP_COUNT_FIELD, _MOCAP_COUNT_RAW) \
+            or name[:_MOCAP_COUNT_NUL_LEN] == _MOCAP_COUNT_NUL else None
     return int(value) if name == MOCAP_COUNT_NAME else None
 
 
@@ -76,6 +76,8 @@ TICK_MSG_IDS = frozenset({TIMESYNC_ID, MOCAP_COUNT_ID})
 RESEND_FILLER = bytes(MAX_FRAME_BYTES)
 _TIMESYNC = mav.MAVLink_timesync_message.unpacker
 _NAMED_INT = mav.MAVLink_named_value_int_message.unpacker
+#: the count's name as NAMED_VALUE_INT's name field holds it (NUL-padded): what `mocap_count` reads first
+_MOCAP_COUNT_FIELD = _NAMED_INT.unpack(_NAMED_INT.pack(0, 0, _MOCAP_COUNT_RAW))[2]
 
 
 def tick_frames(t_s: float, mocap_total: int, system_id: int, component_id: int) -> bytes:
@@ -105,8 +107,8 @@ _TIMESYNC_ID_BYTES = TIMESYNC_ID.to_bytes(3, "little")  # (a MAVLink 2 header's 
 def answered_ns(frame: bytes) -> int | None:
     """The tick time (ns) a frame answers (a MAVLink 2 TIMESYNC answer), else None. No CRC check: the
     harness reads the program's frames before they enter the modelled link."""
-    if len(frame) < 12 or frame[0] != 0xFD or frame[7:10] != _TIMESYNC_ID_BYTES:
-        return None
+    if frame[7:10] != _TIMESYNC_ID_BYTES or frame[0] != 0xFD or len(frame) < 12:  # (the id first: a slice
+        return None  # of a short frame is shorter, no error)
     tc1, ts1 = _TIMESYNC.unpack_from(frame[10 : 10 + frame[1]] + _TIMESYNC_PAD)
     return tick_answer_ns(tc1, ts1)
 
@@ -191,8 +193,12 @@ class Framing:
 
 def mavlink_framing(system_id: int = 1, component_id: int = mav.MAV_COMP_ID_AUTOPILOT1) -> Framing:
     """The lockstep's framing on MAVLink, the FC's ticks sent with its ids."""
-    return Framing(functools.partial(tick_frames, system_id=system_id, component_id=component_id),
-                   answered_ns, RESEND_FILLER, FrameSplitter, is_mavlink_setpoint)
+
+    def fc_tick_frames(t_s: float, mocap_total: int) -> bytes:
+        """`tick_frames` from the FC's ids (a closure: a partial with keywords merges them at each call)."""
+        return tick_frames(t_s, mocap_total, system_id, component_id)
+
+    return Framing(fc_tick_frames, answered_ns, RESEND_FILLER, FrameSplitter, is_mavlink_setpoint)
 
 
 def dji_framing(system_id: int = 1, component_id: int = 0) -> Framing:

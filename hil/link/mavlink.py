@@ -285,13 +285,52 @@ class MavlinkCodec:
 
     def feed(self, data: bytes) -> list[Any]:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
-        as bytes for ``raw_ids``, see `__init__`)."""
+        as bytes for ``raw_ids``, see `__init__`).
+
+        The leading complete, unsigned MAVLink 2 frames whose CRC is good are handled here, in stream
+        order: ids not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are
+        decoded (a signed link refuses those that must be signed). From the first byte that is not such a
+        frame on (signed frames too), or while pymavlink's parser holds bytes, the rest goes to that
+        parser (`_parse_slow`)."""
         good: list[Any] = []
-        if self._parser_empty:
-            data = self._take_leading(data, good)
-            if not data:
-                return good
-        self._parse_slow(data, good)
+        n = len(data)
+        # (no such frame first, or the parser holds bytes: all to the parser at once)
+        if n < 12 or data[0] != MAVLINK_V2_MAGIC or data[2] or not self._parser_empty:
+            if n or not self._parser_empty:
+                self._parse_slow(data, good)
+            return good
+        if data.__class__ is not bytes:
+            data = bytes(data)  # (its slices are the frames handed on)
+        leading, stats, recorder, crc = self._leading, self.stats, self.recorder, _mcrf4xx
+        i = 0
+        while True:
+            end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
+            if end > n:
+                break
+            known = leading.get(data[i + 7 : i + 10])  # (the message id, 24 bits little-endian)
+            if known is None:
+                break  # an unknown id: pymavlink counts it
+            extra, kind = known
+            # the CRC (from 0xFFFF) of header and payload, then CRC_EXTRA, compared with the frame's (low
+            # byte first)
+            if crc(data[i + 1 : end - 2] + extra) != data[end - 2] | data[end - 1] << 8:
+                break  # a bad frame: pymavlink counts it
+            if kind == _REFUSE:
+                stats.unsigned_refused += 1
+            else:
+                frame = data if end == n and not i else data[i:end]  # (one frame read: no copy of it)
+                if kind == _IGNORE:
+                    stats.frames_ignored += 1
+                else:
+                    good.append(frame if kind == _RAW else decode_frame(frame))
+                    stats.frames_received += 1
+                if recorder is not None:
+                    recorder.record(frame, self.clock.now_s())
+            i = end
+            if i + 12 > n or data[i] != MAVLINK_V2_MAGIC or data[i + 2]:
+                break
+        if i < n:
+            self._parse_slow(data[i:] if i else data, good)
         return good
 
     def _parse_slow(self, data: bytes, good: list[MAVLinkMessage]) -> None:
@@ -318,46 +357,6 @@ class MavlinkCodec:
                 if self.recorder is not None:
                     self.recorder.record(bytes(m.get_msgbuf()), now_s)
                 good.append(m)
-
-    def _take_leading(self, data: bytes, good: list[MAVLinkMessage]) -> bytes:
-        """Handle the leading complete, unsigned MAVLink 2 frames of ``data`` whose CRC is good: ids
-        not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are decoded, all
-        in stream order (a signed link refuses those that must be signed). Returns the rest (from the
-        first byte that is not such a frame on: signed frames too), for pymavlink's parser."""
-        n = len(data)
-        if n < 12 or data[0] != MAVLINK_V2_MAGIC or data[2]:  # (no such frame first: at once)
-            return data
-        if data.__class__ is not bytes:
-            data = bytes(data)  # (its slices are the frames handed on)
-        leading, stats, recorder, crc = self._leading, self.stats, self.recorder, _mcrf4xx
-        i = 0
-        while True:
-            end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
-            if end > n:
-                break
-            known = leading.get(data[i + 7 : i + 10])  # (the message id, 24 bits little-endian)
-            if known is None:
-                break  # an unknown id: pymavlink counts it
-            extra, kind = known
-            # the CRC (from 0xFFFF) of header and payload, then CRC_EXTRA, compared with the frame's (low
-            # byte first)
-            if crc(data[i + 1 : end - 2] + extra) != data[end - 2] | data[end - 1] << 8:
-                break  # a bad frame: pymavlink counts it
-            if kind == _REFUSE:
-                stats.unsigned_refused += 1
-            else:
-                frame = data[i:end]
-                if kind == _IGNORE:
-                    stats.frames_ignored += 1
-                else:
-                    good.append(frame if kind == _RAW else decode_frame(frame))
-                    stats.frames_received += 1
-                if recorder is not None:
-                    recorder.record(frame, self.clock.now_s())
-            i = end
-            if i + 12 > n or data[i] != MAVLINK_V2_MAGIC or data[i + 2]:
-                break
-        return data[i:] if i else data
 
     def _count_bad(self, m: Any) -> None:
         reason = str(m.reason)
