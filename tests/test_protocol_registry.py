@@ -36,7 +36,9 @@ from hil.link.protocols import (
 from hil.link.tlog import read_tlog
 from hil.link.transport import Transport
 from hil.runner import RunOptions, run_scenario
+from hil.runner.onboard_side import program_config
 from hil.scenario import load_scenarios, loads_scenarios
+from policies.onboard.cli import parser
 from policies.onboard.command_link import CommandAck, CommandLink
 from policies.onboard.command_links import COMMAND_LINKS, register_command_link
 from policies.onboard.program import ProgramConfig
@@ -325,6 +327,26 @@ def test_the_scenario_schema_and_the_program_take_a_registered_protocol(toy):
     text += "links:\n  command: {protocol: toy}\n"
     assert loads_scenarios(text)[0].links.command.protocol == toy
     assert ProgramConfig(fc_protocol=toy).fc_protocol == toy
+
+
+def test_a_protocol_registered_after_a_run_was_set_up_is_an_option_of_the_next():
+    """The program's options are parsed by a parser made once a process: one made before a protocol's
+    registration must not refuse it afterwards (the harness's check of a run's options, and the
+    program's own command line)."""
+    assert program_config(["--fc-protocol", "mavlink"]).fc_protocol == "mavlink"  # (parsers made now)
+    assert parser().parse_args(["--command-link", "memory", "--mocap-link", "memory"]).fc_protocol
+    register_toy()
+    try:
+        assert program_config(["--fc-protocol", "toy"]).fc_protocol == "toy"
+        args = parser().parse_args(["--command-link", "memory", "--mocap-link", "memory",
+                                    "--fc-protocol", "toy"])
+        assert args.fc_protocol == "toy"
+    finally:
+        unregister_protocol("toy")
+        FC_SERVERS.pop("toy")
+        COMMAND_LINKS.pop("toy")
+    with pytest.raises(ValueError, match="invalid choice: 'toy'"):  # (and gone again with it)
+        program_config(["--fc-protocol", "toy"])
 
 
 def test_the_tables_refuse_a_taken_name_and_name_the_known_ones():

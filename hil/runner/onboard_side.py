@@ -24,6 +24,7 @@ from hil.scenario.loader import onboard_vehicle
 from hil.scenario.schema import Scenario
 from policies.onboard import EventLog, OnboardProgram, ProgramConfig, forkserver
 from policies.onboard.cli import add_arguments, config_from_args
+from policies.onboard.command_links import COMMAND_LINKS
 
 DEFAULT_APPROACH_SPEED_M_S = 2.0  # when the scenario leaves the speed to the pilot
 
@@ -287,9 +288,11 @@ def onboard_options(s: Scenario) -> list[str]:
 
 
 @functools.cache
-def _options_parser() -> argparse.ArgumentParser:
-    """The onboard program's options as `program_config` parses them, built once a process (its ~140
-    options took most of a run's `program_config`; parsing leaves the parser as it was)."""
+def _options_parser(protocols: tuple[str, ...]) -> argparse.ArgumentParser:
+    """The onboard program's options as `program_config` parses them, built once a process for the
+    registered command-link protocols ``protocols`` (its ~140 options took most of a run's
+    `program_config`; a protocol registered later is a new ``--fc-protocol`` choice: a new parser;
+    parsing leaves the parser as it was)."""
     parser = argparse.ArgumentParser(prog="onboard", exit_on_error=False)
     add_arguments(parser)
     return parser
@@ -298,7 +301,8 @@ def _options_parser() -> argparse.ArgumentParser:
 def program_config(options: list[str]) -> ProgramConfig:
     """The ProgramConfig the onboard program's own command line makes of ``options``."""
     try:
-        args = _options_parser().parse_args(["--command-link", "memory", "--mocap-link", "memory", *options])
+        args = _options_parser(tuple(COMMAND_LINKS)).parse_args(
+            ["--command-link", "memory", "--mocap-link", "memory", *options])
     except (argparse.ArgumentError, SystemExit) as exc:
         raise ValueError(f"onboard options {options}: {exc}") from None
     return config_from_args(args)

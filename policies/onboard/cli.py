@@ -192,10 +192,17 @@ _ARITIES = ["--command-link", "memory", "--mocap-link", "memory", "--gap-size", 
             "--body-box", "1", "1", "1", "--lockstep"]
 
 
-@functools.cache
 def parser() -> argparse.ArgumentParser:
     """``python -m policies.onboard``'s parser, built once a process with what its first parse compiles
-    (a program forked warm finds both made: about 2 ms of each run's start); parsing leaves it as it was."""
+    (a program forked warm finds both made: about 2 ms of each run's start) and again when a command-link
+    protocol has been registered since (its name a new ``--fc-protocol`` choice); parsing leaves it as it
+    was."""
+    return _parser(tuple(COMMAND_LINKS))
+
+
+@functools.cache
+def _parser(protocols: tuple[str, ...]) -> argparse.ArgumentParser:
+    """`parser` for the command-link protocols ``protocols`` (the registered ones)."""
     p = argparse.ArgumentParser(prog="python -m policies.onboard",
                                 description="the onboard program: fly a pilot through the gap")
     add_arguments(p)
