@@ -16,7 +16,16 @@ import numpy as np
 from emulator.fc.hold import hold_command, pack_hold
 from emulator.fc.inner_loop import InnerLoop
 from emulator.fc.landed import body_landed
-from emulator.fc.modes import ACCEPTED, CommandResult, FcEvent, FcState, LandedState, StateMachine
+from emulator.fc.modes import (
+    ACCEPTED,
+    FAILSAFE_HOVER,
+    OFFBOARD,
+    CommandResult,
+    FcEvent,
+    FcState,
+    LandedState,
+    StateMachine,
+)
 from emulator.fc.n3 import (
     AttitudeThrustTarget,
     MotionTarget,
@@ -39,9 +48,6 @@ HOLD_STATES = frozenset((FcState.HOLD, FcState.FAILSAFE_HOVER, FcState.LAND, FcS
 LANDING_STATES = (FcState.LAND, FcState.FAILSAFE_LAND)
 #: the states whose heading the FC holds itself (latched on entry, see `hold_heading_rad`)
 HEADING_STATES = HOLD_STATES | {FcState.TAKEOFF, FcState.GO_HOME}
-#: members the per-setpoint and per-batch checks read, as module names (an enum class's attribute goes
-#: through its metaclass's ``__getattr__`` hook: about 850 instructions a lookup, a module global's 50)
-_OFFBOARD, _FAILSAFE_HOVER = FcState.OFFBOARD, FcState.FAILSAFE_HOVER
 
 
 def steps_before(room_s: float, dt_s: float, n_max: int) -> int:
@@ -378,7 +384,7 @@ class FlightController:
     def _plan_batch(self) -> None:
         """Make `batch_plan` from the state, the target and the failsafe's timeout now."""
         tg = self.target
-        if (self.machine.state is not _OFFBOARD or tg.__class__ is not AttitudeThrustTarget
+        if (self.machine.state is not OFFBOARD or tg.__class__ is not AttitudeThrustTarget
                 or tg.yaw_rate_rad_s is not None):  # type: ignore[union-attr]
             self.batch_plan = None
             return
@@ -398,9 +404,9 @@ class FlightController:
         """When the next timed change of state is due (s; inf: none): the setpoint-loss failsafe in
         OFFBOARD, the failsafe hover's end (see `quiet_steps`)."""
         cfg, m = self.config, self.machine
-        if m.state is _OFFBOARD:
+        if m.state is OFFBOARD:
             return self.last_setpoint_s + cfg.failsafe_timeout_s
-        if m.state is _FAILSAFE_HOVER:
+        if m.state is FAILSAFE_HOVER:
             return m.since_s + cfg.failsafe_hover_s
         return math.inf
 

@@ -20,16 +20,19 @@ class FcState(Enum):
 
     @property
     def armed(self) -> bool:
-        return self is not _DISARMED
+        return self is not DISARMED
 
     @property
     def failsafe(self) -> bool:
-        return self is _FAILSAFE_HOVER or self is _FAILSAFE_LAND
+        return self is FAILSAFE_HOVER or self is FAILSAFE_LAND
 
 
-#: members read per tick, as module names: an enum class's attribute goes through its metaclass's
-#: ``__getattr__`` hook (about 850 instructions a lookup, a module global's about 50)
-_DISARMED, _FAILSAFE_HOVER, _FAILSAFE_LAND = FcState.DISARMED, FcState.FAILSAFE_HOVER, FcState.FAILSAFE_LAND
+#: the members as module names, for code that compares a state per tick or per message (import these):
+#: an enum class's attribute goes through its metaclass's ``__getattr__`` hook, about 850 instructions a
+#: lookup, a module global's about 50
+DISARMED, HOLD, OFFBOARD, LAND = FcState.DISARMED, FcState.HOLD, FcState.OFFBOARD, FcState.LAND
+FAILSAFE_HOVER, FAILSAFE_LAND = FcState.FAILSAFE_HOVER, FcState.FAILSAFE_LAND
+TAKEOFF, GO_HOME = FcState.TAKEOFF, FcState.GO_HOME
 
 
 @dataclass(frozen=True)

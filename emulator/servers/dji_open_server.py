@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from emulator.fc.modes import CommandResult, FcState
+from emulator.fc.modes import DISARMED, CommandResult, FcState
 from emulator.fc.n3 import (
     ACCEPTED_FIELDS,
     ATTITUDE_THRUST_FLAGS,
@@ -55,7 +55,6 @@ PACKAGE_FRAME_BYTES = dj.COMMAND_FRAME_BYTES + 1  # (the package id)
 #: and the setpoint-loss hover (a failsafe landing, of any cause, is not interrupted). (A tuple: its
 #: members are found by identity, where a set would call the enum's Python ``__hash__``.)
 _TAKEOVER_STATES = (FcState.HOLD, FcState.FAILSAFE_HOVER)
-_DISARMED = FcState.DISARMED  # (read per setpoint: a module global, not the enum class's slow lookup)
 
 
 @dataclass(frozen=True)
@@ -486,7 +485,7 @@ class DjiOpenServer:
         if not self.sdk_control:
             self.stats.setpoints_without_control += 1
         elif (st := fc.machine.state) in _TAKEOVER_STATES or (
-                st is _DISARMED and not fc.offboard_selected):
+                st is DISARMED and not fc.offboard_selected):
             fc.request_offboard(now_s)  # with authority the stream flies as soon as it is a stream
         if self.on_setpoint is not None:
             self.on_setpoint(*values, now_s)

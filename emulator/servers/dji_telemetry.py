@@ -16,7 +16,7 @@ import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from emulator.fc.modes import FcState
+from emulator.fc.modes import DISARMED, FAILSAFE_LAND, GO_HOME, LAND, OFFBOARD, TAKEOFF
 from emulator.fc.n3 import MotionTarget
 from emulator.profile import GRAVITY_M_S2
 from hil.link import dji_open as dj
@@ -52,17 +52,13 @@ def _state_free(fn: Values) -> Values:
 
 
 # --- state -------------------------------------------------------------------------------------
-#: the FC's states read per push, as module names (an enum class's attribute goes through its
-#: metaclass's ``__getattr__`` hook: about 850 instructions a lookup, a module global's about 50)
-_DISARMED, _TAKEOFF, _OFFBOARD = FcState.DISARMED, FcState.TAKEOFF, FcState.OFFBOARD
-_GO_HOME = FcState.GO_HOME
-_LANDING = (FcState.LAND, FcState.FAILSAFE_LAND)
+_LANDING = (LAND, FAILSAFE_LAND)  # (the states read per push: `emulator.fc.modes`' module names)
 
 
 def flight_status(server: DjiOpenServer) -> int:
     """The N3's flight status: motors stopped, on the ground (motors running), in the air."""
     fc = server.fc
-    if fc.machine.state is _DISARMED:  # (the state machine's own: read per push)
+    if fc.machine.state is DISARMED:  # (the state machine's own: read per push)
         return dj.FLIGHT_STOPPED
     return dj.FLIGHT_ON_GROUND if fc.landed else dj.FLIGHT_IN_AIR
 
@@ -73,13 +69,13 @@ def display_mode(server: DjiOpenServer) -> int:
     otherwise (the emulated N3 has an ideal position fix)."""
     fc = server.fc
     st = fc.machine.state
-    if st is _TAKEOFF:
+    if st is TAKEOFF:
         return dj.MODE_ENGINE_START if fc.landed else dj.MODE_AUTO_TAKEOFF
     if st in _LANDING and not fc.landed:
         return dj.MODE_AUTO_LANDING
-    if st is _OFFBOARD:
+    if st is OFFBOARD:
         return dj.MODE_NAVI_SDK_CTRL
-    if st is _GO_HOME:
+    if st is GO_HOME:
         return dj.MODE_NAVI_GO_HOME
     return dj.MODE_P_GPS
 
@@ -92,7 +88,7 @@ def control_device(server: DjiOpenServer) -> tuple[int, int]:
     device = dj.DEVICE_ONBOARD if server.sdk_control else dj.DEVICE_RC
     mode = 0
     tg = fc.target
-    if server.sdk_control and tg is not None and fc.machine.state is _OFFBOARD:
+    if server.sdk_control and tg is not None and fc.machine.state is OFFBOARD:
         rate = tg.yaw_rate_rad_s is not None
         if isinstance(tg, MotionTarget):
             mode = _MOTION_MODES[(tg.horizontal_position, tg.vertical_position, rate)]
