@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,26 @@ duration_s: 2.5
 expect: {crosses_gap: false, recovery: false, failsafe_expected: hover}
 """
 FAILING = PASSING.replace("failsafe_expected: hover", "failsafe_expected: false")
+CROSSING_20S = """
+description: the 60 deg gap at 2.5 m/s, then hovering to 20 s
+gap: {roll_deg: -60}
+approach: {speed_m_s: 2.5}
+duration_s: 20
+"""
+
+
+def _a_run_flying(out: Path, besides: str, timeout_s: float = 60.0) -> str:
+    """The id of a run under ``out`` (not ``besides``) whose onboard program has started (its event log
+    has a line) and which has not finished (no summary yet)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for run_dir in out.iterdir() if out.is_dir() else ():
+            log = run_dir / "onboard_events.jsonl"
+            if (run_dir.name != besides and log.exists() and log.stat().st_size > 0
+                    and not (run_dir / "summary.json").exists()):
+                return run_dir.name
+        time.sleep(0.002)
+    raise AssertionError(f"no run was seen flying under {out} within {timeout_s} s")
 
 
 def run(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -171,15 +192,17 @@ def test_suite_starts_the_longest_runs_first_and_lists_them_in_the_suites_order(
 
 def test_a_suite_interrupted_half_way_indexes_what_finished_and_leaves_no_verdict_without_its_report(
         tmp_path):
-    """Ctrl-C (SIGINT to the suite's process group) once a run has finished: exit 130, index.html lists
-    the finished runs and marks the others interrupted; a run folder holds summary.json only beside its
-    report.html; no process of the suite is left."""
+    """Ctrl-C (SIGINT to the suite's process group) while a run is flying: exit 130, index.html lists
+    the finished runs, each with the verdict of a flight the Ctrl-C did not touch (the run in flight
+    finishes: its onboard program is not the terminal's to stop), and marks the others interrupted; a
+    run folder holds summary.json only beside its report.html; no process of the suite is left."""
     (tmp_path / "s").mkdir()
-    # twelve runs of 20 s each (about 2 s of wall clock apiece): the rest cannot all finish while a loaded
-    # host keeps the test from sending its Ctrl-C after the first verdict
+    # twelve crossings of 20 s each (a fraction of a second of wall clock apiece, seconds on a loaded
+    # host): the rest cannot all finish before the Ctrl-C; each passes only if its onboard program flies
+    # it to the end (one that dies mid-run leaves the FC to fail safe, a check that fails)
     names = [f"r{k:02d}" for k in range(12)]
     for name in names:
-        (tmp_path / "s" / f"{name}.scenario.yaml").write_text(PASSING.replace("2.5", "20"))
+        (tmp_path / "s" / f"{name}.scenario.yaml").write_text(CROSSING_20S)
     out = tmp_path / "out"
     p = subprocess.Popen([*HIL, "suite", str(tmp_path / "s"), "--out", str(out), "-j", "1"], cwd=tmp_path,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
@@ -187,6 +210,7 @@ def test_a_suite_interrupted_half_way_indexes_what_finished_and_leaves_no_verdic
         assert p.stdout is not None
         first = p.stdout.readline()  # the first run's verdict
         assert first.startswith("PASSED"), first + p.stderr.read() if p.stderr else first
+        flying = _a_run_flying(out, first.split()[1])
         os.killpg(p.pid, signal.SIGINT)
         rest, err = p.communicate(timeout=120)
     finally:
@@ -197,7 +221,11 @@ def test_a_suite_interrupted_half_way_indexes_what_finished_and_leaves_no_verdic
     index = json.loads((out / "index.json").read_text())
     finished = [r["id"] for r in index["results"] if not r.get("interrupted")]
     stopped = [r["id"] for r in index["results"] if r.get("interrupted")]
-    assert first.split()[1] in finished and stopped and len(finished) + len(stopped) == len(names), index
+    assert first.split()[1] in finished and flying in finished, (flying, index)
+    assert stopped and len(finished) + len(stopped) == len(names), index
+    failed = {r["id"]: r.get("failed") for r in index["results"]
+              if not r["passed"] and not r.get("interrupted")}
+    assert failed == {}, failed  # (the run that was flying at the Ctrl-C among them, if it was stopped)
     html = (out / "index.html").read_text()
     assert html.count("INTERRUPTED") == len(stopped) and html.count("PASSED") == len(finished)
     for run_dir in out.iterdir():

@@ -157,7 +157,8 @@ class ProcessOnboard:
                 self._stderr.flush()
         self.warm = proc is not None
         self.proc: subprocess.Popen[bytes] | forkserver.ForkedProcess = proc or subprocess.Popen(
-            argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr, env=program_env()
+            argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._stderr, env=program_env(),
+            process_group=0,  # a Ctrl-C at the terminal is the harness's to handle, not the program's
         )
         self.alive = True
         self.paused = False

@@ -271,6 +271,9 @@ def _end(pidfd: int) -> None:
 def _child(args: list[str], stderr_fd: int) -> int:
     """Run the program in this fresh child, as ``python -m MODULE ARGS`` would; its exit code (when it
     did not leave by itself)."""
+    # its own process group, as a program the harness starts cold: a Ctrl-C at the terminal is the
+    # harness's to handle (a suite lets the runs in flight finish), never a death mid-run
+    os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.default_int_handler)  # (the server ignores it; Python's own)
     devnull = os.open(os.devnull, os.O_RDWR)
     os.dup2(devnull, 0)
