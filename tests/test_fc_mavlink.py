@@ -162,6 +162,24 @@ def test_failsafe_is_announced_in_heartbeat_and_statustext_within_the_timeout():
     assert ev.to_state is FcState.FAILSAFE_HOVER and 0.3 < ev.time_s - t_last <= 0.3 + 0.1
 
 
+def test_a_setpoint_read_late_is_logged_at_the_time_the_fc_counts_its_failsafe_from(tmp_path):
+    """In real time an FC's poll reads the clock, then the link: a read held up (a busy host) logs the
+    setpoint at the poll's time, the one the failsafe timeout runs from, not later (the .tlog then shows
+    the failsafe a full timeout after the last setpoint, as the FC counted it)."""
+    b = Bench(tlog=tmp_path / "fc.tlog")
+    b.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    b.stream(0.2, thrust=HOVER)
+    b.send(b.attitude(thrust=1.1 * HOVER))
+    poll_s = b.clock.now_s()
+    b.clock.advance_to(round(poll_s + 0.02, 6))  # the read comes 20 ms after the poll read the clock
+    b.server.poll(poll_s)
+    assert b.vehicle.fc.last_setpoint_s == poll_s
+    b.tlog.close()
+    stamps = [t for t, f in read_tlog(tmp_path / "fc.tlog")
+              if mav.MAVLink(None).decode(bytearray(f)).get_type() == "SET_ATTITUDE_TARGET"]
+    assert stamps[-1] == round((1.7e9 + poll_s) * 1e6)
+
+
 def test_request_message_interval_ping_and_timesync_are_answered():
     b = Bench()
     assert b.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)[0].result == 0

@@ -14,6 +14,7 @@ import pytest
 from hil.link import dji_open as d
 from hil.link.clock import SimClock
 from hil.link.memory import MemoryTransport
+from hil.link.tlog import TlogWriter, read_tlog
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "dji-open-link.md"
 
@@ -152,6 +153,22 @@ def test_a_reliable_command_is_resent_with_the_same_bytes_until_its_ack():
     assert client.waiting == 0
     clock.advance_to(1.0)
     assert client.service(clock.now_s()) == []
+
+
+def test_frames_are_recorded_at_the_time_the_receiver_acts_on_them(tmp_path):
+    """An FC's poll passes its time: a frame read after it (a busy host) is logged at that time, which its
+    timers run from; without one, at the clock's time of the read."""
+    clock = SimClock()
+    a, b = MemoryTransport.pair()
+    log = TlogWriter(tmp_path / "fc.tlog", epoch_unix_s=1.7e9)
+    client, fc = d.OpenCodec(a, clock), d.OpenCodec(b, clock, recorder=log)
+    client.send_command(d.SET_CONTROL, d.CMD_ARM, b"\x01")
+    clock.advance_to(0.52)
+    assert len(fc.receive(0.0, 0.5)) == 1
+    client.send_command(d.SET_CONTROL, d.CMD_ARM, b"\x00")
+    assert len(fc.receive()) == 1
+    log.close()
+    assert [t for t, _ in read_tlog(tmp_path / "fc.tlog")] == [round((1.7e9 + x) * 1e6) for x in (0.5, 0.52)]
 
 
 def test_an_ack_of_another_seq_is_not_taken_and_a_command_runs_out_of_tries():

@@ -187,7 +187,7 @@ class DjiOpenServer:
             self._timed_transport = codec.transport
             self._arrivals = arrivals(codec.transport)
         if self._arrivals.next_input_s <= now_s + 1e-12:
-            for f in codec.receive():
+            for f in codec.receive(0.0, now_s):  # (logged at the time they are acted on)
                 self.handle(f, now_s)
         if self._events_seen != len(self._fc_events):
             self.telemetry.state_changed(prev_s, now_s)  # (the battery's armed time)

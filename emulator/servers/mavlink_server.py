@@ -211,7 +211,7 @@ class MavlinkServer:
             self._arrivals = arrivals(codec.transport)
         if self._backlog or self._arrivals.next_input_s <= now_s + 1e-12:
             backlog = self._backlog
-            msgs = backlog or codec.receive()
+            msgs = backlog or codec.receive(0.0, now_s)  # (logged at the time they are acted on)
             if len(msgs) > MAX_MESSAGES_PER_POLL:
                 self._backlog = msgs[MAX_MESSAGES_PER_POLL:]
                 self.stats.intake_deferred += len(self._backlog)

@@ -626,17 +626,19 @@ class OpenCodec:
         """Reliable commands waiting for their ACK."""
         return len(self._pending)
 
-    def receive(self, timeout_s: float = 0.0) -> list[Frame]:
+    def receive(self, timeout_s: float = 0.0, time_s: float | None = None) -> list[Frame]:
         data = self.transport.recv(timeout_s)
-        return self.feed(data) if data else []
+        return self.feed(data, time_s) if data else []
 
-    def feed(self, data: bytes) -> list[Frame]:
+    def feed(self, data: bytes, time_s: float | None = None) -> list[Frame]:
         """Parse ``data``: the good frames that are not ACKs (ACKs are matched into ``acks`` at once);
         with ``keep_acks``, the ACK frames too, in stream order, for the caller to `match_ack` when it
-        acts on them (a lockstep reader acts on what came before a tick only)."""
+        acts on them (a lockstep reader acts on what came before a tick only). The recorder stamps the
+        frames ``time_s`` (s, clock time): when the receiver acts on them (an FC's poll), so that its log
+        and its timers agree however late the read came; the clock's time of the read by default."""
         keep_acks = self.keep_acks
         out = []
-        now = self.clock.now_s()
+        now = self.clock.now_s() if time_s is None else time_s
         rec, stats = self.recorder, self.stats
         for raw in self.parser.feed(data):
             stats.frames_received += 1

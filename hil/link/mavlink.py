@@ -277,15 +277,17 @@ class MavlinkCodec:
             self.recorder.record(frame, self.clock.now_s())
         return frame
 
-    def receive(self, timeout_s: float = 0.0) -> list[Any]:
+    def receive(self, timeout_s: float = 0.0, time_s: float | None = None) -> list[Any]:
         """Parse what has arrived (waiting up to ``timeout_s`` for the first bytes); good messages only
-        (frames as bytes for ``raw_ids``, see `__init__`)."""
+        (frames as bytes for ``raw_ids``, see `__init__`). ``time_s``: see `feed`."""
         data = self.transport.recv(timeout_s)
-        return self.feed(data) if data else []
+        return self.feed(data, time_s) if data else []
 
-    def feed(self, data: bytes) -> list[Any]:
+    def feed(self, data: bytes, time_s: float | None = None) -> list[Any]:
         """Parse ``data`` as if it had arrived on the transport: the good messages (MAVLinkMessage; frames
-        as bytes for ``raw_ids``, see `__init__`).
+        as bytes for ``raw_ids``, see `__init__`). The recorder stamps its frames ``time_s`` (s, clock
+        time): when the receiver acts on them (an FC's poll), so that its log and its timers agree
+        however late the read came; the clock's time of the read by default.
 
         The leading complete, unsigned MAVLink 2 frames whose CRC is good are handled here, in stream
         order: ids not accepted are dropped undecoded, ``raw_ids`` are handed over as bytes, others are
@@ -297,11 +299,13 @@ class MavlinkCodec:
         # (no such frame first, or the parser holds bytes: all to the parser at once)
         if n < 12 or data[0] != MAVLINK_V2_MAGIC or data[2] or not self._parser_empty:
             if n or not self._parser_empty:
-                self._parse_slow(data, good)
+                self._parse_slow(data, good, time_s)
             return good
         if data.__class__ is not bytes:
             data = bytes(data)  # (its slices are the frames handed on)
         leading, stats, recorder, crc = self._leading, self.stats, self.recorder, _mcrf4xx
+        if recorder is not None and time_s is None:
+            time_s = self.clock.now_s()
         i = 0
         while True:
             end = i + 12 + data[i + 1]  # (the incompatibility flags are 0: no signature)
@@ -325,16 +329,17 @@ class MavlinkCodec:
                     good.append(frame if kind == _RAW else decode_frame(frame))
                     stats.frames_received += 1
                 if recorder is not None:
-                    recorder.record(frame, self.clock.now_s())
+                    recorder.record(frame, time_s)  # type: ignore[arg-type]
             i = end
             if i + 12 > n or data[i] != MAVLINK_V2_MAGIC or data[i + 2]:
                 break
         if i < n:
-            self._parse_slow(data[i:] if i else data, good)
+            self._parse_slow(data[i:] if i else data, good, time_s)
         return good
 
-    def _parse_slow(self, data: bytes, good: list[MAVLinkMessage]) -> None:
-        """pymavlink's parser on ``data``; good messages appended to ``good``."""
+    def _parse_slow(self, data: bytes, good: list[MAVLinkMessage], time_s: float | None = None) -> None:
+        """pymavlink's parser on ``data``; good messages appended to ``good`` (recorded at ``time_s``, see
+        `feed`)."""
         try:
             msgs = self._parser.parse_buffer(data) or []
         except Exception:  # pymavlink raising on input it should have flagged: drop what it holds
@@ -343,7 +348,7 @@ class MavlinkCodec:
             self._parser_empty = True
             return
         self._parser_empty = self._parser.buf_len() == 0
-        now_s = self.clock.now_s()
+        now_s = self.clock.now_s() if time_s is None else time_s
         signing = self._signing
         for m in msgs:
             if isinstance(m, mavlink2.MAVLink_bad_data):
