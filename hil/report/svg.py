@@ -99,9 +99,8 @@ def _path(xs: np.ndarray, ys: np.ndarray) -> str:
         return ""
     # each run of finite points, one line: M at its first point, L before each of the others
     first = ok & ~np.concatenate(([False], ok[:-1]))
-    pen = np.where(first[ok], ord("M"), ord("L")).astype(np.uint64)[:, None]
     xy = _tenths(np.column_stack((xs, ys))[ok])
-    return _text([pen, xy[:, 0], ",", xy[:, 1]])
+    return _text([_ahead(np.where(first[ok], ord("M"), ord("L")), xy[:, 0]), _ahead(",", xy[:, 1])])
 
 
 #: the tenths `_tenths` writes from its table: 0.0 to 999.9 (a report's coordinates, in its viewBoxes)
@@ -111,15 +110,16 @@ _TABLE_TENTHS = 10_000
 @functools.cache
 def _tenths_table() -> np.ndarray:
     """``'%.1f'`` of t/10 for 0 <= t < `_TABLE_TENTHS`, then of -t/10 for the same t: a uint64 word
-    each, its ASCII codes in order, NUL after (made once, by numpy)."""
+    each, its ASCII codes in order, NUL before (a byte free for `_ahead`) and after (made once, by
+    numpy)."""
     t = np.arange(_TABLE_TENTHS)
     whole = t // 10
     chars = np.zeros((2, _TABLE_TENTHS, 8), np.uint8)
-    chars[1, :, 0] = ord("-")
-    for k, shown in ((1, whole >= 100), (2, whole >= 10), (3, True)):  # hundreds, tens, units
-        chars[:, :, k] = np.where(shown, ord("0") + whole // 10 ** (3 - k) % 10, 0)
-    chars[:, :, 4] = ord(".")
-    chars[:, :, 5] = ord("0") + t % 10
+    chars[1, :, 1] = ord("-")
+    for k, shown in ((2, whole >= 100), (3, whole >= 10), (4, True)):  # hundreds, tens, units
+        chars[:, :, k] = np.where(shown, ord("0") + whole // 10 ** (4 - k) % 10, 0)
+    chars[:, :, 5] = ord(".")
+    chars[:, :, 6] = ord("0") + t % 10
     return chars.reshape(-1, 8).view(np.uint64).ravel()
 
 
@@ -164,10 +164,22 @@ def _text(parts: Sequence[str | np.ndarray]) -> str:
     return out.tobytes().translate(None, b"\0").decode("ascii")
 
 
+def _ahead(char: str | np.ndarray, words: np.ndarray) -> np.ndarray:
+    """``words`` (n, w) with a character before each row's text, ``char`` or each row's ASCII code
+    (n,): in the row's first byte where every row leaves it free (a number from `_tenths`' table),
+    else in a word of its own."""
+    code = ord(char) if isinstance(char, str) else char
+    out = np.array(words, dtype=np.uint64)  # (a copy, contiguous)
+    if out.view(np.uint8)[:, 0].any():
+        out = np.hstack((np.zeros((len(out), 1), np.uint64), out))
+    out.view(np.uint8)[:, 0] = code
+    return out
+
+
 def _points(xy: np.ndarray, sep: str) -> str:
-    """The points ``xy`` (n, 2) as x,y with one decimal each, ``sep`` between them."""
+    """The points ``xy`` (n, 2) as x,y with one decimal each, the character ``sep`` between them."""
     c = _tenths(xy)
-    return _text([sep, c[:, 0], ",", c[:, 1]])[len(sep) :]
+    return _text([_ahead(sep, c[:, 0]), _ahead(",", c[:, 1])])[1:]
 
 
 def line_chart(chart: Chart) -> str:
@@ -383,8 +395,8 @@ def scene_svg(
               for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1)]
     if lines:  # (all the grid's ends projected at once, a line's two points each)
         ends = _tenths(to_screen(np.array(lines).reshape(-1, 3)).reshape(-1, 4))
-        out.append(_text(['<polyline points="', ends[:, 0], ",", ends[:, 1], " ", ends[:, 2], ",", ends[:, 3],
-                          '" class="fgrid"/>']))
+        out.append(_text(['<polyline points="', ends[:, 0], _ahead(",", ends[:, 1]), _ahead(" ", ends[:, 2]),
+                          _ahead(",", ends[:, 3]), '" class="fgrid"/>']))
     # the trajectory's shadow on the floor
     if len(idx) > 1:
         shadow = pos[idx].copy()
