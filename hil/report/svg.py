@@ -21,12 +21,22 @@ _CMAP = np.array(
 
 def colormaps(xs: np.ndarray) -> list[str]:
     """Colours for values ``xs`` in [0, 1] (clipped) as ``#rrggbb``, all at once."""
+    return _colour_words(xs).tobytes().decode("ascii").split("\0")[:-1]
+
+
+_HEX = np.frombuffer(b"0123456789abcdef", np.uint8)
+
+
+def _colour_words(xs: np.ndarray) -> np.ndarray:
+    """`colormaps`' colours as `_text` takes them: (n, 1) words of ASCII codes, ``#rrggbb`` and a NUL."""
     x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
     i = np.minimum(x.astype(int), len(_CMAP) - 2)
     c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
     rgb = np.round(c).astype(int) @ np.array([1 << 16, 1 << 8, 1])  # (each 0..255: 0xrrggbb)
-    text = ("#%06x" * len(x)) % tuple(rgb.tolist())  # (one format call: each colour 7 characters)
-    return [text[k : k + 7] for k in range(0, len(text), 7)]
+    chars = np.zeros((len(x), 8), np.uint8)
+    chars[:, 0] = ord("#")
+    chars[:, 1:7] = _HEX[rgb[:, None] >> np.arange(20, -1, -4) & 15]  # (six hex digits, as '%06x')
+    return chars.view(np.uint64)
 
 
 def colormap(x: float) -> str:
@@ -206,11 +216,13 @@ def line_chart(chart: Chart) -> str:
     if t1 <= t0:
         t1 = t0 + 1.0
 
+    # (a float in, a float out: a tick's or a mark's place in plain float arithmetic, the same operations
+    # numpy does on the series' arrays)
     def sx(v: np.ndarray | float) -> np.ndarray | float:
-        return left + (np.asarray(v) - t0) / (t1 - t0) * pw
+        return left + (v - t0) / (t1 - t0) * pw
 
     def sy(v: np.ndarray | float) -> np.ndarray | float:
-        return top + (hi - np.asarray(v)) / (hi - lo) * ph
+        return top + (hi - v) / (hi - lo) * ph
 
     out = [f'<svg class="chart" viewBox="0 0 {w} {h}" width="{w}" height="{h}" role="img">']
     out.append(f"<title>{escape(chart.title)}</title>")
@@ -276,19 +288,28 @@ class View:
     elevation_rad: float
 
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(right, up, towards-viewer) unit vectors in world ENU."""
+        """(right, up, towards-viewer) unit vectors in world ENU (read-only; made once a view)."""
+        return self._axes
+
+    @functools.cached_property
+    def _axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a, e = self.azimuth_rad, self.elevation_rad
         tx, ty, tz = math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)
         rx, ry = -math.sin(a), math.cos(a)
         # up = towards x right, term by term as np.cross computes it (the same bits; right has no z)
         up = np.array([ty * 0.0 - tz * ry, tz * rx - tx * 0.0, tx * ry - ty * rx])
-        return np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
+        axes = np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
+        for v in axes:
+            v.flags.writeable = False
+        return axes
 
     def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Screen (x right, y up) and depth (towards the viewer) of world points (N, 3)."""
-        right, up, towards = self.axes()
+        right, up, towards = self._axes
         p = np.atleast_2d(np.asarray(pts, dtype=float))
-        return np.stack([p @ right, p @ up], axis=1), p @ towards
+        xy = np.empty((len(p), 2))
+        xy[:, 0], xy[:, 1] = p @ right, p @ up
+        return xy, p @ towards
 
 
 @dataclass(frozen=True)
@@ -328,8 +349,7 @@ class Scene:
         speed = np.asarray(self.speed_m_s, dtype=float)
         vmax = float(np.nanmax(speed)) if np.any(np.isfinite(speed)) else 1.0
         vmax = max(vmax, 1e-6)
-        colours = np.array(colormaps(speed[idx] / vmax) if len(idx) else [], dtype="S8")
-        return idx, colours.view(np.uint64).reshape(len(idx), 1), vmax
+        return idx, _colour_words(speed[idx] / vmax), vmax
 
     def wall_corners(self) -> np.ndarray:
         """The wall's four corners: a rectangle in the gap's plane, sides along e0 and e2 (4, 3)."""
@@ -371,12 +391,12 @@ def scene_svg(
     )
     ox = (width - scale * (hi[0] - lo[0])) / 2
     oy = (height - 20 - scale * (hi[1] - lo[1])) / 2 + 20
+    x0, y0 = lo
 
     def to_screen(points: np.ndarray) -> np.ndarray:
         xy, _ = view.project(points)
-        return np.stack(
-            [ox + (xy[:, 0] - lo[0]) * scale, height - (oy + (xy[:, 1] - lo[1]) * scale) + 20], axis=1
-        )
+        xy[:, 0], xy[:, 1] = ox + (xy[:, 0] - x0) * scale, height - (oy + (xy[:, 1] - y0) * scale) + 20
+        return xy
 
     def poly(points: np.ndarray) -> str:
         return _points(to_screen(points), " ")
