@@ -109,8 +109,8 @@ def _path(xs: np.ndarray, ys: np.ndarray) -> str:
         return ""
     # each run of finite points, one line: M at its first point, L before each of the others
     first = ok & ~np.concatenate(([False], ok[:-1]))
-    xy = _tenths(np.column_stack((xs, ys))[ok])
-    return _text([_ahead(np.where(first[ok], ord("M"), ord("L")), xy[:, 0]), _ahead(",", xy[:, 1])])
+    x, y = _tenths(np.array((xs[ok], ys[ok])))
+    return _text([_ahead(np.where(first[ok], ord("M"), ord("L")), x), _ahead(",", y)])
 
 
 #: the tenths `_tenths` writes from its table: 0.0 to 999.9 (a report's coordinates, in its viewBoxes)
@@ -425,21 +425,23 @@ def scene_svg(
     # wall with the opening (even-odd fill leaves the hole), then the trajectory in two halves
     # (behind / in front of the wall as seen by the viewer) so the wall hides what it should.
     e1 = scene.gap_rotation[:, 0]
-    wall_path = f'<path d="M{poly(wall)}Z M{poly(gap)}Z" fill-rule="evenodd" class="wall"/>'
-    gap_outline = f'<polygon points="{poly(gap)}" class="gapedge"/>'
+    opening = poly(gap)
+    wall_path = f'<path d="M{poly(wall)}Z M{opening}Z" fill-rule="evenodd" class="wall"/>'
+    gap_outline = f'<polygon points="{opening}" class="gapedge"/>'
     _, _, towards = view.axes()
     side = (pos[idx] - scene.gap_centre_m) @ e1 if len(idx) else np.array([])
     viewer_side = 1.0 if float(e1 @ towards) > 0 else -1.0
     in_front = side * viewer_side > 0
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
-    ends = np.hstack([screen[:-1], screen[1:]])  # each segment's (x0, y0, x1, y1)
+    point = _tenths(screen)  # (each point's x, y as text once: a point ends two segments)
+    ends = np.concatenate([point[:-1], point[1:]], axis=1)  # each segment's (x0, y0, x1, y1)
 
     def segments(front: bool) -> str:
         """The trajectory's segments with an end on the ``front`` side, a line each."""
         drawn = np.flatnonzero((in_front[:-1] == front) | (in_front[1:] == front))
         if not len(drawn):
             return ""
-        e = _tenths(ends[drawn])
+        e = ends[drawn]
         return _text(['<line x1="', e[:, 0], '" y1="', e[:, 1], '" x2="', e[:, 2], '" y2="', e[:, 3],
                       '" stroke="', colours[drawn], '" class="traj"/>'])
 
