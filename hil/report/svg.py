@@ -135,7 +135,8 @@ def _tenths_table() -> np.ndarray:
 
 def _tenths(values: np.ndarray) -> np.ndarray:
     """Each value with one decimal as ``'%.1f'`` writes it, all at once (a call a value took most of a
-    report's time): ``values.shape + (w,)`` uint64 words of ASCII codes in order, NUL after the text.
+    report's time): ``values.shape + (w,)`` uint64 words of ASCII codes in order, NULs (nothing) about
+    the text (`_text` drops them).
 
     ``'%.1f'`` rounds the value's exact binary expansion to tenths, a tie (x.25, x.75) to even. Here
     the product ten times the value is rounded to an integer; a product that lands on a half (rare) is
