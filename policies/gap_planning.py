@@ -41,7 +41,6 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
-from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -564,18 +563,19 @@ class MissionPlan:
         return (r[0], r[1], r[2]), (r[3], r[4], r[5]), (r[6], r[7], r[8]), r[9]
 
     def reference_positions(self, times: Sequence[float]) -> np.ndarray:
-        """`reference_tuples`' positions (m) at each of the mission times ``times`` (s, floats): (N, 3), the
-        compiled reference and the packed plan looked up once for them all (a run's checks ask for a
-        reference a sample)."""
-        reference, k = self._reference, self.packed
-        return np.fromiter(chain.from_iterable(reference(k, t)[:3] for t in times), dtype=np.float64,
-                           count=3 * len(times)).reshape(-1, 3)
+        """`reference_tuples`' positions (m) at each of the mission times ``times`` (s, floats): (N, 3), in
+        one compiled call (`plan_positions`; a run's checks ask for a reference a sample)."""
+        out = np.empty((len(times), 3))
+        PLAN_POSITIONS.get()(self.packed, np.asarray(times, dtype=np.float64), out)
+        return out
 
     def segment_indices(self, times: Sequence[float]) -> np.ndarray:
         """`segment_index` at each of the mission times ``times`` (s): (N,), the index of the segment
-        `segment_at` gives in `Segment`'s order (0 the approach .. 3 the hover)."""
-        starts = self.t_traverse_start_s, self.t_recovery_start_s, self.t_hover_start_s
-        return np.array([segment_index(t, *starts) for t in times], dtype=np.int64)
+        `segment_at` gives in `Segment`'s order (0 the approach .. 3 the hover), in one compiled call."""
+        out = np.empty(len(times), dtype=np.int64)
+        SEGMENT_INDICES.get()(np.asarray(times, dtype=np.float64), self.t_traverse_start_s,
+                              self.t_recovery_start_s, self.t_hover_start_s, out)
+        return out
 
     @functools.cached_property
     def _reference(self) -> Any:
@@ -666,6 +666,22 @@ def plan_reference(k: np.ndarray, t: float) -> tuple[float, ...]:
     return px, py, pz, vx, vy, vz, ax, ay, az, k[3]
 
 
+def plan_positions(k: np.ndarray, times: np.ndarray, out: np.ndarray) -> None:
+    """`plan_reference`'s position (m) at each of the mission times ``times`` (s) into ``out`` (N, 3).
+    Compiled (`PLAN_POSITIONS`)."""
+    for i in range(len(times)):
+        r = plan_reference(k, times[i])
+        out[i, 0], out[i, 1], out[i, 2] = r[0], r[1], r[2]
+
+
+def segment_indices(times: np.ndarray, t_traverse_s: float, t_recovery_s: float, t_hover_s: float,
+                    out: np.ndarray) -> None:
+    """`segment_index` at each of the mission times ``times`` (s) into ``out`` (N,). Compiled
+    (`SEGMENT_INDICES`)."""
+    for i in range(len(times)):
+        out[i] = segment_index(times[i], t_traverse_s, t_recovery_s, t_hover_s)
+
+
 _POLY_STATE = Kernel(_poly_state)
 #: `_poly_axes` compiled (the take-off's command reads its polynomial with it too)
 POLY_AXES = Kernel(_poly_axes, _poly_state=_POLY_STATE)
@@ -674,6 +690,10 @@ SEGMENT_INDEX = Kernel(segment_index)
 #: `plan_reference` compiled
 PLAN_REFERENCE = Kernel(plan_reference, segment_index=SEGMENT_INDEX, _poly_axes=POLY_AXES,
                         ballistic_state=Kernel(ballistic_state))
+#: `plan_positions` compiled (a run's position errors: a reference a sample)
+PLAN_POSITIONS = Kernel(plan_positions, plan_reference=PLAN_REFERENCE)
+#: `segment_indices` compiled
+SEGMENT_INDICES = Kernel(segment_indices, segment_index=SEGMENT_INDEX)
 
 
 #: approach durations (s) the search tries after the one asked for, nearest to it first (the recovery's step)

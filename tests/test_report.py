@@ -208,3 +208,21 @@ def test_a_chart_line_lifts_the_pen_at_each_sample_that_is_not_finite() -> None:
     runs = re.findall(r"M[^M]*", paths[0])
     assert [r.count("L") for r in runs] == [1, 1, 0, 0]  # (0, 1), (3, 4), (6), (8)
     assert all(re.fullmatch(r"M-?\d+\.\d,-?\d+\.\d(L-?\d+\.\d,-?\d+\.\d)*", r) for r in runs)
+
+
+def test_the_drawings_coordinates_read_as_one_decimal_formatting_writes_them() -> None:
+    """Every coordinate a chart or a scene draws is the text ``'%.1f'`` gives: random values across the
+    table's range and beyond, ties of the binary value (x.25, x.75: to even) and values a hair either
+    side of a printed half (0.05, 0.15, ...), negative zero and values that round to it, and values not
+    finite or too large for the table."""
+    from hil.report.svg import _points
+
+    rng = np.random.default_rng(7)
+    halves = np.arange(-20000, 20000) / 20 + 0.05  # (x.x5 as written: each a hair above or below)
+    values = np.concatenate([
+        rng.uniform(-1200.0, 1200.0, 20000), np.arange(-40000, 40000) / 40, halves,
+        [0.0, -0.0, 0.04, -0.04, -0.05, 5e-324, -5e-324, 999.85, 999.899, 999.95, 1e13 + 0.25]])
+    values = np.concatenate([values, np.nextafter(values, np.inf), np.nextafter(values, -np.inf)])
+    for chunk in (values[np.abs(values) < 999.0], values, np.array([1.0, np.nan, np.inf, -np.inf])):
+        xy = np.column_stack((chunk, chunk[::-1]))
+        assert _points(xy, " ").split(" ") == [f"{x:.1f},{y:.1f}" for x, y in xy.tolist()]

@@ -21,12 +21,22 @@ _CMAP = np.array(
 
 def colormaps(xs: np.ndarray) -> list[str]:
     """Colours for values ``xs`` in [0, 1] (clipped) as ``#rrggbb``, all at once."""
+    return _colour_words(xs).tobytes().decode("ascii").split("\0")[:-1]
+
+
+_HEX = np.frombuffer(b"0123456789abcdef", np.uint8)
+
+
+def _colour_words(xs: np.ndarray) -> np.ndarray:
+    """`colormaps`' colours as `_text` takes them: (n, 1) words of ASCII codes, ``#rrggbb`` and a NUL."""
     x = np.clip(np.asarray(xs, dtype=float), 0.0, 1.0) * (len(_CMAP) - 1)
     i = np.minimum(x.astype(int), len(_CMAP) - 2)
     c = _CMAP[i] + (x - i)[:, None] * (_CMAP[i + 1] - _CMAP[i])
     rgb = np.round(c).astype(int) @ np.array([1 << 16, 1 << 8, 1])  # (each 0..255: 0xrrggbb)
-    text = ("#%06x" * len(x)) % tuple(rgb.tolist())  # (one format call: each colour 7 characters)
-    return [text[k : k + 7] for k in range(0, len(text), 7)]
+    chars = np.zeros((len(x), 8), np.uint8)
+    chars[:, 0] = ord("#")
+    chars[:, 1:7] = _HEX[rgb[:, None] >> np.arange(20, -1, -4) & 15]  # (six hex digits, as '%06x')
+    return chars.view(np.uint64)
 
 
 def colormap(x: float) -> str:
@@ -98,19 +108,89 @@ def _path(xs: np.ndarray, ys: np.ndarray) -> str:
     if not ok.any():
         return ""
     # each run of finite points, one line: M at its first point, L before each of the others
-    edges = np.flatnonzero(np.diff(np.concatenate(([False], ok, [False])).astype(np.int8)))
-    xy = np.column_stack((xs, ys)).ravel().tolist()
-    return "".join("M" + _points(xy[2 * a : 2 * b], "L")
-                   for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+    first = ok & ~np.concatenate(([False], ok[:-1]))
+    x, y = _tenths(np.array((xs[ok], ys[ok])))
+    return _text([_ahead(np.where(first[ok], ord("M"), ord("L")), x), _ahead(",", y)])
 
 
-_POINT = "%.1f,%.1f"  # (x, y) with one decimal, as the charts and scenes draw it
+#: the tenths `_tenths` writes from its table: 0.0 to 999.9 (a report's coordinates, in its viewBoxes)
+_TABLE_TENTHS = 10_000
 
 
-def _points(xy: list[float], sep: str) -> str:
-    """The points ``xy`` (x0, y0, x1, y1, ...) as `_POINT` each, ``sep`` between them: one format call
-    for them all (a call a point took most of a report's time)."""
-    return sep.join([_POINT] * (len(xy) // 2)) % tuple(xy)
+@functools.cache
+def _tenths_table() -> np.ndarray:
+    """``'%.1f'`` of t/10 for 0 <= t < `_TABLE_TENTHS`, then of -t/10 for the same t: a uint64 word
+    each, its ASCII codes in order, NUL before (a byte free for `_ahead`) and after (made once, by
+    numpy)."""
+    t = np.arange(_TABLE_TENTHS)
+    whole = t // 10
+    chars = np.zeros((2, _TABLE_TENTHS, 8), np.uint8)
+    chars[1, :, 1] = ord("-")
+    for k, shown in ((2, whole >= 100), (3, whole >= 10), (4, True)):  # hundreds, tens, units
+        chars[:, :, k] = np.where(shown, ord("0") + whole // 10 ** (4 - k) % 10, 0)
+    chars[:, :, 5] = ord(".")
+    chars[:, :, 6] = ord("0") + t % 10
+    return chars.reshape(-1, 8).view(np.uint64).ravel()
+
+
+def _tenths(values: np.ndarray) -> np.ndarray:
+    """Each value with one decimal as ``'%.1f'`` writes it, all at once (a call a value took most of a
+    report's time): ``values.shape + (w,)`` uint64 words of ASCII codes in order, NULs (nothing) about
+    the text (`_text` drops them).
+
+    ``'%.1f'`` rounds the value's exact binary expansion to tenths, a tie (x.25, x.75) to even. Here
+    the product ten times the value is rounded to an integer; a product that lands on a half (rare) is
+    decided by its rounding error, found exactly (a sum of the exact 8 and 2 times the value). Tenths
+    from the table (values below 999.9 in size: a report's coordinates); any other value (not finite,
+    larger) written by ``'%.1f'`` itself."""
+    v = np.asarray(values, dtype=float)
+    a = np.abs(v)
+    if not (v.size and a.max() < _TABLE_TENTHS / 10 - 0.1):  # (NaN: not below)
+        text = np.array([f"{x:.1f}".encode() for x in v.ravel().tolist()] + [b""])[:-1]
+        words = -(-text.itemsize // 8)
+        return text.astype(f"S{8 * words}").view(np.uint64).reshape((*v.shape, words))
+    y = a * 10.0
+    tenths = np.rint(y)
+    tie = np.abs(y - tenths) == 0.5
+    if tie.any():
+        p, q = a * 8.0, a * 2.0  # (exact; y is their sum rounded)
+        back = y - p
+        err = (p - (y - back)) + (q - back)  # 10 a = y + err exactly
+        tenths = np.where(tie & (err > 0), np.ceil(y), np.where(tie & (err < 0), np.floor(y), tenths))
+    index = tenths.astype(np.intp) + np.signbit(v) * _TABLE_TENTHS
+    return _tenths_table()[index][..., None]
+
+
+def _text(parts: Sequence[str | np.ndarray]) -> str:
+    """Rows of text, all at once: each row the parts in turn, a str the same in every row, an (n, w)
+    array of uint64 words (ASCII codes in order, NUL: nothing) a row's own."""
+    n = next(len(p) for p in parts if not isinstance(p, str))
+    words = [np.frombuffer(p.encode().ljust(-(-len(p) // 8) * 8, b"\0"), np.uint64) if isinstance(p, str)
+             else p for p in parts]
+    out = np.empty((n, sum(w.shape[-1] for w in words)), np.uint64)
+    at = 0
+    for w in words:
+        out[:, at : at + w.shape[-1]] = w
+        at += w.shape[-1]
+    return out.tobytes().translate(None, b"\0").decode("ascii")
+
+
+def _ahead(char: str | np.ndarray, words: np.ndarray) -> np.ndarray:
+    """``words`` (n, w) with a character before each row's text, ``char`` or each row's ASCII code
+    (n,): in the row's first byte where every row leaves it free (a number from `_tenths`' table),
+    else in a word of its own."""
+    code = ord(char) if isinstance(char, str) else char
+    out = np.array(words, dtype=np.uint64)  # (a copy, contiguous)
+    if out.view(np.uint8)[:, 0].any():
+        out = np.hstack((np.zeros((len(out), 1), np.uint64), out))
+    out.view(np.uint8)[:, 0] = code
+    return out
+
+
+def _points(xy: np.ndarray, sep: str) -> str:
+    """The points ``xy`` (n, 2) as x,y with one decimal each, the character ``sep`` between them."""
+    c = _tenths(xy)
+    return _text([_ahead(sep, c[:, 0]), _ahead(",", c[:, 1])])[1:]
 
 
 def line_chart(chart: Chart) -> str:
@@ -137,11 +217,13 @@ def line_chart(chart: Chart) -> str:
     if t1 <= t0:
         t1 = t0 + 1.0
 
+    # (a float in, a float out: a tick's or a mark's place in plain float arithmetic, the same operations
+    # numpy does on the series' arrays)
     def sx(v: np.ndarray | float) -> np.ndarray | float:
-        return left + (np.asarray(v) - t0) / (t1 - t0) * pw
+        return left + (v - t0) / (t1 - t0) * pw
 
     def sy(v: np.ndarray | float) -> np.ndarray | float:
-        return top + (hi - np.asarray(v)) / (hi - lo) * ph
+        return top + (hi - v) / (hi - lo) * ph
 
     out = [f'<svg class="chart" viewBox="0 0 {w} {h}" width="{w}" height="{h}" role="img">']
     out.append(f"<title>{escape(chart.title)}</title>")
@@ -207,19 +289,28 @@ class View:
     elevation_rad: float
 
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(right, up, towards-viewer) unit vectors in world ENU."""
+        """(right, up, towards-viewer) unit vectors in world ENU (read-only; made once a view)."""
+        return self._axes
+
+    @functools.cached_property
+    def _axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a, e = self.azimuth_rad, self.elevation_rad
         tx, ty, tz = math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)
         rx, ry = -math.sin(a), math.cos(a)
         # up = towards x right, term by term as np.cross computes it (the same bits; right has no z)
         up = np.array([ty * 0.0 - tz * ry, tz * rx - tx * 0.0, tx * ry - ty * rx])
-        return np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
+        axes = np.array([rx, ry, 0.0]), up, np.array([tx, ty, tz])
+        for v in axes:
+            v.flags.writeable = False
+        return axes
 
     def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Screen (x right, y up) and depth (towards the viewer) of world points (N, 3)."""
-        right, up, towards = self.axes()
+        right, up, towards = self._axes
         p = np.atleast_2d(np.asarray(pts, dtype=float))
-        return np.stack([p @ right, p @ up], axis=1), p @ towards
+        xy = np.empty((len(p), 2))
+        xy[:, 0], xy[:, 1] = p @ right, p @ up
+        return xy, p @ towards
 
 
 @dataclass(frozen=True)
@@ -248,9 +339,10 @@ class Scene:
         )
 
     @functools.cached_property
-    def drawn(self) -> tuple[np.ndarray, list[str], float]:
+    def drawn(self) -> tuple[np.ndarray, np.ndarray, float]:
         """The trajectory as every view draws it: the indices of its points drawn (at most 700, finite),
-        their colours by speed, and the speed of the scale's top (m/s)."""
+        their colours by speed (``#rrggbb``: (n, 1) words of ASCII codes, as `_text` takes them) and the
+        speed of the scale's top (m/s)."""
         pos = np.asarray(self.pos_m, dtype=float)
         ok = np.all(np.isfinite(pos), axis=1)
         idx = downsample(len(pos), 700)
@@ -258,7 +350,7 @@ class Scene:
         speed = np.asarray(self.speed_m_s, dtype=float)
         vmax = float(np.nanmax(speed)) if np.any(np.isfinite(speed)) else 1.0
         vmax = max(vmax, 1e-6)
-        return idx, colormaps(speed[idx] / vmax) if len(idx) else [], vmax
+        return idx, _colour_words(speed[idx] / vmax), vmax
 
     def wall_corners(self) -> np.ndarray:
         """The wall's four corners: a rectangle in the gap's plane, sides along e0 and e2 (4, 3)."""
@@ -268,10 +360,6 @@ class Scene:
         return np.array(
             [c + hw * e0 + hh * e2, c - hw * e0 + hh * e2, c - hw * e0 - hh * e2, c + hw * e0 - hh * e2]
         )
-
-
-#: a segment of the trajectory: its ends (x0, y0, x1, y1) and colour
-_SEGMENT = '<line x1="%.1f" y1="%.1f" x2="%.1f" y2="%.1f" stroke="%s" class="traj"/>'
 
 
 def scene_svg(
@@ -304,15 +392,15 @@ def scene_svg(
     )
     ox = (width - scale * (hi[0] - lo[0])) / 2
     oy = (height - 20 - scale * (hi[1] - lo[1])) / 2 + 20
+    x0, y0 = lo
 
     def to_screen(points: np.ndarray) -> np.ndarray:
         xy, _ = view.project(points)
-        return np.stack(
-            [ox + (xy[:, 0] - lo[0]) * scale, height - (oy + (xy[:, 1] - lo[1]) * scale) + 20], axis=1
-        )
+        xy[:, 0], xy[:, 1] = ox + (xy[:, 0] - x0) * scale, height - (oy + (xy[:, 1] - y0) * scale) + 20
+        return xy
 
     def poly(points: np.ndarray) -> str:
-        return _points(to_screen(points).ravel().tolist(), " ")
+        return _points(to_screen(points), " ")
 
     out = [
         f'<svg class="scene" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">',
@@ -327,9 +415,9 @@ def scene_svg(
     lines += [[[lab_lo[0], gy, z0], [lab_hi[0], gy, z0]]
               for gy in np.arange(math.ceil(lab_lo[1]), math.floor(lab_hi[1]) + 1)]
     if lines:  # (all the grid's ends projected at once, a line's two points each)
-        ends = to_screen(np.array(lines).reshape(-1, 3)).ravel().tolist()
-        out += [f'<polyline points="{_points(ends[k : k + 4], " ")}" class="fgrid"/>'
-                for k in range(0, len(ends), 4)]
+        ends = _tenths(to_screen(np.array(lines).reshape(-1, 3)).reshape(-1, 4))
+        out.append(_text(['<polyline points="', ends[:, 0], _ahead(",", ends[:, 1]), _ahead(" ", ends[:, 2]),
+                          _ahead(",", ends[:, 3]), '" class="fgrid"/>']))
     # the trajectory's shadow on the floor
     if len(idx) > 1:
         shadow = pos[idx].copy()
@@ -338,22 +426,25 @@ def scene_svg(
     # wall with the opening (even-odd fill leaves the hole), then the trajectory in two halves
     # (behind / in front of the wall as seen by the viewer) so the wall hides what it should.
     e1 = scene.gap_rotation[:, 0]
-    wall_path = f'<path d="M{poly(wall)}Z M{poly(gap)}Z" fill-rule="evenodd" class="wall"/>'
-    gap_outline = f'<polygon points="{poly(gap)}" class="gapedge"/>'
+    opening = poly(gap)
+    wall_path = f'<path d="M{poly(wall)}Z M{opening}Z" fill-rule="evenodd" class="wall"/>'
+    gap_outline = f'<polygon points="{opening}" class="gapedge"/>'
     _, _, towards = view.axes()
     side = (pos[idx] - scene.gap_centre_m) @ e1 if len(idx) else np.array([])
     viewer_side = 1.0 if float(e1 @ towards) > 0 else -1.0
     in_front = side * viewer_side > 0
     screen = to_screen(pos[idx]) if len(idx) else np.zeros((0, 2))
-    ends = np.hstack([screen[:-1], screen[1:]])  # each segment's (x0, y0, x1, y1)
-    colour = np.array(colours, dtype=object)
+    point = _tenths(screen)  # (each point's x, y as text once: a point ends two segments)
+    ends = np.concatenate([point[:-1], point[1:]], axis=1)  # each segment's (x0, y0, x1, y1)
 
     def segments(front: bool) -> str:
-        """The trajectory's segments with an end on the ``front`` side, a line each (one format call)."""
+        """The trajectory's segments with an end on the ``front`` side, a line each."""
         drawn = np.flatnonzero((in_front[:-1] == front) | (in_front[1:] == front))
-        values = np.empty((len(drawn), 5), dtype=object)  # (the ends as Python floats, then the colour)
-        values[:, :4], values[:, 4] = ends[drawn], colour[drawn]
-        return (_SEGMENT * len(drawn)) % tuple(values.ravel().tolist())
+        if not len(drawn):
+            return ""
+        e = ends[drawn]
+        return _text(['<line x1="', e[:, 0], '" y1="', e[:, 1], '" x2="', e[:, 2], '" y2="', e[:, 3],
+                      '" stroke="', colours[drawn], '" class="traj"/>'])
 
     out += [segments(front=False), wall_path, gap_outline, segments(front=True)]
     if len(idx):
